@@ -1,0 +1,217 @@
+"""One configuration object for the whole pipeline, loaded from YAML.
+
+``Config`` is a tree of dataclasses; ``load_config(path)`` reads a YAML file whose
+keys mirror the tree (unknown keys are an error naming the file and the key), and
+``Config.with_overrides`` applies dotted ``section.key=value`` overrides (the CLI
+uses them).  ``dump_config`` writes it back, so ``run.json`` can record what was used.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .errors import ConfigError
+from .types import DEFAULT_DYNAMIC_CLASSES
+
+
+@dataclass
+class StereoConfig:
+    """Disparity estimation (thesis 3.3.1/3.3.2): OpenCV StereoBM / StereoSGBM + WLS."""
+
+    algorithm: str = "bm"  # bm | sgbm | sgbm3way | hh
+    min_disparity: int = 0
+    num_disparities: int = 96  # multiple of 16
+    block_size: int = 15  # odd; BM: 5..255, SGBM: 1..
+    p1: int | None = None  # SGBM smoothness; None -> 8*cn*block_size^2
+    p2: int | None = None  # None -> 32*cn*block_size^2
+    disp12_max_diff: int = 1
+    pre_filter_cap: int = 31
+    uniqueness_ratio: int = 10
+    speckle_window_size: int = 100
+    speckle_range: int = 2
+    texture_threshold: int = 10  # BM only
+    wls: bool = False
+    wls_lambda: float = 8000.0
+    wls_sigma: float = 1.5
+    # Where to compute disparity when only the masks need it:
+    # "full" = whole frame; "boxes" = only the image band covering the detections.
+    region: str = "boxes"
+    # Downscale factor for the masking disparity (1 = full resolution, 2 = half).
+    scale: int = 1
+
+
+@dataclass
+class DetectorConfig:
+    name: str = "yolox-nano"  # registry name or a path to a .cfg / .onnx file
+    score_threshold: float = 0.35
+    nms_threshold: float = 0.45
+    input_size: int | None = None  # None: the model's native size
+    dynamic_classes: list[str] = field(default_factory=lambda: list(DEFAULT_DYNAMIC_CLASSES))
+    threads: int = 2
+    min_box_size: float = 4.0  # boxes thinner than this (pixels) are dropped
+
+
+@dataclass
+class OutlineConfig:
+    """Outline from the dominant disparity peak inside each box (thesis 3.3.3)."""
+
+    bin_width: float = 1.0  # histogram bin width in disparity pixels
+    peak_tolerance: float = 1.5  # +- pixels (or relative, see below) around the peak
+    peak_tolerance_rel: float = 0.08  # relative tolerance, for near objects
+    min_valid_fraction: float = 0.05  # fewer valid pixels than this -> box fallback
+    min_box_pixels: int = 64  # smaller boxes are masked whole
+    fill_holes: bool = True
+    dilate: int = 3  # dilation radius in pixels applied to each object mask
+    keep_largest_component: bool = True
+
+
+@dataclass
+class MaskerConfig:
+    kind: str = "outline"  # outline | box | seg | none
+    outline: OutlineConfig = field(default_factory=OutlineConfig)
+    seg_model: str = "yolov8n-seg-int8"
+    box_margin: int = 0
+
+
+@dataclass
+class Config:
+    stereo: StereoConfig = field(default_factory=StereoConfig)
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    masker: MaskerConfig = field(default_factory=MaskerConfig)
+    seed: int = 0
+
+    def with_overrides(self, overrides: dict[str, Any]) -> "Config":
+        """Return a copy with dotted-key overrides applied (``{"stereo.wls": True}``)."""
+        data = to_dict(self)
+        for dotted, value in overrides.items():
+            if value is None:
+                continue
+            node = data
+            parts = dotted.split(".")
+            for p in parts[:-1]:
+                if p not in node or not isinstance(node[p], dict):
+                    raise ConfigError(f"unknown configuration key '{dotted}'")
+                node = node[p]
+            if parts[-1] not in node:
+                raise ConfigError(f"unknown configuration key '{dotted}'")
+            node[parts[-1]] = value
+        return from_dict(Config, data, "<overrides>")
+
+
+def to_dict(obj: Any) -> Any:
+    if dataclasses.is_dataclass(obj):
+        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, (list, tuple)):
+        return [to_dict(v) for v in obj]
+    return obj
+
+
+def _coerce(tp: Any, value: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        last: Exception | None = None
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(a, value, where)
+            except ConfigError as e:
+                last = e
+        raise last or ConfigError(f"invalid value {value!r} for '{where}'")
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ConfigError(f"'{where}' must be a mapping, got {type(value).__name__}")
+        return from_dict(tp, value, where)
+    if origin is list:
+        if isinstance(value, str):
+            value = [v.strip() for v in value.split(",") if v.strip()]
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"'{where}' must be a list, got {value!r}")
+        return [_coerce(args[0] if args else Any, v, where) for v in value]
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("1", "true", "yes", "on", "0", "false", "no", "off"):
+            return value.lower() in ("1", "true", "yes", "on")
+        if isinstance(value, int) and value in (0, 1):
+            return bool(value)
+        raise ConfigError(f"'{where}' must be true/false, got {value!r}")
+    if tp is int:
+        if isinstance(value, bool):
+            raise ConfigError(f"'{where}' must be an integer, got {value!r}")
+        try:
+            f = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"'{where}' must be an integer, got {value!r}") from None
+        if f != int(f):
+            raise ConfigError(f"'{where}' must be an integer, got {value!r}")
+        return int(f)
+    if tp is float:
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"'{where}' must be a number, got {value!r}") from None
+    if tp is str:
+        if not isinstance(value, (str, int, float)):
+            raise ConfigError(f"'{where}' must be a string, got {value!r}")
+        return str(value)
+    return value
+
+
+def from_dict(cls: type, data: dict[str, Any], where: str = "") -> Any:
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(data) - names
+    if unknown:
+        prefix = f"{where}." if where and not where.startswith("<") else ""
+        raise ConfigError(
+            f"unknown configuration key(s): {', '.join(prefix + k for k in sorted(unknown))}"
+        )
+    kwargs = {}
+    for k, v in data.items():
+        sub = f"{where}.{k}" if where and not where.startswith("<") else k
+        kwargs[k] = _coerce(hints[k], v, sub)
+    return cls(**kwargs)
+
+
+def load_config(path: str | Path | None = None) -> Config:
+    """Load a YAML configuration; ``None`` gives the defaults."""
+    if path is None:
+        return Config()
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError("configuration file not found", p)
+    try:
+        text = p.read_text()
+        if text.lstrip().startswith("%YAML"):
+            # OpenCV FileStorage header (ORB-SLAM2 settings files) is not plain YAML.
+            text = "\n".join(line for line in text.splitlines() if not line.startswith("%YAML"))
+        data = yaml.safe_load(text) or {}
+    except (OSError, yaml.YAMLError) as e:
+        raise ConfigError(f"cannot parse YAML: {e}", p) from None
+    if not isinstance(data, dict):
+        raise ConfigError("top level must be a mapping", p)
+    # ORB-SLAM2 settings files have flat dotted keys ("Camera.fx"); they carry no
+    # dynastereo sections, so keep only our sections here (calibration is read by io).
+    ours = {k: v for k, v in data.items() if "." not in k}
+    try:
+        return from_dict(Config, ours)
+    except ConfigError as e:
+        raise ConfigError(str(e), p) from None
+
+
+def dump_config(cfg: Config, path: str | Path | None = None) -> str:
+    text = yaml.safe_dump(to_dict(cfg), sort_keys=False)
+    if path is not None:
+        Path(path).write_text(text)
+    return text

@@ -1,0 +1,209 @@
+"""Typed data passed between the stages: io -> masking -> slam -> eval.
+
+Conventions
+-----------
+* Images are numpy arrays, ``uint8``, either ``(H, W)`` grayscale or ``(H, W, 3)`` BGR.
+* All images a stage receives are *rectified*: epipolar lines are image rows.
+* Disparity maps are ``float32`` in pixels, ``x_left - x_right``; a value ``<= 0``
+  means "no valid disparity" (the KITTI convention of 0 = unknown).
+* Boxes are ``float32`` arrays ``(N, 4)`` of ``x1, y1, x2, y2`` in pixel coordinates
+  of the image they were detected in (x2/y2 exclusive).
+* Masks are ``uint8`` with 255 = dynamic, 0 = static.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+# Default dynamic classes (COCO names), thesis + issue: things that move on a street.
+DEFAULT_DYNAMIC_CLASSES: tuple[str, ...] = (
+    "person",
+    "bicycle",
+    "car",
+    "motorcycle",
+    "bus",
+    "truck",
+    "train",
+)
+
+
+@dataclass(frozen=True)
+class StereoCalibration:
+    """Calibration of a *rectified* stereo pair (after rectification, if any).
+
+    ``K`` is the 3x3 intrinsic matrix shared by both rectified cameras, ``baseline``
+    the distance between the optical centres in metres (positive: right camera
+    to the right of the left one), ``width``/``height`` the image size.
+    """
+
+    K: np.ndarray
+    baseline: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        K = np.asarray(self.K, dtype=np.float64).reshape(3, 3)
+        object.__setattr__(self, "K", K)
+        if not (K[0, 0] > 0 and K[1, 1] > 0):
+            raise ValueError(f"focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
+        if not self.baseline > 0:
+            raise ValueError(f"baseline must be positive, got {self.baseline}")
+
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    @property
+    def bf(self) -> float:
+        """Baseline times focal length (ORB-SLAM2's ``Camera.bf``), pixel*metres."""
+        return self.baseline * self.fx
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height)."""
+        return (self.width, self.height)
+
+    def depth_from_disparity(self, disparity: np.ndarray | float) -> np.ndarray:
+        """Depth in metres for disparity in pixels (inf where disparity <= 0)."""
+        d = np.asarray(disparity, dtype=np.float64)
+        with np.errstate(divide="ignore"):
+            return np.where(d > 0, self.bf / np.maximum(d, 1e-12), np.inf)
+
+    def disparity_from_depth(self, depth: np.ndarray | float) -> np.ndarray:
+        z = np.asarray(depth, dtype=np.float64)
+        with np.errstate(divide="ignore"):
+            return np.where(z > 0, self.bf / np.maximum(z, 1e-12), 0.0)
+
+
+@dataclass
+class StereoFrame:
+    """One rectified stereo pair from a sequence."""
+
+    index: int
+    timestamp: float
+    left: np.ndarray
+    right: np.ndarray
+    left_path: Path | None = None
+    right_path: Path | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.left.shape[:2]
+
+    @staticmethod
+    def _gray(img: np.ndarray) -> np.ndarray:
+        if img.ndim == 2:
+            return img
+        import cv2
+
+        return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+
+    @property
+    def left_gray(self) -> np.ndarray:
+        return self._gray(self.left)
+
+    @property
+    def right_gray(self) -> np.ndarray:
+        return self._gray(self.right)
+
+
+@dataclass
+class Detections:
+    """Detector output after post-processing, array-wise (no per-object objects).
+
+    ``class_ids`` index into ``class_names`` (the model's label list).
+    """
+
+    boxes: np.ndarray  # (N, 4) float32 x1, y1, x2, y2
+    scores: np.ndarray  # (N,) float32
+    class_ids: np.ndarray  # (N,) int32
+    class_names: tuple[str, ...] = ()
+    masks: np.ndarray | None = None  # optional (N, H, W) bool instance masks (seg models)
+
+    def __post_init__(self) -> None:
+        self.boxes = np.asarray(self.boxes, dtype=np.float32).reshape(-1, 4)
+        self.scores = np.asarray(self.scores, dtype=np.float32).reshape(-1)
+        self.class_ids = np.asarray(self.class_ids, dtype=np.int32).reshape(-1)
+        if not (len(self.boxes) == len(self.scores) == len(self.class_ids)):
+            raise ValueError("boxes, scores and class_ids must have the same length")
+
+    def __len__(self) -> int:
+        return len(self.boxes)
+
+    @classmethod
+    def empty(cls, class_names: tuple[str, ...] = ()) -> "Detections":
+        return cls(np.zeros((0, 4), np.float32), np.zeros(0, np.float32), np.zeros(0, np.int32), class_names)
+
+    def labels(self) -> list[str]:
+        names = self.class_names
+        return [names[i] if 0 <= i < len(names) else str(int(i)) for i in self.class_ids]
+
+    def select(self, keep: np.ndarray) -> "Detections":
+        """Subset by boolean mask or index array."""
+        return Detections(
+            self.boxes[keep],
+            self.scores[keep],
+            self.class_ids[keep],
+            self.class_names,
+            None if self.masks is None else self.masks[keep],
+        )
+
+
+@dataclass
+class ObjectMask:
+    """What the masker decided for one detected object (per-frame record)."""
+
+    box: tuple[float, float, float, float]
+    label: str
+    score: float
+    method: str  # "outline", "box", "box-fallback:<reason>", "seg"
+    disparity: float  # the object's disparity (peak) in pixels, 0 if unknown
+    pixels_left: int
+    pixels_right: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "box": [round(float(v), 1) for v in self.box],
+            "label": self.label,
+            "score": round(float(self.score), 4),
+            "method": self.method,
+            "disparity": round(float(self.disparity), 3),
+            "pixels_left": int(self.pixels_left),
+            "pixels_right": int(self.pixels_right),
+        }
+
+
+@dataclass
+class StereoMasks:
+    """Output of a masker for one stereo pair."""
+
+    left: np.ndarray  # uint8 (H, W), 255 = dynamic
+    right: np.ndarray  # uint8 (H, W), 255 = dynamic
+    objects: list[ObjectMask] = field(default_factory=list)
+    detections: Detections | None = None
+    disparity: np.ndarray | None = None  # float32 pixels (full frame) if computed
+
+    @classmethod
+    def empty(cls, shape: tuple[int, int]) -> "StereoMasks":
+        z = np.zeros(shape, np.uint8)
+        return cls(z, z.copy())
+
+    @property
+    def fraction_left(self) -> float:
+        return float(np.count_nonzero(self.left)) / self.left.size
