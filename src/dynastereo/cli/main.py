@@ -1,0 +1,222 @@
+"""``dynastereo`` command line: a thin shell over the Python API."""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from ..errors import DynastereoError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="Stereo visual SLAM in dynamic scenes: mask moving objects in both stereo images, fast, on a CPU.",
+)
+console = Console(stderr=True)
+out_console = Console()
+
+models_app = typer.Typer(help="List, download and verify detector models.", invoke_without_command=True)
+app.add_typer(models_app, name="models")
+
+
+def _fail(e: Exception) -> None:
+    console.print(f"[bold red]error:[/] {e}")
+    raise typer.Exit(2)
+
+
+def _progress():
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[info]}"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=console,
+        transient=False,
+        disable=not console.is_terminal and os.environ.get("DYNASTEREO_PROGRESS", "") != "1",
+    )
+
+
+def timing_table(summary: dict[str, dict[str, float]], title: str = "timing (ms per stereo pair)") -> Table:
+    table = Table(title=title)
+    table.add_column("stage")
+    table.add_column("median", justify="right")
+    table.add_column("p90", justify="right")
+    table.add_column("mean", justify="right")
+    table.add_column("frames", justify="right")
+    for name, s in summary.items():
+        table.add_row(name, f"{s['median']:.1f}", f"{s['p90']:.1f}", f"{s['mean']:.1f}", str(s["n"]))
+    return table
+
+
+def _build_config(config: Optional[Path], overrides: dict):
+    from ..config import load_config
+
+    return load_config(config).with_overrides(overrides)
+
+
+@app.command()
+def mask(
+    sequence: Path = typer.Argument(..., help="Sequence folder: KITTI odometry, EuRoC mav0, or left/right folders + YAML calibration."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output directory."),
+    detector: Optional[str] = typer.Option(None, help="yolov3, yolov3-tiny, yolox-nano, fastestdet, yolo11n-int8, oracle, or a .cfg/.onnx path."),
+    stereo: Optional[str] = typer.Option(None, help="Stereo matcher: bm | sgbm | sgbm3way."),
+    wls: Optional[bool] = typer.Option(None, "--wls/--no-wls", help="WLS-filter the disparity."),
+    masker: Optional[str] = typer.Option(None, help="outline | box | seg | none."),
+    frames: Optional[str] = typer.Option(None, help="A count N, or inclusive index ranges a-b,c-d."),
+    save_disparity: bool = typer.Option(False, "--save-disparity", help="Write DIR/disparity/NNNNNN.png (uint16, disparity*256)."),
+    overlays: bool = typer.Option(False, "--overlays", help="Write DIR/overlays/NNNNNN.png."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML configuration."),
+    calib: Optional[Path] = typer.Option(None, "--calib", help="YAML calibration for a generic folder pair."),
+    models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
+) -> None:
+    """Mask the dynamic objects of a stereo sequence in BOTH images."""
+    from ..api import mask_sequence
+
+    try:
+        overrides = {"detector.name": detector, "stereo.algorithm": stereo, "stereo.wls": wls, "masker.kind": masker}
+        if save_disparity:
+            overrides["stereo.region"] = "full"
+        cfg = _build_config(config, overrides)
+        with _progress() as prog:
+            task = prog.add_task("masking", total=None, info="")
+
+            def on_frame(done: int, total: int, rec: dict) -> None:
+                ms = rec["ms"]
+                prog.update(task, completed=done, total=total,
+                            info=f"detect {ms.get('detect', 0):.0f} ms  mask {ms.get('mask', 0):.0f} ms")
+
+            result = mask_sequence(sequence, out, cfg, frames=frames, calib=calib, models_dir=models_dir,
+                                   save_disparity=save_disparity, overlays=overlays, progress=on_frame)
+    except DynastereoError as e:
+        _fail(e)
+    out_console.print(timing_table(result.summary))
+    out_console.print(f"{len(result.frames_done)} frames -> {out}  ({result.wall_s:.1f} s)")
+
+
+@models_app.callback()
+def models_main(
+    ctx: typer.Context,
+    models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
+) -> None:
+    """Without a subcommand: list the known models and whether they are present."""
+    if ctx.invoked_subcommand is not None:
+        return
+    from ..models import list_models, resolve_models_dir
+
+    d = resolve_models_dir(models_dir)
+    table = Table(title=f"models in {d}")
+    for col in ("name", "kind", "licence", "present", "file", "sha256", "url"):
+        table.add_column(col, overflow="fold")
+    for m in list_models(d):
+        for i, f in enumerate(m["files"]):
+            table.add_row(
+                m["name"] if i == 0 else "", m["kind"] if i == 0 else "", m["licence"] if i == 0 else "",
+                f["status"], f["filename"], (f["sha256"] or "-")[:16], f["url"] or "-",
+            )
+    out_console.print(table)
+
+
+@models_app.command("download")
+def models_download(
+    names: list[str] = typer.Argument(..., help="Model names (see `dynastereo models`)."),
+    dest: Optional[Path] = typer.Option(None, "--dest", help="Directory (default: $DYNASTEREO_MODELS or the cache)."),
+    mirror: Optional[str] = typer.Option(None, "--mirror", help="Base URL serving <name>/<file> instead of the official addresses."),
+) -> None:
+    """Download models with checksum verification."""
+    from ..models import download_models, resolve_models_dir
+
+    try:
+        d = resolve_models_dir(dest)
+        paths = download_models(names, d, mirror=mirror)
+    except DynastereoError as e:
+        _fail(e)
+    for p in paths:
+        out_console.print(f"ok  {p}")
+
+
+@models_app.command("verify")
+def models_verify(
+    names: Optional[list[str]] = typer.Argument(None, help="Model names (default: all present)."),
+    models_dir: Optional[Path] = typer.Option(None, "--models-dir"),
+) -> None:
+    """Check the sha256 of the model files present."""
+    from ..models import KNOWN_MODELS, resolve_models_dir, verify
+
+    d = resolve_models_dir(models_dir)
+    bad = 0
+    for name in names or list(KNOWN_MODELS):
+        problems = verify(name, d)
+        if problems and not names and all("missing" in p for p in problems):
+            continue
+        bad += bool(problems)
+        out_console.print(f"{'FAIL' if problems else 'ok  '} {name}" + ("".join(f"\n     {p}" for p in problems)))
+    if bad:
+        raise typer.Exit(1)
+
+
+@app.command()
+def synth(
+    out: Path = typer.Argument(..., help="Output root (KITTI odometry layout: OUT/sequences/00, OUT/poses/00.txt)."),
+    scenario: str = typer.Option("mixed", help="Scenario name; `--scenario list` lists them."),
+    frames: Optional[int] = typer.Option(None, help="Number of frames (default: the scenario's)."),
+    seed: int = typer.Option(0, help="Random seed."),
+    size: str = typer.Option("640x192", help="Image size WxH."),
+) -> None:
+    """Generate a synthetic dynamic stereo street sequence with exact ground truth."""
+    from ..synth import SCENARIOS, generate
+
+    if scenario == "list":
+        for name, sc in SCENARIOS.items():
+            out_console.print(f"{name:10s} {getattr(sc, 'description', '')}")
+        return
+    try:
+        w, h = (int(v) for v in size.lower().split("x"))
+    except ValueError:
+        _fail(DynastereoError(f"--size must be WxH, got {size!r}"))
+    try:
+        with _progress() as prog:
+            task = prog.add_task(f"synth {scenario}", total=None, info="")
+            seq = generate(out, scenario, frames=frames, seed=seed, size=(w, h),
+                           progress=lambda i, n: prog.update(task, completed=i, total=n))
+    except DynastereoError as e:
+        _fail(e)
+    out_console.print(f"wrote {seq}")
+
+
+@app.command()
+def demo(
+    out: Optional[Path] = typer.Option(None, "--out", help="Where to write (default: a temporary directory)."),
+    frames: int = typer.Option(40, help="Frames to generate."),
+) -> None:
+    """Embedded default: synthetic dynamic scene -> masks (and SLAM when available), evaluated against GT."""
+    from ..demo import run_demo
+
+    try:
+        run_demo(out, frames=frames, console=out_console, progress=_progress)
+    except DynastereoError as e:
+        _fail(e)
+
+
+def main() -> None:
+    logging.basicConfig(level=os.environ.get("DYNASTEREO_LOG", "WARNING").upper(),
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        app()
+    except DynastereoError as e:  # pragma: no cover - commands catch their own
+        console.print(f"[bold red]error:[/] {e}")
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

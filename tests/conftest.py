@@ -1,0 +1,55 @@
+"""Shared fixtures: where the real data and models are, and how to skip without them.
+
+``DYNASTEREO_DATA`` / ``DYNASTEREO_MODELS`` point at the shared data and models.  When a
+test's files are absent it is skipped with the reason -- unless
+``DYNASTEREO_REQUIRE_DATA=1`` (CI), where it fails instead.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REQUIRE = os.environ.get("DYNASTEREO_REQUIRE_DATA", "") not in ("", "0", "false", "no")
+
+
+def require(path: Path | str | None, what: str = "") -> Path:
+    """Return ``path`` if it exists; else skip (or fail under DYNASTEREO_REQUIRE_DATA=1)."""
+    if path is not None and Path(path).exists():
+        return Path(path)
+    reason = f"missing {what or 'data'}: {path} (set DYNASTEREO_DATA / DYNASTEREO_MODELS)"
+    if REQUIRE:
+        pytest.fail(reason + " [DYNASTEREO_REQUIRE_DATA=1]")
+    pytest.skip(reason)
+
+
+def _env_dir(var: str) -> Path | None:
+    v = os.environ.get(var)
+    return Path(v) if v else None
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    return require(_env_dir("DYNASTEREO_DATA"), "DYNASTEREO_DATA")
+
+
+@pytest.fixture(scope="session")
+def models_dir() -> Path:
+    return require(_env_dir("DYNASTEREO_MODELS"), "DYNASTEREO_MODELS")
+
+
+@pytest.fixture(scope="session")
+def kitti06(data_dir: Path) -> Path:
+    return require(data_dir / "kitti_odometry/dataset/sequences/06", "KITTI seq 06")
+
+
+@pytest.fixture(scope="session")
+def kitti03(data_dir: Path) -> Path:
+    return require(data_dir / "kitti_odometry/dataset/sequences/03", "KITTI seq 03")
+
+
+@pytest.fixture(scope="session")
+def euroc_dir(data_dir: Path) -> Path:
+    return require(data_dir / "euroc/V1_01_easy_first40", "EuRoC V1_01_easy_first40")
