@@ -81,10 +81,47 @@ class MaskerConfig:
 
 
 @dataclass
+class SlamConfig:
+    """Stereo SLAM back-end (ORB-SLAM2-style tracking + local mapping), ``dynastereo.slam``.
+
+    Names follow ORB-SLAM2's settings where one exists (``ORBextractor.nFeatures`` ->
+    ``n_features``, ``ThDepth`` -> ``th_depth``); ORB-SLAM2 settings files are read by
+    ``dynastereo.slam.settings.load_orbslam_settings``.
+    """
+
+    # ORB extractor
+    n_features: int = 2000  # ORBextractor.nFeatures (the thesis used 4000)
+    scale_factor: float = 1.2  # ORBextractor.scaleFactor
+    n_levels: int = 8  # ORBextractor.nLevels (the thesis used 16)
+    ini_th_fast: int = 20  # ORBextractor.iniThFAST
+    min_th_fast: int = 7  # ORBextractor.minThFAST
+    oversample: float = 2.0  # corners detected per kept one, before grid bucketing
+    mask_margin: int = 0  # grow the dynamic mask by this many pixels before detection
+    # stereo
+    th_depth: float = 35.0  # ThDepth: close/far threshold, in baselines
+    # tracking
+    min_inliers: int = 20  # fewer inliers after local-map tracking -> frame lost
+    min_init_points: int = 100  # stereo points needed to (re)initialise a map
+    max_frames: int = 10  # keyframe at least every max_frames (ORB-SLAM2: camera fps)
+    min_frames: int = 0
+    # local mapping
+    local_ba: str = "process"  # process (worker process) | inline | off
+    ba_iterations: int = 5  # Levenberg-Marquardt iterations per local BA
+    ba_max_keyframes: int = 10  # optimised keyframes (current + best covisible)
+    ba_max_fixed: int = 10  # fixed keyframes that anchor the local window
+    ba_lag_frames: int = 1  # a local BA submitted at frame k is applied before tracking frame k+lag
+    triangulation_neighbours: int = 6  # covisible keyframes searched for new points
+    fuse_neighbours: int = 6  # covisible keyframes searched for duplicate points
+    keyframe_culling: bool = True
+    threads: int = 2  # threads for feature extraction (left/right in parallel)
+
+
+@dataclass
 class Config:
     stereo: StereoConfig = field(default_factory=StereoConfig)
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     masker: MaskerConfig = field(default_factory=MaskerConfig)
+    slam: SlamConfig = field(default_factory=SlamConfig)
     seed: int = 0
 
     def with_overrides(self, overrides: dict[str, Any]) -> "Config":

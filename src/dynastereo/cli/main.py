@@ -208,6 +208,35 @@ def demo(
         _fail(e)
 
 
+@app.command("eval")
+def eval_cmd(
+    estimate: Path = typer.Argument(..., help="Estimated trajectory (KITTI 3x4 rows or TUM)."),
+    ground_truth: Path = typer.Argument(..., help="Ground truth (KITTI or TUM); a longer one is cut to the estimate."),
+    as_json: bool = typer.Option(False, "--json", help="Print the numbers as JSON (keys ape.rmse, ape.mean, ..., drift_percent)."),
+    plot: Optional[Path] = typer.Option(None, "--plot", help="Trajectory plot PNG (default: beside the estimate)."),
+    no_align: bool = typer.Option(False, "--no-align", help="Do not SE(3)-align before APE."),
+    rpe_delta: int = typer.Option(1, "--rpe-delta", help="RPE step in frames."),
+) -> None:
+    """APE (thesis table), RPE, drift and the KITTI odometry metric, with evo; writes a top-view plot."""
+    import json
+
+    from ..eval import evaluate_files, format_table, plot_trajectories, to_json_dict
+
+    try:
+        r = evaluate_files(estimate, ground_truth, align=not no_align, rpe_delta=rpe_delta)
+        png = plot or estimate.with_name(estimate.name.split(".")[0] + "_vs_gt.png")
+        plot_trajectories(r.estimate, r.ground_truth, png, title=f"{estimate.name} vs {ground_truth.name}")
+    except DynastereoError as e:
+        _fail(e)
+    if as_json:
+        d = to_json_dict(r)
+        d["plot"] = str(png)
+        print(json.dumps(d, indent=1))
+    else:
+        print(format_table(r))
+        print(f"plot: {png}")
+
+
 def main() -> None:
     logging.basicConfig(level=os.environ.get("DYNASTEREO_LOG", "WARNING").upper(),
                         format="%(levelname)s %(name)s: %(message)s")

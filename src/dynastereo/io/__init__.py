@@ -1,0 +1,129 @@
+"""Input layer: stereo sequences, calibration, images, frame selection.
+
+``open_sequence(path)`` recognises the folder's format and returns a
+:class:`~dynastereo.io.base.Sequence` of rectified pairs:
+
+* **KITTI** odometry: ``calib.txt`` + ``image_0/``,``image_1/`` (gray) or ``image_2/``,``image_3/`` (colour);
+* **EuRoC** MAV: ``mav0/`` (or ``cam0/sensor.yaml`` directly inside); raw, rectified on read;
+* **generic**: ``left/``+``right/`` (or ``cam0/``+``cam1/``) with ``calib.yaml`` / one ``*.yaml``,
+  or any of these layouts with an explicit ``calib`` YAML.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import SequenceError
+from .base import Sequence
+from .calib import (
+    MiddleburyCalibration,
+    RawStereoCalibration,
+    kitti_projections,
+    load_euroc_calib,
+    load_kitti_calib,
+    load_middlebury_calib,
+    load_orbslam2_settings,
+    load_stereo_yaml,
+    orbslam2_calibration,
+    read_kitti_calib_rows,
+    read_yaml_file,
+)
+from .euroc import EurocSequence, pair_by_timestamp
+from .folder import FolderSequence, find_calib_yaml, find_pair_dirs
+from .frames import parse_frame_spec
+from .images import (
+    image_size,
+    list_images,
+    read_disparity_png,
+    read_image,
+    read_pfm,
+    write_disparity_png,
+    write_pfm,
+)
+from .kitti import KittiSequence, kitti_image_dirs
+from .rectify import Rectifier
+from .sequence import ImagePairSequence
+
+__all__ = [
+    "EurocSequence",
+    "FolderSequence",
+    "ImagePairSequence",
+    "KittiSequence",
+    "MiddleburyCalibration",
+    "RawStereoCalibration",
+    "Rectifier",
+    "Sequence",
+    "detect_format",
+    "image_size",
+    "kitti_projections",
+    "list_images",
+    "load_euroc_calib",
+    "load_kitti_calib",
+    "load_middlebury_calib",
+    "load_orbslam2_settings",
+    "load_stereo_yaml",
+    "open_sequence",
+    "orbslam2_calibration",
+    "pair_by_timestamp",
+    "parse_frame_spec",
+    "read_disparity_png",
+    "read_image",
+    "read_kitti_calib_rows",
+    "read_pfm",
+    "read_yaml_file",
+    "write_disparity_png",
+    "write_pfm",
+]
+
+_LOOKED_FOR = (
+    "KITTI: calib.txt with image_0/+image_1/ or image_2/+image_3/; "
+    "EuRoC: mav0/cam0, mav0/cam1 (or cam0/sensor.yaml inside the folder); "
+    "generic: left/+right/ (or cam0/+cam1/) with calib.yaml or a single *.yaml, or an explicit calibration YAML"
+)
+
+
+def detect_format(path: str | Path, calib: str | Path | None = None) -> str:
+    """``"kitti"``, ``"euroc"`` or ``"folder"`` for a sequence folder; SequenceError if none fits."""
+    path = Path(path)
+    if not path.exists():
+        raise SequenceError("sequence folder not found", path)
+    if not path.is_dir():
+        raise SequenceError("expected a sequence folder, got a file", path)
+    from .euroc import euroc_mav_dir
+
+    has_kitti_images = kitti_image_dirs(path, False) is not None  # either pair; KittiSequence checks colour
+    if has_kitti_images and ((path / "calib.txt").is_file() or calib is not None):
+        return "kitti"
+    if (path / "mav0").is_dir() or (path / "cam0" / "sensor.yaml").is_file():
+        if euroc_mav_dir(path) is None:
+            raise SequenceError("looks like EuRoC but mav0/cam0 and mav0/cam1 are incomplete", path)
+        return "euroc"
+    if find_pair_dirs(path) is not None:
+        if calib is not None or find_calib_yaml(path) is not None:
+            return "folder"
+        raise SequenceError(
+            "found left/right image folders but no calibration (calib.yaml or a single *.yaml); pass one explicitly",
+            path,
+        )
+    if has_kitti_images:
+        raise SequenceError("found KITTI image folders but no calib.txt (or pass a calibration YAML)", path)
+    if (path / "sequences").is_dir():
+        raise SequenceError(
+            "this is a KITTI dataset root; pass one sequence folder, e.g. " f"{path / 'sequences' / '06'}", path
+        )
+    raise SequenceError(f"unrecognised sequence folder; looked for {_LOOKED_FOR}", path)
+
+
+def open_sequence(path: str | Path, calib: str | Path | None = None, color: bool = False) -> Sequence:
+    """Open a stereo sequence folder in any supported format (see module doc).
+
+    ``calib``: a YAML calibration overriding the folder's own (or supplying a missing one).
+    ``color``: BGR frames when the source has colour (KITTI's image_2/3, colour folders).
+    """
+    path = Path(path)
+    fmt = detect_format(path, calib)
+    if fmt == "kitti":
+        return KittiSequence(path, color=color, calib=calib)
+    if fmt == "euroc":
+        return EurocSequence(path, calib=calib, color=color)
+    return FolderSequence.from_root(path, calib=calib, color=color)

@@ -1,0 +1,175 @@
+"""Benchmark the detectors on KITTI odometry frames (seq 06 and 03, left grayscale images).
+
+1. ``detect`` wall time (median / p90 ms, and its split: pre-process + network vs
+   post-processing) of yolov3-tiny, yolox-nano, fastestdet, yolo11n-int8 (AGPL baseline)
+   and yolov3 when its weights are installed.
+2. Post-processing of the SAME raw YOLOv3-tiny output: array-wise (thesis Algorithm 2)
+   vs the per-row Python loop (thesis Algorithm 1; thesis 4.2: 4 ms vs 27.9 ms for YOLOv3).
+
+Prints a table; writes benchmarks/results/detect.json.
+Run: DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \
+     .venv/bin/python benchmarks/bench_detect.py [--frames 20] [--threads 2] [--repeats 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from dynastereo.config import DetectorConfig
+from dynastereo.errors import ModelError
+from dynastereo.masking.detection import create_detector
+from dynastereo.models import resolve_models_dir, verify
+
+DETECTORS = ["yolov3-tiny", "yolox-nano", "fastestdet", "yolo11n-int8", "yolov3"]
+TARGETS_MS = {"yolov3-tiny": 40.0, "yolox-nano": 15.0}
+OUT = Path(__file__).resolve().parent / "results" / "detect.json"
+
+
+def stats(v: list[float]) -> dict[str, float]:
+    a = np.asarray(v, np.float64)
+    return {"median": round(float(np.median(a)), 3), "p90": round(float(np.percentile(a, 90)), 3),
+            "mean": round(float(a.mean()), 3), "n": int(a.size)}
+
+
+def load_frames(data: Path, n: int) -> list[tuple[str, np.ndarray]]:
+    frames = []
+    for seq in ("06", "03"):
+        d = data / "kitti_odometry/dataset/sequences" / seq / "image_0"
+        files = sorted(d.glob("*.png"))[:n]
+        if not files:
+            sys.exit(f"no KITTI images in {d} (set DYNASTEREO_DATA)")
+        for f in files:
+            img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            if img is None:
+                sys.exit(f"cannot read {f}")
+            frames.append((f"{seq}/{f.stem}", img))
+    return frames
+
+
+def bench_detector(name: str, frames, threads: int, repeats: int, models_dir: Path) -> dict | None:
+    try:
+        det = create_detector(DetectorConfig(name=name, threads=threads), models_dir)
+    except ModelError as e:
+        print(f"  skip {name}: {e}")
+        return None
+    for _, img in frames[:3]:  # warm-up
+        det.detect(img)
+    total, raw_ms, post_ms, counts = [], [], [], []
+    for _ in range(repeats):
+        for _, img in frames:
+            t0 = time.perf_counter()
+            d = det.detect(img)
+            total.append((time.perf_counter() - t0) * 1e3)
+            counts.append(len(d))
+            t0 = time.perf_counter()
+            raw = det.raw_outputs(img)
+            t1 = time.perf_counter()
+            det.postprocess(raw)
+            t2 = time.perf_counter()
+            raw_ms.append((t1 - t0) * 1e3)
+            post_ms.append((t2 - t1) * 1e3)
+    return {
+        "detect_ms": stats(total),
+        "network_ms": stats(raw_ms),  # pre-process + network forward
+        "postprocess_ms": stats(post_ms),
+        "input_size": [int(det.input_w), int(det.input_h)],
+        "detections_per_frame": round(float(np.mean(counts)), 2),
+        "threads": threads,
+        "target_ms": TARGETS_MS.get(name),
+    }
+
+
+def bench_postprocess(name: str, frames, repeats: int, models_dir: Path) -> dict | None:
+    try:
+        det = create_detector(DetectorConfig(name=name), models_dir)
+    except ModelError as e:
+        print(f"  skip post-processing of {name}: {e}")
+        return None
+    arr, loop, rows, same = [], [], 0, True
+    for _, img in frames:
+        raw = det.raw_outputs(img)
+        rows = int(sum(len(o) for o in raw.outputs))
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            a = det.select(raw)
+            t1 = time.perf_counter()
+            b = det.select(raw, loop=True)
+            t2 = time.perf_counter()
+            arr.append((t1 - t0) * 1e3)
+            loop.append((t2 - t1) * 1e3)
+        same &= bool(np.array_equal(a.rows, b.rows) and np.allclose(a.boxes, b.boxes))
+    sa, sl = stats(arr), stats(loop)
+    return {"model": name, "raw_rows": rows, "array_ms": sa, "loop_ms": sl,
+            "speedup": round(sl["median"] / max(sa["median"], 1e-9), 1), "same_boxes": same}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--frames", type=int, default=20, help="frames per sequence (06 and 03)")
+    ap.add_argument("--threads", type=int, nargs="+", default=[2], help="detector threads to measure")
+    ap.add_argument("--repeats", type=int, default=2, help="passes over the frames")
+    ap.add_argument("--out", type=Path, default=OUT)
+    args = ap.parse_args()
+
+    data = Path(os.environ.get("DYNASTEREO_DATA", ""))
+    if not os.environ.get("DYNASTEREO_DATA"):
+        sys.exit("set DYNASTEREO_DATA (and DYNASTEREO_MODELS)")
+    models_dir = resolve_models_dir()
+    frames = load_frames(data, args.frames)
+    print(f"{len(frames)} KITTI frames ({frames[0][1].shape[1]}x{frames[0][1].shape[0]} gray), "
+          f"models in {models_dir}, {os.cpu_count()} CPUs, repeats {args.repeats}")
+
+    results: dict[str, dict] = {}
+    for threads in args.threads:
+        for name in DETECTORS:
+            if name == "yolov3" and verify(name, models_dir):
+                print("  skip yolov3: weights not installed (`dynastereo models download yolov3`)")
+                continue
+            r = bench_detector(name, frames, threads, args.repeats, models_dir)
+            if r is not None:
+                results[name if len(args.threads) == 1 else f"{name}@{threads}t"] = r
+
+    post = [p for n in ("yolov3-tiny", "yolov3") if not verify(n, models_dir)
+            and (p := bench_postprocess(n, frames, 3, models_dir)) is not None]
+
+    print()
+    print(f"{'detector':<22}{'input':>9}{'detect med':>12}{'p90':>8}{'net med':>9}{'post med':>10}{'dets':>6}  target")
+    for n, r in results.items():
+        t = r["target_ms"]
+        ok = "" if t is None else (f"<= {t:.0f} ms " + ("OK" if r["detect_ms"]["median"] <= t else "MISSED"))
+        print(f"{n:<22}{'x'.join(map(str, r['input_size'])):>9}{r['detect_ms']['median']:>12.2f}{r['detect_ms']['p90']:>8.2f}"
+              f"{r['network_ms']['median']:>9.2f}{r['postprocess_ms']['median']:>10.3f}{r['detections_per_frame']:>6.1f}  {ok}")
+    print()
+    print(f"{'post-processing':<22}{'rows':>7}{'array med':>11}{'p90':>8}{'loop med':>10}{'p90':>8}{'speedup':>9}  same")
+    for p in post:
+        print(f"{p['model']:<22}{p['raw_rows']:>7}{p['array_ms']['median']:>11.3f}{p['array_ms']['p90']:>8.3f}"
+              f"{p['loop_ms']['median']:>10.2f}{p['loop_ms']['p90']:>8.2f}{p['speedup']:>8.1f}x  {p['same_boxes']}")
+    print("(thesis 4.2, YOLOv3 10647 rows: array 4 ms vs loop 27.9 ms)")
+
+    out = {
+        "unit": "ms",
+        "frames": [f for f, _ in frames],
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+                    "opencv": cv2.__version__, "onnxruntime": __import__("onnxruntime").__version__},
+        "repeats": args.repeats,
+        "detect": results,
+        "postprocess": post,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.out.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(out, indent=1))
+    tmp.replace(args.out)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,90 @@
+"""Trajectory plots (PNG), drawn with matplotlib's object API on the Agg canvas (no pyplot state)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from .metrics import EvalResult
+from .trajectory import Trajectory
+
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def top_view_plane(gt: Trajectory) -> str:
+    """The plane to look at from above: drop the axis along which ``gt`` moves least.
+
+    KITTI camera coordinates (y down) give ``"xz"``; z-up worlds (TUM, EuRoC) ``"xy"``.
+    """
+    spread = np.ptp(gt.positions, axis=0)
+    keep = sorted(set(range(3)) - {int(np.argmin(spread))})
+    return "".join("xyz"[i] for i in keep)
+
+
+def _new_figure(size: tuple[float, float]) -> Figure:
+    fig = Figure(figsize=size, dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig: Figure, path_png: str | Path) -> Path:
+    path = Path(path_png)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, format="png")
+    return path
+
+
+def plot_trajectories(
+    est: Trajectory,
+    gt: Trajectory,
+    path_png: str | Path,
+    title: str | None = None,
+    *,
+    plane: str = "auto",
+) -> Path:
+    """Top view of ``est`` (pass the aligned one, ``EvalResult.estimate``) over ``gt``.
+
+    ``plane``: ``"auto"`` (see :func:`top_view_plane`), or two of x/y/z, e.g. ``"xz"``.
+    Equal aspect, circle = start, square = end.  Returns the PNG path.
+    """
+    plane = top_view_plane(gt) if plane == "auto" else plane
+    if len(plane) != 2 or any(c not in _AXES for c in plane):
+        raise ValueError(f"plane must be two of x, y, z (e.g. 'xz'), got {plane!r}")
+    i, j = _AXES[plane[0]], _AXES[plane[1]]
+    fig = _new_figure((7.0, 6.0))
+    ax = fig.add_subplot()
+    for traj, label, style in ((gt, "ground truth", dict(color="0.2", ls="--")), (est, "estimate", dict(color="C0"))):
+        p = traj.positions
+        name = label if traj.name in ("", label) else f"{label} ({traj.name})"
+        (line,) = ax.plot(p[:, i], p[:, j], lw=1.5, label=name, **style)
+        ax.plot(p[0, i], p[0, j], "o", color=line.get_color(), ms=7, mfc="none", mew=2)
+        ax.plot(p[-1, i], p[-1, j], "s", color=line.get_color(), ms=6)
+    ax.set_xlabel(f"{plane[0]} [m]")
+    ax.set_ylabel(f"{plane[1]} [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", title="○ start  ■ end", fontsize=9)
+    if title:
+        ax.set_title(title)
+    return _save(fig, path_png)
+
+
+def plot_ape_over_time(result: EvalResult, path_png: str | Path, title: str | None = None) -> Path:
+    """APE translation error per frame (against time when the estimate has timestamps)."""
+    ts = result.estimate.timestamps
+    x = ts - ts[0] if ts is not None else np.arange(result.n_frames)
+    fig = _new_figure((8.0, 4.0))
+    ax = fig.add_subplot()
+    ax.plot(x, result.ape_errors, color="C0", lw=1.2, label="APE")
+    for key, color in (("rmse", "C3"), ("mean", "C1"), ("median", "C2")):
+        ax.axhline(result.ape[key], color=color, lw=1, ls=":", label=f"{key} {result.ape[key]:.3f} m")
+    ax.set_xlabel("time [s]" if ts is not None else "frame")
+    ax.set_ylabel("APE (translation) [m]")
+    ax.set_ylim(bottom=0)
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize=9)
+    ax.set_title(title or ("APE, SE(3)-aligned" if result.aligned else "APE, not aligned"))
+    return _save(fig, path_png)

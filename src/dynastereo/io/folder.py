@@ -1,0 +1,127 @@
+"""Generic stereo sequences: two folders of images and a YAML calibration.
+
+Layout recognised by :func:`find_folder_layout` / :meth:`FolderSequence.from_root`::
+
+    root/
+        left/  right/        (or cam0/ cam1/; a data/ subfolder inside each is used if present)
+        calib.yaml           (or calibration.yaml, or the only *.yaml / *.yml in root)
+        times.txt            optional: one timestamp (s) per frame
+
+Images are paired in sorted-name order (the counts must match).  Without ``times.txt`` the
+timestamps are ``index * frame_interval`` (0.1 s by default).  The YAML is read by
+:func:`~dynastereo.io.calib.load_stereo_yaml`: dynastereo's own format (rectified or raw)
+or an ORB-SLAM2 settings file; raw calibrations are rectified on read.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SequenceError
+from .calib import load_stereo_yaml
+from .images import image_size, list_images
+from .sequence import ImagePairSequence
+
+PAIR_DIR_NAMES: tuple[tuple[str, str], ...] = (("left", "right"), ("cam0", "cam1"))
+CALIB_NAMES: tuple[str, ...] = ("calib.yaml", "calib.yml", "calibration.yaml", "calibration.yml")
+
+
+def _image_dir(d: Path) -> Path:
+    return d / "data" if (d / "data").is_dir() else d
+
+
+def find_pair_dirs(root: Path) -> tuple[Path, Path] | None:
+    for l, r in PAIR_DIR_NAMES:
+        if (root / l).is_dir() and (root / r).is_dir():
+            return _image_dir(root / l), _image_dir(root / r)
+    return None
+
+
+def find_calib_yaml(root: Path) -> Path | None:
+    """``calib.yaml`` (or a listed alias) in ``root``, else its only ``*.yaml``/``*.yml``; None if none.
+
+    Several candidate YAML files and none of the standard names -> SequenceError listing them.
+    """
+    for n in CALIB_NAMES:
+        if (root / n).is_file():
+            return root / n
+    ymls = sorted(p for p in root.iterdir() if p.suffix.lower() in (".yaml", ".yml") and p.is_file())
+    if len(ymls) == 1:
+        return ymls[0]
+    if len(ymls) > 1:
+        raise SequenceError(
+            f"several YAML files and no calib.yaml: {', '.join(p.name for p in ymls)}; "
+            "name the calibration calib.yaml or pass it explicitly",
+            root,
+        )
+    return None
+
+
+class FolderSequence(ImagePairSequence):
+    """Stereo pairs from ``left_dir`` and ``right_dir`` with the calibration ``calib_yaml``."""
+
+    def __init__(
+        self,
+        left_dir: str | Path,
+        right_dir: str | Path,
+        calib_yaml: str | Path,
+        color: bool = False,
+        times: str | Path | np.ndarray | None = None,
+        frame_interval: float = 0.1,
+        name: str | None = None,
+    ) -> None:
+        left_dir, right_dir = Path(left_dir), Path(right_dir)
+        for d in (left_dir, right_dir):
+            if not d.is_dir():
+                raise SequenceError("image folder not found", d)
+        left, right = list_images(left_dir), list_images(right_dir)
+        if len(left) != len(right):
+            raise SequenceError(
+                f"left and right image counts differ: {len(left)} in {left_dir}, {len(right)} in {right_dir}",
+                left_dir.parent,
+            )
+        if not left:
+            raise SequenceError("no images (png, jpg, ...) in the folder", left_dir)
+        root = left_dir.parent if left_dir.name != "data" else left_dir.parent.parent
+        calibration = load_stereo_yaml(calib_yaml, image_size(left[0]))
+        n = len(left)
+        if times is None and (root / "times.txt").is_file():
+            times = root / "times.txt"
+        if times is None:
+            ts = np.arange(n, dtype=np.float64) * frame_interval
+        elif isinstance(times, np.ndarray):
+            ts = times
+        else:
+            tp = Path(times)
+            try:
+                ts = np.array([float(v) for v in tp.read_text().split()], dtype=np.float64)
+            except (OSError, ValueError) as e:
+                raise SequenceError(f"cannot read timestamps (one number per line): {e}", tp) from None
+            if len(ts) != n:
+                raise SequenceError(f"{len(ts)} timestamps for {n} image pairs", tp)
+        super().__init__(
+            name=name or root.name,
+            path=root,
+            left_paths=left,
+            right_paths=right,
+            timestamps=ts,
+            calibration=calibration,
+            color=color,
+            calib_path=Path(calib_yaml),
+            left_dir=left_dir,
+            right_dir=right_dir,
+        )
+
+    @classmethod
+    def from_root(cls, root: str | Path, calib: str | Path | None = None, color: bool = False) -> "FolderSequence":
+        """Open ``root`` with ``left/``+``right/`` (or ``cam0/``+``cam1/``) and a YAML calibration."""
+        root = Path(root)
+        dirs = find_pair_dirs(root)
+        if dirs is None:
+            raise SequenceError("no left/ and right/ (or cam0/ and cam1/) image folders", root)
+        calib_path = Path(calib) if calib is not None else find_calib_yaml(root)
+        if calib_path is None:
+            raise SequenceError("no calibration: put calib.yaml in the folder or pass one explicitly", root)
+        return cls(dirs[0], dirs[1], calib_path, color=color, name=root.name)

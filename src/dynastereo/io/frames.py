@@ -1,0 +1,75 @@
+"""Frame selection: which frame indices of a sequence to process.
+
+``parse_frame_spec(spec, n)``:
+
+* ``None`` (or ``"all"``) -> every frame ``0 .. n-1``;
+* an ``int`` or a lone number ``"N"`` -> the first ``N`` frames ``0 .. N-1``;
+* a comma-separated list of inclusive index ranges and single indices, e.g.
+  ``"0-98,40-60,7"``, kept **in the given order with repeats** (so ``"0-98,40-60"``
+  replays frames 40..60 after 98: a revisit).  ``"a-"`` means ``a`` to the last frame.
+  A lone number always means "the first N"; to select the single frame 5 write ``"5-5"``.
+
+Anything out of range or malformed raises :class:`~dynastereo.errors.InputError`
+quoting the spec and the sequence length.
+"""
+
+from __future__ import annotations
+
+import re
+
+from ..errors import InputError
+
+_RANGE = re.compile(r"^\s*(\d+)\s*(?:-\s*(\d*)\s*)?$")
+
+
+def parse_frame_spec(spec: str | int | None, n: int) -> list[int]:
+    """Frame indices selected by ``spec`` in a sequence of ``n`` frames (see module doc)."""
+    if n < 0:
+        raise ValueError(f"sequence length must be >= 0, got {n}")
+    if spec is None:
+        return list(range(n))
+    if isinstance(spec, bool):  # bool is an int subclass: refuse it explicitly
+        raise InputError(f"frame spec must be a number or a range list, got {spec!r}")
+    if isinstance(spec, int):
+        return _first(spec, n, repr(spec))
+    if not isinstance(spec, str):
+        raise InputError(f"frame spec must be a string, an int or None, got {type(spec).__name__}")
+    text = spec.strip()
+    if text.lower() in ("all", "*"):
+        return list(range(n))
+    if not text:
+        raise InputError("empty frame spec (use e.g. '100' for the first 100 frames or '0-98,40-60')")
+    if text.isdigit():
+        return _first(int(text), n, repr(spec))
+
+    out: list[int] = []
+    for part in text.split(","):
+        m = _RANGE.match(part)
+        if not m:
+            raise InputError(
+                f"malformed frame spec {spec!r}: part {part.strip()!r} is not 'a', 'a-b' or 'a-' "
+                "(non-negative frame indices, inclusive ranges)"
+            )
+        a = int(m.group(1))
+        if m.group(2) is None:  # single index
+            b = a
+        elif m.group(2) == "":  # open range "a-"
+            b = n - 1
+        else:
+            b = int(m.group(2))
+        if a >= n or b >= n:
+            raise InputError(
+                f"frame spec {spec!r}: part {part.strip()!r} is out of range, the sequence has {n} frames (0-{n - 1})"
+            )
+        if b < a:
+            raise InputError(f"frame spec {spec!r}: range {part.strip()!r} is reversed (start > end)")
+        out.extend(range(a, b + 1))
+    return out
+
+
+def _first(count: int, n: int, shown: str) -> list[int]:
+    if count <= 0:
+        raise InputError(f"frame spec {shown}: the number of frames must be positive")
+    if count > n:
+        raise InputError(f"frame spec {shown}: asks for the first {count} frames, the sequence has only {n}")
+    return list(range(count))

@@ -1,0 +1,131 @@
+"""KITTI odometry sequences in the official layout.
+
+::
+
+    sequences/06/
+        calib.txt        P0..P3 (some copies hold only P0 and P1)
+        times.txt        optional: one timestamp (s) per frame
+        image_0/ image_1/    gray left / right   (000000.png ...)
+        image_2/ image_3/    colour left / right
+
+Pass the sequence folder itself (``.../sequences/06``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SequenceError
+from .calib import load_kitti_calib, load_stereo_yaml
+from .images import image_size, list_images
+from .sequence import ImagePairSequence
+
+KITTI_FRAME_INTERVAL = 0.1  # s: KITTI's cameras run at about 10 Hz
+
+
+def kitti_image_dirs(path: Path, color: bool) -> tuple[Path, Path, bool] | None:
+    """``(left_dir, right_dir, uses_colour_pair)`` for a KITTI sequence folder, or None.
+
+    ``color=True`` needs image_2/image_3.  ``color=False`` prefers image_0/image_1 and falls
+    back to image_2/image_3 (read as gray, calibrated with P2/P3) when only those exist.
+    """
+    gray = (path / "image_0", path / "image_1")
+    colour = (path / "image_2", path / "image_3")
+    if not color and gray[0].is_dir() and gray[1].is_dir():
+        return gray[0], gray[1], False
+    if colour[0].is_dir() and colour[1].is_dir():
+        return colour[0], colour[1], True
+    return None
+
+
+class KittiSequence(ImagePairSequence):
+    """A KITTI odometry sequence (already rectified: frames are returned as stored).
+
+    ``color=False``: the gray pair ``image_0``/``image_1`` with P0/P1 (or, if a folder has only
+    the colour pair, ``image_2``/``image_3`` read as gray with P2/P3).  ``color=True``: the
+    colour pair ``image_2``/``image_3`` with P2/P3, as BGR.
+
+    Timestamps come from ``times.txt`` when present (indexed by the frame number in the
+    file name, so a folder holding the first N frames of a sequence can use the full
+    ``times.txt``); without it they are ``frame_number * 0.1`` s (KITTI's ~10 Hz).
+
+    ``calib``: an optional YAML calibration (see :func:`~dynastereo.io.calib.load_stereo_yaml`)
+    used instead of ``calib.txt``.
+    """
+
+    def __init__(self, path: str | Path, color: bool = False, calib: str | Path | None = None) -> None:
+        path = Path(path)
+        if not path.is_dir():
+            raise SequenceError("KITTI sequence folder not found", path)
+        dirs = kitti_image_dirs(path, color)
+        if dirs is None:
+            want = "image_2/ and image_3/ (colour pair)" if color else "image_0/ and image_1/ (or image_2/ and image_3/)"
+            raise SequenceError(f"not a KITTI sequence folder: {want} not found", path)
+        left_dir, right_dir, colour_pair = dirs
+        left = list_images(left_dir)
+        right = list_images(right_dir)
+        if len(left) != len(right):
+            raise SequenceError(
+                f"left and right image counts differ: {len(left)} in {left_dir}, {len(right)} in {right_dir}", path
+            )
+        if not left:
+            raise SequenceError(f"no images in {left_dir}", path)
+        lnames = [p.name for p in left]
+        rnames = [p.name for p in right]
+        if lnames != rnames:
+            i = next(k for k in range(len(lnames)) if lnames[k] != rnames[k])
+            raise SequenceError(
+                f"left and right file names differ: {left[i]} is paired with {right[i]} "
+                f"(folders {left_dir} and {right_dir})",
+                path,
+            )
+        size = image_size(left[0])
+        if calib is not None:
+            calibration = load_stereo_yaml(calib, size)
+            calib_path = Path(calib)
+        else:
+            calib_path = path / "calib.txt"
+            calibration = load_kitti_calib(calib_path, size, color=colour_pair)
+        self.times_path: Path | None = path / "times.txt" if (path / "times.txt").is_file() else None
+        numbers = _frame_numbers(left)
+        times = _kitti_times(self.times_path, numbers)
+        self.uses_colour_pair = colour_pair
+        super().__init__(
+            name=path.name,
+            path=path,
+            left_paths=left,
+            right_paths=right,
+            timestamps=times,
+            calibration=calibration,
+            color=color,
+            calib_path=calib_path,
+            left_dir=left_dir,
+            right_dir=right_dir,
+        )
+
+
+def _frame_numbers(paths: list[Path]) -> np.ndarray:
+    """Frame numbers from KITTI file names (000123.png -> 123); positions if not all numeric."""
+    stems = [p.stem for p in paths]
+    if all(s.isdigit() for s in stems):
+        return np.array([int(s) for s in stems], dtype=np.int64)
+    return np.arange(len(paths), dtype=np.int64)
+
+
+def _kitti_times(times_path: Path | None, numbers: np.ndarray) -> np.ndarray:
+    if times_path is None:
+        return numbers.astype(np.float64) * KITTI_FRAME_INTERVAL
+    try:
+        raw = times_path.read_text().split()
+        t = np.array([float(v) for v in raw], dtype=np.float64)
+    except ValueError as e:
+        raise SequenceError(f"times.txt must hold one number per line: {e}", times_path) from None
+    if len(t) <= int(numbers.max()):
+        raise SequenceError(
+            f"{len(t)} timestamps, but the images go up to frame {int(numbers.max())} "
+            f"({len(numbers)} images)",
+            times_path,
+        )
+    return t[numbers]

@@ -1,0 +1,153 @@
+"""Shared implementation of the :class:`~dynastereo.io.base.Sequence` protocol for a list of
+image pairs on disk (KITTI, EuRoC and generic folders all reduce to this)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from ..errors import CalibrationError, SequenceError
+from ..types import StereoCalibration, StereoFrame
+from .calib import RawStereoCalibration
+from .images import image_size, read_image
+from .rectify import Rectifier
+
+
+class ImagePairSequence:
+    """Rectified stereo pairs read from two lists of image files.
+
+    ``calibration`` is a rectified ``StereoCalibration`` (images used as they are) or a
+    ``RawStereoCalibration`` (a :class:`Rectifier` is built once, frames are rectified on
+    read).  At construction the pair lists are checked (same length) and, for PNG files,
+    every image's size is read from its header and checked against the calibration, so a
+    bad file is reported before processing starts; other formats are checked on read.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        path: Path,
+        left_paths: list[Path],
+        right_paths: list[Path],
+        timestamps: np.ndarray,
+        calibration: StereoCalibration | RawStereoCalibration,
+        color: bool = False,
+        calib_path: Path | None = None,
+        left_dir: Path | None = None,
+        right_dir: Path | None = None,
+    ) -> None:
+        self.name = name
+        self.path = Path(path)
+        self.color = color
+        self.left_paths = list(left_paths)
+        self.right_paths = list(right_paths)
+        ldir = left_dir or (self.left_paths[0].parent if self.left_paths else self.path)
+        rdir = right_dir or (self.right_paths[0].parent if self.right_paths else self.path)
+        if len(self.left_paths) != len(self.right_paths):
+            raise SequenceError(
+                f"left and right image counts differ: {len(self.left_paths)} in {ldir}, "
+                f"{len(self.right_paths)} in {rdir}",
+                self.path,
+            )
+        if not self.left_paths:
+            raise SequenceError(f"no images in {ldir}", self.path)
+        self._timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+        if len(self._timestamps) != len(self.left_paths):
+            raise SequenceError(
+                f"{len(self._timestamps)} timestamps for {len(self.left_paths)} image pairs", self.path
+            )
+
+        self.raw_size = self._check_sizes(ldir, rdir)  # (width, height) of the files
+        self.rectifier: Rectifier | None = None
+        if isinstance(calibration, RawStereoCalibration):
+            if calibration.size != self.raw_size:
+                raise CalibrationError(
+                    f"calibration is for {calibration.width}x{calibration.height} images, "
+                    f"the images ({self.left_paths[0]}) are {self.raw_size[0]}x{self.raw_size[1]}",
+                    calib_path or calibration.source,
+                )
+            self.rectifier = Rectifier(calibration)
+            self.calibration: StereoCalibration = self.rectifier.calibration
+        else:
+            if calibration.size != self.raw_size:
+                raise CalibrationError(
+                    f"calibration is for {calibration.width}x{calibration.height} images, "
+                    f"the images ({self.left_paths[0]}) are {self.raw_size[0]}x{self.raw_size[1]}",
+                    calib_path,
+                )
+            self.calibration = calibration
+
+    # -- checks ---------------------------------------------------------------------------
+
+    def _check_sizes(self, ldir: Path, rdir: Path) -> tuple[int, int]:
+        first = image_size(self.left_paths[0])
+        for paths in (self.left_paths, self.right_paths):
+            # PNG headers are cheap: check them all; other formats: the first of each side.
+            cand = paths if paths[0].suffix.lower() == ".png" else paths[:1]
+            for p in cand:
+                s = image_size(p)
+                if s != first:
+                    raise SequenceError(
+                        f"image size {s[0]}x{s[1]} differs from {first[0]}x{first[1]} of {self.left_paths[0]} "
+                        f"(left folder {ldir}, right folder {rdir})",
+                        p,
+                    )
+        return first
+
+    # -- protocol -------------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return len(self.left_paths)
+
+    def timestamps(self) -> np.ndarray:
+        """Timestamps in seconds, one per frame (a copy)."""
+        return self._timestamps.copy()
+
+    def _read(self, path: Path) -> np.ndarray:
+        img = read_image(path, self.color)
+        h, w = img.shape[:2]
+        if (w, h) != self.raw_size:
+            raise SequenceError(
+                f"image is {w}x{h}, the sequence's images are {self.raw_size[0]}x{self.raw_size[1]}", path
+            )
+        return img
+
+    def frame(self, index: int) -> StereoFrame:
+        """The ``index``-th rectified pair (negative indices count from the end)."""
+        n = len(self)
+        i = int(index)
+        if i < 0:
+            i += n
+        if not 0 <= i < n:
+            raise IndexError(f"frame {index} out of range: {self.name} has {n} frames")
+        left = self._read(self.left_paths[i])
+        right = self._read(self.right_paths[i])
+        if self.rectifier is not None:
+            left, right = self.rectifier.rectify(left, right)
+        return StereoFrame(
+            index=i,
+            timestamp=float(self._timestamps[i]),
+            left=left,
+            right=right,
+            left_path=self.left_paths[i],
+            right_path=self.right_paths[i],
+        )
+
+    def __iter__(self) -> Iterator[StereoFrame]:
+        for i in range(len(self)):
+            yield self.frame(i)
+
+    def frames(self, indices: Iterable[int]) -> Iterator[StereoFrame]:
+        """Frames at ``indices`` in the given order (e.g. from ``parse_frame_spec``)."""
+        for i in indices:
+            yield self.frame(i)
+
+    def __repr__(self) -> str:
+        c = self.calibration
+        rect = ", rectified on read" if self.rectifier is not None else ""
+        return (
+            f"{type(self).__name__}({self.name!r}, {len(self)} frames, {c.width}x{c.height}, "
+            f"fx={c.fx:.2f}, baseline={c.baseline:.4f} m{rect})"
+        )

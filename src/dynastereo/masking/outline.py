@@ -1,0 +1,326 @@
+"""Object outlines from the dominant disparity peak inside each detected box (thesis 3.3.3).
+
+For every box: the histogram of the valid disparities inside it; its dominant peak is the
+object's disparity (refined by the mean of the values in the peak); the pixels within a
+tolerance of it are the object.  Invalid disparities (no texture, occlusion) are first
+filled along each row with the *smaller* (farther) of the nearest valid disparities to
+the left and right -- the usual occlusion filling, so a textureless car window between
+two car pixels becomes car while a gap between car and background becomes background.
+Holes are then flood-filled, the largest connected component kept and the mask dilated
+a little, all inside the box.
+
+The result is an instance *label image* (``int32``, 0 = none, ``i`` = object ``i``,
+1-based in the order of the boxes).  Where boxes overlap, nearer objects (larger
+disparity) win the shared pixels.  Boxes with too little valid disparity, and tiny
+boxes, are masked whole, and the reason is recorded per object
+(``box-fallback:no-disparity``, ``box-fallback:tiny``).
+
+Everything is numpy/OpenCV on the box ROI; the only Python loop is over the boxes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..config import OutlineConfig
+
+import os
+_OPT = {k: float(os.environ.get("OPT_" + k, dv)) for k, dv in (("center", 0), ("rel", 0), ("near", 1), ("ext", 1))}
+METHOD_OUTLINE = "outline"
+FALLBACK_NO_DISPARITY = "box-fallback:no-disparity"
+FALLBACK_TINY = "box-fallback:tiny"
+FALLBACK_NO_PEAK = "box-fallback:no-object-pixels"
+EMPTY = "empty:outside-image"
+
+
+@dataclass
+class OutlineResult:
+    """Left-image outlines of N boxes."""
+
+    labels: np.ndarray  # int32 (H, W): 0 = none, i = object i (1-based, box order)
+    disparity: np.ndarray  # float32 (N,): the object's disparity in pixels, 0 = unknown
+    methods: list[str] = field(default_factory=list)
+    rois: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), np.int32))  # (N, 4) x0 y0 x1 y1
+    pixels: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (N,) pixels in labels
+
+    @property
+    def mask(self) -> np.ndarray:
+        """uint8 mask, 255 = any object."""
+        return np.where(self.labels > 0, np.uint8(255), np.uint8(0))
+
+
+def clip_boxes(boxes: np.ndarray, shape: tuple[int, int], margin: int = 0) -> np.ndarray:
+    """Integer ROIs ``(N, 4)`` x0, y0, x1, y1 (exclusive) covering the boxes, inside the image."""
+    h, w = shape
+    b = np.asarray(boxes, np.float64).reshape(-1, 4)
+    r = np.empty((len(b), 4), np.int64)
+    r[:, 0] = np.floor(b[:, 0]) - margin
+    r[:, 1] = np.floor(b[:, 1]) - margin
+    r[:, 2] = np.ceil(b[:, 2]) + margin
+    r[:, 3] = np.ceil(b[:, 3]) + margin
+    r[:, [0, 2]] = np.clip(r[:, [0, 2]], 0, w)
+    r[:, [1, 3]] = np.clip(r[:, [1, 3]], 0, h)
+    return r.astype(np.int32)
+
+
+def roi_disparity(disp: np.ndarray, origin: tuple[int, int], roi: tuple[int, int, int, int]) -> np.ndarray:
+    """The disparity of ``roi`` (image coords) from a region array whose top-left is ``origin``.
+
+    Parts of the ROI the region array does not cover are 0 (invalid).
+    """
+    ox, oy = origin
+    x0, y0, x1, y1 = roi
+    dh, dw = disp.shape
+    sx0, sy0 = max(x0 - ox, 0), max(y0 - oy, 0)
+    sx1, sy1 = min(x1 - ox, dw), min(y1 - oy, dh)
+    if sx0 == x0 - ox and sy0 == y0 - oy and sx1 == x1 - ox and sy1 == y1 - oy:
+        return disp[sy0:sy1, sx0:sx1]
+    out = np.zeros((y1 - y0, x1 - x0), np.float32)
+    if sx1 > sx0 and sy1 > sy0:
+        out[sy0 + oy - y0:sy1 + oy - y0, sx0 + ox - x0:sx1 + ox - x0] = disp[sy0:sy1, sx0:sx1]
+    return out
+
+
+def fill_invalid_rows(d: np.ndarray) -> np.ndarray:
+    """Fill invalid (<= 0) pixels with the smaller of the nearest valid values left/right
+    in the same row (the only one where just one side has a value; 0 where none)."""
+    h, w = d.shape
+    valid = d > 0
+    if valid.all() or not valid.any():
+        return d.copy()
+    idx = np.arange(w, dtype=np.int64)[None, :]
+    # nearest valid to the left (index), -1 if none
+    li = np.where(valid, idx, -1)
+    np.maximum.accumulate(li, axis=1, out=li)
+    # nearest valid to the right, w if none
+    ri = np.where(valid, idx, w)
+    ri = np.minimum.accumulate(ri[:, ::-1], axis=1)[:, ::-1]
+    rows = np.arange(h)[:, None]
+    dpad = np.concatenate([d, np.zeros((h, 1), d.dtype)], axis=1)  # index w -> 0; -1 -> 0
+    lv = dpad[rows, np.where(li >= 0, li, w)]
+    rv = dpad[rows, ri]
+    both = (lv > 0) & (rv > 0)
+    filled = np.where(both, np.minimum(lv, rv), np.maximum(lv, rv))
+    return np.where(valid, d, filled).astype(np.float32, copy=False)
+
+
+@dataclass(frozen=True)
+class Peak:
+    disparity: float  # refined (mean within the peak), pixels
+    count: int  # valid pixels within the peak bins
+    n_valid: int
+    lo: float = 0.0  # disparity range of the peak extended over contiguous high bins
+    hi: float = 0.0
+
+
+def _to_bins(v: np.ndarray, bin_width: float, rel: float) -> np.ndarray:
+    """Continuous bin coordinate: bins ``bin_width`` wide at small disparity and
+    ``rel * d`` wide above ``d_c = bin_width / rel`` (log scale), joined smoothly."""
+    u = v * (1.0 / bin_width)
+    if rel > 0:
+        dc = bin_width / rel
+        far = v > dc
+        if far.any():
+            u = np.where(far, dc / bin_width + np.log(np.maximum(v, dc) / dc) / rel, u)
+    return u
+
+
+def dominant_disparity(
+    values: np.ndarray,
+    bin_width: float,
+    rel: float = 0.0,
+    near_ratio: float = 1.0,
+    weights: np.ndarray | None = None,
+    extend_ratio: float = 1.0,
+) -> Peak | None:
+    """Dominant peak of a 1-D array of valid (> 0) disparities.
+
+    Histogram with bins ``bin_width`` wide (growing as ``rel * d`` for near, large
+    disparities, so a near object's wider spread still forms one peak), smoothed with a
+    [1, 2, 1] kernel so a peak split across a bin edge is not missed.  The peak is the
+    highest smoothed bin -- or, with ``near_ratio < 1``, the *nearest* (largest disparity)
+    local maximum at least ``near_ratio`` times as high: a detected object stands in front
+    of what else its box holds.  Its value is the (weighted) mean of the values in the
+    peak bin and its two neighbours.
+    """
+    v = np.asarray(values, np.float32).ravel()
+    if v.size == 0:
+        return None
+    bw = float(bin_width) if bin_width > 0 else 1.0
+    u = _to_bins(v, bw, float(rel))
+    lo = float(u.min())
+    idx = (u - lo).astype(np.int64)
+    counts = np.bincount(idx, weights=weights).astype(np.float64)
+    if counts.size >= 3:
+        sm = counts * 2.0
+        sm[1:] += counts[:-1]
+        sm[:-1] += counts[1:]
+    else:
+        sm = counts
+    k = int(np.argmax(sm))
+    if near_ratio < 1.0 and sm.size >= 3:
+        left = np.r_[-1.0, sm[:-1]]
+        right = np.r_[sm[1:], -1.0]
+        cand = np.flatnonzero((sm >= left) & (sm >= right) & (sm >= near_ratio * sm[k]))
+        if cand.size:
+            k = int(cand.max())
+    sel = (idx >= k - 1) & (idx <= k + 1)
+    n = int(np.count_nonzero(sel))
+    if weights is not None:
+        d = float(np.average(v[sel], weights=np.asarray(weights)[sel] + 1e-12))
+    else:
+        d = float(v[sel].mean())
+    lo = hi = d
+    if extend_ratio < 1.0:
+        above = sm >= extend_ratio * sm[k]
+        # contiguous run of bins above the threshold around k
+        kl = k
+        while kl > 0 and above[kl - 1]:
+            kl -= 1
+        kh = k
+        while kh < sm.size - 1 and above[kh + 1]:
+            kh += 1
+        if kl < k:
+            lo = float(v[idx == kl].min()) if np.any(idx == kl) else d
+        if kh > k:
+            hi = float(v[idx == kh].max()) if np.any(idx == kh) else d
+    return Peak(d, n, int(v.size), min(lo, d), max(hi, d))
+
+
+def tolerance(peak: float, cfg: OutlineConfig) -> float:
+    return max(float(cfg.peak_tolerance), float(cfg.peak_tolerance_rel) * float(peak))
+
+
+def _fill_holes(m: np.ndarray) -> np.ndarray:
+    """Fill the holes of a binary uint8 mask (0/1): background not reachable from the border."""
+    h, w = m.shape
+    pad = np.zeros((h + 2, w + 2), np.uint8)
+    pad[1:-1, 1:-1] = m
+    ff_mask = np.zeros((h + 4, w + 4), np.uint8)
+    cv2.floodFill(pad, ff_mask, (0, 0), 2)
+    inner = pad[1:-1, 1:-1]
+    return (inner != 2).astype(np.uint8)
+
+
+def _largest_component(m: np.ndarray) -> np.ndarray:
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+    if n <= 2:
+        return m
+    k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    return (lab == k).astype(np.uint8)
+
+
+def _dilate(m: np.ndarray, r: int) -> np.ndarray:
+    if r <= 0:
+        return m
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    return cv2.dilate(m, k)
+
+
+def object_mask_in_roi(droi: np.ndarray, cfg: OutlineConfig) -> tuple[np.ndarray | None, float, str]:
+    """The object's mask (uint8 0/1, ROI-shaped), its disparity and the method.
+
+    ``None`` mask means "mask the whole box" (a fallback); the disparity is then the
+    median of whatever valid disparity there is (0 if none).
+    """
+    h, w = droi.shape
+    area = h * w
+    valid = droi > 0
+    n_valid = int(np.count_nonzero(valid))
+    if area < cfg.min_box_pixels:
+        return None, float(np.median(droi[valid])) if n_valid else 0.0, FALLBACK_TINY
+    if n_valid < max(cfg.min_valid_fraction * area, 8):
+        return None, float(np.median(droi[valid])) if n_valid else 0.0, FALLBACK_NO_DISPARITY
+    weights = None
+    if _OPT["center"] > 0:
+        yy = (np.arange(h, dtype=np.float32) - (h - 1) / 2) / (_OPT["center"] * h)
+        xx = (np.arange(w, dtype=np.float32) - (w - 1) / 2) / (_OPT["center"] * w)
+        wmap = np.exp(-0.5 * (yy[:, None] ** 2 + xx[None, :] ** 2))
+        weights = wmap[valid]
+    peak = dominant_disparity(droi[valid], cfg.bin_width, _OPT["rel"] * cfg.peak_tolerance_rel, _OPT["near"], weights, _OPT["ext"])
+    assert peak is not None
+    d = peak.disparity
+    tol = tolerance(d, cfg)
+    filled = fill_invalid_rows(droi)
+    m = ((filled >= min(d - tol, peak.lo)) & (filled <= max(d + tol, peak.hi))).astype(np.uint8)
+    if cfg.keep_largest_component:
+        m = _largest_component(m)
+    if cfg.fill_holes:
+        m = _fill_holes(m)
+    m = _dilate(m, int(cfg.dilate))
+    if not m.any():
+        return None, d, FALLBACK_NO_PEAK
+    return m, d, METHOD_OUTLINE
+
+
+def outline_objects(
+    disp: np.ndarray,
+    boxes: np.ndarray,
+    image_shape: tuple[int, int],
+    cfg: OutlineConfig | None = None,
+    origin: tuple[int, int] = (0, 0),
+) -> OutlineResult:
+    """Outline every box from the disparity.
+
+    ``disp`` is float32 pixels (<= 0 invalid) of the whole image (``origin=(0, 0)``) or
+    of a region whose top-left image pixel is ``origin = (x, y)``; pixels outside it count
+    as invalid.  ``boxes`` are ``(N, 4)`` x1, y1, x2, y2 in image pixels.
+    """
+    cfg = cfg or OutlineConfig()
+    h, w = image_shape
+    rois = clip_boxes(boxes, (h, w))
+    n = len(rois)
+    labels = np.zeros((h, w), np.int32)
+    disparity = np.zeros(n, np.float32)
+    methods: list[str] = [EMPTY] * n
+    masks: list[np.ndarray | None] = [None] * n
+    for i in range(n):
+        x0, y0, x1, y1 = (int(v) for v in rois[i])
+        if x1 <= x0 or y1 <= y0:
+            continue
+        droi = roi_disparity(disp, origin, (x0, y0, x1, y1))
+        m, d, method = object_mask_in_roi(droi, cfg)
+        masks[i], disparity[i], methods[i] = m, d, method
+    # Paint far to near so nearer objects win overlaps; whole-box fallbacks first.
+    order = sorted(
+        (i for i in range(n) if methods[i] != EMPTY),
+        key=lambda i: (masks[i] is not None, float(disparity[i])),
+    )
+    for i in order:
+        x0, y0, x1, y1 = (int(v) for v in rois[i])
+        view = labels[y0:y1, x0:x1]
+        if masks[i] is None:
+            view[...] = i + 1
+        else:
+            view[masks[i] > 0] = i + 1
+    pixels = np.zeros(n, np.int64)
+    for i in range(n):
+        x0, y0, x1, y1 = (int(v) for v in rois[i])
+        if x1 > x0 and y1 > y0:
+            pixels[i] = int(np.count_nonzero(labels[y0:y1, x0:x1] == i + 1))
+    return OutlineResult(labels, disparity, methods, rois, pixels)
+
+
+def band_for_boxes(rois: np.ndarray, shape: tuple[int, int], margin: int = 0) -> tuple[int, int, int, int] | None:
+    """``(y0, y1, x0, x1)`` of the smallest image region covering all ROIs (+ margin)."""
+    if len(rois) == 0:
+        return None
+    r = np.asarray(rois)
+    keep = (r[:, 2] > r[:, 0]) & (r[:, 3] > r[:, 1])
+    if not keep.any():
+        return None
+    r = r[keep]
+    h, w = shape
+    x0 = max(0, int(r[:, 0].min()) - margin)
+    y0 = max(0, int(r[:, 1].min()) - margin)
+    x1 = min(w, int(r[:, 2].max()) + margin)
+    y1 = min(h, int(r[:, 3].max()) + margin)
+    return y0, y1, x0, x1
+
+
+def _ceil(v: float) -> int:
+    return int(math.ceil(v))

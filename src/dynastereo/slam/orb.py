@@ -1,0 +1,173 @@
+"""ORB extraction: scale pyramid, grid-bucketed corners, dynamic mask given to the detector.
+
+OpenCV's ORB detects FAST corners on every pyramid level (ranked by Harris score) with
+the *static* region as detection mask -- the image itself is never painted, so mask
+edges create no false corners.  We ask for ``oversample`` times more corners than wanted
+and then spread them over the image with a per-level grid (like ORB-SLAM2's quadtree:
+the strongest corner of every cell first, then the second strongest, ... until the
+level's quota is met).  Descriptors are computed for the kept corners only.
+
+The per-level quotas follow ORB-SLAM2: ``n * (1 - 1/s) / (1 - (1/s)^L)`` for level 0,
+shrinking by ``1/s`` per level.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+EDGE_THRESHOLD = 19
+PATCH_SIZE = 31
+
+
+@dataclass
+class Features:
+    """Keypoints of one image, array-wise (level-0 pixel coordinates)."""
+
+    uv: np.ndarray  # (N, 2) float64
+    octave: np.ndarray  # (N,) int32 pyramid level
+    angle: np.ndarray  # (N,) float32 degrees
+    response: np.ndarray  # (N,) float32
+    desc: np.ndarray  # (N, 32) uint8
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+    @classmethod
+    def empty(cls) -> "Features":
+        return cls(
+            np.zeros((0, 2)),
+            np.zeros(0, np.int32),
+            np.zeros(0, np.float32),
+            np.zeros(0, np.float32),
+            np.zeros((0, 32), np.uint8),
+        )
+
+
+class ORBExtractor:
+    def __init__(
+        self,
+        n_features: int = 2000,
+        scale_factor: float = 1.2,
+        n_levels: int = 8,
+        ini_th_fast: int = 20,
+        min_th_fast: int = 7,
+        oversample: float = 2.0,
+        mask_margin: int = 0,
+    ) -> None:
+        if n_features < 1 or n_levels < 1 or scale_factor <= 1.0:
+            raise ValueError(
+                f"ORB extractor: invalid n_features={n_features}, n_levels={n_levels}, scale_factor={scale_factor}"
+            )
+        self.n_features = int(n_features)
+        self.scale_factor = float(scale_factor)
+        self.n_levels = int(n_levels)
+        self.ini_th_fast = int(ini_th_fast)
+        self.min_th_fast = int(min_th_fast)
+        self.oversample = max(1.0, float(oversample))
+        self.mask_margin = int(mask_margin)
+        self.scales = self.scale_factor ** np.arange(self.n_levels)
+        self.inv_scales = 1.0 / self.scales
+        self.sigma2 = self.scales**2
+        self.inv_sigma2 = 1.0 / self.sigma2
+        f = 1.0 / self.scale_factor
+        n0 = self.n_features * (1 - f) / (1 - f**self.n_levels)
+        quota = np.round(n0 * f ** np.arange(self.n_levels)).astype(np.int64)
+        quota[-1] = max(0, self.n_features - int(quota[:-1].sum()))
+        self.quota = quota
+        # the detector: FAST corners at min_th_fast ranked by FAST score (ORB-SLAM2 retries
+        # cells with min_th_fast where ini_th_fast finds nothing; ranking by score within
+        # grid cells gives the same preference for strong corners where there are some)
+        self._det = cv2.ORB_create(
+            nfeatures=int(round(self.n_features * self.oversample)),
+            scaleFactor=self.scale_factor,
+            nlevels=self.n_levels,
+            edgeThreshold=EDGE_THRESHOLD,
+            firstLevel=0,
+            WTA_K=2,
+            scoreType=cv2.ORB_FAST_SCORE,
+            patchSize=PATCH_SIZE,
+            fastThreshold=self.min_th_fast,
+        )
+
+    def detect_mask(self, dynamic: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | None:
+        """Detection mask (255 = may detect) from a dynamic mask (255 = dynamic)."""
+        if dynamic is None:
+            return None
+        if dynamic.shape[:2] != shape:
+            raise ValueError(f"mask shape {dynamic.shape[:2]} differs from image shape {shape}")
+        dyn = dynamic
+        if self.mask_margin > 0:
+            k = 2 * self.mask_margin + 1
+            dyn = cv2.dilate(dyn, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
+        if not dyn.any():
+            return None
+        return np.where(dyn > 0, 0, 255).astype(np.uint8)
+
+    def extract(self, gray: np.ndarray, dynamic: np.ndarray | None = None) -> Features:
+        """ORB features of a grayscale image; no corner is detected where ``dynamic`` is set."""
+        if gray.ndim != 2 or gray.dtype != np.uint8:
+            raise ValueError("ORBExtractor.extract expects a uint8 grayscale image")
+        mask = self.detect_mask(dynamic, gray.shape)
+        kps = self._det.detect(gray, mask)
+        if not kps:
+            return Features.empty()
+        # cv2.KeyPoint -> arrays at the OpenCV boundary: points in C++ (KeyPoint_convert),
+        # score and level through np.fromiter (about 0.05 us per keypoint).
+        n = len(kps)
+        uv = cv2.KeyPoint_convert(kps).astype(np.float64).reshape(-1, 2)
+        resp = np.fromiter((k.response for k in kps), np.float32, n)
+        lev = np.fromiter((k.octave for k in kps), np.int32, n)
+        keep = self._bucket(uv[:, 0], uv[:, 1], resp, lev, gray.shape)
+        sel = [kps[i] for i in keep]
+        sel, desc = self._det.compute(gray, sel)
+        if desc is None or not sel:
+            return Features.empty()
+        m = len(sel)
+        if m != len(keep):  # compute() may drop points at the border; re-read them
+            uv = cv2.KeyPoint_convert(sel).astype(np.float64).reshape(-1, 2)
+            resp = np.fromiter((k.response for k in sel), np.float32, m)
+            lev = np.fromiter((k.octave for k in sel), np.int32, m)
+        else:
+            uv, resp, lev = uv[keep], resp[keep], lev[keep]
+        angle = np.fromiter((k.angle for k in sel), np.float32, m)
+        return Features(uv=uv, octave=lev, angle=angle, response=resp, desc=np.ascontiguousarray(desc))
+
+    def _bucket(self, u: np.ndarray, v: np.ndarray, resp: np.ndarray, lev: np.ndarray, shape) -> np.ndarray:
+        """Indices of the kept corners: per level, grid cells of about one quota-th of
+        the image; rank corners within their cell by response; take rank 0 of every cell,
+        then rank 1, ..., strongest first, until the level's quota is met."""
+        H, W = shape
+        lev = np.clip(lev, 0, self.n_levels - 1)
+        quota = self.quota
+        cell = np.sqrt(W * H / np.maximum(quota, 1))[lev]  # level-0 pixels
+        ncx = np.ceil(W / cell).astype(np.int64)
+        cx = np.minimum((u / cell).astype(np.int64), ncx - 1)
+        cy = (v / cell).astype(np.int64)
+        cid = (lev * 1_000_000 + cy * ncx + cx).astype(np.int64)
+        order = np.lexsort((-resp, cid))
+        c_sorted = cid[order]
+        start = np.ones(len(order), bool)
+        start[1:] = c_sorted[1:] != c_sorted[:-1]
+        first_pos = np.maximum.accumulate(np.where(start, np.arange(len(order)), 0))
+        rank = np.empty(len(order), np.int64)
+        rank[order] = np.arange(len(order)) - first_pos
+        # order by level, then rank, then response; take the first quota[level] of each level
+        o2 = np.lexsort((-resp, rank, lev))
+        l2 = lev[o2]
+        lstart = np.searchsorted(l2, np.arange(self.n_levels))
+        pos_in_level = np.arange(len(o2)) - lstart[l2]
+        keep = o2[pos_in_level < quota[l2]]
+        return np.sort(keep)
+
+    def pyramid(self, gray: np.ndarray) -> list[np.ndarray]:
+        """Unblurred scale pyramid (ORB-SLAM2's ``mvImagePyramid``), for stereo refinement."""
+        H, W = gray.shape
+        out = [gray]
+        for lv in range(1, self.n_levels):
+            s = self.inv_scales[lv]
+            size = (int(round(W * s)), int(round(H * s)))
+            out.append(cv2.resize(gray, size, interpolation=cv2.INTER_LINEAR))
+        return out
