@@ -38,7 +38,6 @@ def main() -> None:
     if not data:
         raise SystemExit("set DYNASTEREO_DATA (e.g. ../shared/data)")
     data_dir = Path(data)
-    cv2.setNumThreads(cv2.getNumThreads())  # OpenCV default threading, as the pipeline uses it
     rows: list[dict] = []
 
     # --- EuRoC: raw 752x480 gray, rectified on read

@@ -338,6 +338,22 @@ def test_kitti_synthetic_times_and_override(tmp_path):
     assert seq.calibration.size == (48, 24)
 
 
+def test_kitti_colour_pair_only(tmp_path):
+    root = tmp_path / "seq"
+    for i in range(2):
+        img = np.random.default_rng(i).integers(0, 255, (24, 48, 3), dtype=np.uint8)
+        for side in ("image_2", "image_3"):
+            (root / side).mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(root / side / f"{i:06d}.png"), img)
+    p2 = "P2: 7.0e+02 0 3.0e+01 4.0e+01 0 7.0e+02 1.2e+01 0 0 0 1 0"
+    p3 = "P3: 7.0e+02 0 3.0e+01 -3.1e+02 0 7.0e+02 1.2e+01 0 0 0 1 0"
+    (root / "calib.txt").write_text(f"{P0}\n{P1}\n{p2}\n{p3}\nTr: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    gray = open_sequence(root)  # no image_0/1: the colour pair read as gray, with P2/P3
+    assert gray.frame(0).left.shape == (24, 48) and gray.calibration.baseline == pytest.approx(0.5)
+    col = open_sequence(root, color=True)
+    assert col.frame(1).right.shape == (24, 48, 3) and col.calibration.baseline == pytest.approx(0.5)
+
+
 @pytest.mark.parametrize(
     "calib, pattern",
     [
@@ -474,6 +490,9 @@ def test_orbslam2_settings(tmp_path):
     p.write_text(ORBSLAM2_EUROC.replace("LEFT.R:", "LEFT.Rx:"))
     with pytest.raises(CalibrationError, match=r"EuRoC.yaml: rectification keys LEFT.R are missing"):
         load_stereo_yaml(p)
+    p.write_text("%YAML:1.0\nCamera.fx: [1,\n  bad: : :\n")
+    with pytest.raises(CalibrationError, match=r"EuRoC.yaml: cannot parse OpenCV YAML: line 3"):
+        load_orbslam2_settings(p)
 
 
 # --------------------------------------------------------------------------- rectification
@@ -544,6 +563,8 @@ def test_euroc_real_rectification_aligns_rows(euroc_dir):
     assert len(seq) == 40 and seq.unpaired_left == 0 and seq.unpaired_right == 0
     ts = seq.timestamps()
     assert ts[0] == pytest.approx(1403715273.262142976, abs=1e-6) and np.allclose(np.diff(ts), 0.05, atol=1e-4)
+    raw = load_euroc_calib(euroc_dir / "mav0/cam0/sensor.yaml", euroc_dir / "mav0/cam1/sensor.yaml")
+    assert raw.T[0] == pytest.approx(-0.110, abs=0.002) and np.allclose(raw.R, np.eye(3), atol=0.02)
     c = seq.calibration
     assert c.size == (752, 480) and 400 < c.fx < 470 and c.baseline == pytest.approx(0.110, abs=0.002)
     # our stereoRectify of the sensor.yaml poses reproduces ORB-SLAM2's published LEFT.R / RIGHT.R

@@ -70,6 +70,12 @@ class OutlineConfig:
     fill_holes: bool = True
     dilate: int = 3  # dilation radius in pixels applied to each object mask
     keep_largest_component: bool = True
+    # Among histogram peaks at least this fraction of the highest, take the nearest
+    # (largest disparity): the detected object stands in front of its background. 1 = off.
+    near_peak_ratio: float = 0.5
+    # Extend the peak over contiguous bins holding at least this fraction of its count
+    # (slanted surfaces: a car seen from the side spans many disparities). 1 = off.
+    peak_extend_ratio: float = 0.1
 
 
 @dataclass

@@ -282,6 +282,14 @@ def _filenode_to_py(node: "cv2.FileNode") -> Any:
     return None
 
 
+def _cv_parse_message(e: BaseException) -> str:
+    err = e.__cause__ if isinstance(e.__cause__, cv2.error) else e
+    m = re.search(r"\((\d+)\): (.*)$", str(getattr(err, "func", "") or ""))
+    if m:  # OpenCV puts "<file>(<line>): <problem>" in the function-name field
+        return f"line {m.group(1)}: {m.group(2)}"
+    return str(getattr(err, "err", "") or "") or "parse error"
+
+
 def read_yaml_file(path: str | Path) -> dict[str, Any]:
     """Read a YAML mapping: OpenCV FileStorage files (``%YAML:1.0``) through ``cv2.FileStorage``
     (which accepts their quirks, e.g. ``data:[...]``), anything else through PyYAML.
@@ -297,10 +305,7 @@ def read_yaml_file(path: str | Path) -> dict[str, Any]:
         try:
             fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         except (cv2.error, SystemError) as e:  # cv2 may wrap its parse error in a SystemError
-            err = e.__cause__ if isinstance(e.__cause__, cv2.error) else e
-            msg = getattr(err, "err", None) or str(err).strip().splitlines()[-1:] or ["parse error"]
-            raise CalibrationError(f"cannot parse OpenCV YAML: {msg if isinstance(msg, str) else msg[0]}",
-                                   path) from None
+            raise CalibrationError(f"cannot parse OpenCV YAML: {_cv_parse_message(e)}", path) from None
         try:
             if not fs.isOpened():
                 raise CalibrationError("cannot parse OpenCV YAML", path)

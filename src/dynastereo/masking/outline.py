@@ -20,7 +20,6 @@ Everything is numpy/OpenCV on the box ROI; the only Python loop is over the boxe
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -28,8 +27,6 @@ import numpy as np
 
 from ..config import OutlineConfig
 
-import os
-_OPT = {k: float(os.environ.get("OPT_" + k, dv)) for k, dv in (("center", 0), ("rel", 0), ("near", 1), ("ext", 1))}
 METHOD_OUTLINE = "outline"
 FALLBACK_NO_DISPARITY = "box-fallback:no-disparity"
 FALLBACK_TINY = "box-fallback:tiny"
@@ -145,7 +142,9 @@ def dominant_disparity(
     highest smoothed bin -- or, with ``near_ratio < 1``, the *nearest* (largest disparity)
     local maximum at least ``near_ratio`` times as high: a detected object stands in front
     of what else its box holds.  Its value is the (weighted) mean of the values in the
-    peak bin and its two neighbours.
+    peak bin and its two neighbours.  With ``extend_ratio < 1`` the peak's range
+    ``lo..hi`` grows over the contiguous bins holding at least that fraction of the
+    peak's count (a slanted surface spreads over many disparities).
     """
     v = np.asarray(values, np.float32).ravel()
     if v.size == 0:
@@ -176,14 +175,10 @@ def dominant_disparity(
         d = float(v[sel].mean())
     lo = hi = d
     if extend_ratio < 1.0:
-        above = sm >= extend_ratio * sm[k]
-        # contiguous run of bins above the threshold around k
-        kl = k
-        while kl > 0 and above[kl - 1]:
-            kl -= 1
-        kh = k
-        while kh < sm.size - 1 and above[kh + 1]:
-            kh += 1
+        below = np.flatnonzero(sm < extend_ratio * sm[k])
+        # the contiguous run of bins above the threshold around k
+        kl = int(below[below < k].max()) + 1 if np.any(below < k) else 0
+        kh = int(below[below > k].min()) - 1 if np.any(below > k) else sm.size - 1
         if kl < k:
             lo = float(v[idx == kl].min()) if np.any(idx == kl) else d
         if kh > k:
@@ -235,13 +230,13 @@ def object_mask_in_roi(droi: np.ndarray, cfg: OutlineConfig) -> tuple[np.ndarray
         return None, float(np.median(droi[valid])) if n_valid else 0.0, FALLBACK_TINY
     if n_valid < max(cfg.min_valid_fraction * area, 8):
         return None, float(np.median(droi[valid])) if n_valid else 0.0, FALLBACK_NO_DISPARITY
-    weights = None
-    if _OPT["center"] > 0:
-        yy = (np.arange(h, dtype=np.float32) - (h - 1) / 2) / (_OPT["center"] * h)
-        xx = (np.arange(w, dtype=np.float32) - (w - 1) / 2) / (_OPT["center"] * w)
-        wmap = np.exp(-0.5 * (yy[:, None] ** 2 + xx[None, :] ** 2))
-        weights = wmap[valid]
-    peak = dominant_disparity(droi[valid], cfg.bin_width, _OPT["rel"] * cfg.peak_tolerance_rel, _OPT["near"], weights, _OPT["ext"])
+    peak = dominant_disparity(
+        droi[valid],
+        cfg.bin_width,
+        rel=cfg.peak_tolerance_rel,
+        near_ratio=cfg.near_peak_ratio,
+        extend_ratio=cfg.peak_extend_ratio,
+    )
     assert peak is not None
     d = peak.disparity
     tol = tolerance(d, cfg)
@@ -321,6 +316,3 @@ def band_for_boxes(rois: np.ndarray, shape: tuple[int, int], margin: int = 0) ->
     y1 = min(h, int(r[:, 3].max()) + margin)
     return y0, y1, x0, x1
 
-
-def _ceil(v: float) -> int:
-    return int(math.ceil(v))

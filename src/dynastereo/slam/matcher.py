@@ -1,0 +1,255 @@
+"""Descriptor matching, vectorised (ORB-SLAM2's ORBmatcher).
+
+* ``stereo_match``: left/right keypoints along the rectified rows by descriptor
+  distance, then SAD block matching on the pyramid level with parabola sub-pixel
+  refinement and a median-based outlier rejection (``Frame::ComputeStereoMatches``).
+* ``KeypointGrid``: keypoints bucketed in image cells; ``query`` returns every
+  (query, keypoint) pair inside square windows, without a Python loop.
+* ``search_by_projection``: best keypoint for each projected map point inside its
+  window, with level / stereo / ratio / distance checks and one point per keypoint.
+
+Candidate pairs are generated with ``expand_ranges`` over sorted arrays and
+Hamming distances computed with ``np.bitwise_count`` on descriptors viewed as uint64.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .geometry import best_two_per_group, desc_u64, expand_ranges, hamming_pairs, rotation_consistent, unique_best
+
+TH_HIGH = 100
+TH_LOW = 50
+
+
+@dataclass
+class StereoResult:
+    u_right: np.ndarray  # (N,) right-image u of each left keypoint, -1 if none
+    depth: np.ndarray  # (N,) metres, -1 if none
+
+
+def stereo_match(
+    uv_l: np.ndarray,
+    oct_l: np.ndarray,
+    desc_l: np.ndarray,
+    uv_r: np.ndarray,
+    oct_r: np.ndarray,
+    desc_r: np.ndarray,
+    pyr_l: list[np.ndarray],
+    pyr_r: list[np.ndarray],
+    scales: np.ndarray,
+    fx: float,
+    bf: float,
+    max_disparity: float | None = None,
+    th_dist: int = (TH_HIGH + TH_LOW) // 2,
+) -> StereoResult:
+    """Stereo matches of left keypoints (``Frame::ComputeStereoMatches``, vectorised).
+
+    Candidates: right keypoints within ``2 * scale[octave]`` rows, at most one octave
+    apart, with disparity in ``[0, max_disparity]`` (default ``fx``: depth >= baseline).
+    The best descriptor match (<= ``th_dist``) is refined by SAD over 11x11 windows,
+    +-5 pixels along the row at the keypoint's level, and a parabola fit.
+    """
+    n = len(uv_l)
+    u_right = np.full(n, -1.0)
+    depth = np.full(n, -1.0)
+    if n == 0 or len(uv_r) == 0:
+        return StereoResult(u_right, depth)
+    max_d = float(fx if max_disparity is None else max_disparity)
+    min_d = 0.0
+    # candidates per right level o: rows within 2 * scale[o], left level in o-1..o+1
+    qs, rs = [], []
+    for o in np.unique(oct_r):
+        rsel = np.flatnonzero(oct_r == o)
+        lsel = np.flatnonzero(np.abs(oct_l - o) <= 1)
+        if len(lsel) == 0:
+            continue
+        order = rsel[np.argsort(uv_r[rsel, 1], kind="stable")]
+        vr = uv_r[order, 1]
+        r = 2.0 * float(scales[o])
+        lo = np.searchsorted(vr, uv_l[lsel, 1] - r, side="left")
+        hi = np.searchsorted(vr, uv_l[lsel, 1] + r, side="right")
+        g, pos = expand_ranges(lo, hi - lo)
+        qs.append(lsel[g])
+        rs.append(order[pos])
+    qi = np.concatenate(qs) if qs else np.zeros(0, np.int64)
+    ri = np.concatenate(rs) if rs else np.zeros(0, np.int64)
+    disp = uv_l[qi, 0] - uv_r[ri, 0]
+    ok = (disp >= min_d) & (disp <= max_d)
+    qi, ri = qi[ok], ri[ok]
+    if len(qi) == 0:
+        return StereoResult(u_right, depth)
+    dl = desc_u64(desc_l)
+    dr = desc_u64(desc_r)
+    dist = hamming_pairs(dl, qi, dr, ri)
+    best, _, _ = best_two_per_group(qi, dist)
+    keep = dist[best] <= th_dist
+    li = qi[best[keep]]
+    rj = ri[best[keep]]
+    if len(li) == 0:
+        return StereoResult(u_right, depth)
+
+    # SAD refinement at the left keypoint's level: gather an 11x11 left patch and an
+    # 11x21 right strip per match (per level), then 11 shifts over all matches at once
+    w, L = 5, 5
+    m_all = len(li)
+    lev = oct_l[li]
+    s_all = scales[lev]
+    ul = np.rint(uv_l[li, 0] / s_all).astype(np.int64)
+    vl = np.rint(uv_l[li, 1] / s_all).astype(np.int64)
+    ur0 = np.rint(uv_r[rj, 0] / s_all).astype(np.int64)
+    H_l = np.array([pyr_l[o].shape[0] for o in range(len(pyr_l))])[lev]
+    W_l = np.array([pyr_l[o].shape[1] for o in range(len(pyr_l))])[lev]
+    valid = (vl - w >= 0) & (vl + w < H_l) & (ul - w >= 0) & (ul + w < W_l) & (ur0 - L - w >= 0) & (ur0 + L + w < W_l)
+    PL = np.zeros((m_all, 2 * w + 1, 2 * w + 1), np.int16)
+    SR = np.zeros((m_all, 2 * w + 1, 2 * (w + L) + 1), np.int16)
+    dy = np.arange(-w, w + 1)
+    dx = np.arange(-w - L, w + L + 1)
+    for lv in np.unique(lev[valid]):
+        sel = np.flatnonzero(valid & (lev == lv))
+        rows = (vl[sel, None] + dy[None, :])[:, :, None]
+        PL[sel] = pyr_l[lv][rows, (ul[sel, None] + dy[None, :])[:, None, :]]
+        SR[sel] = pyr_r[lv][rows, (ur0[sel, None] + dx[None, :])[:, None, :]]
+    PL -= PL[:, w : w + 1, w : w + 1]
+    sad = np.empty((m_all, 2 * L + 1), np.float64)
+    for k in range(2 * L + 1):  # 11 shifts, each over all matches
+        win = SR[:, :, k : k + 2 * w + 1]
+        sad[:, k] = np.abs(win - win[:, w : w + 1, w : w + 1] - PL).sum(axis=(1, 2), dtype=np.int64)
+    b = np.argmin(sad, axis=1)
+    bi = np.clip(b, 1, 2 * L - 1)
+    m = np.arange(m_all)
+    d1, d2, d3 = sad[m, bi - 1], sad[m, bi], sad[m, bi + 1]
+    den = 2.0 * (d1 + d3 - 2.0 * d2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        delta = np.where(den != 0, (d1 - d3) / den, 0.0)
+    good = valid & (b > 0) & (b < 2 * L) & (np.abs(delta) <= 1.0)
+    sad_best = np.where(good, sad[m, b], np.inf)
+    ur_best = np.where(good, s_all * (ur0 + (b - L) + delta), np.nan)
+
+    ok = np.isfinite(ur_best)
+    disp = uv_l[li, 0] - ur_best
+    ok &= (disp >= min_d) & (disp < max_d)
+    if not ok.any():
+        return StereoResult(u_right, depth)
+    disp = np.where(disp <= 0, 0.01, disp)
+    ur_best = uv_l[li, 0] - disp
+    # reject block-matching outliers (SAD > 1.5 * 1.4 * median)
+    med = np.median(sad_best[ok])
+    ok &= sad_best <= 1.5 * 1.4 * med
+    u_right[li[ok]] = ur_best[ok]
+    depth[li[ok]] = bf / disp[ok]
+    return StereoResult(u_right, depth)
+
+
+class KeypointGrid:
+    """Keypoints bucketed in square cells; ``query`` finds all keypoints in windows."""
+
+    def __init__(self, uv: np.ndarray, width: int, height: int, cell: float = 16.0) -> None:
+        self.uv = uv
+        self.cell = float(cell)
+        self.ncx = max(1, int(np.ceil(width / cell)))
+        self.ncy = max(1, int(np.ceil(height / cell)))
+        cx = np.clip((uv[:, 0] / cell).astype(np.int64), 0, self.ncx - 1)
+        cy = np.clip((uv[:, 1] / cell).astype(np.int64), 0, self.ncy - 1)
+        cid = cy * self.ncx + cx
+        self.order = np.argsort(cid, kind="stable")
+        self.start = np.searchsorted(cid[self.order], np.arange(self.ncx * self.ncy + 1))
+
+    def query(self, u: np.ndarray, v: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """All pairs (query index, keypoint index) with ``|du| < r`` and ``|dv| < r``."""
+        if len(u) == 0 or len(self.uv) == 0:
+            z = np.zeros(0, np.int64)
+            return z, z
+        c = self.cell
+        x0 = np.clip(np.floor((u - r) / c).astype(np.int64), 0, self.ncx - 1)
+        x1 = np.clip(np.floor((u + r) / c).astype(np.int64), 0, self.ncx - 1)
+        y0 = np.clip(np.floor((v - r) / c).astype(np.int64), 0, self.ncy - 1)
+        y1 = np.clip(np.floor((v + r) / c).astype(np.int64), 0, self.ncy - 1)
+        nrows = np.maximum(y1 - y0 + 1, 0)
+        q_rep, row = expand_ranges(y0, nrows)
+        s = self.start[row * self.ncx + x0[q_rep]]
+        e = self.start[row * self.ncx + x1[q_rep] + 1]
+        g, pos = expand_ranges(s, e - s)
+        q = q_rep[g]
+        k = self.order[pos]
+        ok = (np.abs(self.uv[k, 0] - u[q]) < r[q]) & (np.abs(self.uv[k, 1] - v[q]) < r[q])
+        return q[ok], k[ok]
+
+
+@dataclass
+class ProjectionMatches:
+    query: np.ndarray  # index into the projected points
+    kp: np.ndarray  # keypoint index in the frame
+    dist: np.ndarray  # Hamming distance
+
+
+def search_by_projection(
+    grid: KeypointGrid,
+    kp_octave: np.ndarray,
+    kp_desc64: np.ndarray,
+    kp_uR: np.ndarray | None,
+    kp_available: np.ndarray | None,
+    u: np.ndarray,
+    v: np.ndarray,
+    radius: np.ndarray,
+    q_desc64: np.ndarray,
+    min_level: np.ndarray | None = None,
+    max_level: np.ndarray | None = None,
+    u_right: np.ndarray | None = None,
+    th_dist: int = TH_HIGH,
+    ratio: float | None = None,
+    ratio_same_level_only: bool = True,
+    angle_check: tuple[np.ndarray, np.ndarray] | None = None,
+) -> ProjectionMatches:
+    """Match projected points to keypoints within their windows.
+
+    ``u_right``: the projected right-image u; keypoints with a stereo match must agree
+    within the radius.  ``ratio``: best/second-best distance ratio test (by default
+    only when both are on the same level, as ORB-SLAM2 does in local-map search).
+    ``angle_check``: (query keypoint angles, frame keypoint angles) for the
+    rotation-histogram consistency check.  Each keypoint gets at most one point.
+    """
+    q, k = grid.query(u, v, radius)
+    if len(q):
+        ok = np.ones(len(q), bool)
+        if kp_available is not None:
+            ok &= kp_available[k]
+        if min_level is not None:
+            ok &= kp_octave[k] >= min_level[q]
+        if max_level is not None:
+            ok &= kp_octave[k] <= max_level[q]
+        if u_right is not None and kp_uR is not None:
+            has = kp_uR[k] >= 0
+            ok &= ~has | (np.abs(u_right[q] - kp_uR[k]) <= radius[q])
+        q, k = q[ok], k[ok]
+    if len(q) == 0:
+        z = np.zeros(0, np.int64)
+        return ProjectionMatches(z, z, np.zeros(0, np.int32))
+    dist = hamming_pairs(q_desc64, q, kp_desc64, k)
+    pos, g, second = best_two_per_group(q, dist)
+    d = dist[pos]
+    keep = d <= th_dist
+    if ratio is not None:
+        if ratio_same_level_only:
+            # level of the second best: recompute cheaply by excluding the best
+            mask2 = np.ones(len(q), bool)
+            mask2[pos] = False
+            pos2, g2, _ = best_two_per_group(q[mask2], dist[mask2])
+            lev2 = np.full(len(u), -1, np.int64)
+            lev2[g2] = kp_octave[k[mask2][pos2]]
+            same = lev2[g] == kp_octave[k[pos]]
+            keep &= ~(same & (d > ratio * second))
+        else:
+            keep &= d <= ratio * second
+    pos = pos[keep]
+    qm, km, dm = q[pos], k[pos], dist[pos]
+    # one point per keypoint: the closest descriptor wins
+    u_idx = unique_best(km, dm)
+    qm, km, dm = qm[u_idx], km[u_idx], dm[u_idx]
+    if angle_check is not None and len(qm):
+        qa, ka = angle_check
+        ok = rotation_consistent(qa[qm] - ka[km])
+        qm, km, dm = qm[ok], km[ok], dm[ok]
+    return ProjectionMatches(qm, km, dm)
