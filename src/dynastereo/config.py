@@ -76,6 +76,9 @@ class OutlineConfig:
     # Extend the peak over contiguous bins holding at least this fraction of its count
     # (slanted surfaces: a car seen from the side spans many disparities). 1 = off.
     peak_extend_ratio: float = 0.1
+    # How a left mask moves to the right image: "affine" (d = a + b x + c y fitted per
+    # object, rigid when the fit is poor) or "rigid" (shift by the object's disparity).
+    transfer: str = "affine"
 
 
 @dataclass

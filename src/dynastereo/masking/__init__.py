@@ -1,0 +1,75 @@
+"""Masking of dynamic objects in both stereo images (thesis 3.3).
+
+``create_masker(cfg)`` builds the masker ``cfg.masker.kind`` names:
+
+* ``outline`` (default): detector on the left image, disparity where the boxes need it,
+  outline from the dominant disparity peak, mask moved to the right image by disparity;
+* ``box``: the boxes, moved to the right image by their disparity;
+* ``seg``: an instance-segmentation network on both images (AGPL model: a baseline only);
+* ``none``: nothing masked.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..config import Config
+from ..errors import ConfigError
+from .base import Detector, DisparityEstimator, Masker
+from .disparity import StereoMatcher, normalize_disparity, validate_stereo_config
+from .maskers import MASKER_KINDS, BoxMasker, NoneMasker, OutlineMasker, SegMasker
+from .outline import OutlineResult, outline_objects
+from .transfer import TransferResult, transfer_labels
+
+
+def create_masker(
+    cfg: Config,
+    models_dir: str | Path | None = None,
+    detector: Detector | None = None,
+    *,
+    full_disparity: bool = False,
+) -> Masker:
+    """The masker for ``cfg.masker.kind``.
+
+    ``detector`` replaces the one ``cfg.detector`` names (tests, or sharing one network);
+    ``full_disparity=True`` makes disparity-based maskers compute the whole frame and
+    return it in ``StereoMasks.disparity`` (to save it), as ``stereo.region: full`` does.
+    """
+    kind = str(cfg.masker.kind).lower()
+    if kind not in MASKER_KINDS:
+        raise ConfigError(f"masker.kind must be one of {', '.join(MASKER_KINDS)}, got {cfg.masker.kind!r}")
+    if kind == "none":
+        return NoneMasker()
+    if kind == "seg":
+        from .detection import create_seg_model
+
+        model = create_seg_model(cfg.masker.seg_model, cfg.detector, models_dir)
+        return SegMasker(model, max_disparity=float(cfg.stereo.min_disparity + cfg.stereo.num_disparities))
+    matcher = StereoMatcher(cfg.stereo)  # validates the stereo section first
+    if detector is None:
+        from .detection import create_detector
+
+        detector = create_detector(cfg.detector, models_dir)
+    if kind == "box":
+        return BoxMasker(detector, matcher, cfg.masker.outline, full_disparity=full_disparity,
+                         margin=cfg.masker.box_margin)
+    return OutlineMasker(detector, matcher, cfg.masker.outline, full_disparity=full_disparity)
+
+
+__all__ = [
+    "BoxMasker",
+    "Detector",
+    "DisparityEstimator",
+    "Masker",
+    "NoneMasker",
+    "OutlineMasker",
+    "OutlineResult",
+    "SegMasker",
+    "StereoMatcher",
+    "TransferResult",
+    "create_masker",
+    "normalize_disparity",
+    "outline_objects",
+    "transfer_labels",
+    "validate_stereo_config",
+]

@@ -43,6 +43,7 @@ class OutlineResult:
     methods: list[str] = field(default_factory=list)
     rois: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), np.int32))  # (N, 4) x0 y0 x1 y1
     pixels: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (N,) pixels in labels
+    ranges: list[tuple[float, float]] = field(default_factory=list)  # accepted disparity range
 
     @property
     def mask(self) -> np.ndarray:
@@ -216,20 +217,28 @@ def _dilate(m: np.ndarray, r: int) -> np.ndarray:
     return cv2.dilate(m, k)
 
 
-def object_mask_in_roi(droi: np.ndarray, cfg: OutlineConfig) -> tuple[np.ndarray | None, float, str]:
-    """The object's mask (uint8 0/1, ROI-shaped), its disparity and the method.
+@dataclass
+class RoiOutline:
+    """One box's outline: ``mask`` (uint8 0/1, ROI-shaped) or None = the whole box."""
 
-    ``None`` mask means "mask the whole box" (a fallback); the disparity is then the
-    median of whatever valid disparity there is (0 if none).
-    """
+    mask: np.ndarray | None
+    disparity: float  # the object's disparity; for fallbacks the median valid one, 0 if none
+    method: str
+    lo: float = 0.0  # accepted disparity range
+    hi: float = 0.0
+
+
+def object_mask_in_roi(droi: np.ndarray, cfg: OutlineConfig) -> RoiOutline:
+    """The object's mask in one box ROI of the disparity (see the module docstring)."""
     h, w = droi.shape
     area = h * w
     valid = droi > 0
     n_valid = int(np.count_nonzero(valid))
+    med = float(np.median(droi[valid])) if n_valid else 0.0
     if area < cfg.min_box_pixels:
-        return None, float(np.median(droi[valid])) if n_valid else 0.0, FALLBACK_TINY
+        return RoiOutline(None, med, FALLBACK_TINY, med, med)
     if n_valid < max(cfg.min_valid_fraction * area, 8):
-        return None, float(np.median(droi[valid])) if n_valid else 0.0, FALLBACK_NO_DISPARITY
+        return RoiOutline(None, med, FALLBACK_NO_DISPARITY, med, med)
     peak = dominant_disparity(
         droi[valid],
         cfg.bin_width,
@@ -240,16 +249,17 @@ def object_mask_in_roi(droi: np.ndarray, cfg: OutlineConfig) -> tuple[np.ndarray
     assert peak is not None
     d = peak.disparity
     tol = tolerance(d, cfg)
+    lo, hi = min(d - tol, peak.lo), max(d + tol, peak.hi)
     filled = fill_invalid_rows(droi)
-    m = ((filled >= min(d - tol, peak.lo)) & (filled <= max(d + tol, peak.hi))).astype(np.uint8)
+    m = ((filled >= lo) & (filled <= hi)).astype(np.uint8)
     if cfg.keep_largest_component:
         m = _largest_component(m)
     if cfg.fill_holes:
         m = _fill_holes(m)
     m = _dilate(m, int(cfg.dilate))
     if not m.any():
-        return None, d, FALLBACK_NO_PEAK
-    return m, d, METHOD_OUTLINE
+        return RoiOutline(None, d, FALLBACK_NO_PEAK, lo, hi)
+    return RoiOutline(m, d, METHOD_OUTLINE, lo, hi)
 
 
 def outline_objects(
@@ -273,13 +283,13 @@ def outline_objects(
     disparity = np.zeros(n, np.float32)
     methods: list[str] = [EMPTY] * n
     masks: list[np.ndarray | None] = [None] * n
+    ranges: list[tuple[float, float]] = [(0.0, 0.0)] * n
     for i in range(n):
         x0, y0, x1, y1 = (int(v) for v in rois[i])
         if x1 <= x0 or y1 <= y0:
             continue
-        droi = roi_disparity(disp, origin, (x0, y0, x1, y1))
-        m, d, method = object_mask_in_roi(droi, cfg)
-        masks[i], disparity[i], methods[i] = m, d, method
+        r = object_mask_in_roi(roi_disparity(disp, origin, (x0, y0, x1, y1)), cfg)
+        masks[i], disparity[i], methods[i], ranges[i] = r.mask, r.disparity, r.method, (r.lo, r.hi)
     # Paint far to near so nearer objects win overlaps; whole-box fallbacks first.
     order = sorted(
         (i for i in range(n) if methods[i] != EMPTY),
@@ -297,7 +307,7 @@ def outline_objects(
         x0, y0, x1, y1 = (int(v) for v in rois[i])
         if x1 > x0 and y1 > y0:
             pixels[i] = int(np.count_nonzero(labels[y0:y1, x0:x1] == i + 1))
-    return OutlineResult(labels, disparity, methods, rois, pixels)
+    return OutlineResult(labels, disparity, methods, rois, pixels, ranges)
 
 
 def band_for_boxes(rois: np.ndarray, shape: tuple[int, int], margin: int = 0) -> tuple[int, int, int, int] | None:

@@ -11,9 +11,10 @@ was developed with.  Where that file came from a mirror rather than the official
 file differ, ``dynastereo models download`` reports a checksum mismatch naming the file,
 the expected and the actual hash (and leaves nothing behind).
 ``yolov3.weights``' size and sha256 are the published figures of the official file.
-``yolov3.cfg`` could not be hashed offline: its sha256 is unknown (``None``), and only
-its size (``8342`` bytes, the official file's) is checked, plus that it parses as a
-Darknet YOLO cfg (``[net]`` and ``[yolo]`` sections).
+``yolov3.cfg`` (the official darknet repository's raw file) could not be fetched offline:
+its sha256 and size are unknown (``None``); a download is accepted when it parses as a
+Darknet YOLO cfg (``[net]`` and ``[yolo]`` sections), which rejects an HTML error page.
+Fill both in once the file has been fetched (``sha256sum yolov3.cfg``).
 
 Licences: Darknet YOLOv3 weights/cfg are public domain; YOLOX is Apache-2.0; FastestDet is
 BSD-3-Clause.  The two Ultralytics models are AGPL-3.0: they are listed only as measured
@@ -91,8 +92,8 @@ KNOWN_MODELS: dict[str, ModelSpec] = {
                     "yolov3.cfg",
                     f"{_DARKNET_RAW}/cfg/yolov3.cfg",
                     None,
-                    8342,
-                    "sha256 unknown offline: size and cfg structure checked only",
+                    None,
+                    "sha256/size unknown offline: checked to be a Darknet YOLO cfg only",
                 ),
                 ModelFile(
                     "yolov3.weights",
@@ -314,6 +315,9 @@ def _fetch(url: str, dest: Path, f: ModelFile, progress: bool) -> None:
             )
         if f.sha256 is None and f.filename.endswith(".cfg") and (problem := _check_darknet_cfg(tmp)):
             raise ModelError(f"downloaded cfg from {url} is invalid ({problem}); file discarded", dest)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it 0600
         os.replace(tmp, dest)
     finally:
         if tmp.exists():
@@ -361,8 +365,8 @@ def download(
         url = _file_url(spec, f, mirror)
         if url is None:
             raise ModelError(
-                f"{name}: {f.filename} has no official download ({spec.licence}; {f.note}); "
-                f"place the file there yourself or use --mirror",
+                f"{name}: {f.filename} has no official download ({spec.licence}; reference copy: "
+                f"{spec.source}); place the file there yourself or use --mirror",
                 dest,
             )
         _fetch(url, dest, f, progress)

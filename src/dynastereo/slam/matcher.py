@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import best_two_per_group, desc_u64, expand_ranges, hamming_pairs, rotation_consistent, unique_best
+from .geometry import CHI2_MONO, CHI2_STEREO, best_two_per_group, desc_u64, expand_ranges, hamming_pairs, rotation_consistent, unique_best
 
 TH_HIGH = 100
 TH_LOW = 50
@@ -202,6 +202,7 @@ def search_by_projection(
     ratio: float | None = None,
     ratio_same_level_only: bool = True,
     angle_check: tuple[np.ndarray, np.ndarray] | None = None,
+    reproj_check: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> ProjectionMatches:
     """Match projected points to keypoints within their windows.
 
@@ -209,7 +210,10 @@ def search_by_projection(
     within the radius.  ``ratio``: best/second-best distance ratio test (by default
     only when both are on the same level, as ORB-SLAM2 does in local-map search).
     ``angle_check``: (query keypoint angles, frame keypoint angles) for the
-    rotation-histogram consistency check.  Each keypoint gets at most one point.
+    rotation-histogram consistency check.  ``reproj_check``: (keypoint uv, keypoint
+    1/sigma^2) -- candidates must lie within the chi2 95% bound of the projection
+    (stereo when the keypoint has a right match and ``u_right`` is given; ``Fuse``).
+    Each keypoint gets at most one point.
     """
     q, k = grid.query(u, v, radius)
     if len(q):
@@ -223,6 +227,16 @@ def search_by_projection(
         if u_right is not None and kp_uR is not None:
             has = kp_uR[k] >= 0
             ok &= ~has | (np.abs(u_right[q] - kp_uR[k]) <= radius[q])
+        if reproj_check is not None:
+            kuv, kis2 = reproj_check
+            e2 = (u[q] - kuv[k, 0]) ** 2 + (v[q] - kuv[k, 1]) ** 2
+            if u_right is not None and kp_uR is not None:
+                st = kp_uR[k] >= 0
+                e2 = e2 + np.where(st, (u_right[q] - kp_uR[k]) ** 2, 0.0)
+                th = np.where(st, CHI2_STEREO, CHI2_MONO)
+            else:
+                th = CHI2_MONO
+            ok &= e2 * kis2[k] <= th
         q, k = q[ok], k[ok]
     if len(q) == 0:
         z = np.zeros(0, np.int64)

@@ -3,7 +3,8 @@
 OpenCV 4.x only (OpenCV 5 dropped ``readNetFromDarknet``).  Input: plain resize to the
 network size (no letterbox, as OpenCV's samples and the thesis do), RGB, 0..1.  Output:
 one array per YOLO layer, rows ``[cx, cy, w, h]`` (0..1 of the image) + objectness + 80
-class scores that already include the objectness (:data:`DARKNET_LAYOUT`).
+class scores that already include the objectness (:data:`DARKNET_LAYOUT`).  OpenCV's YOLO
+layer zeroes class scores <= 0.2, so a ``score_threshold`` below 0.2 changes nothing here.
 """
 
 from __future__ import annotations
@@ -66,7 +67,8 @@ class DarknetDetector(YoloDetectorBase):
 
     ``config.threads`` is applied with ``cv2.setNumThreads`` -- a process-wide OpenCV setting
     (it also governs the stereo matchers); the default 2 matches OpenCV's own default on a
-    2-core machine.
+    2-core machine.  One instance is not thread-safe (``cv2.dnn.Net`` holds its input);
+    the ONNX detectors are.
     """
 
     layout = DARKNET_LAYOUT

@@ -1,0 +1,402 @@
+"""Maskers: detections + disparity -> masks of the dynamic objects in BOTH stereo images.
+
+* :class:`OutlineMasker` -- the project's method (thesis 3.3): detect on the LEFT image
+  only; disparity only where the boxes need it (``stereo.region = "boxes"``, optionally at
+  ``stereo.scale`` = 2); per box the dominant disparity peak is the object's outline
+  (:mod:`.outline`); each mask is moved to the right image by its disparity
+  (:mod:`.transfer`).
+* :class:`BoxMasker` -- the cheap baseline: the boxes themselves; the right mask is each
+  box shifted by the box's dominant disparity (from the same band disparity).
+* :class:`SegMasker` -- pixel masks from an instance-segmentation network run on both
+  images (stand-in for DynaSLAM's Mask R-CNN; the shipped model is AGPL: never default).
+* :class:`NoneMasker` -- nothing is masked.
+
+Stage times go to the :class:`StageTimer`: ``detect`` (the network alone) and then
+``disparity``, ``outline`` / ``boxes``, ``transfer`` (seg: ``segment``), which the pipeline
+sums into ``mask``.
+"""
+
+from __future__ import annotations
+
+from contextlib import nullcontext
+from typing import Any, ContextManager
+
+import numpy as np
+
+from ..config import MaskerConfig, OutlineConfig, StereoConfig
+from ..errors import ConfigError
+from ..timing import StageTimer
+from ..types import Detections, ObjectMask, StereoFrame, StereoMasks
+from .base import Detector
+from .disparity import StereoMatcher
+from .outline import (
+    FALLBACK_NO_DISPARITY,
+    OutlineResult,
+    clip_boxes,
+    dominant_disparity,
+    outline_objects,
+    roi_disparity,
+)
+from .transfer import MODES as TRANSFER_MODES
+from .transfer import transfer_labels
+
+MASKER_KINDS = ("outline", "box", "seg", "none")
+
+
+def _stage(timer: StageTimer | None, name: str) -> ContextManager[Any]:
+    return timer.stage(name) if timer is not None else nullcontext()
+
+
+def _to_mask(labels: np.ndarray) -> np.ndarray:
+    return (labels > 0).view(np.uint8) * np.uint8(255)
+
+
+# --------------------------------------------------------------------------------------
+# Where to compute disparity
+# --------------------------------------------------------------------------------------
+def plan_regions(
+    matcher: StereoMatcher, rois: np.ndarray, shape: tuple[int, int], scale: int, margin: int = 0
+) -> list[tuple[int, int, int, int]]:
+    """Image regions ``(y0, y1, x0, x1)`` whose disparity covers all ``rois``.
+
+    Block matching costs about (crop area) x numDisparities, and each crop is padded by
+    numDisparities columns on the left; so boxes far apart are matched separately and
+    boxes whose padded crops overlap are merged into one region when that is cheaper
+    (greedy, over the handful of boxes).
+    """
+    h, w = shape
+    groups: list[list[int]] = []
+    rects: list[tuple[int, int, int, int]] = []
+    for r in np.asarray(rois).reshape(-1, 4):
+        x0, y0, x1, y1 = (int(v) for v in r)
+        x0, y0 = max(0, x0 - margin), max(0, y0 - margin)
+        x1, y1 = min(w, x1 + margin), min(h, y1 + margin)
+        if x1 > x0 and y1 > y0:
+            rects.append((y0, y1, x0, x1))
+    if not rects:
+        return []
+
+    def cost(rc: tuple[int, int, int, int]) -> int:
+        cy0, cy1, cx0, cx1 = matcher.band_crop(shape, *rc, scale=scale)
+        return (cy1 - cy0) * (cx1 - cx0) + 4000 * scale * scale  # + per-call overhead
+
+    def union(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+        return (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
+
+    groups = [[i] for i in range(len(rects))]
+    regions = list(rects)
+    merged = True
+    while merged and len(regions) > 1:
+        merged = False
+        best = None
+        for i in range(len(regions)):
+            for j in range(i + 1, len(regions)):
+                u = union(regions[i], regions[j])
+                gain = cost(regions[i]) + cost(regions[j]) - cost(u)
+                if gain >= 0 and (best is None or gain > best[0]):
+                    best = (gain, i, j, u)
+        if best is not None:
+            _, i, j, u = best
+            regions[i] = u
+            groups[i] += groups[j]
+            del regions[j], groups[j]
+            merged = True
+    return regions
+
+
+def region_disparity(
+    matcher: StereoMatcher,
+    left_gray: np.ndarray,
+    right_gray: np.ndarray,
+    regions: list[tuple[int, int, int, int]],
+    scale: int,
+) -> np.ndarray:
+    """Full-frame-sized float32 disparity, computed only inside ``regions`` (0 elsewhere)."""
+    disp = np.zeros(left_gray.shape[:2], np.float32)
+    for y0, y1, x0, x1 in regions:
+        disp[y0:y1, x0:x1] = matcher.compute_band(left_gray, right_gray, y0, y1, x0, x1, scale=scale)
+    return disp
+
+
+def _objects(
+    dets: Detections,
+    method: list[str],
+    disparity: np.ndarray,
+    pixels_left: np.ndarray,
+    pixels_right: np.ndarray,
+) -> list[ObjectMask]:
+    labels = dets.labels()
+    return [
+        ObjectMask(
+            box=tuple(float(v) for v in dets.boxes[i]),  # type: ignore[arg-type]
+            label=labels[i],
+            score=float(dets.scores[i]),
+            method=method[i],
+            disparity=float(disparity[i]),
+            pixels_left=int(pixels_left[i]),
+            pixels_right=int(pixels_right[i]),
+        )
+        for i in range(len(dets))
+    ]
+
+
+class _DisparityMasker:
+    """Shared: detector on the left image + disparity where the boxes need it."""
+
+    name = "disparity-base"
+
+    def __init__(
+        self,
+        detector: Detector,
+        matcher: StereoMatcher | None = None,
+        stereo: StereoConfig | None = None,
+        full_disparity: bool = False,
+    ):
+        self.detector = detector
+        self.matcher = matcher or StereoMatcher(stereo or StereoConfig())
+        self.stereo = self.matcher.cfg
+        self.full_disparity = bool(full_disparity) or self.stereo.region == "full"
+        self.scale = int(self.stereo.scale)
+
+    def _detect(self, frame: StereoFrame, timer: StageTimer | None) -> Detections:
+        with _stage(timer, "detect"):
+            return self.detector.detect(frame.left)
+
+    def _disparity(
+        self, frame: StereoFrame, rois: np.ndarray, timer: StageTimer | None, margin: int = 0
+    ) -> np.ndarray | None:
+        """Full-frame-sized disparity (0 where not computed); None when nothing is needed."""
+        if not self.full_disparity and len(rois) == 0:
+            return None
+        with _stage(timer, "disparity"):
+            gl, gr = frame.left_gray, frame.right_gray
+            if self.full_disparity:
+                return self.matcher.compute(gl, gr, scale=self.scale)
+            regions = plan_regions(self.matcher, rois, gl.shape[:2], self.scale, margin)
+            return region_disparity(self.matcher, gl, gr, regions, self.scale)
+
+    def _sweep(self) -> tuple[float, float]:
+        return (float(max(self.stereo.min_disparity, 0)), self.matcher.max_disparity)
+
+
+class OutlineMasker(_DisparityMasker):
+    """Outlines from the dominant disparity peak per box, moved to the right image."""
+
+    name = "outline"
+
+    def __init__(
+        self,
+        detector: Detector,
+        matcher: StereoMatcher | None = None,
+        cfg: OutlineConfig | None = None,
+        stereo: StereoConfig | None = None,
+        full_disparity: bool = False,
+    ):
+        super().__init__(detector, matcher, stereo, full_disparity)
+        self.cfg = cfg or OutlineConfig()
+        if self.cfg.transfer not in TRANSFER_MODES:
+            raise ConfigError(
+                f"masker.outline.transfer must be one of {', '.join(TRANSFER_MODES)}, got {self.cfg.transfer!r}"
+            )
+
+    def mask_detections(
+        self, frame: StereoFrame, dets: Detections, timer: StageTimer | None = None
+    ) -> StereoMasks:
+        """Masks for given detections (the detector is not run)."""
+        shape = frame.shape
+        rois = clip_boxes(dets.boxes, shape)
+        disp = self._disparity(frame, rois, timer)
+        if len(dets) == 0:
+            m = StereoMasks.empty(shape)
+            m.detections = dets
+            m.disparity = disp if self.full_disparity else None
+            return m
+        assert disp is not None
+        with _stage(timer, "outline"):
+            o: OutlineResult = outline_objects(disp, dets.boxes, shape, self.cfg)
+            left = _to_mask(o.labels)
+        with _stage(timer, "transfer"):
+            t = transfer_labels(
+                o.labels, o.disparity, o.rois,
+                mode=self.cfg.transfer, disp=disp, ranges=o.ranges, sweep=self._sweep(),
+            )
+            right = _to_mask(t.labels)
+        objects = _objects(dets, o.methods, o.disparity, o.pixels, t.pixels)
+        return StereoMasks(left, right, objects, dets, disp if self.full_disparity else None)
+
+    def mask(self, frame: StereoFrame, timer: StageTimer | None = None) -> StereoMasks:
+        return self.mask_detections(frame, self._detect(frame, timer), timer)
+
+
+class BoxMasker(_DisparityMasker):
+    """The boxes as masks; right mask = each box shifted by its dominant disparity.
+
+    The box's disparity is the same dominant (nearest-preferring) histogram peak the
+    outline uses, from the same band disparity; a box without valid disparity is swept
+    over the whole disparity range in the right image (method ``box-fallback:no-disparity``).
+    """
+
+    name = "box"
+
+    def __init__(
+        self,
+        detector: Detector,
+        matcher: StereoMatcher | None = None,
+        cfg: OutlineConfig | None = None,
+        stereo: StereoConfig | None = None,
+        full_disparity: bool = False,
+        margin: int = 0,
+    ):
+        super().__init__(detector, matcher, stereo, full_disparity)
+        self.cfg = cfg or OutlineConfig()
+        self.margin = int(margin)
+
+    def mask_detections(
+        self, frame: StereoFrame, dets: Detections, timer: StageTimer | None = None
+    ) -> StereoMasks:
+        shape = frame.shape
+        rois = clip_boxes(dets.boxes, shape, self.margin)
+        disp = self._disparity(frame, rois, timer)
+        if len(dets) == 0:
+            m = StereoMasks.empty(shape)
+            m.detections = dets
+            m.disparity = disp if self.full_disparity else None
+            return m
+        assert disp is not None
+        n = len(dets)
+        with _stage(timer, "boxes"):
+            disparity = np.zeros(n, np.float32)
+            methods = ["box"] * n
+            for i in range(n):
+                x0, y0, x1, y1 = (int(v) for v in rois[i])
+                droi = roi_disparity(disp, (0, 0), (x0, y0, x1, y1))
+                v = droi[droi > 0]
+                area = max((x1 - x0) * (y1 - y0), 1)
+                if v.size < max(self.cfg.min_valid_fraction * area, 8):
+                    disparity[i] = float(np.median(v)) if v.size else 0.0
+                    methods[i] = FALLBACK_NO_DISPARITY
+                    continue
+                p = dominant_disparity(v, self.cfg.bin_width, rel=self.cfg.peak_tolerance_rel,
+                                       near_ratio=self.cfg.near_peak_ratio)
+                disparity[i] = p.disparity if p is not None else 0.0
+            labels = np.zeros(shape, np.int32)
+            for i in sorted(range(n), key=lambda k: float(disparity[k])):  # nearer wins
+                x0, y0, x1, y1 = (int(v) for v in rois[i])
+                labels[y0:y1, x0:x1] = i + 1
+            pixels = np.array([np.count_nonzero(labels[r[1]:r[3], r[0]:r[2]] == i + 1)
+                               for i, r in enumerate(rois)], np.int64)
+            left = _to_mask(labels)
+        with _stage(timer, "transfer"):
+            t = transfer_labels(labels, disparity, rois, mode="rigid", sweep=self._sweep())
+            right = _to_mask(t.labels)
+        objects = _objects(dets, methods, disparity, pixels, t.pixels)
+        return StereoMasks(left, right, objects, dets, disp if self.full_disparity else None)
+
+    def mask(self, frame: StereoFrame, timer: StageTimer | None = None) -> StereoMasks:
+        return self.mask_detections(frame, self._detect(frame, timer), timer)
+
+
+def _box_iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    a = np.asarray(a, np.float64).reshape(-1, 1, 4)
+    b = np.asarray(b, np.float64).reshape(1, -1, 4)
+    iw = np.clip(np.minimum(a[..., 2], b[..., 2]) - np.maximum(a[..., 0], b[..., 0]), 0, None)
+    ih = np.clip(np.minimum(a[..., 3], b[..., 3]) - np.maximum(a[..., 1], b[..., 1]), 0, None)
+    inter = iw * ih
+    area_a = (a[..., 2] - a[..., 0]) * (a[..., 3] - a[..., 1])
+    area_b = (b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1])
+    return inter / np.maximum(area_a + area_b - inter, 1e-9)
+
+
+def match_stereo_detections(left: Detections, right: Detections, max_disparity: float) -> np.ndarray:
+    """For each left detection, the index of its right-image detection (-1 if none).
+
+    Same class; the right box is the left one moved left by some disparity in
+    ``[0, max_disparity]``: the right box is shifted back by the centre difference and the
+    pair with the best resulting box IoU (>= 0.3) is taken, greedily.
+    """
+    n, m = len(left), len(right)
+    out = np.full(n, -1, np.int64)
+    if n == 0 or m == 0:
+        return out
+    lb, rb = left.boxes.astype(np.float64), right.boxes.astype(np.float64)
+    lc = (lb[:, 0] + lb[:, 2]) / 2
+    rc = (rb[:, 0] + rb[:, 2]) / 2
+    shift = lc[:, None] - rc[None, :]  # (n, m) candidate disparities
+    shifted = np.repeat(rb[None, :, :], n, axis=0)
+    shifted[..., 0] += shift
+    shifted[..., 2] += shift
+    iou = np.stack([_box_iou_matrix(lb[i:i + 1], shifted[i])[0] for i in range(n)])
+    ok = (left.class_ids[:, None] == right.class_ids[None, :]) & (shift >= -2) & (shift <= max_disparity + 2)
+    iou = np.where(ok, iou, 0.0)
+    while True:
+        i, j = np.unravel_index(int(np.argmax(iou)), iou.shape)
+        if iou[i, j] < 0.3:
+            break
+        out[i] = j
+        iou[i, :] = 0
+        iou[:, j] = 0
+    return out
+
+
+class SegMasker:
+    """Pixel masks from an instance-segmentation network run on BOTH images.
+
+    Stages: ``detect`` = the network on the two images, ``segment`` = post-processing
+    (thresholds, NMS, mask decoding and resizing) and the union of the instance masks.
+    Models exposing ``raw_outputs`` / ``postprocess`` are timed that way; others run
+    ``detect`` whole (timed as ``detect``).
+    """
+
+    name = "seg"
+
+    def __init__(self, seg_model: Any, max_disparity: float = 192.0):
+        self.model = seg_model
+        self.max_disparity = float(max_disparity)
+        self._split = hasattr(seg_model, "raw_outputs") and hasattr(seg_model, "postprocess")
+
+    def _run(self, frame: StereoFrame, timer: StageTimer | None) -> tuple[Detections, Detections]:
+        if self._split:
+            with _stage(timer, "detect"):
+                rl = self.model.raw_outputs(frame.left)
+                rr = self.model.raw_outputs(frame.right)
+            with _stage(timer, "segment"):
+                return self.model.postprocess(rl), self.model.postprocess(rr)
+        with _stage(timer, "detect"):
+            return self.model.detect(frame.left), self.model.detect(frame.right)
+
+    @staticmethod
+    def _union(d: Detections, shape: tuple[int, int]) -> np.ndarray:
+        if d.masks is None or len(d) == 0:
+            return np.zeros(shape, np.uint8)
+        return np.any(d.masks, axis=0).view(np.uint8) * np.uint8(255)
+
+    def mask(self, frame: StereoFrame, timer: StageTimer | None = None) -> StereoMasks:
+        dl, dr = self._run(frame, timer)
+        shape = frame.shape
+        with _stage(timer, "segment"):
+            left = self._union(dl, shape)
+            right = self._union(dr, shape)
+            match = match_stereo_detections(dl, dr, self.max_disparity)
+            n = len(dl)
+            pl = np.zeros(n, np.int64)
+            pr = np.zeros(n, np.int64)
+            disp = np.zeros(n, np.float32)
+            if dl.masks is not None and n:
+                pl[:] = dl.masks.reshape(n, -1).sum(axis=1)
+            for i in range(n):
+                j = int(match[i])
+                if j >= 0:
+                    if dr.masks is not None:
+                        pr[i] = int(np.count_nonzero(dr.masks[j]))
+                    disp[i] = float((dl.boxes[i, 0] + dl.boxes[i, 2] - dr.boxes[j, 0] - dr.boxes[j, 2]) / 2)
+        objects = _objects(dl, ["seg"] * n, disp, pl, pr)
+        return StereoMasks(left, right, objects, dl, None)
+
+
+class NoneMasker:
+    """Masks nothing (plain stereo SLAM)."""
+
+    name = "none"
+
+    def mask(self, frame: StereoFrame, timer: StageTimer | None = None) -> StereoMasks:
+        return StereoMasks.empty(frame.shape)

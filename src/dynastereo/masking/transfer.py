@@ -1,0 +1,198 @@
+"""Move each left-image object mask into the right image by its own disparity.
+
+A left pixel ``(x, y)`` with disparity ``d`` is seen at ``(x - d, y)`` in the right image
+(thesis 3.3.3).  Forward-warping every pixel by its own noisy disparity leaves gaps and
+ragged edges, so each object is moved by a *model* of its disparity and the right mask is
+built by *backward* sampling (every right pixel asks which left pixel it comes from), which
+leaves no gaps by construction:
+
+* ``rigid``: the object's peak disparity, rounded to whole pixels -- a pure shift, exact
+  for a fronto-parallel object (a car seen from behind) and for whole-box fallbacks;
+* ``affine``: ``d(x, y) = a + b x + c y`` least-squares fitted to the object's valid
+  disparities within its peak range (a car seen from the side: its disparity changes
+  along it); the right pixel ``x_r`` then comes from ``x_l = (x_r + a + c y) / (1 - b)``.
+  A poor fit (few pixels, implausible slope) falls back to ``rigid``.
+
+Objects with unknown disparity (no valid pixel in the box) are swept over the matcher's
+whole disparity range: the right mask is the union of all the shifts, wide but safe.
+Objects partly leaving the right image (``x - d < 0``) are clipped there; objects cut by
+the *left* image's right border continue in the right image (which sees ``d`` more
+columns there), so their rows touching that border are extended to the right border.  Where objects
+overlap in the right image the nearer one (larger disparity) wins, as in the left.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .outline import roi_disparity
+
+MODES = ("rigid", "affine")
+# A box ending this close to the right border is taken as cut by it.
+BORDER_TOUCH = 3
+
+
+@dataclass
+class TransferResult:
+    labels: np.ndarray  # int32 (H, W) right image: 0 = none, i = object i
+    pixels: np.ndarray  # (N,) pixels of each object in ``labels``
+    models: list[tuple[float, float, float]] = field(default_factory=list)  # (a, b, c) per object
+
+
+def _sweep_rows(m: np.ndarray, k: int) -> np.ndarray:
+    """Row-wise union of ``m`` shifted left by ``0 .. k-1`` columns, on a canvas ``k - 1``
+    columns wider whose column ``j`` is ``m``'s column ``j - (k - 1)``:
+    ``out[:, j] = any(m[:, j - t] for t in 0..k-1)`` (prefix sums, no loop)."""
+    h, w = m.shape
+    pad = np.zeros((h, w + 2 * (k - 1)), np.int32)
+    pad[:, k - 1:k - 1 + w] = m
+    c = np.concatenate([np.zeros((h, 1), np.int64), np.cumsum(pad, axis=1)], axis=1)
+    # window sum over columns j .. j + k - 1 of pad, for j in 0 .. w + k - 2
+    win = c[:, k:k + w + k - 1] - c[:, 0:w + k - 1]
+    return win > 0
+
+
+def fit_affine_disparity(
+    d: np.ndarray, sel: np.ndarray, x0: int, y0: int, max_points: int = 4000
+) -> tuple[float, float, float, int] | None:
+    """Least-squares ``d = a + b x + c y`` (image coords) over the pixels ``sel`` of ROI ``d``."""
+    ys, xs = np.nonzero(sel)
+    n = ys.size
+    if n < 30:
+        return None
+    if n > max_points:
+        step = n // max_points + 1
+        ys, xs = ys[::step], xs[::step]
+    z = d[ys, xs].astype(np.float64)
+    A = np.stack([np.ones_like(z), (xs + x0).astype(np.float64), (ys + y0).astype(np.float64)], axis=1)
+    sol, *_ = np.linalg.lstsq(A, z, rcond=None)
+    return float(sol[0]), float(sol[1]), float(sol[2]), int(n)
+
+
+def transfer_labels(
+    left_labels: np.ndarray,
+    disparities: np.ndarray,
+    rois: np.ndarray,
+    *,
+    mode: str = "rigid",
+    disp: np.ndarray | None = None,
+    origin: tuple[int, int] = (0, 0),
+    ranges: list[tuple[float, float]] | None = None,
+    sweep: tuple[float, float] = (0.0, 95.0),
+    max_slope: float = 0.25,
+) -> TransferResult:
+    """Right-image label image from the left one.
+
+    ``disparities[i]`` is object ``i+1``'s disparity (pixels; ``<= 0`` unknown -> swept
+    over ``sweep = (dmin, dmax)``).  ``rois[i]`` is its left box ROI (x0, y0, x1, y1), within
+    which its label pixels lie.  ``mode="affine"`` needs the disparity ``disp`` (region
+    array with top-left ``origin``) and optionally each object's accepted disparity range
+    ``ranges[i] = (lo, hi)`` used to select the pixels to fit.
+    """
+    if mode not in MODES:
+        raise ValueError(f"transfer mode must be one of {MODES}, got {mode!r}")
+    h, w = left_labels.shape
+    n = len(rois)
+    right = np.zeros((h, w), np.int32)
+    models: list[tuple[float, float, float]] = [(float(disparities[i]), 0.0, 0.0) for i in range(n)]
+    rects: list[tuple[int, int, int, int]] = [(0, 0, 0, 0)] * n
+    order = sorted(range(n), key=lambda i: float(disparities[i]))
+    for i in order:
+        x0, y0, x1, y1 = (int(v) for v in rois[i])
+        if x1 <= x0 or y1 <= y0:
+            continue
+        m = left_labels[y0:y1, x0:x1] == i + 1
+        if not m.any():
+            continue
+        d = float(disparities[i])
+        if d <= 0:
+            dmin, dmax = int(np.floor(max(sweep[0], 0.0))), int(np.ceil(sweep[1]))
+            k = dmax - dmin + 1
+            wide = _sweep_rows(m, k)  # canvas column j <-> left column x0 - (k - 1) + j
+            rx0 = x0 - (k - 1) - dmin
+            rects[i] = _paint(right, wide, rx0, y0, i + 1)
+            models[i] = (0.0, 0.0, 0.0)
+            continue
+        model = None
+        if mode == "affine" and disp is not None:
+            droi = roi_disparity(disp, origin, (x0, y0, x1, y1))
+            sel = m & (droi > 0)
+            if ranges is not None:
+                lo, hi = ranges[i]
+                sel &= (droi >= lo) & (droi <= hi)
+            fit = fit_affine_disparity(droi, sel, x0, y0)
+            if fit is not None:
+                a, b, c, _ = fit
+                if abs(b) <= max_slope and abs(c) <= max_slope:
+                    model = (a, b, c)
+        if model is None:
+            s = int(round(d))
+            rects[i] = _paint(right, m, x0 - s, y0, i + 1)
+            models[i] = (float(s), 0.0, 0.0)
+            if x1 >= w - BORDER_TOUCH:
+                rects[i] = _extend_to_border(right, m[:, -1], y0, np.full(y1 - y0, x1 - s), i + 1, rects[i])
+            continue
+        a, b, c = model
+        models[i] = model
+        # right x-extent: disparity model at the ROI corners
+        corners_x = np.array([x0, x1 - 1, x0, x1 - 1], np.float64)
+        corners_y = np.array([y0, y0, y1 - 1, y1 - 1], np.float64)
+        dc = a + b * corners_x + c * corners_y
+        xr = corners_x - dc
+        rx0 = int(np.floor(xr.min())) - 1
+        rx1 = int(np.ceil(xr.max())) + 2
+        xs_r = np.arange(rx0, rx1, dtype=np.float64)
+        ys = np.arange(y0, y1, dtype=np.float64)
+        xl = np.rint((xs_r[None, :] + a + c * ys[:, None]) / (1.0 - b)).astype(np.int64) - x0
+        inside = (xl >= 0) & (xl < x1 - x0)
+        rows = np.arange(y1 - y0)[:, None]
+        vals = np.zeros(xl.shape, bool)
+        vals[inside] = m[np.broadcast_to(rows, xl.shape)[inside], xl[inside]]
+        rects[i] = _paint(right, vals, rx0, y0, i + 1)
+        if x1 >= w - BORDER_TOUCH:
+            start = np.rint((x1 - 1) - (a + b * (x1 - 1) + c * ys)).astype(np.int64) + 1
+            rects[i] = _extend_to_border(right, m[:, -1], y0, start, i + 1, rects[i])
+    pixels = np.zeros(n, np.int64)
+    for i, (rx0, ry0, rx1, ry1) in enumerate(rects):
+        if rx1 > rx0:
+            pixels[i] = int(np.count_nonzero(right[ry0:ry1, rx0:rx1] == i + 1))
+    return TransferResult(right, pixels, models)
+
+
+def _extend_to_border(
+    labels: np.ndarray, rows: np.ndarray, y0: int, start: np.ndarray, value: int,
+    rect: tuple[int, int, int, int],
+) -> tuple[int, int, int, int]:
+    """An object cut by the left image's right border continues, in the right image,
+    up to the right border: paint ``labels[y0 + r, start[r]:]`` for the rows ``r`` where the
+    object touches the border.  Returns ``rect`` grown to cover what was painted."""
+    h, w = labels.shape
+    r = np.flatnonzero(rows)
+    if r.size == 0:
+        return rect
+    st = np.clip(start[r], 0, w)
+    cols = np.arange(w)[None, :]
+    sel = cols >= st[:, None]
+    block = labels[y0 + r]
+    block[sel] = value
+    labels[y0 + r] = block
+    x0 = int(st.min())
+    if rect[2] <= rect[0]:
+        return (x0, y0 + int(r.min()), w, y0 + int(r.max()) + 1)
+    return (min(rect[0], x0), min(rect[1], y0 + int(r.min())), w, max(rect[3], y0 + int(r.max()) + 1))
+
+
+def _paint(labels: np.ndarray, m: np.ndarray, x0: int, y0: int, value: int) -> tuple[int, int, int, int]:
+    """``labels[y0:, x0:][m] = value`` with ``m`` clipped to the image; returns the
+    painted rectangle (x0, y0, x1, y1), empty when ``m`` falls outside the image."""
+    h, w = labels.shape
+    mh, mw = m.shape
+    cx0, cy0 = max(x0, 0), max(y0, 0)
+    cx1, cy1 = min(x0 + mw, w), min(y0 + mh, h)
+    if cx1 <= cx0 or cy1 <= cy0:
+        return (0, 0, 0, 0)
+    sub = m[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0]
+    labels[cy0:cy1, cx0:cx1][sub] = value
+    return (cx0, cy0, cx1, cy1)

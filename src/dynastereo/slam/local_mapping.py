@@ -1,0 +1,546 @@
+"""Local mapping (ORB-SLAM2 ``LocalMapping``), run for every new keyframe.
+
+1. ``process``: observations of the keyframe -> point normals / descriptors,
+   covisibility edges;
+2. culling of recently added points (found/visible ratio, observation count);
+3. new points by triangulation against the best covisible keyframes (descriptor
+   match under the epipolar constraint, parallax / reprojection / scale checks);
+4. fusion of duplicated points with the neighbours (``SearchInNeighbors``);
+5. local bundle adjustment with gtsam -- inline, or in a worker process so that
+   tracking is not blocked (gtsam's ``optimize()`` holds the GIL, a thread would stall
+   tracking).  The result of a job submitted at frame ``k`` is applied right before
+   frame ``k + lag`` is tracked (waiting for it if needed), which keeps a run
+   deterministic whatever the machine's speed;
+6. keyframe culling (90% of the close points seen at the same or finer scale by at
+   least 3 other keyframes).
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .geometry import (
+    CHI2_MONO,
+    CHI2_STEREO,
+    desc_u64,
+    hamming_matrix,
+    inv_T,
+    rotation_consistent,
+    skew,
+    triangulate_dlt,
+    unique_best,
+)
+from .keyframe import KeyFrame
+from .map import Map
+from .matcher import TH_LOW, search_by_projection
+from .optimizer import LocalBAProblem, LocalBAResult, local_ba, project, reprojection_chi2
+
+log = logging.getLogger("dynastereo.slam")
+
+
+@dataclass
+class MappingParams:
+    scales: np.ndarray
+    sigma2: np.ndarray
+    inv_sigma2: np.ndarray
+    th_depth_m: float
+    local_ba: str = "process"
+    ba_iterations: int = 5
+    ba_max_keyframes: int = 10
+    ba_max_fixed: int = 10
+    ba_lag_frames: int = 1
+    triangulation_neighbours: int = 6
+    fuse_neighbours: int = 6
+    keyframe_culling: bool = True
+
+
+@dataclass
+class MappingStats:
+    ba_runs: int = 0
+    ba_ms: list[float] = field(default_factory=list)
+    ba_wait_ms: list[float] = field(default_factory=list)
+    points_triangulated: int = 0
+    points_culled: int = 0
+    points_fused: int = 0
+    keyframes_culled: int = 0
+
+
+class BARunner:
+    """Runs local BA problems inline or in one worker process (spawned, not forked:
+    the parent has threads)."""
+
+    def __init__(self, mode: str) -> None:
+        if mode not in ("process", "inline", "off"):
+            raise ValueError(f"slam.local_ba must be process, inline or off, got {mode!r}")
+        self.mode = mode
+        self._pool: ProcessPoolExecutor | None = None
+        if mode == "process":
+            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+            self._pool.submit(_warm_up).result()
+
+    def submit(self, problem: LocalBAProblem) -> Future | LocalBAResult:
+        if self._pool is not None:
+            return self._pool.submit(local_ba, problem)
+        return local_ba(problem)
+
+    def shutdown(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+
+def _warm_up() -> bool:
+    import gtsam  # noqa: F401
+
+    return True
+
+
+class LocalMapper:
+    def __init__(self, mp: Map, params: MappingParams, runner: BARunner) -> None:
+        self.mp = mp
+        self.p = params
+        self.runner = runner
+        self.recent = np.zeros(0, np.int64)
+        self.stats = MappingStats()
+        self._job: Future | LocalBAResult | None = None
+        self._job_due = 0
+        self._job_map = None
+        self._pending_kf: KeyFrame | None = None
+
+    # ---------------------------------------------------------------- pipeline
+    def process(self, kf: KeyFrame, new_points: np.ndarray, frame_index: int) -> None:
+        mp = self.mp
+        pts = kf.point_ids[kf.point_ids >= 0]
+        mp.update_points(pts)
+        mp.update_connections(kf)
+        self.recent = np.concatenate([self.recent, new_points])
+        self.cull_points(kf)
+        created = self.create_new_points(kf)
+        self.recent = np.concatenate([self.recent, created])
+        self.fuse(kf)
+        mp.update_connections(kf)
+        if self.p.local_ba != "off":
+            if self._job is None:
+                self._submit(kf, frame_index)
+            else:
+                self._pending_kf = kf
+        if self.p.keyframe_culling:
+            self.cull_keyframes(kf)
+
+    def cull_points(self, kf: KeyFrame) -> None:
+        mp = self.mp
+        r = self.recent
+        r = r[~mp.bad[r]]
+        ratio = mp.found[r] / np.maximum(mp.visible[r], 1)
+        age = kf.id - mp.first_kf[r]
+        bad = (ratio < 0.25) | ((age >= 2) & (mp.nobs[r] <= 3))
+        if bad.any():
+            mp.set_bad(r[bad])
+            self.stats.points_culled += int(bad.sum())
+        self.recent = r[~bad & (age < 3)]
+
+    # ----------------------------------------------------------- triangulation
+    def create_new_points(self, kf1: KeyFrame) -> np.ndarray:
+        mp = self.mp
+        c = kf1.calib
+        K = c.K
+        Kinv = np.linalg.inv(K)
+        fx, fy, cx, cy, bf, b = K[0, 0], K[1, 1], K[0, 2], K[1, 2], c.bf, c.baseline
+        created: list[np.ndarray] = []
+        C1 = kf1.center
+        R1w, t1w = kf1.T_cw[:3, :3], kf1.T_cw[:3, 3]
+        ratio_factor = 1.5 * float(self.p.scales[1] if len(self.p.scales) > 1 else 1.2)
+        for nid in kf1.best_covisibles(self.p.triangulation_neighbours):
+            kf2 = mp.keyframes.get(nid)
+            if kf2 is None:
+                continue
+            C2 = kf2.center
+            if np.linalg.norm(C2 - C1) < b:
+                continue
+            i1 = np.flatnonzero(kf1.point_ids < 0)
+            i2 = np.flatnonzero(kf2.point_ids < 0)
+            if len(i1) == 0 or len(i2) == 0:
+                continue
+            D = hamming_matrix(kf1.desc64[i1], kf2.desc64[i2])
+            a, bb = np.nonzero(D <= TH_LOW)
+            if len(a) == 0:
+                continue
+            dist = D[a, bb]
+            k1, k2 = i1[a], i2[bb]
+            # epipolar constraint: x2 on the line F21 x1 (F from the relative pose)
+            R2w, t2w = kf2.T_cw[:3, :3], kf2.T_cw[:3, 3]
+            R21 = R2w @ R1w.T
+            t21 = -R21 @ t1w + t2w
+            F21 = Kinv.T @ skew(t21) @ R21 @ Kinv
+            x1 = np.c_[kf1.uv[k1], np.ones(len(k1))]
+            x2 = np.c_[kf2.uv[k2], np.ones(len(k2))]
+            lines = x1 @ F21.T
+            num = (lines * x2).sum(axis=1)
+            den = lines[:, 0] ** 2 + lines[:, 1] ** 2
+            with np.errstate(divide="ignore", invalid="ignore"):
+                d2 = num**2 / den
+            ok = d2 < 3.84 * self.p.sigma2[kf2.octave[k2]]
+            # a keypoint of kf2 too close to the epipole is ambiguous (both monocular)
+            ep = K @ (R2w @ C1 + t2w)
+            if abs(ep[2]) > 1e-9:
+                ex, ey = ep[0] / ep[2], ep[1] / ep[2]
+                mono_pair = (kf1.u_right[k1] < 0) & (kf2.u_right[k2] < 0)
+                near = (kf2.uv[k2, 0] - ex) ** 2 + (kf2.uv[k2, 1] - ey) ** 2 < 100 * self.p.scales[kf2.octave[k2]]
+                ok &= ~(mono_pair & near)
+            k1, k2, dist = k1[ok], k2[ok], dist[ok]
+            if len(k1) == 0:
+                continue
+            # best per kf1 keypoint, then one per kf2 keypoint, rotation consistency
+            sel = unique_best(k1, dist)
+            k1, k2, dist = k1[sel], k2[sel], dist[sel]
+            sel = unique_best(k2, dist)
+            k1, k2, dist = k1[sel], k2[sel], dist[sel]
+            rot = rotation_consistent(kf1.angle[k1] - kf2.angle[k2])
+            k1, k2 = k1[rot], k2[rot]
+            if len(k1) == 0:
+                continue
+            X = self._triangulate(kf1, kf2, k1, k2, Kinv)
+            ok = np.isfinite(X[:, 0])
+            # in front of both cameras, reprojection error, scale consistency
+            for kf, kk in ((kf1, k1), (kf2, k2)):
+                chi2, front = reprojection_chi2(
+                    kf.T_cw, np.nan_to_num(X), kf.uv[kk], kf.u_right[kk], self.p.inv_sigma2[kf.octave[kk]], K, bf
+                )
+                th = np.where(kf.u_right[kk] >= 0, CHI2_STEREO, CHI2_MONO)
+                ok &= front & (chi2 <= th)
+            Xs = np.nan_to_num(X)
+            dist1 = np.linalg.norm(Xs - C1, axis=1)
+            dist2 = np.linalg.norm(Xs - C2, axis=1)
+            ok &= (dist1 > 0) & (dist2 > 0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio_dist = dist2 / dist1
+            ratio_oct = self.p.scales[kf1.octave[k1]] / self.p.scales[kf2.octave[k2]]
+            ok &= ~((ratio_dist * ratio_factor < ratio_oct) | (ratio_dist > ratio_oct * ratio_factor))
+            k1, k2, X = k1[ok], k2[ok], X[ok]
+            if len(k1) == 0:
+                continue
+            ids = mp.new_points(X, kf1.desc[k1], kf1.id)
+            mp.add_observations(kf1, k1, ids)
+            mp.add_observations(kf2, k2, ids)
+            mp.update_points(ids)
+            created.append(ids)
+        out = np.concatenate(created) if created else np.zeros(0, np.int64)
+        self.stats.points_triangulated += len(out)
+        return out
+
+    def _triangulate(self, kf1: KeyFrame, kf2: KeyFrame, k1: np.ndarray, k2: np.ndarray, Kinv: np.ndarray):
+        """ORB-SLAM2's choice: linear triangulation when the rays' parallax beats the
+        stereo parallax, else the stereo point of the keyframe with more parallax."""
+        c = kf1.calib
+        b = c.baseline
+        xn1 = np.c_[kf1.uv[k1], np.ones(len(k1))] @ Kinv.T
+        xn2 = np.c_[kf2.uv[k2], np.ones(len(k2))] @ Kinv.T
+        ray1 = xn1 @ kf1.T_cw[:3, :3]  # R_wc @ xn
+        ray2 = xn2 @ kf2.T_cw[:3, :3]
+        cos_rays = (ray1 * ray2).sum(axis=1) / (np.linalg.norm(ray1, axis=1) * np.linalg.norm(ray2, axis=1))
+        st1 = kf1.u_right[k1] >= 0
+        st2 = kf2.u_right[k2] >= 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cos_st1 = np.where(st1, np.cos(2 * np.arctan2(b / 2, kf1.depth[k1])), 2.0)
+            cos_st2 = np.where(st2, np.cos(2 * np.arctan2(b / 2, kf2.depth[k2])), 2.0)
+        cos_st = np.minimum(cos_st1, cos_st2)
+        X = np.full((len(k1), 3), np.nan)
+        use_tri = (cos_rays < cos_st) & (cos_rays > 0) & (st1 | st2 | (cos_rays < 0.9998))
+        if use_tri.any():
+            X[use_tri] = triangulate_dlt(
+                kf1.T_cw[:3], kf2.T_cw[:3], xn1[use_tri, :2], xn2[use_tri, :2]
+            )
+        use1 = ~use_tri & st1 & (cos_st1 < cos_st2)
+        if use1.any():
+            X[use1] = kf1.unproject(k1[use1])
+        use2 = ~use_tri & ~use1 & st2 & (cos_st2 < cos_st1)
+        if use2.any():
+            X[use2] = kf2.unproject(k2[use2])
+        return X
+
+    # ------------------------------------------------------------------ fusion
+    def _fuse_into(self, target: KeyFrame, pts: np.ndarray) -> int:
+        """Project ``pts`` into ``target``; merge with / attach to the matched keypoints."""
+        mp = self.mp
+        pts = pts[mp.good(pts)]
+        pts = pts[~np.isin(pts, target.point_ids)]
+        if len(pts) == 0:
+            return 0
+        c = target.calib
+        K = c.K
+        Xw = mp.pos[pts]
+        Xc, u, v, ur = project(target.T_cw, Xw, K[0, 0], K[1, 1], K[0, 2], K[1, 2], c.bf)
+        Ow = target.center
+        PO = Xw - Ow
+        dist = np.linalg.norm(PO, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cosv = (PO * mp.normal[pts]).sum(axis=1) / np.maximum(dist, 1e-12)
+        vis = (
+            (Xc[:, 2] > 0)
+            & (u >= 0)
+            & (u < c.width)
+            & (v >= 0)
+            & (v < c.height)
+            & (dist >= 0.8 * mp.min_dist[pts])
+            & (dist <= 1.2 * mp.max_dist[pts])
+            & (cosv >= 0.5)
+        )
+        sel = np.flatnonzero(vis)
+        if len(sel) == 0:
+            return 0
+        lev = mp.predict_level(pts[sel], dist[sel])
+        r = 3.0 * self.p.scales[lev]
+        m = search_by_projection(
+            target.grid,
+            target.octave,
+            target.desc64,
+            target.u_right,
+            None,
+            u[sel],
+            v[sel],
+            r,
+            desc_u64(mp.desc[pts[sel]]),
+            min_level=lev - 1,
+            max_level=lev,
+            u_right=ur[sel],
+            th_dist=TH_LOW,
+            reproj_check=(target.uv, self.p.inv_sigma2[target.octave]),
+        )
+        if len(m.query) == 0:
+            return 0
+        src = pts[sel[m.query]]
+        kp = m.kp
+        existing = target.point_ids[kp]
+        has = existing >= 0
+        # existing point: the one with more observations survives
+        e, s_ = existing[has], src[has]
+        keep_src = mp.nobs[s_] > mp.nobs[e]
+        mp.replace(np.where(keep_src, e, s_), np.where(keep_src, s_, e))
+        mp.add_observations(target, kp[~has], src[~has])
+        return len(kp)
+
+    def fuse(self, kf: KeyFrame) -> None:
+        mp = self.mp
+        n = self.p.fuse_neighbours
+        if n <= 0:
+            return
+        targets: list[int] = []
+        for k in kf.best_covisibles(n):
+            if k in mp.keyframes and k not in targets:
+                targets.append(k)
+        for k in list(targets):
+            for k2 in mp.keyframes[k].best_covisibles(5):
+                if k2 != kf.id and k2 in mp.keyframes and k2 not in targets:
+                    targets.append(k2)
+        fused = 0
+        for k in targets:
+            fused += self._fuse_into(mp.keyframes[k], kf.point_ids[kf.point_ids >= 0])
+        cand = [mp.keyframes[k].point_ids for k in targets if k in mp.keyframes]
+        if cand:
+            pts = np.unique(np.concatenate(cand))
+            pts = pts[pts >= 0]
+            fused += self._fuse_into(kf, pts)
+        self.stats.points_fused += fused
+        mp.update_points(kf.point_ids[kf.point_ids >= 0])
+        for k in targets:
+            if k in mp.keyframes:
+                mp.update_connections(mp.keyframes[k])
+
+    # -------------------------------------------------------------- local BA
+    def build_problem(self, kf: KeyFrame) -> LocalBAProblem | None:
+        mp = self.mp
+        p = self.p
+        local = [kf.id] + [k for k in kf.best_covisibles() if k in mp.keyframes][: p.ba_max_keyframes - 1]
+        pts = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in local]))
+        pts = pts[pts >= 0]
+        pts = pts[~mp.bad[pts]]
+        if len(pts) == 0:
+            return None
+        rows = mp.rows_of(pts)
+        okf = mp.obs_kf[rows]
+        is_local = np.isin(okf, local)
+        others, counts = np.unique(okf[~is_local], return_counts=True)
+        order = np.lexsort((others, -counts))
+        fixed_ids = [int(k) for k in others[order][: p.ba_max_fixed] if int(k) in mp.keyframes]
+        origin = min(mp.keyframes)
+        if not fixed_ids or origin in local:
+            # gauge: the map's first keyframe stays fixed (ORB-SLAM2 fixes keyframe 0)
+            if origin in local:
+                local.remove(origin)
+                fixed_ids = [origin] + fixed_ids
+            elif not fixed_ids:
+                oldest = min(local)
+                local.remove(oldest)
+                fixed_ids = [oldest]
+        if not local:
+            return None
+        all_kf = np.array(local + fixed_ids, np.int64)
+        rows = rows[np.isin(okf, all_kf)]
+        okf = mp.obs_kf[rows]
+        okp = mp.obs_kp[rows]
+        opt = mp.obs_pt[rows]
+        sorted_ids = np.sort(all_kf)
+        pos_sorted = np.argsort(all_kf)
+        obs_kf = pos_sorted[np.searchsorted(sorted_ids, okf)]
+        uv = np.zeros((len(rows), 2))
+        ur = np.zeros(len(rows))
+        lev = np.zeros(len(rows), np.int64)
+        for k in all_kf:  # gather per keyframe
+            kfo = mp.keyframes[int(k)]
+            s = okf == k
+            uv[s] = kfo.uv[okp[s]]
+            ur[s] = kfo.u_right[okp[s]]
+            lev[s] = kfo.octave[okp[s]]
+        # drop points left with a single monocular observation (unconstrained depth)
+        cnt = np.bincount(np.searchsorted(pts, opt), weights=1 + (ur >= 0), minlength=len(pts))
+        keep_pt = cnt >= 2
+        keep_row = keep_pt[np.searchsorted(pts, opt)]
+        pts = pts[keep_pt]
+        rows, obs_kf, opt, uv, ur, lev = rows[keep_row], obs_kf[keep_row], opt[keep_row], uv[keep_row], ur[keep_row], lev[keep_row]
+        if len(pts) == 0:
+            return None
+        obs_pt = np.searchsorted(pts, opt)
+        fixed = np.zeros(len(all_kf), bool)
+        fixed[len(local) :] = True
+        T_wc = np.stack([inv_T(mp.keyframes[int(k)].T_cw) for k in all_kf])
+        prob = LocalBAProblem(
+            kf_ids=all_kf,
+            T_wc=T_wc,
+            fixed=fixed,
+            pt_ids=pts,
+            X=mp.pos[pts].copy(),
+            obs_kf=obs_kf,
+            obs_pt=obs_pt,
+            uv=uv,
+            ur=ur,
+            sigma=self.p.scales[lev],
+            K=kf.calib.K,
+            baseline=kf.calib.baseline,
+            iterations=p.ba_iterations,
+        )
+        return prob
+
+    def _submit(self, kf: KeyFrame, frame_index: int) -> None:
+        prob = self.build_problem(kf)
+        if prob is None:
+            return
+        res = self.runner.submit(prob)
+        self._job = res
+        self._job_due = frame_index + max(0, self.p.ba_lag_frames)
+        self._job_map = id(self.mp)
+        if isinstance(res, LocalBAResult):
+            self._apply(res)
+            self._job = None
+
+    def collect(self, frame_index: int, force: bool = False) -> None:
+        """Apply the running BA's result if it is due (waits for it)."""
+        import time
+
+        if self._job is None:
+            return
+        if not force and frame_index < self._job_due:
+            return
+        t0 = time.perf_counter()
+        job = self._job
+        res = job.result() if isinstance(job, Future) else job
+        self.stats.ba_wait_ms.append((time.perf_counter() - t0) * 1e3)
+        self._job = None
+        if self._job_map == id(self.mp):
+            self._apply(res)
+        pending = self._pending_kf
+        self._pending_kf = None
+        if pending is not None and pending.id in self.mp.keyframes and not force:
+            self._submit(pending, frame_index)
+
+    def _apply(self, res: LocalBAResult) -> None:
+        mp = self.mp
+        self.stats.ba_runs += 1
+        self.stats.ba_ms.append(res.ms)
+        for i, k in enumerate(res.kf_ids):
+            kf = mp.keyframes.get(int(k))
+            if kf is not None:
+                kf.T_cw = inv_T(res.T_wc[i])
+        ok = mp.good(res.pt_ids)
+        mp.pos[res.pt_ids[ok]] = res.X[ok]
+        # outlier observations: chi2 above the 95% bound or behind the camera
+        pts = res.pt_ids[ok]
+        rows = mp.rows_of(pts)
+        okf = mp.obs_kf[rows]
+        okp = mp.obs_kp[rows]
+        bad_rows: list[tuple[KeyFrame, np.ndarray]] = []
+        for k in np.unique(okf):
+            kf = mp.keyframes.get(int(k))
+            if kf is None:
+                continue
+            s = okf == k
+            kp = okp[s]
+            ptk = mp.obs_pt[rows[s]]
+            chi2, front = reprojection_chi2(
+                kf.T_cw, mp.pos[ptk], kf.uv[kp], kf.u_right[kp], self.p.inv_sigma2[kf.octave[kp]], kf.calib.K, kf.calib.bf
+            )
+            th = np.where(kf.u_right[kp] >= 0, CHI2_STEREO, CHI2_MONO)
+            out = (chi2 > th) | ~front
+            if out.any():
+                bad_rows.append((kf, kp[out]))
+        for kf, kp in bad_rows:
+            mp.erase_observations(kf, kp)
+        mp.update_points(pts)
+
+    # ------------------------------------------------------- keyframe culling
+    def cull_keyframes(self, kf: KeyFrame) -> None:
+        mp = self.mp
+        origin = min(mp.keyframes)
+        th_obs = 3
+        for k in kf.best_covisibles():
+            if k == origin or k == kf.id or k not in mp.keyframes:
+                continue
+            kf2 = mp.keyframes[k]
+            idx = np.flatnonzero(kf2.point_ids >= 0)
+            close = (kf2.depth[idx] >= 0) & (kf2.depth[idx] <= self.p.th_depth_m)
+            idx = idx[close]
+            n_mps = len(idx)
+            if n_mps == 0:
+                continue
+            pts = kf2.point_ids[idx]
+            strong = mp.nobs[pts] > th_obs
+            idx, pts = idx[strong], pts[strong]
+            if len(pts) <= 0.9 * n_mps:
+                continue
+            rows = mp.rows_of(pts)
+            okf = mp.obs_kf[rows]
+            rows = rows[okf != k]
+            okf = okf[okf != k]
+            lev_other = np.zeros(len(rows), np.int64)
+            for k3 in np.unique(okf):
+                kf3 = mp.keyframes.get(int(k3))
+                if kf3 is None:
+                    continue
+                s = okf == k3
+                lev_other[s] = kf3.octave[mp.obs_kp[rows[s]]]
+            lev_here = np.zeros(mp.n, np.int64)
+            lev_here[pts] = kf2.octave[idx]
+            ptr = mp.obs_pt[rows]
+            good = lev_other <= lev_here[ptr] + 1
+            cnt = np.bincount(ptr[good], minlength=mp.n)[pts]
+            n_red = int(np.count_nonzero(cnt >= th_obs))
+            if n_red > 0.9 * n_mps:
+                self._cull_keyframe(kf2)
+
+    def _cull_keyframe(self, kf: KeyFrame) -> None:
+        mp = self.mp
+        parents = [k for k in kf.best_covisibles() if k in mp.keyframes and k != kf.id]
+        if not parents:
+            return
+        parent = mp.keyframes[parents[0]]
+        mp.culled[kf.id] = (parent.id, kf.T_cw @ inv_T(parent.T_cw))
+        mp.set_bad_keyframe(kf)
+        self.stats.keyframes_culled += 1
+
+    def shutdown(self) -> None:
+        if self._job is not None:
+            self.collect(0, force=True)

@@ -1,0 +1,320 @@
+"""Tracking (ORB-SLAM2 ``Tracking``): pose of every frame against the map.
+
+Order per frame: constant-velocity prediction + projection matching of the last
+frame's points (map points and temporary stereo "visual odometry" points), or, when
+that fails, descriptor matching against the reference keyframe with PnP-RANSAC; then
+local-map tracking (projection of the points of the covisible keyframes) and
+motion-only BA after each matching step; finally the keyframe decision.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .frame import Frame
+from .geometry import desc_u64, hamming_matrix, inv_T, rotation_consistent
+from .keyframe import KeyFrame
+from .map import Map
+from .matcher import TH_HIGH, TH_LOW, search_by_projection
+from .optimizer import optimize_pose, project
+
+log = logging.getLogger("dynastereo.slam")
+
+
+@dataclass
+class TrackParams:
+    scales: np.ndarray
+    inv_sigma2: np.ndarray
+    th_depth_m: float
+    min_inliers: int = 20
+    max_frames: int = 10
+    min_frames: int = 0
+    seed: int = 0
+
+
+class Tracker:
+    def __init__(self, params: TrackParams) -> None:
+        self.p = params
+        self.last: Frame | None = None
+        self.velocity: np.ndarray | None = None
+        self.ref_kf: KeyFrame | None = None
+        self.last_kf_frame = -(10**9)
+        self.n_inliers = 0
+        self.local_kfs: list[int] = []
+        self.method = ""
+
+    # ----------------------------------------------------------------- helpers
+    def _optimize(self, mp: Map, frame: Frame) -> int:
+        """Motion-only BA on the frame's matches; outliers are unmatched.  Returns the
+        number of inlier matches to real map points."""
+        idx = np.flatnonzero(frame.matched)
+        if len(idx) < 3:
+            return 0
+        calib = frame.calib
+        T, inl = optimize_pose(
+            frame.T_cw,
+            frame.match_xyz[idx],
+            frame.uv[idx],
+            frame.u_right[idx],
+            self.p.inv_sigma2[frame.octave[idx]],
+            calib.K,
+            calib.bf,
+        )
+        frame.T_cw = T
+        frame.clear_matches(idx[~inl])
+        return int(np.count_nonzero(frame.point_ids[idx[inl]] >= 0))
+
+    def _last_frame_points(self, mp: Map, last: Frame):
+        """Points to project from the last frame: its map points (current positions)
+        plus temporary points from its close stereo keypoints (``UpdateLastFrame``)."""
+        pid = mp.resolve(last.point_ids)
+        has_mp = pid >= 0
+        # temporary stereo points: closest first, all closer than th_depth, at least 100
+        cand = np.flatnonzero((last.depth > 0) & ~has_mp)
+        cand = cand[np.argsort(last.depth[cand], kind="stable")]
+        close = last.depth[cand] < self.p.th_depth_m
+        n_take = max(int(close.sum()), min(100, len(cand)))
+        tmp = cand[:n_take]
+        idx_mp = np.flatnonzero(has_mp)
+        kp_idx = np.concatenate([idx_mp, tmp])
+        X = np.concatenate([mp.pos[pid[idx_mp]], last.unproject(tmp)])
+        d64 = np.concatenate([desc_u64(mp.desc[pid[idx_mp]]), last.desc64[tmp]])
+        pts = np.concatenate([pid[idx_mp], np.full(len(tmp), -1, np.int64)])
+        return kp_idx, X, d64, pts
+
+    def _assign(self, frame: Frame, kp: np.ndarray, pts: np.ndarray, X: np.ndarray) -> None:
+        frame.point_ids[kp] = pts
+        frame.match_xyz[kp] = X
+        frame.outlier[kp] = False
+
+    # ------------------------------------------------------- tracking methods
+    def track_motion_model(self, mp: Map, frame: Frame) -> bool:
+        last = self.last
+        if last is None or self.velocity is None:
+            return False
+        frame.T_cw = self.velocity @ last.T_cw
+        kp_last, X, d64, pts = self._last_frame_points(mp, last)
+        if len(X) == 0:
+            return False
+        c = frame.calib
+        K = c.K
+        Xc, u, v, ur = project(frame.T_cw, X, K[0, 0], K[1, 1], K[0, 2], K[1, 2], c.bf)
+        inside = (Xc[:, 2] > 0) & (u >= 0) & (u < c.width) & (v >= 0) & (v < c.height)
+        # forward / backward motion restricts the search levels
+        T_lc = last.T_cw @ inv_T(frame.T_cw)
+        tz = T_lc[2, 3]
+        oct_last = last.octave[kp_last].astype(np.int64)
+        if tz > c.baseline:
+            lo, hi = oct_last, np.full(len(oct_last), 99)
+        elif -tz > c.baseline:
+            lo, hi = np.zeros(len(oct_last), np.int64), oct_last
+        else:
+            lo, hi = oct_last - 1, oct_last + 1
+        sel = np.flatnonzero(inside)
+        matches = None
+        for th in (7.0, 14.0):
+            radius = th * self.p.scales[oct_last[sel]]
+            m = search_by_projection(
+                frame.grid,
+                frame.octave,
+                frame.desc64,
+                frame.u_right,
+                None,
+                u[sel],
+                v[sel],
+                radius,
+                d64[sel],
+                min_level=lo[sel],
+                max_level=hi[sel],
+                u_right=ur[sel],
+                th_dist=TH_HIGH,
+                angle_check=(last.angle[kp_last[sel]], frame.angle),
+            )
+            matches = m
+            if len(m.query) >= 20:
+                break
+        if matches is None or len(matches.query) < 20:
+            return False
+        q = sel[matches.query]
+        frame.clear_matches(np.arange(len(frame)))
+        self._assign(frame, matches.kp, pts[q], X[q])
+        n = self._optimize(mp, frame)
+        n_all = int(frame.matched.sum())
+        return n_all >= 10 if n < 10 else True
+
+    def track_reference_keyframe(self, mp: Map, frame: Frame, T_guess: np.ndarray | None) -> bool:
+        """Descriptor matching against the reference keyframe's map points (ORB-SLAM2
+        uses a bag of words here), pose from PnP-RANSAC, then motion-only BA."""
+        kf = self.ref_kf
+        if kf is None:
+            return False
+        kp_kf = np.flatnonzero(kf.point_ids >= 0)
+        pts = mp.resolve(kf.point_ids[kp_kf])
+        ok = pts >= 0
+        kp_kf, pts = kp_kf[ok], pts[ok]
+        if len(pts) < 10 or len(frame) < 10:
+            return False
+        D = hamming_matrix(desc_u64(mp.desc[pts]), frame.desc64)
+        order = np.argpartition(D, 1, axis=1)[:, :2]
+        r = np.arange(len(pts))
+        d1 = D[r, order[:, 0]]
+        d2 = D[r, order[:, 1]]
+        swap = d2 < d1
+        best = np.where(swap, order[:, 1], order[:, 0])
+        b1 = np.minimum(d1, d2)
+        b2 = np.maximum(d1, d2)
+        good = (b1 <= TH_LOW) & (b1 < 0.7 * b2)
+        qi, ki = np.flatnonzero(good), best[good]
+        # one point per keypoint
+        from .geometry import unique_best
+
+        u_idx = unique_best(ki, b1[good])
+        qi, ki = qi[u_idx], ki[u_idx]
+        if len(qi):
+            rot = rotation_consistent(kf.angle[kp_kf[qi]] - frame.angle[ki])
+            qi, ki = qi[rot], ki[rot]
+        if len(qi) < 15:
+            return False
+        X = mp.pos[pts[qi]]
+        c = frame.calib
+        cv2.setRNGSeed(self.p.seed)
+        okp, rvec, tvec, inl = cv2.solvePnPRansac(
+            X.astype(np.float64),
+            frame.uv[ki].astype(np.float64),
+            c.K,
+            None,
+            iterationsCount=200,
+            reprojectionError=3.0,
+            confidence=0.999,
+            flags=cv2.SOLVEPNP_EPNP,
+        )
+        if okp and inl is not None and len(inl) >= 10:
+            T = np.eye(4)
+            T[:3, :3] = cv2.Rodrigues(rvec)[0]
+            T[:3, 3] = tvec.ravel()
+        elif T_guess is not None:
+            T = T_guess.copy()
+        else:
+            return False
+        frame.T_cw = T
+        frame.clear_matches(np.arange(len(frame)))
+        self._assign(frame, ki, pts[qi], X)
+        n = self._optimize(mp, frame)
+        return n >= 10
+
+    def update_local_keyframes(self, mp: Map, frame: Frame) -> list[int]:
+        pid = frame.point_ids
+        pts = mp.resolve(pid[pid >= 0])
+        counts = mp.covisible_counts(pts[pts >= 0])
+        counts = {k: c for k, c in counts.items() if k in mp.keyframes}
+        if not counts:
+            if self.ref_kf is not None and self.ref_kf.id in mp.keyframes:
+                counts = {self.ref_kf.id: 1}
+            else:
+                return []
+        best = max(counts.items(), key=lambda t: (t[1], t[0]))[0]
+        self.ref_kf = mp.keyframes[best]
+        local = sorted(counts, key=lambda k: (-counts[k], k))[:80]
+        seen = set(local)
+        for k in list(local):
+            if len(local) >= 80:
+                break
+            for n in mp.keyframes[k].best_covisibles(10):
+                if n not in seen and n in mp.keyframes:
+                    seen.add(n)
+                    local.append(n)
+                    break
+        self.local_kfs = local
+        return local
+
+    def track_local_map(self, mp: Map, frame: Frame) -> bool:
+        local = self.update_local_keyframes(mp, frame)
+        if not local:
+            return False
+        ids = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in local]))
+        ids = ids[ids >= 0]
+        ids = ids[~mp.bad[ids]]
+        # points already matched in this frame: counted visible, not searched again
+        has = np.flatnonzero(frame.point_ids >= 0)
+        res = mp.resolve(frame.point_ids[has])
+        frame.clear_matches(has[res < 0])
+        frame.point_ids[has[res >= 0]] = res[res >= 0]
+        already = frame.point_ids[frame.point_ids >= 0]
+        mp.visible[already] += 1
+        ids = ids[~np.isin(ids, already)]
+        c = frame.calib
+        K = c.K
+        if len(ids):
+            Xw = mp.pos[ids]
+            Xc, u, v, ur = project(frame.T_cw, Xw, K[0, 0], K[1, 1], K[0, 2], K[1, 2], c.bf)
+            Ow = frame.T_wc[:3, 3]
+            PO = Xw - Ow
+            dist = np.linalg.norm(PO, axis=1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                cosv = (PO * mp.normal[ids]).sum(axis=1) / np.maximum(dist, 1e-12)
+            vis = (
+                (Xc[:, 2] > 0)
+                & (u >= 0)
+                & (u < c.width)
+                & (v >= 0)
+                & (v < c.height)
+                & (dist >= 0.8 * mp.min_dist[ids])
+                & (dist <= 1.2 * mp.max_dist[ids])
+                & (cosv >= 0.5)
+            )
+            sel = np.flatnonzero(vis)
+            mp.visible[ids[sel]] += 1
+            if len(sel):
+                lev = mp.predict_level(ids[sel], dist[sel])
+                r = np.where(cosv[sel] > 0.998, 2.5, 4.0) * self.p.scales[lev]
+                m = search_by_projection(
+                    frame.grid,
+                    frame.octave,
+                    frame.desc64,
+                    frame.u_right,
+                    frame.point_ids < 0,
+                    u[sel],
+                    v[sel],
+                    r,
+                    desc_u64(mp.desc[ids[sel]]),
+                    min_level=lev - 1,
+                    max_level=lev,
+                    u_right=ur[sel],
+                    th_dist=TH_HIGH,
+                    ratio=0.8,
+                )
+                q = sel[m.query]
+                self._assign(frame, m.kp, ids[q], Xw[q])
+        # refresh the positions of all map-point matches (the map may have moved)
+        has = frame.point_ids >= 0
+        frame.match_xyz[has] = mp.pos[frame.point_ids[has]]
+        n = self._optimize(mp, frame)
+        inl = frame.point_ids[frame.point_ids >= 0]
+        mp.found[inl] += 1
+        self.n_inliers = n
+        return n >= self.p.min_inliers
+
+    # ---------------------------------------------------------- keyframe policy
+    def need_new_keyframe(self, mp: Map, frame: Frame) -> bool:
+        if self.ref_kf is None:
+            return True
+        n_kfs = len(mp.keyframes)
+        min_obs = 3 if n_kfs > 2 else 2
+        ref_pts = self.ref_kf.point_ids[self.ref_kf.point_ids >= 0]
+        n_ref = int(np.count_nonzero(mp.nobs[ref_pts] >= min_obs))
+        close = (frame.depth > 0) & (frame.depth < self.p.th_depth_m)
+        tracked = frame.point_ids >= 0
+        n_tracked_close = int(np.count_nonzero(close & tracked))
+        n_non_tracked_close = int(np.count_nonzero(close & ~tracked))
+        need_close = n_tracked_close < 100 and n_non_tracked_close > 70
+        th_ref = 0.4 if n_kfs < 2 else 0.75
+        since = frame.index - self.last_kf_frame
+        c1a = since >= self.p.max_frames
+        c1b = since >= self.p.min_frames  # local mapping is never busy from tracking's view
+        c1c = self.n_inliers < n_ref * 0.25 or need_close
+        c2 = (self.n_inliers < n_ref * th_ref or need_close) and self.n_inliers > 15
+        return bool((c1a or c1b or c1c) and c2)
