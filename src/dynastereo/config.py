@@ -125,6 +125,17 @@ class SlamConfig:
     threads: int = 2  # threads for feature extraction (left/right in parallel)
 
 
+# ORB-SLAM2 settings-file keys that set SlamConfig fields (Camera.fps -> max_frames too)
+ORBSLAM2_SLAM_KEYS: dict[str, str] = {
+    "ORBextractor.nFeatures": "n_features",
+    "ORBextractor.scaleFactor": "scale_factor",
+    "ORBextractor.nLevels": "n_levels",
+    "ORBextractor.iniThFAST": "ini_th_fast",
+    "ORBextractor.minThFAST": "min_th_fast",
+    "ThDepth": "th_depth",
+}
+
+
 @dataclass
 class Config:
     stereo: StereoConfig = field(default_factory=StereoConfig)
@@ -248,8 +259,22 @@ def load_config(path: str | Path | None = None) -> Config:
     if not isinstance(data, dict):
         raise ConfigError("top level must be a mapping", p)
     # ORB-SLAM2 settings files have flat dotted keys ("Camera.fx"); they carry no
-    # dynastereo sections, so keep only our sections here (calibration is read by io).
-    ours = {k: v for k, v in data.items() if "." not in k}
+    # dynastereo sections, so keep only our sections here (calibration is read by io),
+    # except the SLAM parameters ORB-SLAM2 shares with us (ORBSLAM2_SLAM_KEYS).
+    ours = {k: v for k, v in data.items() if "." not in k and k not in ORBSLAM2_SLAM_KEYS}
+    theirs = {ORBSLAM2_SLAM_KEYS[k]: v for k, v in data.items() if k in ORBSLAM2_SLAM_KEYS}
+    if "Camera.fps" in data and "max_frames" not in theirs:
+        try:
+            fps = float(data["Camera.fps"])
+        except (TypeError, ValueError):
+            raise ConfigError(f"'Camera.fps' must be a number, got {data['Camera.fps']!r}", p) from None
+        if fps > 0:
+            theirs["max_frames"] = int(round(fps))
+    if theirs:
+        slam = ours.get("slam") or {}
+        if not isinstance(slam, dict):
+            raise ConfigError("'slam' must be a mapping", p)
+        ours["slam"] = {**theirs, **slam}  # an explicit slam: section wins
     try:
         return from_dict(Config, ours)
     except ConfigError as e:

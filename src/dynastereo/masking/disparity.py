@@ -240,7 +240,7 @@ class StereoMatcher:
         h, w = shape
         p = self.params(scale)
         half = (p.block_size // 2) * scale
-        extra = 0 if self.algorithm == "bm" and not self.cfg.wls else 8 * scale
+        extra = (16 if self.algorithm == "bm" and not self.cfg.wls else 32) * scale
         left_pad = (max(p.min_disparity, 0) + p.num_disparities) * scale + half + extra
         cx0 = max(0, x0 - left_pad)
         cx1 = min(w, x1 + half + extra)

@@ -23,7 +23,7 @@ from typing import Any, ContextManager
 
 import numpy as np
 
-from ..config import MaskerConfig, OutlineConfig, StereoConfig
+from ..config import OutlineConfig, StereoConfig
 from ..errors import ConfigError
 from ..timing import StageTimer
 from ..types import Detections, ObjectMask, StereoFrame, StereoMasks
@@ -31,6 +31,7 @@ from .base import Detector
 from .disparity import StereoMatcher
 from .outline import (
     FALLBACK_NO_DISPARITY,
+    LEFT_CONTEXT,
     OutlineResult,
     clip_boxes,
     dominant_disparity,
@@ -55,9 +56,15 @@ def _to_mask(labels: np.ndarray) -> np.ndarray:
 # Where to compute disparity
 # --------------------------------------------------------------------------------------
 def plan_regions(
-    matcher: StereoMatcher, rois: np.ndarray, shape: tuple[int, int], scale: int, margin: int = 0
+    matcher: StereoMatcher,
+    rois: np.ndarray,
+    shape: tuple[int, int],
+    scale: int,
+    margin: int = 0,
+    left_margin: int = 0,
 ) -> list[tuple[int, int, int, int]]:
-    """Image regions ``(y0, y1, x0, x1)`` whose disparity covers all ``rois``.
+    """Image regions ``(y0, y1, x0, x1)`` whose disparity covers all ``rois`` (grown by
+    ``margin`` on every side and ``left_margin`` more on the left).
 
     Block matching costs about (crop area) x numDisparities, and each crop is padded by
     numDisparities columns on the left; so boxes far apart are matched separately and
@@ -65,11 +72,10 @@ def plan_regions(
     (greedy, over the handful of boxes).
     """
     h, w = shape
-    groups: list[list[int]] = []
     rects: list[tuple[int, int, int, int]] = []
     for r in np.asarray(rois).reshape(-1, 4):
         x0, y0, x1, y1 = (int(v) for v in r)
-        x0, y0 = max(0, x0 - margin), max(0, y0 - margin)
+        x0, y0 = max(0, x0 - margin - left_margin), max(0, y0 - margin)
         x1, y1 = min(w, x1 + margin), min(h, y1 + margin)
         if x1 > x0 and y1 > y0:
             rects.append((y0, y1, x0, x1))
@@ -83,7 +89,6 @@ def plan_regions(
     def union(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
         return (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
 
-    groups = [[i] for i in range(len(rects))]
     regions = list(rects)
     merged = True
     while merged and len(regions) > 1:
@@ -98,8 +103,7 @@ def plan_regions(
         if best is not None:
             _, i, j, u = best
             regions[i] = u
-            groups[i] += groups[j]
-            del regions[j], groups[j]
+            del regions[j]
             merged = True
     return regions
 
@@ -163,16 +167,20 @@ class _DisparityMasker:
             return self.detector.detect(frame.left)
 
     def _disparity(
-        self, frame: StereoFrame, rois: np.ndarray, timer: StageTimer | None, margin: int = 0
+        self, frame: StereoFrame, rois: np.ndarray, timer: StageTimer | None, left_margin: int = 0
     ) -> np.ndarray | None:
-        """Full-frame-sized disparity (0 where not computed); None when nothing is needed."""
-        if not self.full_disparity and len(rois) == 0:
-            return None
+        """Full-frame-sized disparity (0 where not computed); None when nothing is needed.
+
+        The ``disparity`` stage is recorded even then (about 0 ms), so every frame has a
+        ``mask`` time and its median is over all frames, not only those with objects.
+        """
         with _stage(timer, "disparity"):
+            if not self.full_disparity and len(rois) == 0:
+                return None
             gl, gr = frame.left_gray, frame.right_gray
             if self.full_disparity:
                 return self.matcher.compute(gl, gr, scale=self.scale)
-            regions = plan_regions(self.matcher, rois, gl.shape[:2], self.scale, margin)
+            regions = plan_regions(self.matcher, rois, gl.shape[:2], self.scale, left_margin=left_margin)
             return region_disparity(self.matcher, gl, gr, regions, self.scale)
 
     def _sweep(self) -> tuple[float, float]:
@@ -203,14 +211,21 @@ class OutlineMasker(_DisparityMasker):
         self, frame: StereoFrame, dets: Detections, timer: StageTimer | None = None
     ) -> StereoMasks:
         """Masks for given detections (the detector is not run)."""
+        return self.mask_labels(frame, dets, timer)[0]
+
+    def mask_labels(
+        self, frame: StereoFrame, dets: Detections, timer: StageTimer | None = None
+    ) -> tuple[StereoMasks, np.ndarray, np.ndarray]:
+        """Masks plus the left and right instance label images (int32, ``k + 1`` = detection ``k``)."""
         shape = frame.shape
         rois = clip_boxes(dets.boxes, shape)
-        disp = self._disparity(frame, rois, timer)
+        disp = self._disparity(frame, rois, timer, left_margin=LEFT_CONTEXT)
         if len(dets) == 0:
             m = StereoMasks.empty(shape)
             m.detections = dets
             m.disparity = disp if self.full_disparity else None
-            return m
+            z = np.zeros(shape, np.int32)
+            return m, z, z
         assert disp is not None
         with _stage(timer, "outline"):
             o: OutlineResult = outline_objects(disp, dets.boxes, shape, self.cfg)
@@ -222,7 +237,8 @@ class OutlineMasker(_DisparityMasker):
             )
             right = _to_mask(t.labels)
         objects = _objects(dets, o.methods, o.disparity, o.pixels, t.pixels)
-        return StereoMasks(left, right, objects, dets, disp if self.full_disparity else None)
+        masks = StereoMasks(left, right, objects, dets, disp if self.full_disparity else None)
+        return masks, o.labels, t.labels
 
     def mask(self, frame: StereoFrame, timer: StageTimer | None = None) -> StereoMasks:
         return self.mask_detections(frame, self._detect(frame, timer), timer)
@@ -254,6 +270,13 @@ class BoxMasker(_DisparityMasker):
     def mask_detections(
         self, frame: StereoFrame, dets: Detections, timer: StageTimer | None = None
     ) -> StereoMasks:
+        """Masks for given detections (the detector is not run)."""
+        return self.mask_labels(frame, dets, timer)[0]
+
+    def mask_labels(
+        self, frame: StereoFrame, dets: Detections, timer: StageTimer | None = None
+    ) -> tuple[StereoMasks, np.ndarray, np.ndarray]:
+        """Masks plus the left and right instance label images (int32, ``k + 1`` = detection ``k``)."""
         shape = frame.shape
         rois = clip_boxes(dets.boxes, shape, self.margin)
         disp = self._disparity(frame, rois, timer)
@@ -261,7 +284,8 @@ class BoxMasker(_DisparityMasker):
             m = StereoMasks.empty(shape)
             m.detections = dets
             m.disparity = disp if self.full_disparity else None
-            return m
+            z = np.zeros(shape, np.int32)
+            return m, z, z
         assert disp is not None
         n = len(dets)
         with _stage(timer, "boxes"):
@@ -290,7 +314,8 @@ class BoxMasker(_DisparityMasker):
             t = transfer_labels(labels, disparity, rois, mode="rigid", sweep=self._sweep())
             right = _to_mask(t.labels)
         objects = _objects(dets, methods, disparity, pixels, t.pixels)
-        return StereoMasks(left, right, objects, dets, disp if self.full_disparity else None)
+        masks = StereoMasks(left, right, objects, dets, disp if self.full_disparity else None)
+        return masks, labels, t.labels
 
     def mask(self, frame: StereoFrame, timer: StageTimer | None = None) -> StereoMasks:
         return self.mask_detections(frame, self._detect(frame, timer), timer)
@@ -371,6 +396,13 @@ class SegMasker:
         return np.any(d.masks, axis=0).view(np.uint8) * np.uint8(255)
 
     def mask(self, frame: StereoFrame, timer: StageTimer | None = None) -> StereoMasks:
+        return self.segment_both(frame, timer)[0]
+
+    def segment_both(
+        self, frame: StereoFrame, timer: StageTimer | None = None
+    ) -> tuple[StereoMasks, Detections, Detections, np.ndarray]:
+        """Masks, the left and right instance detections (with ``masks``) and, per left
+        instance, the index of its right instance (-1 if none)."""
         dl, dr = self._run(frame, timer)
         shape = frame.shape
         with _stage(timer, "segment"):
@@ -390,7 +422,7 @@ class SegMasker:
                         pr[i] = int(np.count_nonzero(dr.masks[j]))
                     disp[i] = float((dl.boxes[i, 0] + dl.boxes[i, 2] - dr.boxes[j, 0] - dr.boxes[j, 2]) / 2)
         objects = _objects(dl, ["seg"] * n, disp, pl, pr)
-        return StereoMasks(left, right, objects, dl, None)
+        return StereoMasks(left, right, objects, dl, None), dl, dr, match
 
 
 class NoneMasker:

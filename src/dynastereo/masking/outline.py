@@ -1,19 +1,28 @@
 """Object outlines from the dominant disparity peak inside each detected box (thesis 3.3.3).
 
-For every box: the histogram of the valid disparities inside it; its dominant peak is the
-object's disparity (refined by the mean of the values in the peak); the pixels within a
-tolerance of it are the object.  Invalid disparities (no texture, occlusion) are first
-filled along each row with the *smaller* (farther) of the nearest valid disparities to
-the left and right -- the usual occlusion filling, so a textureless car window between
-two car pixels becomes car while a gap between car and background becomes background.
-Holes are then flood-filled, the largest connected component kept and the mask dilated
-a little, all inside the box.
+For every box:
+
+1. the histogram of the valid disparities inside it -- bins ``bin_width`` wide at small
+   disparities and ``peak_tolerance_rel * d`` wide for near objects, smoothed [1, 2, 1];
+2. its dominant peak -- the highest bin, or the *nearest* local maximum at least
+   ``near_peak_ratio`` as high (the detected object stands in front of the rest of its
+   box) -- is the object's disparity, refined by the mean of the values in the peak; the
+   accepted range is the peak +- the tolerance, extended over the contiguous bins holding
+   at least ``peak_extend_ratio`` of the peak (a car seen from the side is slanted);
+3. invalid disparities (no texture, occlusion) are filled along each row from their
+   valid neighbours, occlusion-aware (:func:`fill_invalid_rows`, looking
+   ``LEFT_CONTEXT`` columns left of the box), and the pixels in the accepted range are
+   the object;
+4. its largest connected component is kept, holes are flood-filled (from the border of
+   the ROI on the inverted mask) and the mask is dilated a little -- all inside the box.
 
 The result is an instance *label image* (``int32``, 0 = none, ``i`` = object ``i``,
 1-based in the order of the boxes).  Where boxes overlap, nearer objects (larger
-disparity) win the shared pixels.  Boxes with too little valid disparity, and tiny
-boxes, are masked whole, and the reason is recorded per object
-(``box-fallback:no-disparity``, ``box-fallback:tiny``).
+disparity) win the shared pixels.  Boxes masked whole record why
+(``ObjectMask.method``): ``box-fallback:tiny`` (fewer than ``min_box_pixels``),
+``box-fallback:no-disparity`` (fewer than ``min_valid_fraction`` of the box valid),
+``box-fallback:sparse-disparity`` (fewer than that on the object's own peak: a dark,
+shiny near car -- the box is still moved to the right image by the peak's disparity).
 
 Everything is numpy/OpenCV on the box ROI; the only Python loop is over the boxes.
 """
@@ -31,7 +40,11 @@ METHOD_OUTLINE = "outline"
 FALLBACK_NO_DISPARITY = "box-fallback:no-disparity"
 FALLBACK_TINY = "box-fallback:tiny"
 FALLBACK_NO_PEAK = "box-fallback:no-object-pixels"
+FALLBACK_SPARSE = "box-fallback:sparse-disparity"
 EMPTY = "empty:outside-image"
+# Columns left of each box whose disparity the outline looks at (to tell the background
+# band a near object occludes from the object itself); maskers compute disparity there too.
+LEFT_CONTEXT = 48
 
 
 @dataclass
@@ -84,25 +97,34 @@ def roi_disparity(disp: np.ndarray, origin: tuple[int, int], roi: tuple[int, int
 
 
 def fill_invalid_rows(d: np.ndarray) -> np.ndarray:
-    """Fill invalid (<= 0) pixels with the smaller of the nearest valid values left/right
-    in the same row (the only one where just one side has a value; 0 where none)."""
+    """Fill invalid (<= 0) pixels along each row from the nearest valid pixels.
+
+    A run between a farther left value ``dl`` and a nearer right value ``dr`` (the left
+    edge of a near object) holds the background band the near object hides from the right
+    camera, ``dr - dl`` pixels wide: those first pixels of the run take ``dl`` and the
+    rest, if any, ``dr`` (the object's own textureless part).  A run whose right value is
+    the farther one takes it (the usual "farther neighbour" occlusion filling).  A run
+    touching an end of the row takes its only neighbour: inside a detected box that is
+    mostly the object itself (a textureless car side reaching the box edge).
+    """
     h, w = d.shape
     valid = d > 0
     if valid.all() or not valid.any():
         return d.copy()
-    idx = np.arange(w, dtype=np.int64)[None, :]
-    # nearest valid to the left (index), -1 if none
-    li = np.where(valid, idx, -1)
+    idx = np.arange(w, dtype=np.int32)[None, :]
+    li = np.where(valid, idx, np.int32(-1))  # nearest valid to the left (index), -1 if none
     np.maximum.accumulate(li, axis=1, out=li)
-    # nearest valid to the right, w if none
-    ri = np.where(valid, idx, w)
-    ri = np.minimum.accumulate(ri[:, ::-1], axis=1)[:, ::-1]
-    rows = np.arange(h)[:, None]
-    dpad = np.concatenate([d, np.zeros((h, 1), d.dtype)], axis=1)  # index w -> 0; -1 -> 0
-    lv = dpad[rows, np.where(li >= 0, li, w)]
-    rv = dpad[rows, ri]
+    ri = np.where(valid, idx, np.int32(w))[:, ::-1]  # nearest valid to the right, w if none
+    ri = np.minimum.accumulate(ri, axis=1)[:, ::-1]
+    dpad = np.zeros((h, w + 1), np.float32)  # column w (and -1 -> w) reads 0
+    dpad[:, :w] = d
+    li_safe = np.where(li >= 0, li, np.int32(w))
+    lv = np.take_along_axis(dpad, li_safe, axis=1)
+    rv = np.take_along_axis(dpad, ri, axis=1)
     both = (lv > 0) & (rv > 0)
-    filled = np.where(both, np.minimum(lv, rv), np.maximum(lv, rv))
+    occluded = (idx - li) <= (rv - lv)  # within the hidden band right of the left value
+    two_sided = np.where((rv > lv) & ~occluded, rv, np.minimum(lv, rv))
+    filled = np.where(both, two_sided, np.maximum(lv, rv))
     return np.where(valid, d, filled).astype(np.float32, copy=False)
 
 
@@ -228,8 +250,12 @@ class RoiOutline:
     hi: float = 0.0
 
 
-def object_mask_in_roi(droi: np.ndarray, cfg: OutlineConfig) -> RoiOutline:
-    """The object's mask in one box ROI of the disparity (see the module docstring)."""
+def object_mask_in_roi(droi: np.ndarray, cfg: OutlineConfig, context: np.ndarray | None = None) -> RoiOutline:
+    """The object's mask in one box ROI of the disparity (see the module docstring).
+
+    ``context`` is the disparity of the same rows left of the box (any width, may be
+    empty): it lets :func:`fill_invalid_rows` see the background beyond the box's edge.
+    """
     h, w = droi.shape
     area = h * w
     valid = droi > 0
@@ -250,7 +276,15 @@ def object_mask_in_roi(droi: np.ndarray, cfg: OutlineConfig) -> RoiOutline:
     d = peak.disparity
     tol = tolerance(d, cfg)
     lo, hi = min(d - tol, peak.lo), max(d + tol, peak.hi)
-    filled = fill_invalid_rows(droi)
+    support = int(np.count_nonzero((droi >= lo) & (droi <= hi)))
+    if support < cfg.min_valid_fraction * area:
+        # too few pixels measured on the object itself (a dark, shiny near car): its
+        # outline would be a guess -- mask the box, moved by the peak disparity
+        return RoiOutline(None, d, FALLBACK_SPARSE, lo, hi)
+    if context is not None and context.shape[1] > 0:
+        filled = fill_invalid_rows(np.concatenate([context, droi], axis=1))[:, context.shape[1]:]
+    else:
+        filled = fill_invalid_rows(droi)
     m = ((filled >= lo) & (filled <= hi)).astype(np.uint8)
     if cfg.keep_largest_component:
         m = _largest_component(m)
@@ -288,7 +322,11 @@ def outline_objects(
         x0, y0, x1, y1 = (int(v) for v in rois[i])
         if x1 <= x0 or y1 <= y0:
             continue
-        r = object_mask_in_roi(roi_disparity(disp, origin, (x0, y0, x1, y1)), cfg)
+        cx0 = max(0, x0 - LEFT_CONTEXT)
+        r = object_mask_in_roi(
+            roi_disparity(disp, origin, (x0, y0, x1, y1)), cfg,
+            roi_disparity(disp, origin, (cx0, y0, x0, y1)) if cx0 < x0 else None,
+        )
         masks[i], disparity[i], methods[i], ranges[i] = r.mask, r.disparity, r.method, (r.lo, r.hi)
     # Paint far to near so nearer objects win overlaps; whole-box fallbacks first.
     order = sorted(

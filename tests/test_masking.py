@@ -1,0 +1,598 @@
+"""Masking: outline from the dominant disparity peak, transfer to the right image, maskers.
+
+Synthetic stereo pairs with known answers (textured layers shifted by known integer
+disparities) + KITTI odometry frames with the real detector."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import require
+from dynastereo.config import Config, OutlineConfig, StereoConfig
+from dynastereo.errors import ConfigError
+from dynastereo.masking import (
+    BoxMasker,
+    NoneMasker,
+    OutlineMasker,
+    SegMasker,
+    StereoMatcher,
+    create_masker,
+    outline_objects,
+    transfer_labels,
+)
+from dynastereo.masking.maskers import match_stereo_detections, plan_regions, region_disparity
+from dynastereo.masking.outline import (
+    FALLBACK_NO_DISPARITY,
+    FALLBACK_TINY,
+    clip_boxes,
+    dominant_disparity,
+    fill_invalid_rows,
+)
+from dynastereo.timing import StageTimer
+from dynastereo.types import Detections, StereoFrame
+
+H, W = 240, 480
+
+
+# ---------------------------------------------------------------------------------------
+# synthetic scenes
+# ---------------------------------------------------------------------------------------
+def texture(h: int, w: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    t = cv2.GaussianBlur(rng.uniform(0, 255, (h, w)).astype(np.float32), (0, 0), 1.0)
+    t = (t - t.min()) * (255.0 / (t.max() - t.min()))
+    return t.astype(np.uint8)
+
+
+def shift_left(m: np.ndarray, d: int) -> np.ndarray:
+    """Where a left-image mask lands in the right image for disparity d (x_r = x_l - d)."""
+    out = np.zeros_like(m)
+    out[:, : m.shape[1] - d] = m[:, d:]
+    return out
+
+
+def layered_pair(d_bg: int, layers: list[tuple[np.ndarray, int]], seed: int = 0, h: int = H, w: int = W):
+    """Textured background at d_bg plus textured layers (left mask, disparity), far to near.
+
+    Returns left, right, and per layer its GT right mask (the visible part, occlusion by
+    nearer layers included)."""
+    bg = texture(h, w + d_bg, seed)
+    left = bg[:, :w].copy()
+    right = bg[:, d_bg:d_bg + w].copy()
+    rights = []
+    for k, (m, d) in enumerate(layers):
+        tex = texture(h, w + d, seed + 1 + k)
+        left[m] = tex[:, :w][m]
+        mr = shift_left(m, d)
+        right[mr] = tex[:, d:d + w][mr]
+        rights = [r & ~mr for r in rights] + [mr]
+    return left, right, rights
+
+
+def ellipse_mask(cx, cy, ax, ay, h=H, w=W) -> np.ndarray:
+    m = np.zeros((h, w), np.uint8)
+    cv2.ellipse(m, (cx, cy), (ax, ay), 0, 0, 360, 1, -1)
+    return m.astype(bool)
+
+
+def rect_mask(x0, y0, x1, y1, h=H, w=W) -> np.ndarray:
+    m = np.zeros((h, w), bool)
+    m[y0:y1, x0:x1] = True
+    return m
+
+
+def box_of(m: np.ndarray) -> list[float]:
+    ys, xs = np.nonzero(m)
+    return [float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1)]
+
+
+def dets(*boxes, labels=None) -> Detections:
+    n = len(boxes)
+    return Detections(np.array(boxes, np.float32).reshape(-1, 4), np.full(n, 0.9), np.full(n, 2), ("person", "bicycle", "car"))
+
+
+class FakeDetector:
+    name = "fake"
+    class_names = ("person", "bicycle", "car")
+
+    def __init__(self, detections: Detections):
+        self.detections = detections
+        self.calls = 0
+
+    def detect(self, image):
+        self.calls += 1
+        return self.detections
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    a, b = a > 0, b > 0
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def frame(left, right) -> StereoFrame:
+    return StereoFrame(index=0, timestamp=0.0, left=left, right=right)
+
+
+STEREO = StereoConfig(num_disparities=64, block_size=15)
+
+
+@pytest.fixture(scope="module")
+def blob_scene():
+    """A 'car' (ellipse, d=30) in front of a textured background (d=8)."""
+    blob = ellipse_mask(260, 130, 70, 45)
+    left, right, (blob_r,) = layered_pair(8, [(blob, 30)])
+    return left, right, blob, blob_r
+
+
+# ---------------------------------------------------------------------------------------
+# building blocks
+# ---------------------------------------------------------------------------------------
+def test_dominant_disparity_peak_refined():
+    rng = np.random.default_rng(0)
+    v = np.r_[rng.normal(20.3, 0.3, 600), rng.normal(7.0, 0.3, 300), rng.uniform(1, 60, 100)]
+    p = dominant_disparity(v.astype(np.float32), 1.0)
+    assert abs(p.disparity - 20.3) < 0.2
+    # the nearer peak wins when nearly as high
+    v2 = np.r_[rng.normal(10, 0.3, 500), rng.normal(30, 0.3, 400)].astype(np.float32)
+    assert abs(dominant_disparity(v2, 1.0).disparity - 10) < 0.3
+    assert abs(dominant_disparity(v2, 1.0, near_ratio=0.5).disparity - 30) < 0.3
+    # a slanted surface (uniform 40..60) plus background: the extended range covers it
+    v3 = np.r_[rng.uniform(40, 60, 2000), rng.normal(10, 0.3, 300)].astype(np.float32)
+    p3 = dominant_disparity(v3, 1.0, rel=0.08, extend_ratio=0.1)
+    assert p3.lo < 42 and p3.hi > 58 and 40 <= p3.disparity <= 60
+    assert dominant_disparity(np.zeros(0, np.float32), 1.0) is None
+
+
+def test_fill_invalid_rows_takes_farther_neighbour():
+    d = np.array([[0, 5, 0, 0, 9, 0], [0, 0, 0, 0, 0, 0], [3, 0, 3, 0, 0, 7]], np.float32)
+    f = fill_invalid_rows(d)
+    np.testing.assert_array_equal(f[0], [5, 5, 5, 5, 9, 9])
+    np.testing.assert_array_equal(f[1], 0)
+    np.testing.assert_array_equal(f[2], [3, 3, 3, 3, 3, 7])
+    # runs at either end take their only neighbour
+    f = fill_invalid_rows(np.array([[0, 0, 8, 0, 0]], np.float32))
+    np.testing.assert_array_equal(f, [[8, 8, 8, 8, 8]])
+
+
+def test_clip_boxes():
+    r = clip_boxes(np.array([[-10.5, 5.2, 30.1, 500.0], [470.0, -3.0, 490.0, 9.9]]), (H, W))
+    np.testing.assert_array_equal(r, [[0, 5, 31, H], [470, 0, W, 10]])
+
+
+# ---------------------------------------------------------------------------------------
+# outline
+# ---------------------------------------------------------------------------------------
+def test_outline_beats_box_on_blob(blob_scene):
+    left, right, blob, _ = blob_scene
+    disp = StereoMatcher(STEREO).compute(left, right)
+    box = box_of(blob)
+    o = outline_objects(disp, np.array([box]), (H, W), OutlineConfig())
+    assert o.methods == ["outline"]
+    assert abs(o.disparity[0] - 30) < 0.5
+    out = o.labels == 1
+    box_iou = iou(rect_mask(*(int(v) for v in box)), blob)
+    assert box_iou < 0.8
+    assert iou(out, blob) > 0.9 > box_iou + 0.1
+    # inside the box, never outside
+    x0, y0, x1, y1 = (int(v) for v in box)
+    assert not out[:, :x0].any() and not out[:, x1:].any() and not out[:y0].any() and not out[y1:].any()
+    assert o.pixels[0] == out.sum()
+
+
+def test_outline_fills_textureless_hole():
+    """A textureless patch inside the object (no valid disparity) is filled."""
+    blob = ellipse_mask(240, 120, 80, 60)
+    left, right, _ = layered_pair(6, [(blob, 28)])
+    hole = rect_mask(195, 95, 285, 155)
+    for img, sh in ((left, 0), (right, 28)):  # flat grey on the object in both views
+        img[shift_left(hole, sh) if sh else hole] = 128
+    disp = StereoMatcher(STEREO).compute(left, right)
+    assert (disp[hole] <= 0).mean() > 0.5  # BM finds no disparity there
+    o = outline_objects(disp, np.array([box_of(blob)]), (H, W), OutlineConfig())
+    assert (o.labels[hole] == 1).all()
+    assert iou(o.labels == 1, blob) > 0.9
+
+
+@pytest.mark.parametrize("fill", [True, False])
+def test_outline_flood_fills_enclosed_window(fill):
+    """A window through the object showing the background (valid, far disparity) is an
+    enclosed hole of the outline: filled with fill_holes, left open without."""
+    blob = ellipse_mask(240, 120, 90, 70)
+    window = rect_mask(210, 95, 270, 140)
+    left, right, _ = layered_pair(6, [(blob & ~window, 28)])
+    disp = StereoMatcher(STEREO).compute(left, right)
+    inner = rect_mask(222, 105, 258, 130)
+    assert np.median(disp[inner]) == pytest.approx(6, abs=0.5)  # the background shows through
+    o = outline_objects(disp, np.array([box_of(blob)]), (H, W), OutlineConfig(fill_holes=fill))
+    assert o.methods == ["outline"]
+    assert (o.labels[inner] == 1).all() == fill
+    if not fill:
+        assert not (o.labels[inner] == 1).any()
+
+
+def test_no_valid_disparity_falls_back_to_box():
+    left, right, _ = layered_pair(8, [])
+    flat = rect_mask(150, 60, 330, 200)
+    left[flat] = 90
+    right[shift_left(flat, 8)] = 90
+    box = [200.0, 100.0, 280.0, 160.0]  # well inside the flat area
+    m = OutlineMasker(FakeDetector(dets(box)), StereoMatcher(STEREO))
+    res = m.mask(frame(left, right))
+    ob = res.objects[0]
+    assert ob.method == FALLBACK_NO_DISPARITY == "box-fallback:no-disparity"
+    assert ob.disparity == 0.0
+    assert iou(res.left, rect_mask(200, 100, 280, 160)) == 1.0
+    # unknown disparity: the right mask covers every possible shift 0..63
+    assert iou(res.right, rect_mask(200 - 63, 100, 280, 160)) == 1.0
+    assert ob.pixels_left == 80 * 60 and ob.pixels_right == (80 + 63) * 60
+
+
+def test_sparse_object_disparity_falls_back_to_box_moved_by_peak():
+    """A textureless object with valid disparity on a few small spots only, each at its
+    own disparity (a dark, shiny car showing reflections): no peak holds enough of the
+    box, so it is masked whole -- and still moved to the right image by its peak."""
+    left, right, _ = layered_pair(3, [])
+    flat = rect_mask(150, 50, 340, 190)
+    left[flat] = 100
+    right[shift_left(flat, 30)] = 100
+    disparities = (30, 8, 16, 22, 12)
+    for k, d in enumerate(disparities):
+        spot = rect_mask(165 + 34 * k, 70 + 18 * k, 175 + 34 * k, 80 + 18 * k)
+        tex = texture(H, W + d, 50 + k)
+        left[spot] = tex[:, :W][spot]
+        right[shift_left(spot, d)] = tex[:, d:d + W][shift_left(spot, d)]
+    disp = StereoMatcher(STEREO).compute(left, right)
+    roi = disp[60:180, 160:330]  # the box: inside the flat area (BM fattens the edges)
+    assert (roi > 0).mean() > 0.05  # enough valid pixels overall ...
+    box = [160.0, 60.0, 330.0, 180.0]
+    res = OutlineMasker(FakeDetector(dets(box)), StereoMatcher(STEREO)).mask(frame(left, right))
+    ob = res.objects[0]
+    assert ob.method == "box-fallback:sparse-disparity", ob  # ... but on no single peak
+    assert abs(ob.disparity - 30) < 1.0  # the highest (and nearest-enough) spot
+    inner = rect_mask(160, 60, 330, 180)
+    assert (res.left[inner] == 255).all() and not res.left[~inner].any()
+    assert iou(res.right, shift_left(inner, 30)) > 0.95
+
+
+def test_tiny_box_masked_whole(blob_scene):
+    left, right, _, _ = blob_scene
+    disp = StereoMatcher(STEREO).compute(left, right)
+    o = outline_objects(disp, np.array([[100.0, 30.0, 106.0, 38.0]]), (H, W), OutlineConfig(min_box_pixels=64))
+    assert o.methods == [FALLBACK_TINY]
+    assert (o.labels[30:38, 100:106] == 1).all() and o.pixels[0] == 48
+
+
+def test_overlapping_boxes_nearer_wins():
+    far = rect_mask(150, 60, 300, 200)
+    near = ellipse_mask(300, 150, 50, 50)
+    left, right, (far_r, near_r) = layered_pair(5, [(far, 15), (near, 40)])
+    disp = StereoMatcher(STEREO).compute(left, right)
+    boxes = np.array([box_of(near), box_of(far)])  # near first: order must not matter
+    o = outline_objects(disp, boxes, (H, W), OutlineConfig())
+    assert o.methods == ["outline", "outline"]
+    assert abs(o.disparity[0] - 40) < 0.5 and abs(o.disparity[1] - 15) < 0.5
+    overlap = near & far
+    assert overlap.sum() > 1000
+    core = cv2.erode(overlap.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    assert (o.labels[core] == 1).all()  # the nearer object owns the shared pixels
+    assert iou(o.labels == 1, near) > 0.9
+    visible_far = far & ~near
+    assert iou(o.labels == 2, visible_far) > 0.85
+    # right image: the near object occludes the far one there too
+    t = transfer_labels(o.labels, o.disparity, o.rois, mode="rigid")
+    assert iou(t.labels == 1, near_r) > 0.9
+    assert iou(t.labels == 2, far_r) > 0.85
+
+
+def test_border_boxes_clipped(blob_scene):
+    left, right, _, _ = blob_scene
+    m = OutlineMasker(FakeDetector(dets([-40.0, -10.0, 60.0, 90.0], [420.0, 150.0, 560.0, 300.0])), StereoMatcher(STEREO))
+    res = m.mask(frame(left, right))
+    assert res.left.shape == (H, W) and res.right.shape == (H, W)
+    assert [o.method for o in res.objects] != []
+    assert not res.left[90:, 60:420].any() and res.left.any()
+    for ob in res.objects:
+        assert ob.pixels_left > 0
+
+
+# ---------------------------------------------------------------------------------------
+# transfer
+# ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("d", [1, 7, 23, 50])
+@pytest.mark.parametrize("mode", ["rigid", "affine"])
+def test_transfer_exact_for_integer_disparity(d, mode):
+    patch = ellipse_mask(300, 120, 60, 40) | rect_mask(250, 150, 290, 200)
+    left, right, (gt_right,) = layered_pair(3, [(patch, d)], seed=d)
+    disp = StereoMatcher(STEREO).compute(left, right)
+    labels = patch.astype(np.int32)
+    rois = clip_boxes(np.array([box_of(patch)]), (H, W))
+    v = disp[patch & (disp > 0)]
+    dd = float(np.median(v))  # the object's measured disparity, not the GT
+    t = transfer_labels(labels, np.array([dd]), rois, mode=mode, disp=disp, ranges=[(d - 2, d + 2)])
+    np.testing.assert_array_equal(t.labels == 1, gt_right)
+    assert t.pixels[0] == gt_right.sum()
+
+
+def test_transfer_object_leaving_right_image():
+    patch = rect_mask(10, 50, 90, 150)  # x - d < 0 for the first 30 columns
+    left, right, (gt_right,) = layered_pair(4, [(patch, 40)])
+    masker = OutlineMasker(FakeDetector(dets(box_of(patch))), StereoMatcher(STEREO), OutlineConfig(dilate=0))
+    res = masker.mask(frame(left, right))
+    ob = res.objects[0]
+    assert abs(ob.disparity - 40) < 0.5
+    # the left outline: BM has no disparity in its leftmost 63 columns -> only the part
+    # right of that is found; what was found lands exactly where GT says
+    found = res.left > 0
+    assert found.any()
+    np.testing.assert_array_equal(res.right > 0, shift_left(found, 40))
+    assert (res.right[gt_right == 0] == 0).all()
+    assert ob.pixels_right < ob.pixels_left
+
+
+def test_transfer_extends_object_cut_by_right_border():
+    """An object cut by the left image's right border is seen further in the right image."""
+    patch = rect_mask(400, 60, W, 160)
+    left, right, (gt_right,) = layered_pair(5, [(patch, 30)])
+    # the right image sees 30 more columns of the object: extend the texture there
+    ext = texture(H, W + 30, 99)[:, W:W + 30]
+    right[60:160, W - 30:] = ext[60:160]
+    gt_right = rect_mask(370, 60, W, 160)
+    res = OutlineMasker(FakeDetector(dets([400.0, 60.0, float(W), 160.0])), StereoMatcher(STEREO),
+                        OutlineConfig(dilate=0)).mask(frame(left, right))
+    assert iou(res.right, gt_right) > 0.97
+    assert res.right[60:160, W - 5:].all()
+
+
+def test_transfer_affine_follows_slanted_object():
+    """A plane whose disparity grows along x (a car seen from the side)."""
+    h, w = H, W
+    xs = np.arange(w, dtype=np.float64)
+    x0, x1, y0, y1 = 180, 380, 60, 180
+    dx = 10.0 + 0.1 * (xs - x0)  # 10 .. 30 px
+    tex_bg = texture(h, w + 8, 5)
+    left = tex_bg[:, :w].copy()
+    right = tex_bg[:, 8:8 + w].copy()
+    obj_tex = texture(h, 2 * w, 6).astype(np.float32)
+    # left: object texture in object coordinates u = x; right pixel xr shows u with xr = u - d(u)
+    left[y0:y1, x0:x1] = obj_tex[y0:y1, x0:x1].astype(np.uint8)
+    u = xs[x0:x1]
+    xr = u - dx[x0:x1]
+    ur = np.interp(np.arange(int(np.ceil(xr[0])), int(np.floor(xr[-1])) + 1), xr, u)
+    cols = np.arange(int(np.ceil(xr[0])), int(np.floor(xr[-1])) + 1)
+    mapx = np.tile(ur.astype(np.float32), (y1 - y0, 1))
+    mapy = np.repeat(np.arange(y0, y1, dtype=np.float32)[:, None], len(cols), axis=1)
+    right[y0:y1, cols] = cv2.remap(obj_tex, mapx, mapy, cv2.INTER_LINEAR).astype(np.uint8)
+    gt_right = rect_mask(int(cols[0]), y0, int(cols[-1]) + 1, y1)
+    disp = StereoMatcher(StereoConfig(num_disparities=64, block_size=9)).compute(left, right)
+    box = np.array([[x0, y0, x1, y1]], np.float32)
+    cfg = OutlineConfig(dilate=0)
+    o = outline_objects(disp, box, (h, w), cfg)
+    assert iou(o.labels == 1, rect_mask(x0, y0, x1, y1)) > 0.85  # the extended peak covers the slant
+    rigid = transfer_labels(o.labels, o.disparity, o.rois, mode="rigid")
+    affine = transfer_labels(o.labels, o.disparity, o.rois, mode="affine", disp=disp, ranges=o.ranges)
+    a, b, c = affine.models[0]
+    assert abs(b - 0.1) < 0.02 and abs(c) < 0.02
+    assert iou(affine.labels == 1, gt_right) > 0.85
+    assert iou(affine.labels == 1, gt_right) > iou(rigid.labels == 1, gt_right) + 0.05
+
+
+# ---------------------------------------------------------------------------------------
+# maskers
+# ---------------------------------------------------------------------------------------
+def test_outline_masker_end_to_end(blob_scene):
+    left, right, blob, blob_r = blob_scene
+    det = FakeDetector(dets(box_of(blob)))
+    m = OutlineMasker(det, StereoMatcher(STEREO))
+    timer = StageTimer()
+    timer.start_frame(0)
+    res = m.mask(frame(left, right), timer)
+    rec = timer.end_frame()
+    assert {"detect", "disparity", "outline", "transfer"} <= set(rec["ms"])
+    assert det.calls == 1  # left image only
+    assert res.left.dtype == np.uint8 and set(np.unique(res.left)) <= {0, 255}
+    assert iou(res.left, blob) > 0.9 and iou(res.right, blob_r) > 0.9
+    ob = res.objects[0]
+    assert ob.method == "outline" and abs(ob.disparity - 30) < 0.5 and ob.label == "car"
+    assert ob.pixels_left == np.count_nonzero(res.left) and ob.pixels_right == np.count_nonzero(res.right)
+    assert res.detections is det.detections
+    assert res.disparity is None  # band only
+    _, lab_l, lab_r = m.mask_labels(frame(left, right), det.detections)
+    np.testing.assert_array_equal(lab_l > 0, res.left > 0)
+    np.testing.assert_array_equal(lab_r > 0, res.right > 0)
+    assert set(np.unique(lab_l)) == {0, 1}
+    full = OutlineMasker(det, StereoMatcher(StereoConfig(num_disparities=64, region="full"))).mask(frame(left, right))
+    assert full.disparity is not None and full.disparity.shape == (H, W)
+    np.testing.assert_array_equal(full.left, res.left)
+
+
+def test_band_and_half_scale_masks_match_full(blob_scene):
+    left, right, blob, blob_r = blob_scene
+    det = FakeDetector(dets(box_of(blob)))
+    full = OutlineMasker(det, StereoMatcher(StereoConfig(num_disparities=64, region="full"))).mask(frame(left, right))
+    band = OutlineMasker(det, StereoMatcher(StereoConfig(num_disparities=64))).mask(frame(left, right))
+    half = OutlineMasker(det, StereoMatcher(StereoConfig(num_disparities=64, scale=2))).mask(frame(left, right))
+    assert iou(band.left, full.left) > 0.99 and iou(band.right, full.right) > 0.99
+    assert iou(half.left, full.left) > 0.9 and iou(half.right, full.right) > 0.9
+    assert iou(half.left, blob) > 0.85 and iou(half.right, blob_r) > 0.85
+
+
+def test_plan_regions_merges_near_boxes_and_splits_far_ones():
+    m = StereoMatcher(StereoConfig(num_disparities=64))
+    near = plan_regions(m, np.array([[200, 50, 260, 120], [250, 60, 300, 130]]), (H, W), 1)
+    assert near == [(50, 130, 200, 300)]
+    far = plan_regions(m, np.array([[100, 10, 140, 40], [400, 190, 450, 230]]), (H, W), 1)
+    assert sorted(far) == [(10, 40, 100, 140), (190, 230, 400, 450)]
+    left, right, _ = layered_pair(8, [])
+    d = region_disparity(m, left, right, far, 1)
+    assert (d[10:40, 100:140] > 0).mean() > 0.8 and not d[100:180, 200:300].any()
+
+
+def test_box_masker(blob_scene):
+    left, right, blob, blob_r = blob_scene
+    box = box_of(blob)
+    res = BoxMasker(FakeDetector(dets(box)), StereoMatcher(STEREO)).mask(frame(left, right))
+    x0, y0, x1, y1 = (int(v) for v in box)
+    np.testing.assert_array_equal(res.left > 0, rect_mask(x0, y0, x1, y1))
+    np.testing.assert_array_equal(res.right > 0, rect_mask(x0 - 30, y0, x1 - 30, y1))
+    assert res.objects[0].method == "box" and abs(res.objects[0].disparity - 30) < 0.5
+
+
+def test_no_detections_gives_empty_masks(blob_scene):
+    left, right, _, _ = blob_scene
+    timer = StageTimer()
+    timer.start_frame(0)
+    res = OutlineMasker(FakeDetector(Detections.empty()), StereoMatcher(STEREO)).mask(frame(left, right), timer)
+    rec = timer.end_frame()
+    assert not res.left.any() and not res.right.any() and res.objects == []
+    assert "disparity" in rec["ms"]  # nothing computed, but the stage is recorded (mask exists)
+    res = NoneMasker().mask(frame(left, right))
+    assert not res.left.any() and res.left.shape == (H, W)
+
+
+class FakeSeg:
+    """Seg model on the blob scene: the GT masks, right box shifted by 30."""
+
+    name = "fake-seg"
+    class_names = ("person", "bicycle", "car")
+
+    def __init__(self, blob, blob_r):
+        self.masks = {True: blob, False: blob_r}
+
+    def detect(self, image):
+        is_left = image is self.left_img
+        m = self.masks[is_left]
+        d = dets(box_of(m))
+        d.masks = m[None]
+        return d
+
+
+def test_seg_masker(blob_scene):
+    left, right, blob, blob_r = blob_scene
+    seg = FakeSeg(blob, blob_r)
+    seg.left_img = left
+    timer = StageTimer()
+    timer.start_frame(0)
+    res = SegMasker(seg).mask(frame(left, right), timer)
+    timer.end_frame()
+    np.testing.assert_array_equal(res.left > 0, blob)
+    np.testing.assert_array_equal(res.right > 0, blob_r)
+    ob = res.objects[0]
+    assert ob.method == "seg" and ob.pixels_right == blob_r.sum() and abs(ob.disparity - 30) <= 1
+    assert "detect" in timer.frames[0]["ms"]
+
+
+def test_match_stereo_detections():
+    left = dets([100, 50, 200, 150], [300, 60, 340, 140])
+    right = dets([280, 62, 318, 141], [80, 50, 180, 150], [10, 10, 20, 20])
+    np.testing.assert_array_equal(match_stereo_detections(left, right, 64), [1, 0])
+    # a right box to the RIGHT of the left one is not a match (negative disparity)
+    np.testing.assert_array_equal(match_stereo_detections(dets([100, 50, 200, 150]), dets([140, 50, 240, 150]), 64), [-1])
+
+
+def test_create_masker_kinds():
+    cfg = Config()
+    det = FakeDetector(Detections.empty())
+    assert isinstance(create_masker(cfg.with_overrides({"masker.kind": "none"})), NoneMasker)
+    assert isinstance(create_masker(cfg, detector=det), OutlineMasker)
+    assert isinstance(create_masker(cfg.with_overrides({"masker.kind": "box"}), detector=det), BoxMasker)
+    m = create_masker(cfg, detector=det, full_disparity=True)
+    assert m.full_disparity
+    with pytest.raises(ConfigError, match="masker.kind"):
+        create_masker(cfg.with_overrides({"masker.kind": "magic"}), detector=det)
+    with pytest.raises(ConfigError, match="num_disparities"):
+        create_masker(cfg.with_overrides({"stereo.num_disparities": 90}), detector=det)
+    with pytest.raises(ConfigError, match="transfer"):
+        create_masker(cfg.with_overrides({"masker.outline.transfer": "warp"}), detector=det)
+
+
+# ---------------------------------------------------------------------------------------
+# real data: KITTI odometry with the real detector
+# ---------------------------------------------------------------------------------------
+def _kitti_frame(seq_dir, i: int) -> StereoFrame:
+    left = cv2.imread(str(require(seq_dir / f"image_0/{i:06d}.png")), cv2.IMREAD_GRAYSCALE)
+    right = cv2.imread(str(require(seq_dir / f"image_1/{i:06d}.png")), cv2.IMREAD_GRAYSCALE)
+    return StereoFrame(index=i, timestamp=0.0, left=left, right=right)
+
+
+@pytest.fixture(scope="module")
+def kitti_detector(models_dir):
+    from dynastereo.config import DetectorConfig
+    from dynastereo.masking.detection import create_detector
+
+    require(models_dir / "yolox-nano", "yolox-nano model")
+    return create_detector(DetectorConfig(name="yolox-nano"), models_dir)
+
+
+@pytest.mark.realdata
+def test_kitti06_outline_masks(kitti06, kitti_detector):
+    masker = OutlineMasker(kitti_detector, StereoMatcher(StereoConfig()))
+    n_objects = 0
+    for i in (0, 5, 10):
+        f = _kitti_frame(kitti06, i)
+        res = masker.mask(f)
+        d = res.detections
+        assert d is not None and len(d) == len(res.objects)
+        rois = clip_boxes(d.boxes, f.shape)
+        in_boxes = np.zeros(f.shape, bool)
+        for x0, y0, x1, y1 in rois:
+            in_boxes[y0:y1, x0:x1] = True
+        assert not res.left[~in_boxes].any()  # left masks lie inside the boxes
+        for k, ob in enumerate(res.objects):
+            if ob.method != "outline":
+                continue
+            n_objects += 1
+            x0, y0, x1, y1 = rois[k]
+            assert ob.pixels_left > 0.2 * (x1 - x0) * (y1 - y0)
+            if x1 >= f.shape[1] - 3:
+                # cut by the left image's right border: the right image sees more of it
+                rows = np.nonzero(res.left[y0:y1, x1 - 1])[0] + y0
+                assert rows.size and res.right[rows, -1].all()
+                continue
+            # right mask shifted left by about the object's disparity: column centroids
+            left_cols = np.nonzero(res.left[y0:y1, x0:x1].any(axis=0))[0] + x0
+            rx0, rx1 = max(0, int(x0 - ob.disparity - 20)), min(f.shape[1], int(x1 - ob.disparity + 20))
+            band = res.right[y0:y1, rx0:rx1] > 0
+            assert band.any()
+            right_cols = np.nonzero(band.any(axis=0))[0] + rx0
+            shift = left_cols.mean() - right_cols.mean()
+            assert abs(shift - ob.disparity) < max(3.0, 0.1 * ob.disparity), (i, ob, shift)
+    assert n_objects >= 2
+
+
+@pytest.mark.realdata
+def test_kitti06_band_and_half_scale_masks_close_to_full(kitti06, kitti_detector):
+    frames = [_kitti_frame(kitti06, i) for i in (0, 5, 10, 15)]
+    detections = [kitti_detector.detect(f.left) for f in frames]
+    assert sum(len(d) for d in detections) >= 3
+    mk = {
+        name: OutlineMasker(FakeDetector(Detections.empty()), StereoMatcher(StereoConfig(**kw)))
+        for name, kw in (("full", {"region": "full"}), ("band", {}), ("half", {"scale": 2}))
+    }
+    ious = {"band": [], "half": []}
+    for f, d in zip(frames, detections):
+        ref = mk["full"].mask_detections(f, d)
+        for name in ious:
+            r = mk[name].mask_detections(f, d)
+            ious[name].append((iou(r.left, ref.left), iou(r.right, ref.right)))
+    band, half = np.array(ious["band"]), np.array(ious["half"])
+    assert band.min() > 0.99, band
+    assert half.mean() > 0.8, half
+
+
+@pytest.mark.realdata
+def test_kitti_seg_masker_both_images(kitti06, models_dir):
+    from dynastereo.config import DetectorConfig
+    from dynastereo.masking.detection import create_seg_model
+
+    require(models_dir / "yolov8n-seg-int8", "yolov8n-seg-int8 model")
+    seg = create_seg_model("yolov8n-seg-int8", DetectorConfig(), models_dir)
+    f = _kitti_frame(kitti06, 10)
+    timer = StageTimer()
+    timer.start_frame(10)
+    res = SegMasker(seg).mask(f, timer)
+    rec = timer.end_frame()
+    assert {"detect", "segment"} <= set(rec["ms"])
+    assert res.left.any() and res.right.any()
+    assert any(o.pixels_right > 0 and o.disparity > 0 for o in res.objects)
