@@ -27,7 +27,7 @@ app.add_typer(models_app, name="models")
 
 
 def _fail(e: Exception) -> None:
-    console.print(f"[bold red]error:[/] {e}")
+    console.print(f"[bold red]error:[/] {e}", soft_wrap=True, highlight=False, markup=True)
     raise typer.Exit(2)
 
 
@@ -115,16 +115,16 @@ def models_main(
     from ..models import list_models, resolve_models_dir
 
     d = resolve_models_dir(models_dir)
-    table = Table(title=f"models in {d}")
-    for col in ("name", "kind", "licence", "present", "file", "sha256", "url"):
-        table.add_column(col, overflow="fold")
+    print(f"models directory: {d}  (--models-dir, $DYNASTEREO_MODELS, or the cache)")
     for m in list_models(d):
-        for i, f in enumerate(m["files"]):
-            table.add_row(
-                m["name"] if i == 0 else "", m["kind"] if i == 0 else "", m["licence"] if i == 0 else "",
-                f["status"], f["filename"], (f["sha256"] or "-")[:16], f["url"] or "-",
-            )
-    out_console.print(table)
+        state = "ok" if m["verified"] else ("present, NOT verified" if m["present"] else "not downloaded")
+        flag = "  [baseline only, AGPL: never a default]" if m["baseline_only"] else ""
+        print(f"\n{m['name']:14s} {m['kind']:8s} {m['licence']}  -- {state}{flag}")
+        print(f"  {m['description']}")
+        for f in m["files"]:
+            sha = f["sha256"] or "(unknown: format-checked only)"
+            print(f"  {f['status']:8s} {f['filename']:24s} sha256 {sha}")
+            print(f"           {f['url'] or '(no official download: ' + m['source'] + ')'}")
 
 
 @models_app.command("download")
