@@ -218,7 +218,7 @@ def test_detector_finds_person_and_car_on_street(name, detectors, models_dir, st
     assert (d.boxes[:, 0] >= 0).all() and (d.boxes[:, 2] <= w).all()
     assert (d.boxes[:, 1] >= 0).all() and (d.boxes[:, 3] <= h).all()
     assert (d.boxes[:, 2] > d.boxes[:, 0]).all() and (d.boxes[:, 3] > d.boxes[:, 1]).all()
-    assert (d.scores > 0.35).all() and (d.scores <= 1).all()
+    assert (d.scores > DetectorConfig().score_threshold).all() and (d.scores <= 1).all()
     assert iou(d.boxes[labels == "person"], STREET_PERSON).max() > 0.8
     assert iou(d.boxes[labels == "car"], STREET_CAR).max() > 0.8
     # everything found is in the lower street half where the people and cars are

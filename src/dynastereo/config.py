@@ -50,7 +50,7 @@ class StereoConfig:
 @dataclass
 class DetectorConfig:
     name: str = "yolox-nano"  # registry name or a path to a .cfg / .onnx file
-    score_threshold: float = 0.35
+    score_threshold: float = 0.25
     nms_threshold: float = 0.45
     input_size: int | None = None  # None: the model's native size
     dynamic_classes: list[str] = field(default_factory=lambda: list(DEFAULT_DYNAMIC_CLASSES))

@@ -58,7 +58,9 @@ def new_mask_timer() -> StageTimer:
 
 
 def draw_overlay(frame: StereoFrame, masks: StereoMasks) -> np.ndarray:
-    """Left|right side by side, dynamic pixels tinted red, boxes (left) in green."""
+    """Left|right side by side, dynamic pixels tinted red, boxes (left) in green (orange:
+    box fallback); below, when the masker computed a full-frame disparity, its normalised,
+    contrast-enhanced 8-bit view (thesis 3.3.3) in false colour beside the left mask."""
     views = []
     for img, m in ((frame.left, masks.left), (frame.right, masks.right)):
         bgr = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img.copy()
@@ -75,7 +77,14 @@ def draw_overlay(frame: StereoFrame, masks: StereoMasks) -> np.ndarray:
         cv2.rectangle(left, (x1, y1), (x2 - 1, y2 - 1), color, 1)
         cv2.putText(left, f"{ob.label} {ob.method}", (x1, max(10, y1 - 3)),
                     cv2.FONT_HERSHEY_SIMPLEX, 0.4, color, 1, cv2.LINE_AA)
-    return np.hstack(views)
+    top = np.hstack(views)
+    if masks.disparity is None:
+        return top
+    from .masking.disparity import normalize_disparity
+
+    view = cv2.applyColorMap(normalize_disparity(masks.disparity, enhance=True), cv2.COLORMAP_JET)
+    view[masks.disparity <= 0] = 0
+    return np.vstack([top, np.hstack([view, cv2.cvtColor(masks.left, cv2.COLOR_GRAY2BGR)])])
 
 
 def _write_png(path: Path, img: np.ndarray) -> None:
