@@ -19,7 +19,7 @@ from typing import Callable
 
 import numpy as np
 
-from .textures import MipTexture, material_texture
+from .textures import material_texture
 
 
 def rot_x(a: float) -> np.ndarray:
@@ -33,16 +33,40 @@ def rot_y(a: float) -> np.ndarray:
     return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
 
 
+_BIG = 1e30
+
+
 @dataclass
 class Prim:
-    slabs: list[tuple[int, float, float]]
-    quads: list[tuple[np.ndarray, np.ndarray]]  # (centre (3,), k (3,))
+    slabs: list[tuple[int, float, float]]  # at most one per axis
+    quads: list[tuple[np.ndarray, np.ndarray]]  # (centre (3,), k (3,)); at most two
     lo: np.ndarray  # conservative bounding box in the primitive frame
     hi: np.ndarray
     material: int = 0
     gain: float = 1.0
     R: np.ndarray = field(default_factory=lambda: np.eye(3))  # primitive -> object rotation
     c: np.ndarray = field(default_factory=lambda: np.zeros(3))  # primitive origin in the object frame
+
+    def __post_init__(self) -> None:
+        if len(self.quads) > 2 or len({a for a, _, _ in self.slabs}) != len(self.slabs):
+            raise ValueError("a primitive has at most one slab per axis and two quadrics")
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Constraints padded to 3 slabs + 2 quadrics (absent = always satisfied)."""
+        slo = np.full(3, -_BIG)
+        shi = np.full(3, _BIG)
+        for a, l, h in self.slabs:
+            slo[a], shi[a] = l, h
+        qc = np.zeros((2, 3))
+        qk2 = np.zeros((2, 3))
+        qv = np.zeros(2, bool)
+        for j, (c, k) in enumerate(self.quads):
+            qc[j] = c
+            qk2[j] = np.asarray(k, float) ** 2
+            qv[j] = True
+        lo, hi = self.lo, self.hi
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        return {"slo": slo, "shi": shi, "qc": qc, "qk2": qk2, "qv": qv, "corners": corners}
 
     def posed(self, R: np.ndarray, c: np.ndarray) -> "Prim":
         return Prim(self.slabs, self.quads, self.lo, self.hi, self.material, self.gain, R, c)
@@ -81,13 +105,22 @@ def wheel(x0: float, x1: float, z: float, r: float, material: int) -> Prim:
 # ---------------------------------------------------------------------------------------------
 
 
-@dataclass
+@dataclass(eq=False)
+class Material:
+    """A small tileable texture (albedo 0..1) and the size of one texel in metres."""
+
+    image: np.ndarray
+    texel: float
+
+
+@dataclass(eq=False)
 class Shape:
     label: str  # COCO class name
     size: tuple[float, float, float]  # width (x), height, length (z) in metres
-    materials: list[MipTexture]
+    materials: list[Material]
     rigid: list[Prim] = field(default_factory=list)
     animate: Callable[[float], list[Prim]] | None = None  # phase -> primitives (people)
+    _const: dict[str, np.ndarray] | None = field(default=None, repr=False)
 
     def prims(self, phase: float) -> list[Prim]:
         return self.animate(phase) if self.animate is not None else self.rigid
@@ -95,14 +128,35 @@ class Shape:
     @property
     def radius(self) -> float:
         w, h, l = self.size
-        return 0.5 * float(np.sqrt(w * w + h * h + l * l)) + 0.3
+        return 0.5 * float(np.sqrt(w * w + h * h + l * l)) + 0.6  # covers the contact shadow too
+
+    def const(self) -> dict[str, np.ndarray]:
+        """Stacked constraint arrays of the primitives (same for every animation phase)."""
+        if self._const is None:
+            prims = self.prims(0.0)
+            arrs = [p.arrays() for p in prims]
+            self._const = {k: np.stack([a[k] for a in arrs]) for k in arrs[0]}
+            self._const["mat"] = np.array([p.material for p in prims], np.int64)
+            self._const["gain"] = np.array([p.gain for p in prims], np.float32)
+            if self.animate is None:
+                self._const["R"] = np.stack([p.R for p in prims])
+                self._const["c"] = np.stack([p.c for p in prims])
+        return self._const
+
+    def pose_arrays(self, phase: float) -> tuple[np.ndarray, np.ndarray]:
+        """(R (p, 3, 3) primitive -> object, c (p, 3)) for an animation phase."""
+        k = self.const()
+        if self.animate is None:
+            return k["R"], k["c"]
+        prims = self.animate(phase)
+        return np.stack([p.R for p in prims]), np.stack([p.c for p in prims])
 
 
-def _mat(rng: np.random.Generator, base: float, kind: str, texel: float) -> MipTexture:
-    return MipTexture(material_texture(rng, base, kind, 128), wrap=True, texel=texel)
+def _mat(rng: np.random.Generator, base: float, kind: str, texel: float) -> Material:
+    return Material(material_texture(rng, base, kind, 128), texel)
 
 
-def make_car(rng: np.random.Generator, shared: dict[str, MipTexture]) -> Shape:
+def make_car(rng: np.random.Generator, shared: dict[str, Material]) -> Shape:
     W = float(rng.uniform(1.7, 1.9))
     L = float(rng.uniform(3.9, 4.8))
     H = float(rng.uniform(1.40, 1.60))
@@ -122,7 +176,7 @@ def make_car(rng: np.random.Generator, shared: dict[str, MipTexture]) -> Shape:
     return Shape("car", (W, H, L), mats, prims)
 
 
-def make_truck(rng: np.random.Generator, shared: dict[str, MipTexture]) -> Shape:
+def make_truck(rng: np.random.Generator, shared: dict[str, Material]) -> Shape:
     W = 2.5
     L = float(rng.uniform(8.0, 9.5))
     H = float(rng.uniform(3.4, 3.8))
@@ -131,7 +185,7 @@ def make_truck(rng: np.random.Generator, shared: dict[str, MipTexture]) -> Shape
     mats = [cargo, cab, shared["glass"], shared["tire"]]
     cab_len = 2.2
     prims = [
-        rounded_box((-W / 2, -H, -L / 2), (W / 2, -1.05, L / 2 - cab_len - 0.15), 1.07, 1.05, 0),
+        rounded_box((-W / 2, -H, -L / 2), (W / 2, -1.05, L / 2 - cab_len - 0.15), 1.28, 1.3, 0),
         rounded_box((-W / 2 * 0.97, -3.0, L / 2 - cab_len), (W / 2 * 0.97, -0.55, L / 2), 1.15, 1.12, 1),
         rounded_box((-W / 2 * 0.85, -1.95 - 0.9, L / 2 - 0.35), (W / 2 * 0.85, -1.95, L / 2 + 0.02), 1.2, 0.0, 2),
         rounded_box((-W / 2 * 0.9, -1.1, -L / 2 + 0.1), (W / 2 * 0.9, -0.5, L / 2 - cab_len), 1.25, 0.0, 3, 1.6),
@@ -143,7 +197,7 @@ def make_truck(rng: np.random.Generator, shared: dict[str, MipTexture]) -> Shape
     return Shape("truck", (W, H, L), mats, prims)
 
 
-def make_person(rng: np.random.Generator, shared: dict[str, MipTexture]) -> Shape:
+def make_person(rng: np.random.Generator, shared: dict[str, Material]) -> Shape:
     Hp = float(rng.uniform(1.55, 1.9))
     shirt = _mat(rng, float(rng.uniform(0.1, 0.9)), "cloth", 0.01)
     trousers = _mat(rng, float(rng.uniform(0.1, 0.6)), "cloth", 0.01)
@@ -171,7 +225,7 @@ def make_person(rng: np.random.Generator, shared: dict[str, MipTexture]) -> Shap
     return Shape("person", (0.6, Hp, 0.4), mats, animate=animate)
 
 
-def shared_materials(rng: np.random.Generator) -> dict[str, MipTexture]:
+def shared_materials(rng: np.random.Generator) -> dict[str, Material]:
     return {
         "glass": _mat(rng, 0.15, "glass", 0.03),
         "tire": _mat(rng, 0.08, "tire", 0.02),
@@ -192,6 +246,10 @@ class Motion:
         x1, z1, _, _ = self.state(t + dt)
         return float(np.hypot(x1 - x0, z1 - z0) / (2 * dt))
 
+    def moves_between(self, t0: float, t1: float) -> bool:
+        """Whether the object moves at some time in [t0, t1]."""
+        return True
+
 
 @dataclass
 class Parked(Motion):
@@ -201,6 +259,9 @@ class Parked(Motion):
 
     def state(self, t: float):
         return self.x, self.z, self.heading, 0.0
+
+    def moves_between(self, t0: float, t1: float) -> bool:
+        return False
 
 
 @dataclass
@@ -240,6 +301,10 @@ class Across(Motion):
         # moving to larger d = away from the block = against the 'right' vector
         th = th_side - np.pi / 2 if self.d1 > self.d0 else th_side + np.pi / 2
         return float(x), float(z), th, trav
+
+    def moves_between(self, t0: float, t1: float) -> bool:
+        end = self.t0 + abs(self.d1 - self.d0) / self.v
+        return self.t0 < t1 and end > t0
 
 
 @dataclass

@@ -19,12 +19,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .objects import Prim, Shape
+from .objects import Shape
+from .textures import TileAtlas
 from .world import World
 
 SKY_ID = 0
 _NEAR = 0.05
 _ANISO = 0.3  # vertical footprint weight in the mip level (horizontal is exact: 1.0)
+# the 12 edges of a box whose 8 corners are ordered x-major: index = 4*ix + 2*iy + iz
+_BIG_SLAB = 1e29  # padded (absent) slabs are at +-1e30
+_EDGES = np.array([(i, i | b) for b in (1, 2, 4) for i in range(8) if not i & b])
 
 
 @dataclass
@@ -90,10 +94,24 @@ class Renderer:
         self.sky_lod = float(np.log2((1.0 / self.fx) / (2 * np.pi / world.sky.width)))
 
     # -----------------------------------------------------------------------------------------
-    def render(self, cam_x: float, cam_z: float, heading: float, objects: list[PosedObject]) -> View:
+    def render(
+        self,
+        cam_x: float,
+        cam_z: float,
+        heading: float,
+        objects: list[PosedObject],
+        lod_origin: tuple[float, float] | None = None,
+    ) -> View:
+        """One view from the camera at map (cam_x, 0, cam_z) with ``heading``.
+
+        Texture filtering (mip levels) is computed as seen from ``lod_origin`` (default:
+        this camera); the stereo writer passes the rig centre, so both views filter every
+        surface point identically and differ only by geometry.
+        """
         w = self.world
         p = w.params
         H, W, K = self.H, self.W, self.K
+        lx, lz = (cam_x, cam_z) if lod_origin is None else lod_origin
         h = p.cam_height
         cth, sth = np.cos(heading), np.sin(heading)
         dx = self.uc * cth + sth  # (W,) horizontal ray direction, map frame
@@ -149,11 +167,17 @@ class Renderer:
             kc = self_flat[idx].astype(np.int64) * W + c
             nk = w.seg_n[segk]  # (kk, W, 2)
             er = np.array([cth, -sth])
-            nd = nk[..., 0] * dx[None, :] + nk[..., 1] * dz[None, :]
-            ne = nk[..., 0] * er[0] + nk[..., 1] * er[1]
+            # footprint along the facade of a pixel looking at the hit point from lod_origin
+            hx = cam_x + tk_f * dx[None, :] - lx
+            hz = cam_z + tk_f * dz[None, :] - lz
+            zc = hx * sth + hz * cth  # depth of the hit point seen from lod_origin
             with np.errstate(divide="ignore", invalid="ignore"):
+                cdx = hx / zc
+                cdz = hz / zc
+                nd = nk[..., 0] * cdx + nk[..., 1] * cdz
+                ne = nk[..., 0] * er[0] + nk[..., 1] * er[1]
                 ratio = np.where(valid, ne / nd, 0.0)
-            fpx = tk_f / self.fx * np.hypot(er[0] - dx[None, :] * ratio, er[1] - dz[None, :] * ratio)
+            fpx = np.where(valid, zc, 1e9) / self.fx * np.hypot(er[0] - cdx * ratio, er[1] - cdz * ratio)
             fp = np.maximum(fpx, _ANISO * tk_f / self.fy)
             lod = np.log2(np.maximum(fp, 1e-6) / p.facade_texel).astype(np.float32)
             dlod = (lod + np.float32(np.log2(p.facade_texel / p.facade_detail_texel))).astype(np.float32)
@@ -166,7 +190,7 @@ class Renderer:
             ud = (Uk.ravel()[kc] / p.facade_detail_texel).astype(np.float32)
             det = w.facade_detail.sample(ud, hgt / np.float32(p.facade_detail_texel), dlod.ravel()[kc])
             strength = w.bld_detail[bld].ravel()[kc]
-            img[idx] = col * (1.0 + strength * (det - 0.5) * 1.2) * shade.ravel()[kc]
+            img[idx] = col * (1.0 + strength * (det - 0.5) * 2.0) * shade.ravel()[kc]
             depth[idx] = tpix
 
         # ---- ground
@@ -181,14 +205,12 @@ class Renderer:
             gt = p.ground_texel
             col = w.ground.sample(((gx - ox) / gt).astype(np.float32), ((gz - oz) / gt).astype(np.float32), self.ground_lod[r])
             dt = p.ground_detail_texel
-            det = w.ground_detail.sample(
-                np.mod(gx / dt, 4096.0).astype(np.float32), np.mod(gz / dt, 4096.0).astype(np.float32), self.ground_dlod[r]
-            )
+            det = w.ground_detail.sample((gx / dt).astype(np.float32), (gz / dt).astype(np.float32), self.ground_dlod[r])
             g_shade = np.float32(self.light.ambient + self.light.diffuse * max(0.0, -self.L[1]))
-            img[idx] = col * (1.0 + (det - 0.5) * 1.1) * g_shade
+            img[idx] = col * (1.0 + (det - 0.5) * 1.3) * g_shade
             depth[idx] = tg.astype(np.float32)
-            gxf = np.empty(H * W, np.float64)
-            gzf = np.empty(H * W, np.float64)
+            gxf = np.zeros(H * W, np.float64)
+            gzf = np.zeros(H * W, np.float64)
             gxf[idx] = gx
             gzf[idx] = gz
         else:
@@ -228,13 +250,29 @@ class Renderer:
             if pc[2] > rad and abs(pc[0]) - rad > pc[2] * (W / 2 + 2) / self.fx:
                 continue
             visible.append(ob)
-        if gxf is not None:
-            sel2 = sel
-            for ob in visible:
-                self._shadow(ob, img, sel2 == kk, gxf.reshape(H, W), gzf.reshape(H, W), Rc, cam)
+        # occlusion culling against the static depth: objects behind the facades of other
+        # streets (most of them) cost one box projection
+        shown = []
         for ob in visible:
-            for prim in ob.shape.prims(ob.phase):
-                self._prim(ob, prim, img, depth, ids, Rc, cam)
+            wdt, hgt_o, lng = ob.shape.size
+            loc = np.array([[x, y, z] for x in (-wdt / 2 - 0.4, wdt / 2 + 0.4) for y in (-hgt_o - 0.2, 0.0) for z in (-lng / 2 - 0.4, lng / 2 + 0.4)])
+            corners = ob.origin + loc @ ob.R.T
+            rect = self._rect(corners, Rc, cam)
+            if rect is None:
+                continue
+            zmin = float(((corners - cam) @ Rc[2]).min())
+            r0, r1, c0, c1 = rect
+            if zmin > 0 and float(depth[r0:r1, c0:c1].max()) < zmin:
+                continue
+            shown.append(ob)
+        if gxf is not None and shown:
+            gmask = sel == kk
+            gx2 = gxf.reshape(H, W)
+            gz2 = gzf.reshape(H, W)
+            for ob in shown:
+                self._shadow(ob, img, gmask, gx2, gz2, Rc, cam)
+        if shown:
+            self._objects(shown, img, depth, ids, Rc, cam, np.array([lx, 0.0, lz]))
         return View(img, depth, ids)
 
     # -----------------------------------------------------------------------------------------
@@ -244,7 +282,15 @@ class Renderer:
         if np.all(z < _NEAR):
             return None
         if np.any(z < _NEAR):
-            return 0, self.H, 0, self.W
+            # the part of the box in front of the near plane is the hull of the corners in
+            # front of it and of the points where the box edges cross it
+            a = pc[_EDGES[:, 0]]
+            b = pc[_EDGES[:, 1]]
+            cross = (a[:, 2] - _NEAR) * (b[:, 2] - _NEAR) < 0
+            a, b = a[cross], b[cross]
+            f = (_NEAR - a[:, 2]) / (b[:, 2] - a[:, 2])
+            pc = np.concatenate([pc[z >= _NEAR], a + f[:, None] * (b - a)])
+            z = np.maximum(pc[:, 2], _NEAR)
         cols = self.fx * pc[:, 0] / z + self.cx
         rows = self.fy * pc[:, 1] / z + self.cy
         c0 = max(int(np.floor(cols.min())) - margin, 0)
@@ -258,7 +304,7 @@ class Renderer:
     def _shadow(self, ob: PosedObject, img, ground_mask, gx, gz, Rc, cam) -> None:
         wdt, _, lng = ob.shape.size
         a, b = wdt / 2 + 0.35, lng / 2 + 0.35
-        loc = np.array([[-a, 0, -b], [a, 0, -b], [a, 0, b], [-a, 0, b]])
+        loc = np.array([[x, y, z] for x in (-a, a) for y in (-0.01, 0.0) for z in (-b, b)])
         corners = ob.origin + loc @ ob.R.T
         rect = self._rect(corners, Rc, cam)
         if rect is None:
@@ -276,91 +322,253 @@ class Renderer:
         sub = img[r0:r1, c0:c1]
         sub[m] *= f[m]
 
-    def _prim(self, ob: PosedObject, prim: Prim, img, depth, ids, Rc, cam) -> None:
-        Rw = ob.R @ prim.R  # primitive -> map
-        cw = ob.origin + ob.R @ prim.c
-        lo, hi = prim.lo, prim.hi
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        rect = self._rect(cw + corners @ Rw.T, Rc, cam)
-        if rect is None:
-            return
-        r0, r1, c0, c1 = rect
-        # rays in the primitive frame: origin o, direction D = U*a + V*b + c
-        Rt = Rw.T
-        o = Rt @ (cam - cw)
-        A = Rt @ Rc[0]
-        Bv = Rt @ Rc[1]
-        C = Rt @ Rc[2]
-        U = self.uc[c0:c1][None, :]
-        V = self.vc[r0:r1][:, None]
-        D = [U * A[i] + V * Bv[i] + C[i] for i in range(3)]
-        shape = (r1 - r0, c1 - c0)
-        tin = np.full(shape, _NEAR)
-        tout = np.full(shape, np.inf)
-        which = np.full(shape, -1, np.int8)
-        j = 0
+    def prepare(self, shapes: list[Shape]) -> None:
+        """Pack the materials of ``shapes`` (all objects of a sequence) into one texture atlas."""
+        index: dict[int, int] = {}
+        tiles: list[np.ndarray] = []
+        texels: list[float] = []
+        self._mat_ids = {}
+        for sh in shapes:
+            ids_ = []
+            for m in sh.materials:
+                if id(m) not in index:
+                    index[id(m)] = len(tiles)
+                    tiles.append(m.image)
+                    texels.append(m.texel)
+                ids_.append(index[id(m)])
+            self._mat_ids[id(sh)] = np.array(ids_, np.int64)
+        self.materials = TileAtlas(tiles)
+        self.mat_texel = np.array(texels or [1.0], np.float64)
+
+    def _objects(self, shown: list[PosedObject], img, depth, ids, Rc, cam, lod_origin) -> None:
+        """Ray casts all primitives of all shown objects in one vectorised pass.
+
+        Every primitive contributes the pixels of its projected box as (primitive, pixel)
+        pairs; the pairs are intersected together, the z-buffer keeps the nearest hit per
+        pixel, and the winners are textured in one call on the material atlas.
+        """
+        H, W = self.H, self.W
+        Rs, cs, objid, const = [], [], [], []
+        for ob in shown:
+            k = ob.shape.const()
+            Rp, cp = ob.shape.pose_arrays(ob.phase)
+            Rs.append(ob.R[None] @ Rp)  # primitive -> map
+            cs.append(ob.origin[None] + cp @ ob.R.T)
+            objid.append(np.full(len(Rp), ob.id, np.uint8))
+            const.append((k, self._mat_ids[id(ob.shape)][k["mat"]]))
+        Rw = np.concatenate(Rs)  # (P, 3, 3)
+        cw = np.concatenate(cs)  # (P, 3)
+        oid = np.concatenate(objid)
+        slo = np.concatenate([k["slo"] for k, _ in const])
+        shi = np.concatenate([k["shi"] for k, _ in const])
+        qc = np.concatenate([k["qc"] for k, _ in const])
+        qk2 = np.concatenate([k["qk2"] for k, _ in const])
+        qv = np.concatenate([k["qv"] for k, _ in const])
+        corners = np.concatenate([k["corners"] for k, _ in const])  # (P, 8, 3) primitive frame
+        mat = np.concatenate([m for _, m in const])
+        gain = np.concatenate([k["gain"] for k, _ in const])
+        # projected boxes
+        cmap = cw[:, None, :] + np.einsum("pij,pkj->pki", Rw, corners)
+        pc = (cmap - cam) @ Rc.T  # (P, 8, 3) camera frame
+        z = pc[..., 2]
+        P = len(Rw)
+        rect = np.zeros((P, 4), np.int64)
+        front = np.all(z >= _NEAR, axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
-            for ax, l, hgh in prim.slabs:
-                inv = 1.0 / D[ax]
-                t1 = (l - o[ax]) * inv
-                t2 = (hgh - o[ax]) * inv
-                tn = np.minimum(t1, t2)
-                tf = np.maximum(t1, t2)
-                upd = tn > tin
-                tin = np.where(upd, tn, tin)
-                which[upd] = j
-                np.minimum(tout, tf, out=tout)
-                j += 1
-            for cq, kq in prim.quads:
-                oc = o - cq
-                qa = sum((kq[i] * kq[i]) * D[i] * D[i] for i in range(3) if kq[i] != 0.0)
-                qb = sum((kq[i] * kq[i] * oc[i]) * D[i] for i in range(3) if kq[i] != 0.0)
-                qc = float(sum((kq[i] * oc[i]) ** 2 for i in range(3))) - 1.0
-                qa = np.maximum(qa, 1e-20)
-                disc = qb * qb - qa * qc
-                sq = np.sqrt(np.maximum(disc, 0.0))
-                tn = np.where(disc >= 0, (-qb - sq) / qa, np.inf)
-                tf = np.where(disc >= 0, (-qb + sq) / qa, -np.inf)
-                upd = tn > tin
-                tin = np.where(upd, tn, tin)
-                which[upd] = j
-                np.minimum(tout, tf, out=tout)
-                j += 1
-        dsub = depth[r0:r1, c0:c1]
-        win = (which >= 0) & (tin < tout) & (tin < dsub)
-        if not win.any():
-            return
-        t = tin[win]
-        Dw = [d[win] for d in D]
-        P = [o[i] + t * Dw[i] for i in range(3)]
-        wsel = which[win]
-        nrm = [np.zeros_like(t) for _ in range(3)]
-        j = 0
-        for ax, _, _ in prim.slabs:
-            m = wsel == j
-            nrm[ax] = np.where(m, -np.sign(Dw[ax]), nrm[ax])
-            j += 1
-        for cq, kq in prim.quads:
-            m = wsel == j
+            cols = self.fx * pc[..., 0] / z + self.cx
+            rows = self.fy * pc[..., 1] / z + self.cy
+        rect[:, 0] = np.floor(rows.min(1)) - 2
+        rect[:, 1] = np.ceil(rows.max(1)) + 3
+        rect[:, 2] = np.floor(cols.min(1)) - 2
+        rect[:, 3] = np.ceil(cols.max(1)) + 3
+        for j in np.flatnonzero(~front):  # boxes crossing the near plane (rare)
+            rr = self._rect(cmap[j], Rc, cam, margin=2)
+            rect[j] = rr if rr is not None else (0, 0, 0, 0)
+        rect[:, 0:2] = np.clip(rect[:, 0:2], 0, H)
+        rect[:, 2:4] = np.clip(rect[:, 2:4], 0, W)
+        area = np.maximum(rect[:, 1] - rect[:, 0], 0) * np.maximum(rect[:, 3] - rect[:, 2], 0)
+        zmin = z.min(1)
+        # rays in the primitive frames
+        Rt = np.transpose(Rw, (0, 2, 1))
+        o = np.einsum("pij,pj->pi", Rt, cam[None] - cw)  # (P, 3)
+        M = Rt @ Rc.T[None]  # (P, 3, 3): camera ray (u, v, 1) -> primitive frame
+        o_lod = np.einsum("pij,pj->pi", Rt, lod_origin[None] - cw)  # lod_origin in primitive frames
+        prm = dict(rect=rect, zmin=zmin, o=o, o_lod=o_lod, M=M, slo=slo, shi=shi, qc=qc, qk2=qk2, qv=qv, mat=mat, gain=gain, oid=oid, Rw=Rw)
+        # big primitives one by one, nearest first, each skipped when what is already drawn
+        # hides its whole box; then all the small ones together, minus the hidden ones
+        def hidden(j: int) -> bool:
+            return bool(zmin[j] > float(depth[rect[j, 0] : rect[j, 1], rect[j, 2] : rect[j, 3]].max()))
+
+        big = np.flatnonzero(area >= 3000)
+        for j in big[np.argsort(zmin[big])]:
+            if not hidden(j):
+                self._cast(np.array([j]), prm, img, depth, ids)
+        rest = np.flatnonzero((area < 3000) & (area > 0))
+        if big.size and rest.size:
+            rest = np.array([j for j in rest if not hidden(j)], np.int64)
+        if rest.size:
+            self._cast(rest, prm, img, depth, ids)
+
+    def _cast(self, sel: np.ndarray, prm: dict, img, depth, ids) -> None:
+        W = self.W
+        f32 = np.float32
+        rect = prm["rect"][sel]
+        hh = rect[:, 1] - rect[:, 0]
+        ww = rect[:, 3] - rect[:, 2]
+        counts = hh * ww
+        N = int(counts.sum())
+        P = len(sel)
+
+        def rep(a: np.ndarray) -> np.ndarray:  # per-primitive value -> per pair
+            return np.repeat(a, counts)
+
+        # (primitive, pixel) pairs: float32 here; the winners are redone in float64 below
+        local = (np.arange(N) - rep(np.cumsum(counts) - counts)).astype(f32)
+        wf = rep(ww.astype(f32))
+        rl = np.floor((local + f32(0.5)) / wf)
+        row = (rep(rect[:, 0].astype(f32)) + rl).astype(np.int64)
+        col = (rep(rect[:, 2].astype(f32)) + local - rl * wf).astype(np.int64)
+        pix = row * W + col
+        if P == 1:
+            # a single (big) primitive: its parameters are scalars, and pixels already
+            # nearer than its nearest point (early z) need no intersection at all
+            idx = np.flatnonzero(depth.reshape(-1)[pix] > prm["zmin"][sel[0]])
+            if idx.size == 0:
+                return
+            row, col, pix = row[idx], col[idx], pix[idx]
+            N = idx.size
+
+            def rep(a: np.ndarray) -> np.ndarray:  # noqa: F811 - scalar broadcast
+                return a[0]
+
+        M = prm["M"][sel].astype(f32)
+        o = prm["o"][sel].astype(f32)
+        slo = prm["slo"][sel].astype(f32)
+        shi = prm["shi"][sel].astype(f32)
+        # absent quadrics: k = 0, c = 0 gives t in (-1e10, 1e10): always satisfied
+        qc = np.where(prm["qv"][sel][..., None], prm["qc"][sel], 0.0).astype(f32)
+        qk2 = np.where(prm["qv"][sel][..., None], prm["qk2"][sel], 0.0).astype(f32)
+        u = self.uc32[col]
+        v = self.vc32[row]
+        D = [rep(M[:, i, 0]) * u + rep(M[:, i, 1]) * v + rep(M[:, i, 2]) for i in range(3)]
+        O = [rep(o[:, i]) for i in range(3)]
+        tin = np.full(N, _NEAR, f32)
+        tout = np.full(N, np.inf, f32)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             for i in range(3):
-                nrm[i] = np.where(m, kq[i] * kq[i] * (P[i] - cq[i]), nrm[i])
-            j += 1
-        nl = np.sqrt(nrm[0] ** 2 + nrm[1] ** 2 + nrm[2] ** 2) + 1e-12
+                if not (slo[:, i] > -_BIG_SLAB).any():
+                    continue
+                inv = f32(1.0) / D[i]
+                t1 = (rep(slo[:, i]) - O[i]) * inv
+                t2 = (rep(shi[:, i]) - O[i]) * inv
+                np.maximum(tin, np.minimum(t1, t2), out=tin)
+                np.minimum(tout, np.maximum(t1, t2), out=tout)
+            for q in range(2):
+                if not prm["qv"][sel][:, q].any():
+                    continue
+                k = [rep(qk2[:, q, i]) for i in range(3)]
+                oc = [O[i] - rep(qc[:, q, i]) for i in range(3)]
+                kd = [k[i] * D[i] for i in range(3)]
+                qa = np.maximum(kd[0] * D[0] + kd[1] * D[1] + kd[2] * D[2], f32(1e-20))
+                qb = kd[0] * oc[0] + kd[1] * oc[1] + kd[2] * oc[2]
+                qcc = k[0] * oc[0] * oc[0] + k[1] * oc[1] * oc[1] + k[2] * oc[2] * oc[2] - f32(1.0)
+                # a miss (disc < 0) gives tn = tf: an empty interval, no hit
+                sq = np.sqrt(np.maximum(qb * qb - qa * qcc, f32(0.0)))
+                np.maximum(tin, (-qb - sq) / qa, out=tin)
+                np.minimum(tout, (-qb + sq) / qa, out=tout)
+        dflat = depth.reshape(-1)
+        hit = (tin > _NEAR) & (tin < tout)
+        hit &= tin < dflat[pix]
+        h_idx = np.flatnonzero(hit)
+        if h_idx.size == 0:
+            return
+        th = tin[h_idx]
+        ph = pix[h_idx]
+        np.minimum.at(dflat, ph, th)
+        win = np.flatnonzero(th == dflat[ph])
+        h_idx = h_idx[win]
+        ph = ph[win]
+        claim = np.full(dflat.size, -1, np.int64)  # exact ties: one winner per pixel
+        claim[ph] = np.arange(len(ph))
+        keep = np.flatnonzero(claim[ph] == np.arange(len(ph)))
+        h_idx = h_idx[keep]
+        ph = ph[keep]
+        # winners in float64: exact depth and the constraint the ray enters through
+        if P == 1:
+            pw = np.zeros(len(h_idx), np.int64)
+        else:  # sorted: winners grouped by primitive
+            pw = np.searchsorted(np.cumsum(counts), h_idx, side="right")
+        wcount = np.bincount(pw, minlength=P)
+
+        def repw(a: np.ndarray) -> np.ndarray:  # per-primitive value -> per winner
+            return np.repeat(a, wcount, axis=0)
+
+        g = sel[pw]
+        uu = self.uc[col[h_idx]]
+        vv = self.vc[row[h_idx]]
+        Ms = prm["M"][sel]
+        Dw = [repw(Ms[:, i, 0]) * uu + repw(Ms[:, i, 1]) * vv + repw(Ms[:, i, 2]) for i in range(3)]
+        os_ = prm["o"][sel]
+        ow = [repw(os_[:, i]) for i in range(3)]
+        n = len(h_idx)
+        t = np.full(n, -np.inf)
+        wc = np.zeros(n, np.int8)
+        slo_g = repw(prm["slo"][sel])
+        shi_g = repw(prm["shi"][sel])
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            for i in range(3):
+                lo_i = slo_g[:, i]
+                if not (lo_i > -_BIG_SLAB).any():
+                    continue
+                inv = 1.0 / Dw[i]
+                tn = np.minimum((lo_i - ow[i]) * inv, (shi_g[:, i] - ow[i]) * inv)
+                upd = (tn > t) & (lo_i > -_BIG_SLAB)
+                t = np.where(upd, tn, t)
+                wc = np.where(upd, i, wc)
+            qv_g = repw(prm["qv"][sel])
+            qk2_g = repw(prm["qk2"][sel])
+            qc_g = repw(prm["qc"][sel])
+            for q in range(2):
+                if not qv_g[:, q].any():
+                    continue
+                k = [qk2_g[:, q, i] for i in range(3)]
+                oc = [ow[i] - qc_g[:, q, i] for i in range(3)]
+                qa = np.maximum(k[0] * Dw[0] * Dw[0] + k[1] * Dw[1] * Dw[1] + k[2] * Dw[2] * Dw[2], 1e-20)
+                qb = k[0] * oc[0] * Dw[0] + k[1] * oc[1] * Dw[1] + k[2] * oc[2] * Dw[2]
+                qcc = k[0] * oc[0] * oc[0] + k[1] * oc[1] * oc[1] + k[2] * oc[2] * oc[2] - 1.0
+                tn = (-qb - np.sqrt(np.maximum(qb * qb - qa * qcc, 0.0))) / qa
+                upd = (tn > t) & qv_g[:, q]
+                t = np.where(upd, tn, t)
+                wc = np.where(upd, 3 + q, wc)
+        dflat[ph] = t.astype(np.float32)
+        # shading: normal of the entering constraint, texture by the dominant normal axis
+        Pp = [ow[i] + t * Dw[i] for i in range(3)]
+        nrm = [np.zeros(n) for _ in range(3)]
+        for i in range(3):
+            m_ = wc == i
+            nrm[i] = np.where(m_, -np.sign(Dw[i]), nrm[i])
+        for q in range(2):
+            m_ = wc == 3 + q
+            if m_.any():
+                for i in range(3):
+                    nrm[i] = np.where(m_, qk2_g[:, q, i] * (Pp[i] - qc_g[:, q, i]), nrm[i])
+        nl = np.sqrt(nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2]) + 1e-12
         nrm = [x / nl for x in nrm]
         an = [np.abs(x) for x in nrm]
         use_x = (an[0] >= an[1]) & (an[0] >= an[2])
         use_z = ~use_x & (an[2] >= an[1])
-        tu = np.where(use_x, P[2], P[0])
-        tv = np.where(use_x | use_z, P[1], P[2])
-        dl = np.sqrt(Dw[0] ** 2 + Dw[1] ** 2 + Dw[2] ** 2)
-        cos = np.abs(nrm[0] * Dw[0] + nrm[1] * Dw[1] + nrm[2] * Dw[2]) / dl
-        mat = ob.shape.materials[prim.material]
-        fp = t / self.fx / np.maximum(cos, 0.25)
-        lod = np.log2(np.maximum(fp, 1e-6) / mat.texel).astype(np.float32)
-        alb = mat.sample((tu / mat.texel).astype(np.float32), (tv / mat.texel).astype(np.float32), lod)
-        nw = Rw @ np.stack(nrm)  # map-frame normals (3, n)
-        shade = self.light.ambient + self.light.diffuse * np.maximum(0.0, self.L @ nw)
-        val = (alb * (prim.gain * shade) * (255.0 * self.light.exposure)).astype(np.float32)
-        img[r0:r1, c0:c1][win] = val
-        dsub[win] = t.astype(np.float32)
-        ids[r0:r1, c0:c1][win] = ob.id
+        tu = np.where(use_x, Pp[2], Pp[0])
+        tv = np.where(use_x | use_z, Pp[1], Pp[2])
+        ol = repw(prm["o_lod"][sel])  # incidence seen from lod_origin: same in both views
+        vl = [Pp[i] - ol[:, i] for i in range(3)]
+        dl = np.sqrt(vl[0] * vl[0] + vl[1] * vl[1] + vl[2] * vl[2])
+        cos = np.abs(nrm[0] * vl[0] + nrm[1] * vl[1] + nrm[2] * vl[2]) / dl
+        m = prm["mat"][g]
+        tx = self.mat_texel[m]
+        lod = np.log2(np.maximum(t / (self.fx * tx) / np.maximum(cos, 0.25), 1e-6)).astype(np.float32)
+        alb = self.materials.sample(m, (tu / tx).astype(np.float32), (tv / tx).astype(np.float32), lod)
+        Lp = repw(self.L @ prm["Rw"][sel])  # light direction in each primitive frame
+        ndl = Lp[:, 0] * nrm[0] + Lp[:, 1] * nrm[1] + Lp[:, 2] * nrm[2]
+        shade = self.light.ambient + self.light.diffuse * np.maximum(0.0, ndl)
+        img.reshape(-1)[ph] = (alb * prm["gain"][g] * shade * (255.0 * self.light.exposure)).astype(np.float32)
+        ids.reshape(-1)[ph] = prm["oid"][g]

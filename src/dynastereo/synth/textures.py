@@ -17,7 +17,8 @@ import cv2
 import numpy as np
 
 _PAD = 2  # texels of padding around each packed level (bilinear needs 1)
-_REMAP_COLS = 1024  # remap wants 2-D maps below 32767 per side: flat points go in rows of this
+_REMAP_COLS = 1024
+_INTERP = cv2.INTER_LINEAR  # remap wants 2-D maps below 32767 per side: flat points go in rows of this
 
 
 def remap_points(src: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
@@ -27,7 +28,7 @@ def remap_points(src: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
     if n == 0:
         return np.zeros(shape, np.float32)
     if mx.ndim == 2 and shape[0] < 32767 and shape[1] < 32767:
-        return cv2.remap(src, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return cv2.remap(src, mx, my, _INTERP, borderMode=cv2.BORDER_REPLICATE)
     rows = -(-n // _REMAP_COLS)
     total = rows * _REMAP_COLS
     fx = np.zeros(total, np.float32)
@@ -38,7 +39,7 @@ def remap_points(src: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
         src,
         fx.reshape(rows, _REMAP_COLS),
         fy.reshape(rows, _REMAP_COLS),
-        cv2.INTER_LINEAR,
+        _INTERP,
         borderMode=cv2.BORDER_REPLICATE,
     )
     return out.ravel()[:n].reshape(shape)
@@ -104,17 +105,19 @@ class MipTexture:
         self.height = h
 
     def _tap(self, u: np.ndarray, v: np.ndarray, lev: np.ndarray) -> np.ndarray:
-        s = self.scale[lev]
+        s = np.ldexp(np.float32(1.0), -lev).astype(np.float32)  # 2**-lev
         ul = (u + 0.5) * s - 0.5
         vl = (v + 0.5) * s - 0.5
-        lw = self.lw[lev]
-        lh = self.lh[lev]
+        # level sizes: exact for wrapped textures (sizes divisible by 2**levels); for clamped
+        # ones w * 2**-lev <= the real ceil(w / 2**lev), so the clamp stays inside the level
+        lw = np.float32(self.width) * s
+        lh = np.float32(self.height) * s
         if self.wrap:
             ul = ul - np.floor(ul / lw) * lw
             vl = vl - np.floor(vl / lh) * lh
         else:
-            ul = np.clip(ul, 0.0, lw - 1.0)
-            vl = np.clip(vl, 0.0, lh - 1.0)
+            ul = np.minimum(np.maximum(ul, 0.0), lw - 1.0)
+            vl = np.minimum(np.maximum(vl, 0.0), lh - 1.0)
         mx = (ul + self.ox[lev]).astype(np.float32, copy=False)
         my = (vl + self.oy[lev]).astype(np.float32, copy=False)
         mx, my = np.broadcast_arrays(mx, my)
@@ -187,10 +190,11 @@ def speckle(rng: np.random.Generator, shape: tuple[int, int], density: float, si
 
 
 def asphalt_detail(rng: np.random.Generator, size: int = 512) -> np.ndarray:
-    """Tileable fine asphalt grain, mean ~0.5."""
-    n = fractal_noise(rng, (size, size), 16, 4, 0.65)
-    s = speckle(rng, (size, size), 0.02, 0.8)
-    img = 0.5 + 0.28 * n + 0.35 * s
+    """Tileable asphalt: grain, bright and dark stones of a few sizes; mean ~0.5."""
+    n = fractal_noise(rng, (size, size), 32, 3, 0.6)
+    fine = speckle(rng, (size, size), 0.05, 0.9)
+    stones = speckle(rng, (size, size), 0.006, 2.2)
+    img = 0.5 + 0.12 * n + 0.45 * fine + 0.35 * stones
     return np.clip(img, 0.0, 1.0).astype(np.float32)
 
 
@@ -270,3 +274,78 @@ def material_texture(
     else:  # pragma: no cover - programming error
         raise ValueError(f"unknown material kind {kind!r}")
     return np.clip(img, 0.02, 0.98).astype(np.float32)
+
+
+class TileAtlas:
+    """Many small square tileable textures (materials) with their mip pyramids in one image.
+
+    Every material wraps inside its own tile at every level, so one ``sample`` call (two
+    ``cv2.remap`` taps) textures the pixels of all objects of a view at once.
+    """
+
+    def __init__(self, tiles: list[np.ndarray]):
+        if not tiles:
+            tiles = [np.full((8, 8), 0.5, np.float32)]
+        S = tiles[0].shape[0]
+        if any(t.shape != (S, S) for t in tiles) or S & (S - 1):
+            raise ValueError("tiles must be equal squares with a power-of-two side")
+        levels = 1
+        while (S >> levels) >= 2:
+            levels += 1
+        M = len(tiles)
+        cols = max(1, min(M, 32))
+        rows = -(-M // cols)
+        sizes = [S >> lev for lev in range(levels)]
+        slot = [s + 2 * _PAD for s in sizes]
+        heights = [rows * sl for sl in slot]
+        atlas = np.zeros((sum(heights), cols * slot[0]), np.float32)
+        ox = np.zeros((M, levels), np.float32)
+        oy = np.zeros((M, levels), np.float32)
+        y_base = 0
+        pyrs = []
+        for t in tiles:
+            pyr = [np.ascontiguousarray(t, dtype=np.float32)]
+            for _ in range(1, levels):
+                prev = pyr[-1]
+                down = cv2.pyrDown(np.pad(prev, 2, mode="wrap"), borderType=cv2.BORDER_REPLICATE)
+                n = prev.shape[0] // 2
+                pyr.append(np.ascontiguousarray(down[1 : 1 + n, 1 : 1 + n]))
+            pyrs.append(pyr)
+        for lev in range(levels):
+            for m, pyr in enumerate(pyrs):
+                r, c = divmod(m, cols)
+                y0 = y_base + r * slot[lev]
+                x0 = c * slot[lev]
+                atlas[y0 : y0 + slot[lev], x0 : x0 + slot[lev]] = np.pad(pyr[lev], _PAD, mode="wrap")
+                ox[m, lev] = x0 + _PAD
+                oy[m, lev] = y0 + _PAD
+            y_base += heights[lev]
+        if atlas.shape[0] >= 32767 or atlas.shape[1] >= 32767:
+            raise ValueError(f"too many materials for one atlas: {M}")
+        self.atlas = atlas
+        self.ox = ox
+        self.oy = oy
+        self.levels = levels
+        self.size = np.array(sizes, np.float32)
+        self.scale = np.array([0.5**lev for lev in range(levels)], np.float32)
+
+    def _tap(self, mat: np.ndarray, u: np.ndarray, v: np.ndarray, lev: np.ndarray) -> np.ndarray:
+        s = self.scale[lev]
+        n = self.size[lev]
+        ul = (u + 0.5) * s - 0.5
+        vl = (v + 0.5) * s - 0.5
+        ul = ul - np.floor(ul / n) * n
+        vl = vl - np.floor(vl / n) * n
+        mx = (ul + self.ox[mat, lev]).astype(np.float32)
+        my = (vl + self.oy[mat, lev]).astype(np.float32)
+        return remap_points(self.atlas, mx, my)
+
+    def sample(self, mat: np.ndarray, u: np.ndarray, v: np.ndarray, lod: np.ndarray) -> np.ndarray:
+        """Trilinear samples of material ``mat`` (per point) at level-0 texel coordinates."""
+        lod = np.clip(np.asarray(lod, np.float32), 0.0, self.levels - 1)
+        l0 = lod.astype(np.int32)
+        frac = lod - l0
+        a = self._tap(mat, u, v, l0)
+        l1 = np.minimum(l0 + 1, self.levels - 1)
+        b = self._tap(mat, u, v, l1)
+        return a + frac * (b - a)

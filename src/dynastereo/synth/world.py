@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .textures import MipTexture, asphalt_detail, facade_detail, fractal_noise, periodic_noise, speckle
+from .textures import MipTexture, asphalt_detail, facade_detail, fractal_noise
 
 TAU = 2.0 * np.pi
 
@@ -154,6 +154,31 @@ class RingRoad:
         sm = np.mod(s, bounds[-1])
         seg = np.clip(np.searchsorted(bounds, sm, side="right") - 1, 0, 7)
         return seg, sm - bounds[seg]
+
+    def _bounds(self, d: float) -> np.ndarray:
+        arc = 0.5 * np.pi * d
+        seg_len = np.array([self.side_len[0], arc, self.side_len[1], arc, self.side_len[2], arc, self.side_len[3], arc])
+        return np.concatenate([[0.0], np.cumsum(seg_len)])
+
+    def phi(self, s, d: float) -> np.ndarray:
+        """Contour-independent position: segment index + fraction (0..8, unwrapped with s)."""
+        s = np.asarray(s, dtype=np.float64)
+        b = self._bounds(d)
+        L = b[-1]
+        turns = np.floor(s / L)
+        sm = s - turns * L
+        seg = np.clip(np.searchsorted(b, sm, side="right") - 1, 0, 7)
+        frac = (sm - b[seg]) / np.maximum(b[seg + 1] - b[seg], 1e-9)
+        return turns * 8 + seg + frac
+
+    def s_of_phi(self, phi, d: float) -> np.ndarray:
+        """Inverse of :meth:`phi` on the contour at offset ``d``."""
+        phi = np.asarray(phi, dtype=np.float64)
+        b = self._bounds(d)
+        turns = np.floor(phi / 8)
+        pm = phi - turns * 8
+        seg = np.clip(np.floor(pm).astype(int), 0, 7)
+        return turns * b[-1] + b[seg] + (pm - seg) * (b[seg + 1] - b[seg])
 
     def s_of_side(self, side: int, sigma: float, d: float) -> float:
         """Arc length on the contour at offset ``d`` of side coordinates (side, sigma)."""
@@ -291,7 +316,7 @@ def _layout_buildings(rng: np.random.Generator, p: WorldParams, segs: list[Segme
             if s.length - (u + w) < 5.0:
                 w = s.length - u
             h = float(rng.uniform(p.hmin, p.hmax))
-            buildings.append(Building(s.offset + u, s.offset + u + w, h, float(rng.uniform(0.25, 1.0))))
+            buildings.append(Building(s.offset + u, s.offset + u + w, h, float(rng.uniform(0.5, 1.0))))
             u += w
         U += need
     return buildings
@@ -375,11 +400,30 @@ def _facade_atlas(rng: np.random.Generator, p: WorldParams, segs: list[Segment],
         is_door = (((k2.astype(np.int64) * 13 + int(b.u0)) % 5) == 0)[None, :]
         shop = (hg > 0.45) & (hg < gf - 1.0) & (d2 < shop_w / 2)[None, :]
         door = (hg > 0.0) & (hg < 2.3) & (d2 < 0.6)[None, :] & is_door
-        img = np.where(shop & ~is_door, 0.12 + 0.08 * noise[y0 : y0 + rows, c0:c1] + 0.15 * (hg / gf), img)
+        # shop windows with goods on display: a random block pattern (per 15 cm cell)
+        cell_x = np.floor(ub / 0.15).astype(np.int64)
+        cell_y = np.floor(hg / 0.15).astype(np.int64)
+        goods_tab = rng.uniform(0.05, 0.75, 4093).astype(np.float32)
+        goods = goods_tab[(cell_x[None, :] * 31 + cell_y * 17 + int(b.u0 * 7)) % 4093]
+        goods = np.where(goods_tab[(cell_x[None, :] * 7 + cell_y * 3 + 11) % 4093] > 0.45, goods, 0.12)
+        img = np.where(shop & ~is_door, goods + 0.06 * noise[y0 : y0 + rows, c0:c1], img)
         img = np.where(door, 0.18, img)
+        # shop signs with "lettering"
         sign_tone = rng.uniform(0.0, 1.0)
         sign = (hg > gf - 0.85) & (hg < gf - 0.25) & (d2 < shop_w / 2)[None, :]
-        img = np.where(sign, sign_tone, img)
+        letter_tab = rng.random(4093) < 0.5
+        letters = letter_tab[(np.floor(ub / 0.12).astype(np.int64)[None, :] * 13 + np.floor(hg / 0.2).astype(np.int64) * 5) % 4093]
+        letters &= (hg > gf - 0.72) & (hg < gf - 0.38)
+        img = np.where(sign, np.where(letters, 1.0 - sign_tone, sign_tone), img)
+        # posters and graffiti on the ground floor between the shops
+        for _ in range(int(rng.integers(0, 4))):
+            px0 = rng.uniform(0, max(bw - 1.0, 0.1))
+            pw_, ph_ = rng.uniform(0.4, 1.2), rng.uniform(0.5, 1.2)
+            py0 = rng.uniform(0.4, max(gf - 1.2 - ph_, 0.5))
+            poster = (hg > py0) & (hg < py0 + ph_) & ((ub > px0) & (ub < px0 + pw_))[None, :] & ~shop
+            ptab = rng.uniform(0, 1, 4093).astype(np.float32)
+            pat = ptab[(np.floor(ub / 0.1).astype(np.int64)[None, :] * 19 + np.floor(hg / 0.1).astype(np.int64) * 23) % 4093]
+            img = np.where(poster, pat, img)
         # plinth and cornice; above the roof: cornice colour (never seen, avoids mip bleeding)
         img = np.where(hg < 0.35, tone * 0.6, img)
         corn = hg > b.height - 0.6
@@ -396,6 +440,8 @@ def _facade_atlas(rng: np.random.Generator, p: WorldParams, segs: list[Segment],
         b = min(int(np.ceil(s.x_texel + s.length / tx)), width - 1)
         atlas[y0 : y0 + band_rows, max(a - m_t, 0) : a] = atlas[y0 : y0 + band_rows, a : a + 1]
         atlas[y0 : y0 + band_rows, b + 1 : min(b + 1 + m_t, width)] = atlas[y0 : y0 + band_rows, b : b + 1]
+    # soften the 1-texel steps of window frames (magnified close up they would be hard ramps)
+    atlas = cv2.GaussianBlur(atlas, (0, 0), 0.5)
     return np.clip(atlas, 0.02, 0.98), H_m, band_rows
 
 
@@ -474,7 +520,7 @@ def _ground_atlas(rng: np.random.Generator, p: WorldParams, ring: RingRoad, inte
                 d1 = min(d0 + 0.5, p.d_outer_curb - 0.2)
                 corners = [ring.side_point(side, zc + a, d) for a, d in ((-1.5, d0), (1.5, d0), (1.5, d1), (-1.5, d1))]
                 cv2.fillPoly(marks, [_poly(np.array(corners, float), origin, tx, SH)], 255, cv2.LINE_AA, SH)
-    # patches, manholes, cracks
+    # patches, manholes, cracks, stains
     n_patch = int(W * H * tx * tx / 60.0)
     for _ in range(n_patch):
         cx, cz = rng.uniform(0, W), rng.uniform(0, H)
@@ -486,16 +532,25 @@ def _ground_atlas(rng: np.random.Generator, p: WorldParams, ring: RingRoad, inte
             cv2.circle(dark, (int(cx), int(cz)), int(0.35 / tx), 60, 1, cv2.LINE_AA)
         else:
             cv2.ellipse(dark, ((cx, cz), (a, bb), ang), int(rng.integers(40, 120)), -1, cv2.LINE_AA)
-    for _ in range(n_patch // 2):
+    for _ in range(n_patch * 2):
         pts = np.cumsum(rng.normal(0, 0.6 / tx, (int(rng.integers(3, 8)), 2)), 0) + rng.uniform(0, [W, H])
         cv2.polylines(dark, [pts.astype(np.int32).reshape(-1, 1, 2)], False, 255, 1, cv2.LINE_AA)
+    # small stains and gravel spots (10-40 cm), dark and light: corners at any distance
+    spots = np.zeros((H, W), np.float32)
+    n_spot = int(W * H * tx * tx / 2.0)
+    sx = rng.integers(0, W, n_spot)
+    sy = rng.integers(0, H, n_spot)
+    spots[sy, sx] = rng.choice(np.array([-1.0, 1.0], np.float32), n_spot) * rng.uniform(0.4, 1.0, n_spot).astype(np.float32)
+    spots = cv2.GaussianBlur(spots, (0, 0), 1.0) * 2 * np.pi  # unit peak for an isolated spot
 
     roadf = road.astype(np.float32) / 255.0
-    marksf = (marks.astype(np.float32) / 255.0) * roadf
+    # worn paint: markings lose patches of paint
+    wear = cv2.resize(rng.uniform(0, 1, (H // 3 + 2, W // 3 + 2)).astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR)
+    marksf = (marks.astype(np.float32) / 255.0) * roadf * np.clip((wear - 0.2) * 3.0, 0.25, 1.0)
     darkf = dark.astype(np.float32) / 255.0
     big = cv2.resize(rng.uniform(-1, 1, (H // 40 + 2, W // 40 + 2)).astype(np.float32), (W, H), interpolation=cv2.INTER_CUBIC)
     mid_n = cv2.resize(rng.uniform(-1, 1, (H // 6 + 2, W // 6 + 2)).astype(np.float32), (W, H), interpolation=cv2.INTER_CUBIC)
-    asphalt = 0.33 + 0.05 * big + 0.05 * mid_n - 0.12 * darkf
+    asphalt = 0.33 + 0.05 * big + 0.05 * mid_n - 0.2 * darkf + 0.12 * spots
     # sidewalk: paving tiles 0.6 m
     ys, xs = np.mgrid[0:H, 0:W]
     wx = xs * tx
@@ -504,7 +559,7 @@ def _ground_atlas(rng: np.random.Generator, p: WorldParams, ring: RingRoad, inte
     ti = np.floor(wx / tile).astype(np.int64) * 7919 + np.floor(wz / tile).astype(np.int64) * 104729
     ttab = rng.uniform(-1, 1, 8192).astype(np.float32)
     joint = ((wx / tile) % 1.0 < 0.12) | ((wz / tile) % 1.0 < 0.12)
-    pave = 0.58 + 0.06 * ttab[ti % 8192] + 0.04 * big - 0.15 * joint - 0.08 * darkf
+    pave = 0.58 + 0.08 * ttab[ti % 8192] + 0.04 * big - 0.15 * joint - 0.1 * darkf + 0.08 * spots
     img = roadf * asphalt + (1 - roadf) * pave
     # curb: bright band outside the road edge, dark gutter inside
     edge_out = cv2.dilate(road, np.ones((3, 3), np.uint8)).astype(np.float32) / 255.0 - roadf
@@ -550,4 +605,4 @@ def build_world(seed: int, params: WorldParams | None = None) -> World:
     return world
 
 
-__all__ = ["World", "WorldParams", "RingRoad", "build_world", "fwd", "right", "periodic_noise", "speckle"]
+__all__ = ["World", "WorldParams", "RingRoad", "build_world", "fwd", "right"]
