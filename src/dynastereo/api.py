@@ -14,7 +14,7 @@ from .config import Config
 from .io import open_sequence
 from .io.base import Sequence
 from .io.frames import parse_frame_spec
-from .pipeline import MaskJobResult, run_mask_job
+from .pipeline import MaskJobResult, SlamJobResult, run_mask_job, run_slam_job
 
 
 def load_sequence(sequence: str | Path | Sequence, calib: str | Path | None = None, color: bool = False) -> Sequence:
@@ -56,3 +56,30 @@ def mask_sequence(
     indices = parse_frame_spec(frames, len(seq))
     masker = build_masker(cfg, seq, models_dir)
     return run_mask_job(seq, masker, out, indices, save_disparity=save_disparity, overlays=overlays, progress=progress)
+
+
+def run_sequence(
+    sequence: str | Path | Sequence,
+    out: str | Path,
+    cfg: Config | None = None,
+    *,
+    frames: str | int | None = None,
+    calib: str | Path | None = None,
+    models_dir: str | Path | None = None,
+    save_masks: bool = False,
+    progress: Callable[[int, int, dict], None] | None = None,
+) -> SlamJobResult:
+    """Mask and track ``sequence`` with the stereo SLAM; see ``pipeline.run_slam_job``.
+
+    ``frames`` may revisit (``"0-98,40-60"``): frames are fed in the order given.
+    """
+    from .config import to_dict
+    from .slam import System
+
+    cfg = cfg or Config()
+    seq = load_sequence(sequence, calib)
+    indices = parse_frame_spec(frames, len(seq))
+    masker = build_masker(cfg, seq, models_dir)
+    system = System(cfg, seq.calibration)
+    return run_slam_job(seq, masker, system, out, indices, config_dict=to_dict(cfg),
+                        save_masks=save_masks, progress=progress)

@@ -161,3 +161,155 @@ def run_mask_job(
             extra["error"] = result.error
         timer.write(out / "timing.json", **extra)
     return result
+
+
+# --------------------------------------------------------------------------- SLAM job
+
+@dataclass
+class SlamJobResult:
+    out: Path
+    poses: np.ndarray  # (N, 3, 4) camera-to-world, one per frame fed
+    frames: list[int]
+    stats: dict
+    timer: StageTimer
+    wall_s: float
+    fps: float
+    lost: list[int] = field(default_factory=list)  # positions (in the order fed) of lost frames
+
+    @property
+    def summary(self) -> dict[str, dict[str, float]]:
+        return self.timer.summary()
+
+
+def _versions() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for pkg in ("dynastereo", "numpy", "opencv-contrib-python-headless", "gtsam", "onnxruntime", "evo"):
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            out[pkg] = "not installed"
+    return out
+
+
+def _masking_step(sequence: Sequence, masker: Masker | None, idx: int) -> tuple[StereoFrame, StereoMasks | None, dict]:
+    """Read and mask one frame; its own timer (this runs on the prefetch thread)."""
+    t = new_mask_timer()
+    t.start_frame(idx)
+    with t.stage("read"):
+        frame = sequence.frame(idx)
+    masks = masker.mask(frame, t) if masker is not None else None
+    return frame, masks, t.end_frame()["ms"]
+
+
+def run_slam_job(
+    sequence: Sequence,
+    masker: Masker | None,
+    system,
+    out: str | Path,
+    frames: list[int],
+    *,
+    config_dict: dict | None = None,
+    save_masks: bool = False,
+    prefetch: bool = True,
+    progress: Callable[[int, int, dict], None] | None = None,
+) -> SlamJobResult:
+    """Feed ``frames`` of ``sequence`` (masked by ``masker``, None = unmasked) to the SLAM
+    ``system`` and write, under ``out``:
+
+    * ``trajectory.kitti.txt`` / ``trajectory.tum.txt`` / ``trajectory.frames.txt``: one
+      row per frame fed, in order; appended live (a crash keeps every row written), then
+      rewritten at the end with the final, bundle-adjusted poses;
+    * ``timing.json``: per frame ms for ``masking`` (= ``detect`` + ``mask``), ``features``,
+      ``stereo``, ``track``; ``local_mapping`` separately; ``summary.fps`` end to end;
+    * ``run.json``: configuration, versions, frames tracked / lost, keyframes, map points.
+
+    Masking of frame k+1 runs on a prefetch thread while frame k is tracked (OpenCV and
+    onnxruntime release the GIL).
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    from .eval.trajectory import TrajectoryWriter, write_kitti, write_tum, FRAMES_NAME
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if save_masks:
+        for side in ("left", "right"):
+            (out / "masks" / side).mkdir(parents=True, exist_ok=True)
+    timer = StageTimer()
+    timer.add_derived("masking", ("detect",) + MASK_STAGES)
+    stamps = np.asarray(sequence.timestamps(), dtype=np.float64)
+    pool = ThreadPoolExecutor(max_workers=1) if prefetch else None
+    error: str | None = None
+    t0 = time.perf_counter()
+    n_done = 0
+
+    def submit(k: int):
+        if k >= len(frames):
+            return None
+        if pool is None:
+            return _masking_step(sequence, masker, frames[k])
+        return pool.submit(_masking_step, sequence, masker, frames[k])
+
+    try:
+        with TrajectoryWriter(out) as writer:
+            pending = submit(0)
+            for k, idx in enumerate(frames):
+                frame, masks, mask_ms = pending if pool is None else pending.result()
+                pending = submit(k + 1)
+                timer.start_frame(idx)
+                for name, ms in mask_ms.items():
+                    if name not in ("total", "mask"):
+                        timer.add(name, ms)
+                pose = system.track(frame, masks, timer)
+                state = system.frame_states()[-1]
+                rec = timer.end_frame(status=state.status)
+                writer.append(pose, frame_index=idx, timestamp=float(stamps[idx]))
+                if save_masks and masks is not None:
+                    _write_png(out / "masks" / "left" / frame_name(idx), masks.left)
+                    _write_png(out / "masks" / "right" / frame_name(idx), masks.right)
+                n_done = k + 1
+                if progress is not None:
+                    progress(k + 1, len(frames), dict(rec, fps=n_done / (time.perf_counter() - t0)))
+        system.shutdown()
+    except BaseException as e:
+        error = f"{type(e).__name__}: {e}"
+        raise
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+        wall = time.perf_counter() - t0
+        fps = n_done / wall if wall > 0 else 0.0
+        poses = system.trajectory() if n_done else np.zeros((0, 3, 4))
+        if error is None and n_done:
+            done = frames[:n_done]
+            write_kitti(out / "trajectory.kitti.txt", poses)
+            write_tum(out / "trajectory.tum.txt", poses, stamps[done])
+            (out / FRAMES_NAME).write_text("".join(f"{i}\n" for i in done))
+        stats = system.stats() if n_done else {}
+        states = system.frame_states() if n_done else []
+        lost = [k for k, s in enumerate(states) if s.status == "lost"]
+        timer.write(out / "timing.json", summary_extra={"fps": round(fps, 3)}, wall_s=round(wall, 3),
+                    frames_done=n_done, local_mapping={k: v for k, v in stats.items() if k.startswith("local_ba")},
+                    **({"error": error} if error else {}))
+        run = {
+            "sequence": str(getattr(sequence, "path", "")),
+            "masker": getattr(masker, "name", "none") if masker is not None else "none",
+            "frames_requested": len(frames),
+            "frames_done": n_done,
+            "frames_tracked": sum(s.status in ("tracked", "init") for s in states),
+            "frames_lost": len(lost),
+            "lost": [{"position": k, "frame": frames[k], "map_id": states[k].map_id} for k in lost],
+            "keyframes": stats.get("keyframes"),
+            "map_points": stats.get("map_points"),
+            "stats": stats,
+            "fps": round(fps, 3),
+            "wall_s": round(wall, 3),
+            "config": config_dict or {},
+            "versions": _versions(),
+        }
+        if error:
+            run["error"] = error
+        (out / "run.json").write_text(json.dumps(run, indent=1, default=float))
+    return SlamJobResult(out, poses, frames[:n_done], stats, timer, wall, fps, lost)

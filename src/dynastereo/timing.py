@@ -85,13 +85,16 @@ class StageTimer:
             }
         return out
 
-    def to_json(self, **extra: Any) -> dict[str, Any]:
-        d: dict[str, Any] = {"unit": "ms", "frames": self.frames, "summary": self.summary()}
+    def to_json(self, summary_extra: dict[str, Any] | None = None, **extra: Any) -> dict[str, Any]:
+        summary: dict[str, Any] = self.summary()
+        summary.update(summary_extra or {})
+        d: dict[str, Any] = {"unit": "ms", "frames": self.frames, "summary": summary}
         d.update(extra)
         return d
 
-    def write(self, path: str | Path, **extra: Any) -> None:
+    def write(self, path: str | Path, summary_extra: dict[str, Any] | None = None, **extra: Any) -> None:
+        """Write ``timing.json`` atomically (``summary_extra`` goes into ``summary``)."""
         p = Path(path)
         tmp = p.with_suffix(p.suffix + ".tmp")
-        tmp.write_text(json.dumps(self.to_json(**extra), indent=1))
+        tmp.write_text(json.dumps(self.to_json(summary_extra, **extra), indent=1))
         tmp.replace(p)

@@ -104,6 +104,43 @@ def mask(
     out_console.print(f"{len(result.frames_done)} frames -> {out}  ({result.wall_s:.1f} s)")
 
 
+@app.command()
+def run(
+    sequence: Path = typer.Argument(..., help="Sequence folder: KITTI odometry, EuRoC mav0, or left/right folders + YAML calibration."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output directory."),
+    masker: Optional[str] = typer.Option(None, help="none | box | outline | seg."),
+    detector: Optional[str] = typer.Option(None, help="yolov3, yolov3-tiny, yolox-nano, fastestdet, yolo11n-int8, oracle, or a .cfg/.onnx path."),
+    stereo: Optional[str] = typer.Option(None, help="Stereo matcher for the masks: bm | sgbm | sgbm3way."),
+    frames: Optional[str] = typer.Option(None, help="A count N, or inclusive index ranges a-b,c-d fed in that order (revisits allowed)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML configuration, or an ORB-SLAM2 stereo settings file."),
+    calib: Optional[Path] = typer.Option(None, "--calib", help="YAML calibration for a generic folder pair."),
+    models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
+    save_masks: bool = typer.Option(False, "--save-masks", help="Also write DIR/masks/{left,right}/NNNNNN.png."),
+) -> None:
+    """Mask and track a stereo sequence: trajectory, timing and run summary out."""
+    from ..api import run_sequence
+
+    try:
+        overrides = {"detector.name": detector, "stereo.algorithm": stereo, "masker.kind": masker}
+        cfg = _build_config(config, overrides)
+        with _progress() as prog:
+            task = prog.add_task("tracking", total=None, info="")
+
+            def on_frame(done: int, total: int, rec: dict) -> None:
+                prog.update(task, completed=done, total=total, info=f"{rec['fps']:.1f} FPS  {rec['status']}")
+
+            result = run_sequence(sequence, out, cfg, frames=frames, calib=calib, models_dir=models_dir,
+                                  save_masks=save_masks, progress=on_frame)
+    except DynastereoError as e:
+        _fail(e)
+    out_console.print(timing_table(result.summary, "timing (ms per frame)"))
+    st = result.stats
+    out_console.print(
+        f"{len(result.frames)} frames, {result.fps:.1f} FPS end to end; lost {len(result.lost)}, "
+        f"keyframes {st.get('keyframes')}, map points {st.get('map_points')} -> {out}"
+    )
+
+
 @models_app.callback()
 def models_main(
     ctx: typer.Context,
