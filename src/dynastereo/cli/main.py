@@ -19,8 +19,9 @@ app = typer.Typer(
     no_args_is_help=True,
     help="Stereo visual SLAM in dynamic scenes: mask moving objects in both stereo images, fast, on a CPU.",
 )
-console = Console(stderr=True)
-out_console = Console()
+# Piped output (CI logs, files) gets wide tables instead of rich's 80-column default.
+console = Console(stderr=True, width=None if sys.stderr.isatty() else 160, soft_wrap=True)
+out_console = Console(width=None if sys.stdout.isatty() else 160, soft_wrap=True)
 
 models_app = typer.Typer(help="List, download and verify detector models.", invoke_without_command=True)
 app.add_typer(models_app, name="models")
@@ -233,14 +234,18 @@ def synth(
 
 @app.command()
 def demo(
-    out: Optional[Path] = typer.Option(None, "--out", help="Where to write (default: a temporary directory)."),
-    frames: int = typer.Option(40, help="Frames to generate."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Where to write (default: a new temporary directory)."),
+    scenario: str = typer.Option("convoy", help="Synthetic scenario (see `dynastereo synth --scenario list`)."),
+    frames: int = typer.Option(60, help="Frames to generate."),
+    detector: Optional[str] = typer.Option(None, help="Detector (default: yolox-nano if its weights are present, else the oracle)."),
+    models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
 ) -> None:
-    """Embedded default: synthetic dynamic scene -> masks (and SLAM when available), evaluated against GT."""
+    """Embedded default, offline: synthetic dynamic scene -> SLAM unmasked vs masked, evaluated against GT."""
     from ..demo import run_demo
 
     try:
-        run_demo(out, frames=frames, console=out_console, progress=_progress)
+        run_demo(out, scenario=scenario, frames=frames, detector=detector, models_dir=models_dir,
+                 console=out_console, progress=_progress)
     except DynastereoError as e:
         _fail(e)
 

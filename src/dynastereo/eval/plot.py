@@ -18,9 +18,14 @@ def top_view_plane(gt: Trajectory) -> str:
     """The plane to look at from above: drop the axis along which ``gt`` moves least.
 
     KITTI camera coordinates (y down) give ``"xz"``; z-up worlds (TUM, EuRoC) ``"xy"``.
+    When y barely moves (under 5% of the largest extent) it is the one dropped, so a
+    straight drive in KITTI coordinates is shown as x-z too.
     """
     spread = np.ptp(gt.positions, axis=0)
-    keep = sorted(set(range(3)) - {int(np.argmin(spread))})
+    drop = int(np.argmin(spread))
+    if spread[1] <= 0.05 * spread.max():
+        drop = 1  # a (near) tie with the camera's y (down) axis: a straight drive in KITTI coordinates
+    keep = sorted(set(range(3)) - {drop})
     return "".join("xyz"[i] for i in keep)
 
 
@@ -38,7 +43,7 @@ def _save(fig: Figure, path_png: str | Path) -> Path:
 
 
 def plot_trajectories(
-    est: Trajectory,
+    est: Trajectory | dict[str, Trajectory],
     gt: Trajectory,
     path_png: str | Path,
     title: str | None = None,
@@ -46,6 +51,8 @@ def plot_trajectories(
     plane: str = "auto",
 ) -> Path:
     """Top view of ``est`` (pass the aligned one, ``EvalResult.estimate``) over ``gt``.
+
+    ``est`` may be a dict ``{label: trajectory}`` to compare several estimates.
 
     ``plane``: ``"auto"`` (see :func:`top_view_plane`), or two of x/y/z, e.g. ``"xz"``.
     Equal aspect, circle = start, square = end.  Returns the PNG path.
@@ -56,7 +63,10 @@ def plot_trajectories(
     i, j = _AXES[plane[0]], _AXES[plane[1]]
     fig = _new_figure((7.0, 6.0))
     ax = fig.add_subplot()
-    for traj, label, style in ((gt, "ground truth", dict(color="0.2", ls="--")), (est, "estimate", dict(color="C0"))):
+    ests = est if isinstance(est, dict) else {"estimate": est}
+    curves = [(gt, "ground truth", dict(color="0.2", ls="--"))]
+    curves += [(t, label, dict(color=f"C{k}")) for k, (label, t) in enumerate(ests.items())]
+    for traj, label, style in curves:
         p = traj.positions
         name = label if traj.name in ("", label) else f"{label} ({traj.name})"
         (line,) = ax.plot(p[:, i], p[:, j], lw=1.5, label=name, **style)
