@@ -1,0 +1,22 @@
+"""Stereo visual SLAM back-end (ORB-SLAM2-style tracking and local mapping) in Python.
+
+    from dynastereo.slam import System
+    system = System(config, sequence.calibration)     # Config or SlamConfig
+    pose = system.track(stereo_frame, masks, timer)   # 3x4 camera-to-world, left camera
+    poses = system.trajectory()                       # (N, 3, 4), one row per frame fed
+    system.stats(); system.frame_states(); system.lost_frames()
+    system.shutdown()                                 # finishes the local BA, stops its worker
+
+Modules follow ORB-SLAM2: ``orb`` (ORBExtractor: masked, grid-bucketed pyramid ORB),
+``matcher`` (stereo row matching, projection search), ``frame`` / ``keyframe`` / ``map``
+(array-wise map points and observations, covisibility), ``tracking``, ``local_mapping``
+(point creation / culling / fusion, local BA, keyframe culling), ``optimizer`` (numpy
+motion-only BA, gtsam local BA), ``ba_worker`` (local BA process), ``settings``
+(ORB-SLAM2 settings files), ``system``.  Stage times: ``features``, ``stereo``,
+``track``, ``local_mapping``.
+"""
+
+from .settings import load_orbslam_settings
+from .system import FrameState, System
+
+__all__ = ["System", "FrameState", "load_orbslam_settings"]

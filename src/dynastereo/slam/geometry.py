@@ -86,16 +86,6 @@ def hamming_pairs(a64: np.ndarray, ia: np.ndarray, b64: np.ndarray, ib: np.ndarr
     return np.bitwise_count(x).sum(axis=1, dtype=np.int32)
 
 
-def hamming_matrix(a64: np.ndarray, b64: np.ndarray) -> np.ndarray:
-    """Full (Na, Nb) Hamming distance matrix."""
-    if len(a64) == 0 or len(b64) == 0:
-        return np.zeros((len(a64), len(b64)), np.int32)
-    out = np.zeros((len(a64), len(b64)), np.int32)
-    for k in range(a64.shape[1]):  # 4 words
-        out += np.bitwise_count(np.bitwise_xor(a64[:, k, None], b64[None, :, k]))
-    return out
-
-
 def expand_ranges(starts: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For ranges ``[starts[g], starts[g] + counts[g])`` return (group, index) of every element."""
     counts = np.asarray(counts, dtype=np.int64)

@@ -18,23 +18,26 @@
 from __future__ import annotations
 
 import logging
-import multiprocessing
-from concurrent.futures import Future, ProcessPoolExecutor
+import os
+import subprocess
+import sys
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from .geometry import (
+    orthonormalize,
     CHI2_MONO,
     CHI2_STEREO,
     desc_u64,
-    hamming_matrix,
     inv_T,
     rotation_consistent,
     skew,
     triangulate_dlt,
     unique_best,
 )
+from .ipc import read_msg, write_msg
 from .keyframe import KeyFrame
 from .map import Map
 from .matcher import TH_LOW, search_by_projection
@@ -70,34 +73,91 @@ class MappingStats:
     keyframes_culled: int = 0
 
 
+class _Pending:
+    """A local BA running in the worker process."""
+
+    def __init__(self, runner: "BARunner", problem: LocalBAProblem) -> None:
+        self.runner = runner
+        self.problem = problem
+
+    def result(self) -> LocalBAResult:
+        return self.runner._receive(self.problem)
+
+
 class BARunner:
-    """Runs local BA problems inline or in one worker process (spawned, not forked:
-    the parent has threads)."""
+    """Runs local BA problems inline or in one worker process (``ba_worker``)."""
 
     def __init__(self, mode: str) -> None:
         if mode not in ("process", "inline", "off"):
             raise ValueError(f"slam.local_ba must be process, inline or off, got {mode!r}")
         self.mode = mode
-        self._pool: ProcessPoolExecutor | None = None
+        self._proc: subprocess.Popen | None = None
         if mode == "process":
-            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
-            self._pool.submit(_warm_up).result()
+            self._start()
 
-    def submit(self, problem: LocalBAProblem) -> Future | LocalBAResult:
-        if self._pool is not None:
-            return self._pool.submit(local_ba, problem)
+    def _start(self) -> None:
+        env = dict(os.environ)
+        env.setdefault("OMP_NUM_THREADS", "1")
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "dynastereo.slam.ba_worker"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env=env,
+        )
+        try:
+            write_msg(self._proc.stdin, "ping")
+            if read_msg(self._proc.stdout) != "pong":
+                raise OSError("no answer")
+        except OSError as e:
+            log.warning("local BA worker process failed to start (%s); running local BA inline", e)
+            self._stop()
+            self.mode = "inline"
+
+    def submit(self, problem: LocalBAProblem) -> _Pending | LocalBAResult:
+        if self.mode == "process" and self._proc is not None:
+            try:
+                write_msg(self._proc.stdin, problem)
+                return _Pending(self, problem)
+            except OSError as e:
+                log.warning("local BA worker process died (%s); running local BA inline", e)
+                self._stop()
+                self.mode = "inline"
         return local_ba(problem)
 
+    def _receive(self, problem: LocalBAProblem) -> LocalBAResult:
+        res = None
+        if self._proc is not None:
+            try:
+                res = read_msg(self._proc.stdout)
+            except OSError:
+                res = None
+        if isinstance(res, LocalBAResult):
+            return res
+        if isinstance(res, Exception):
+            log.warning("local BA failed in the worker (%s); retrying inline", res)
+        else:
+            log.warning("local BA worker process died; running local BA inline from now on")
+            self._stop()
+            self.mode = "inline"
+        return local_ba(problem)
+
+    def _stop(self) -> None:
+        p = self._proc
+        self._proc = None
+        if p is None:
+            return
+        try:
+            if p.stdin:
+                p.stdin.close()
+            p.wait(timeout=10)
+        except (OSError, subprocess.TimeoutExpired):
+            p.kill()
+            p.wait()
+        if p.stdout:
+            p.stdout.close()
+
     def shutdown(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = None
-
-
-def _warm_up() -> bool:
-    import gtsam  # noqa: F401
-
-    return True
+        self._stop()
 
 
 class LocalMapper:
@@ -107,7 +167,7 @@ class LocalMapper:
         self.runner = runner
         self.recent = np.zeros(0, np.int64)
         self.stats = MappingStats()
-        self._job: Future | LocalBAResult | None = None
+        self._job: _Pending | LocalBAResult | None = None
         self._job_due = 0
         self._job_map = None
         self._pending_kf: KeyFrame | None = None
@@ -166,11 +226,19 @@ class LocalMapper:
             i2 = np.flatnonzero(kf2.point_ids < 0)
             if len(i1) == 0 or len(i2) == 0:
                 continue
-            D = hamming_matrix(kf1.desc64[i1], kf2.desc64[i2])
-            a, bb = np.nonzero(D <= TH_LOW)
-            if len(a) == 0:
+            # the K nearest descriptors of each kf1 keypoint (OpenCV, SIMD popcount) are
+            # the candidates (ORB-SLAM2 takes those sharing a vocabulary node)
+            K_nn = min(4, len(i2))
+            dnn, inn = cv2.batchDistance(
+                kf1.desc[i1], kf2.desc[i2], cv2.CV_32S, normType=cv2.NORM_HAMMING, K=K_nn
+            )
+            a = np.repeat(np.arange(len(i1)), K_nn)
+            bb = inn.reshape(-1)
+            dist = dnn.reshape(-1)
+            ok = (bb >= 0) & (dist <= TH_LOW)
+            if not ok.any():
                 continue
-            dist = D[a, bb]
+            a, bb, dist = a[ok], bb[ok], dist[ok]
             k1, k2 = i1[a], i2[bb]
             # epipolar constraint: x2 on the line F21 x1 (F from the relative pose)
             R2w, t2w = kf2.T_cw[:3, :3], kf2.T_cw[:3, 3]
@@ -396,8 +464,9 @@ class LocalMapper:
             uv[s] = kfo.uv[okp[s]]
             ur[s] = kfo.u_right[okp[s]]
             lev[s] = kfo.octave[okp[s]]
-        # drop points left with a single monocular observation (unconstrained depth)
-        cnt = np.bincount(np.searchsorted(pts, opt), weights=1 + (ur >= 0), minlength=len(pts))
+        # keep points seen by at least two of these keyframes: a point with a single
+        # observation puts no constraint on any pose (and a monocular one has no depth)
+        cnt = np.bincount(np.searchsorted(pts, opt), minlength=len(pts))
         keep_pt = cnt >= 2
         keep_row = keep_pt[np.searchsorted(pts, opt)]
         pts = pts[keep_pt]
@@ -447,7 +516,7 @@ class LocalMapper:
             return
         t0 = time.perf_counter()
         job = self._job
-        res = job.result() if isinstance(job, Future) else job
+        res = job.result() if isinstance(job, _Pending) else job
         self.stats.ba_wait_ms.append((time.perf_counter() - t0) * 1e3)
         self._job = None
         if self._job_map == id(self.mp):
@@ -464,7 +533,7 @@ class LocalMapper:
         for i, k in enumerate(res.kf_ids):
             kf = mp.keyframes.get(int(k))
             if kf is not None:
-                kf.T_cw = inv_T(res.T_wc[i])
+                kf.T_cw = orthonormalize(inv_T(orthonormalize(res.T_wc[i])))
         ok = mp.good(res.pt_ids)
         mp.pos[res.pt_ids[ok]] = res.X[ok]
         # outlier observations: chi2 above the 95% bound or behind the camera

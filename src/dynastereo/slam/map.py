@@ -53,6 +53,9 @@ class Map:
         self.obs_kp = np.zeros(c * 4, np.int64)
         self.obs_pt = np.zeros(c * 4, np.int64)
         self.obs_alive = np.zeros(c * 4, bool)
+        # per-point linked lists of observation rows (newest first): head[pt], next_row[row]
+        self.head = np.full(c, -1, np.int64)
+        self.next_row = np.full(c * 4, -1, np.int64)
         self.keyframes: dict[int, KeyFrame] = {}
         # culled keyframes: id -> (parent id, T_c_parent), to keep frame poses that refer to them
         self.culled: dict[int, tuple[int, np.ndarray]] = {}
@@ -97,6 +100,7 @@ class Map:
             ("ref_kf", 0),
             ("bad", False),
             ("replaced", -1),
+            ("head", -1),
         ):
             setattr(self, name, _grow(getattr(self, name), n1, fill))
         self.pos[n0:n1] = pos
@@ -108,6 +112,7 @@ class Map:
         self.ref_kf[n0:n1] = kf_id
         self.bad[n0:n1] = False
         self.replaced[n0:n1] = -1
+        self.head[n0:n1] = -1
         self.n = n1
         return np.arange(n0, n1, dtype=np.int64)
 
@@ -137,6 +142,9 @@ class Map:
         self.obs_kp = _grow(self.obs_kp, r1)
         self.obs_pt = _grow(self.obs_pt, r1)
         self.obs_alive = _grow(self.obs_alive, r1, False)
+        self.next_row = _grow(self.next_row, r1, -1)
+        self.next_row[r0:r1] = self.head[pt_k]  # pt_k has no duplicates
+        self.head[pt_k] = np.arange(r0, r1)
         self.obs_kf[r0:r1] = kf.id
         self.obs_kp[r0:r1] = kp_k
         self.obs_pt[r0:r1] = pt_k
@@ -169,12 +177,21 @@ class Map:
                 self._reassign_ref(fix)
 
     def rows_of(self, pts: np.ndarray) -> np.ndarray:
-        """Alive observation rows of the given points."""
-        sel = np.zeros(max(self.n, 1), bool)
+        """Alive observation rows of the given points (sorted), walking the per-point
+        lists: cost proportional to those points' observations, not to the map size."""
         pts = np.asarray(pts, np.int64)
-        sel[pts[pts >= 0]] = True
-        r = np.flatnonzero(self.obs_alive[: self.m])
-        return r[sel[self.obs_pt[r]]]
+        cur = self.head[np.unique(pts[pts >= 0])]
+        out = []
+        while len(cur):
+            cur = cur[cur >= 0]
+            if not len(cur):
+                break
+            out.append(cur)
+            cur = self.next_row[cur]
+        if not out:
+            return np.zeros(0, np.int64)
+        r = np.concatenate(out)
+        return np.sort(r[self.obs_alive[r]])
 
     def set_bad(self, pts: np.ndarray) -> None:
         pts = np.unique(np.asarray(pts, np.int64))

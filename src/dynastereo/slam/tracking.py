@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from .frame import Frame
-from .geometry import desc_u64, hamming_matrix, inv_T, rotation_consistent
+from .geometry import desc_u64, inv_T, rotation_consistent, unique_best
 from .keyframe import KeyFrame
 from .map import Map
 from .matcher import TH_HIGH, TH_LOW, search_by_projection
@@ -158,20 +158,12 @@ class Tracker:
         kp_kf, pts = kp_kf[ok], pts[ok]
         if len(pts) < 10 or len(frame) < 10:
             return False
-        D = hamming_matrix(desc_u64(mp.desc[pts]), frame.desc64)
-        order = np.argpartition(D, 1, axis=1)[:, :2]
-        r = np.arange(len(pts))
-        d1 = D[r, order[:, 0]]
-        d2 = D[r, order[:, 1]]
-        swap = d2 < d1
-        best = np.where(swap, order[:, 1], order[:, 0])
-        b1 = np.minimum(d1, d2)
-        b2 = np.maximum(d1, d2)
-        good = (b1 <= TH_LOW) & (b1 < 0.7 * b2)
+        # two nearest frame descriptors of each point (OpenCV, SIMD popcount), ratio test
+        dnn, inn = cv2.batchDistance(mp.desc[pts], frame.desc, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
+        b1, b2, best = dnn[:, 0], dnn[:, 1], inn[:, 0]
+        good = (best >= 0) & (b1 <= TH_LOW) & (b1 < 0.7 * b2)
         qi, ki = np.flatnonzero(good), best[good]
         # one point per keypoint
-        from .geometry import unique_best
-
         u_idx = unique_best(ki, b1[good])
         qi, ki = qi[u_idx], ki[u_idx]
         if len(qi):

@@ -1,0 +1,43 @@
+"""Local-BA worker process: ``python -m dynastereo.slam.ba_worker``.
+
+Reads pickled ``LocalBAProblem`` messages from stdin (8-byte little-endian length +
+payload), writes pickled ``LocalBAResult`` messages to stdout the same way, exits at
+end of input.  Started with ``subprocess`` rather than ``multiprocessing`` so that no
+user ``__main__`` module is re-imported (scripts need no ``if __name__ ==
+'__main__'`` guard) and the parent's threads are never forked.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from .ipc import read_msg, write_msg
+
+
+def main() -> int:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    import gtsam  # noqa: F401 -- import before the first job
+
+    from .optimizer import local_ba
+
+    inp = sys.stdin.buffer
+    out = sys.stdout.buffer
+    # nothing else may write to the result stream
+    sys.stdout = sys.stderr
+    while True:
+        msg = read_msg(inp)
+        if msg is None:
+            return 0
+        if msg == "ping":
+            write_msg(out, "pong")
+            continue
+        try:
+            res = local_ba(msg)  # type: ignore[arg-type]
+        except Exception as e:  # noqa: BLE001 -- report, keep serving
+            res = e
+        write_msg(out, res)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

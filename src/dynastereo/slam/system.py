@@ -1,0 +1,451 @@
+"""System: the SLAM back-end's public API.
+
+    system = System(config, calibration)
+    for frame, masks in ...:
+        T_wc = system.track(frame, masks)      # 3x4 camera-to-world of the left camera
+    poses = system.trajectory()                # (N, 3, 4), one per frame fed, in order
+    system.shutdown()
+
+World = the first frame's left camera (KITTI ground-truth convention).  Every frame fed
+gets exactly one trajectory row.  Poses of tracked frames are kept relative to their
+reference keyframe (as ORB-SLAM2 does), so later local BA refines them too.
+
+When tracking is lost (too few inliers after local-map tracking, or no match at all)
+the frame is logged as lost at WARNING level, flagged ``lost`` in ``frame_states()``,
+and its trajectory row is the *constant-velocity prediction* (last pose times last
+velocity; the last pose if no velocity yet).  The map is then re-initialised from this
+frame's stereo points, anchored to that predicted pose, and tracking continues on
+the new map.  Frames that cannot even initialise a map (too few stereo points) are
+lost frames with the predicted pose as well; nothing raises.
+"""
+
+from __future__ import annotations
+
+import logging
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..config import Config, SlamConfig
+from ..errors import ConfigError
+from ..timing import StageTimer
+from ..types import StereoCalibration, StereoFrame, StereoMasks
+from .frame import Frame
+from .geometry import inv_T, orthonormalize
+from .keyframe import KeyFrame
+from .local_mapping import BARunner, LocalMapper, MappingParams
+from .map import Map
+from .matcher import stereo_match
+from .orb import ORBExtractor
+from .tracking import TrackParams, Tracker
+
+log = logging.getLogger("dynastereo.slam")
+
+
+@dataclass
+class FrameState:
+    """What happened to one frame (``System.frame_states()``)."""
+
+    index: int  # position in the order fed
+    frame_index: int  # StereoFrame.index
+    status: str  # "init", "tracked", "lost"
+    method: str  # "init", "motion", "reference", "" (lost)
+    keyframe: bool
+    inliers: int
+    n_features: int
+    n_stereo: int
+    map_id: int  # increments at each re-initialisation
+
+
+@dataclass
+class _Record:
+    ref_kf: int | None
+    T: np.ndarray  # T_c_ref if ref_kf is not None, else absolute T_cw
+
+
+def _validate(cfg: SlamConfig) -> None:
+    if cfg.n_features < 50:
+        raise ConfigError(f"slam.n_features must be >= 50, got {cfg.n_features}")
+    if not cfg.scale_factor > 1.0:
+        raise ConfigError(f"slam.scale_factor must be > 1, got {cfg.scale_factor}")
+    if not 1 <= cfg.n_levels <= 32:
+        raise ConfigError(f"slam.n_levels must be in 1..32, got {cfg.n_levels}")
+    if cfg.local_ba not in ("process", "inline", "off"):
+        raise ConfigError(f"slam.local_ba must be process, inline or off, got {cfg.local_ba!r}")
+    if cfg.th_depth <= 0:
+        raise ConfigError(f"slam.th_depth must be positive, got {cfg.th_depth}")
+
+
+class System:
+    def __init__(
+        self,
+        config: Config | SlamConfig | None = None,
+        calibration: StereoCalibration | None = None,
+        *,
+        seed: int | None = None,
+    ) -> None:
+        if isinstance(config, Config):
+            cfg = config.slam
+            seed = config.seed if seed is None else seed
+        else:
+            cfg = config or SlamConfig()
+        if calibration is None:
+            raise ConfigError("System needs the rectified StereoCalibration of the sequence")
+        _validate(cfg)
+        self.cfg = cfg
+        self.seed = int(seed or 0)
+        self.calib = calibration
+        self.extractor = ORBExtractor(
+            cfg.n_features, cfg.scale_factor, cfg.n_levels, cfg.ini_th_fast, cfg.min_th_fast, cfg.oversample, cfg.mask_margin
+        )
+        ex = self.extractor
+        self.th_depth_m = cfg.th_depth * calibration.baseline
+        self._track_params = TrackParams(
+            scales=ex.scales,
+            inv_sigma2=ex.inv_sigma2,
+            th_depth_m=self.th_depth_m,
+            min_inliers=cfg.min_inliers,
+            max_frames=cfg.max_frames,
+            min_frames=cfg.min_frames,
+            seed=self.seed,
+        )
+        self._map_params = MappingParams(
+            scales=ex.scales,
+            sigma2=ex.sigma2,
+            inv_sigma2=ex.inv_sigma2,
+            th_depth_m=self.th_depth_m,
+            local_ba=cfg.local_ba,
+            ba_iterations=cfg.ba_iterations,
+            ba_max_keyframes=cfg.ba_max_keyframes,
+            ba_max_fixed=cfg.ba_max_fixed,
+            ba_lag_frames=cfg.ba_lag_frames,
+            triangulation_neighbours=cfg.triangulation_neighbours,
+            fuse_neighbours=cfg.fuse_neighbours,
+            keyframe_culling=cfg.keyframe_culling,
+        )
+        self._threads = ThreadPoolExecutor(max_workers=2) if cfg.threads > 1 else None
+        self.runner = BARunner(cfg.local_ba)
+        self.timer = StageTimer()
+        self._records: list[_Record] = []
+        self._states: list[FrameState] = []
+        self._n = 0
+        self._map_id = -1
+        self._anchor = np.eye(4)
+        self._velocity: np.ndarray | None = None
+        self._last_T: np.ndarray | None = None
+        self._kf_total = 0
+        self._closed = False
+        self._new_map()
+
+    @classmethod
+    def from_orbslam_settings(cls, path: str, base: Config | None = None) -> "System":
+        """A System configured from an ORB-SLAM2 stereo settings file (camera included)."""
+        from .settings import load_orbslam_settings
+
+        base_cfg = base or Config()
+        slam, calib = load_orbslam_settings(path, base_cfg.slam)
+        return cls(slam, calib, seed=base_cfg.seed)
+
+    # ------------------------------------------------------------------ state
+    def _new_map(self) -> None:
+        if getattr(self, "mapper", None) is not None:
+            self.mapper.shutdown()
+            self._bake_records()
+        self._map_id += 1
+        self.map = Map(self.extractor.scales)
+        self.tracker = Tracker(self._track_params)
+        self.tracker.velocity = self._velocity
+        self.mapper = LocalMapper(self.map, self._map_params, self.runner)
+        self._initialised = False
+
+    def _bake_records(self) -> None:
+        """Make the poses of all frames so far absolute (before the map is dropped)."""
+        for r in self._records:
+            if r.ref_kf is not None:
+                T_ref = self.map.keyframe_pose(r.ref_kf)
+                r.T = r.T @ T_ref if T_ref is not None else r.T
+                r.ref_kf = None
+
+    # --------------------------------------------------------------- features
+    def _features(self, frame: StereoFrame, masks: StereoMasks | None):
+        left = frame.left_gray
+        right = frame.right_gray
+        ml = masks.left if masks is not None else None
+        mr = masks.right if masks is not None else None
+        ex = self.extractor
+        if self._threads is not None:
+            fr = self._threads.submit(ex.extract, right, mr)
+            fl = ex.extract(left, ml)
+            return fl, fr.result(), left, right
+        return ex.extract(left, ml), ex.extract(right, mr), left, right
+
+    # ------------------------------------------------------------------ track
+    def track(
+        self, frame: StereoFrame, masks: StereoMasks | None = None, timer: StageTimer | None = None
+    ) -> np.ndarray:
+        """Track one rectified stereo frame; returns its 3x4 camera-to-world pose.
+
+        ``masks`` (255 = dynamic) keep the detector off dynamic objects in each image.
+        Stage times go to ``timer`` (the caller's frame) or to ``self.timer``.
+        """
+        if self._closed:
+            raise RuntimeError("System.track called after shutdown()")
+        own = timer is None
+        tm = self.timer if own else timer
+        if own:
+            tm.start_frame(frame.index)
+        n = self._n
+        c = self.calib
+        if frame.left.shape[:2] != (c.height, c.width):
+            raise ValueError(
+                f"frame {frame.index}: image size {frame.left.shape[1]}x{frame.left.shape[0]} differs from the "
+                f"calibration's {c.width}x{c.height}"
+            )
+        with tm.stage("features"):
+            fl, fr, pl, pr = self._features(frame, masks)
+        with tm.stage("stereo"):
+            st = stereo_match(
+                fl.uv, fl.octave, fl.desc, fr.uv, fr.octave, fr.desc, pl, pr, self.extractor.scales, c.fx, c.bf
+            )
+            f = Frame.from_features(n, fl, st.u_right, st.depth, c)
+        self._refresh_last_pose()
+        n_stereo = int(np.count_nonzero(f.depth > 0))
+        status, method, is_kf = "tracked", "", False
+        reason = ""
+        with tm.stage("track"):
+            if not self._initialised:
+                ok = False
+            else:
+                ok, method, reason = self._track_frame(f)
+                f.T_cw = orthonormalize(f.T_cw)
+        with tm.stage("local_mapping"):
+            # the local BA submitted ba_lag_frames ago is applied now (waiting for it if
+            # needed): it ran while this frame's features, stereo and tracking were computed
+            self.mapper.collect(n)
+        if not self._initialised:
+            T_pred = self._predict()
+            f.T_cw = T_pred
+            with tm.stage("local_mapping"):
+                is_kf = self._initialise(f, first=(n == 0))
+            status, method = ("init", "init") if is_kf else ("lost", "")
+            if not is_kf:
+                log.warning(
+                    "frame %d: cannot initialise the map (%d stereo points < %d); "
+                    "pose from the constant-velocity prediction",
+                    frame.index,
+                    n_stereo,
+                    self.cfg.min_init_points,
+                )
+        elif ok:
+            with tm.stage("local_mapping"):
+                if self.tracker.need_new_keyframe(self.map, f):
+                    self._create_keyframe(f)
+                    is_kf = True
+        else:
+            T_pred = self._predict()
+            log.warning(
+                "frame %d: tracking lost (%s); pose from the constant-velocity prediction; "
+                "re-initialising the map at that pose",
+                frame.index,
+                reason,
+            )
+            status, method = "lost", ""
+            f.T_cw = T_pred
+            with tm.stage("local_mapping"):
+                self._new_map()
+                self._initialise(f, first=False)
+        T_cw = orthonormalize(f.T_cw)
+        f.T_cw = T_cw
+        # velocity and last frame
+        if self._last_T is not None and status != "lost":
+            self._velocity = orthonormalize(T_cw @ inv_T(self._last_T))
+            self.tracker.velocity = self._velocity
+        self._last_T = T_cw
+        # drop temporary VO matches; the frame becomes the tracker's last frame
+        temp = f.matched & (f.point_ids < 0)
+        f.clear_matches(np.flatnonzero(temp))
+        self.tracker.last = f
+        # trajectory record, relative to the reference keyframe when there is one
+        ref = self.tracker.ref_kf
+        if status != "lost" and ref is not None and ref.id in self.map.keyframes:
+            # a keyframe's own frame follows the keyframe exactly (an inline local BA may
+            # already have moved it)
+            T_rel = np.eye(4) if (is_kf and ref.frame_index == n) else T_cw @ inv_T(ref.T_cw)
+            self._records.append(_Record(ref.id, T_rel))
+        else:
+            self._records.append(_Record(None, T_cw.copy()))
+        self._states.append(
+            FrameState(
+                n, frame.index, status, method, is_kf, int(self.tracker.n_inliers), len(f), n_stereo, self._map_id
+            )
+        )
+        self._n += 1
+        if own:
+            tm.end_frame(status=status)
+        return inv_T(T_cw)[:3].copy()
+
+    def _refresh_last_pose(self) -> None:
+        """The last frame's pose from its reference keyframe, which local BA may have
+        moved since (ORB-SLAM2's ``UpdateLastFrame``): prediction and velocity use it."""
+        if not self._records or self.tracker.last is None:
+            return
+        r = self._records[-1]
+        if r.ref_kf is None:
+            return
+        T_ref = self.map.keyframe_pose(r.ref_kf)
+        if T_ref is None:
+            return
+        T = orthonormalize(r.T @ T_ref)
+        self._last_T = T
+        self.tracker.last.T_cw = T
+
+    def _predict(self) -> np.ndarray:
+        if self._last_T is None:
+            return self._anchor.copy()
+        if self._velocity is None:
+            return self._last_T.copy()
+        return self._velocity @ self._last_T
+
+    def _track_frame(self, f: Frame) -> tuple[bool, str, str]:
+        """Motion model, else reference keyframe; then the local map.
+        Returns ``(ok, method, reason for a failure)``."""
+        tr, mp = self.tracker, self.map
+        tr.n_inliers = 0
+        if tr.ref_kf is not None and tr.ref_kf.id not in mp.keyframes:
+            tr.ref_kf = mp.keyframes[max(mp.keyframes)] if mp.keyframes else None
+        ok, method = False, ""
+        if tr.velocity is not None and tr.last is not None:
+            ok = tr.track_motion_model(mp, f)
+            method = "motion"
+        if not ok:
+            ok = tr.track_reference_keyframe(mp, f, self._predict())
+            method = "reference"
+        if not ok:
+            return False, "", "no pose from the motion model nor from the reference keyframe"
+        if not tr.track_local_map(mp, f):
+            return False, method, f"{tr.n_inliers} inliers after local-map tracking < {self.cfg.min_inliers}"
+        return True, method, ""
+
+    # ------------------------------------------------------------ keyframes
+    def _initialise(self, f: Frame, first: bool) -> bool:
+        idx = np.flatnonzero(f.depth > 0)
+        if len(idx) < self.cfg.min_init_points:
+            return False
+        if first:
+            f.T_cw = self._anchor.copy()
+        kf = self._make_keyframe(f)
+        ids = self.map.new_points(kf.unproject(idx), kf.desc[idx], kf.id)
+        self.map.add_observations(kf, idx, ids)
+        f.point_ids[idx] = ids
+        f.match_xyz[idx] = self.map.pos[ids]
+        self.map.update_points(ids)
+        self.tracker.ref_kf = kf
+        self.tracker.last_kf_frame = f.index
+        self.tracker.n_inliers = len(idx)
+        self.mapper.process(kf, np.zeros(0, np.int64), f.index)
+        self._initialised = True
+        return True
+
+    def _make_keyframe(self, f: Frame) -> KeyFrame:
+        kf = KeyFrame(
+            id=self.map.new_kf_id(),
+            frame_index=f.index,
+            uv=f.uv,
+            octave=f.octave,
+            angle=f.angle,
+            desc=f.desc,
+            u_right=f.u_right,
+            depth=f.depth,
+            calib=f.calib,
+            T_cw=f.T_cw.copy(),
+        )
+        self.map.add_keyframe(kf)
+        self._kf_total += 1
+        return kf
+
+    def _create_keyframe(self, f: Frame) -> None:
+        """``Tracking::CreateNewKeyFrame`` + local mapping of the new keyframe."""
+        mp = self.map
+        kf = self._make_keyframe(f)
+        has = np.flatnonzero(f.point_ids >= 0)
+        mp.add_observations(kf, has, f.point_ids[has])
+        # new points from close stereo keypoints (all closer than th_depth, at least 100)
+        cand = np.flatnonzero((f.depth > 0) & (kf.point_ids < 0))
+        cand = cand[np.argsort(f.depth[cand], kind="stable")]
+        n_close = int(np.count_nonzero(f.depth[cand] < self.th_depth_m))
+        cand = cand[: max(n_close, min(100, len(cand)))]
+        ids = np.zeros(0, np.int64)
+        if len(cand):
+            ids = mp.new_points(kf.unproject(cand), kf.desc[cand], kf.id)
+            keep = mp.add_observations(kf, cand, ids)
+            f.point_ids[cand[keep]] = ids[keep]
+            f.match_xyz[cand[keep]] = mp.pos[ids[keep]]
+            ids = ids[keep]
+        self.tracker.ref_kf = kf
+        self.tracker.last_kf_frame = f.index
+        self.mapper.process(kf, ids, f.index)
+
+    # ---------------------------------------------------------------- results
+    def trajectory(self) -> np.ndarray:
+        """(N, 3, 4) camera-to-world poses of the left camera, one per frame fed."""
+        out = np.zeros((len(self._records), 3, 4))
+        for i, r in enumerate(self._records):
+            T_cw = r.T
+            if r.ref_kf is not None:
+                T_ref = self.map.keyframe_pose(r.ref_kf)
+                if T_ref is not None:
+                    T_cw = orthonormalize(r.T @ T_ref)
+            out[i] = inv_T(T_cw)[:3]
+        return out
+
+    def frame_states(self) -> list[FrameState]:
+        return list(self._states)
+
+    def lost_frames(self) -> list[int]:
+        """Positions (in the order fed) of the frames marked lost."""
+        return [s.index for s in self._states if s.status == "lost"]
+
+    def stats(self) -> dict[str, Any]:
+        ms = self.mapper.stats
+        st = self._states
+        return {
+            "frames": len(st),
+            "tracked": sum(s.status in ("tracked", "init") for s in st),
+            "lost": sum(s.status == "lost" for s in st),
+            "reinitialisations": max(0, self._map_id),
+            "keyframes": len(self.map.keyframes),
+            "keyframes_created": self._kf_total,
+            "map_points": self.map.stats()["map_points"],
+            "local_ba_runs": ms.ba_runs,
+            "local_ba_ms_median": float(np.median(ms.ba_ms)) if ms.ba_ms else 0.0,
+            "local_ba_wait_ms_median": float(np.median(ms.ba_wait_ms)) if ms.ba_wait_ms else 0.0,
+            "points_triangulated": ms.points_triangulated,
+            "points_fused": ms.points_fused,
+            "points_culled": ms.points_culled,
+            "keyframes_culled": ms.keyframes_culled,
+        }
+
+    def shutdown(self) -> None:
+        """Finish the pending local BA and stop the worker process and threads."""
+        if self._closed:
+            return
+        self.mapper.shutdown()
+        self.runner.shutdown()
+        if self._threads is not None:
+            self._threads.shutdown(wait=True)
+        self._closed = True
+
+    def __enter__(self) -> "System":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
+
+    def __del__(self) -> None:  # best effort: never leave a worker process behind
+        try:
+            if not self._closed:
+                self.shutdown()
+        except Exception:  # noqa: BLE001
+            pass
