@@ -83,3 +83,68 @@ def run_sequence(
     system = System(cfg, seq.calibration)
     return run_slam_job(seq, masker, system, out, indices, config_dict=to_dict(cfg),
                         save_masks=save_masks, progress=progress)
+
+
+# --------------------------------------------------------------------------- ROS bags
+
+
+def run_bag(
+    bag: str | Path,
+    out: str | Path,
+    cfg: Config | None = None,
+    *,
+    left_topic: str | None = None,
+    right_topic: str | None = None,
+    left_info: str | None = "auto",
+    right_info: str | None = "auto",
+    calib: str | Path | None = None,
+    config_path: str | Path | None = None,
+    tolerance_s: float = 0.005,
+    rectify: str = "auto",
+    frames: str | int | None = None,
+    models_dir: str | Path | None = None,
+    save_masks: bool = False,
+    outputs: str | None = None,
+    progress: Callable[[int, int, dict], None] | None = None,
+):
+    """Mask and track a stereo bag (ROS 1 .bag, ROS 2 .db3, .mcap); results as for
+    :func:`run_sequence` plus ``out/output.<fmt>`` and ``out/bag.json``.  Calibration:
+    ``calib`` (YAML) > the bag's CameraInfo > ``config_path`` when it is an ORB-SLAM2
+    settings file.  See :func:`dynastereo.ros.bagrun.run_bag`."""
+    from .ros.bagrun import run_bag as _run_bag
+    from .ros.messages import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC
+
+    fallback = None
+    if config_path is not None:
+        from .io.calib import is_orbslam2_settings, read_yaml_file
+
+        if is_orbslam2_settings(read_yaml_file(config_path)):
+            fallback = config_path
+    return _run_bag(bag, out, cfg, left_topic=left_topic or DEFAULT_LEFT_TOPIC,
+                    right_topic=right_topic or DEFAULT_RIGHT_TOPIC, left_info=left_info, right_info=right_info,
+                    calib=calib, fallback_calib=fallback, tolerance_s=tolerance_s, rectify=rectify, frames=frames,
+                    models_dir=models_dir, save_masks=save_masks, outputs=outputs, progress=progress)
+
+
+def export_bag(
+    sequence: str | Path | Sequence,
+    out: str | Path,
+    fmt: str = "ros1",
+    *,
+    frames: str | int | None = None,
+    calib: str | Path | None = None,
+    color: bool = False,
+    encoding: str = "auto",
+    raw: bool = False,
+    time_offset_s: float = 0.0,
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+):
+    """Write a stereo sequence folder as a bag (``ros1`` .bag, ``ros2`` .db3, ``mcap``) on
+    ``/camera/{left,right}/image_raw`` + ``camera_info``; see :func:`dynastereo.ros.bags.export_bag`."""
+    from .ros.bags import export_bag as _export
+
+    seq = load_sequence(sequence, calib, color=color)
+    indices = parse_frame_spec(frames, len(seq))
+    return _export(seq, out, fmt, frames=indices, encoding=encoding, raw=raw, time_offset_s=time_offset_s,
+                   overwrite=overwrite, progress=progress)

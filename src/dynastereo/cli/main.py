@@ -107,7 +107,7 @@ def mask(
 
 @app.command()
 def run(
-    sequence: Path = typer.Argument(..., help="Sequence folder: KITTI odometry, EuRoC mav0, or left/right folders + YAML calibration."),
+    sequence: Optional[Path] = typer.Argument(None, help="Sequence folder: KITTI odometry, EuRoC mav0, or left/right folders + YAML calibration (or --bag)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output directory."),
     masker: Optional[str] = typer.Option(None, help="none | box | outline | seg."),
     detector: Optional[str] = typer.Option(None, help="yolov3, yolov3-tiny, yolox-nano, fastestdet, yolo11n-int8, oracle, or a .cfg/.onnx path."),
@@ -117,10 +117,21 @@ def run(
     calib: Optional[Path] = typer.Option(None, "--calib", help="YAML calibration for a generic folder pair."),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
     save_masks: bool = typer.Option(False, "--save-masks", help="Also write DIR/masks/{left,right}/NNNNNN.png."),
+    bag: Optional[Path] = typer.Option(None, "--bag", help="Read a ROS bag instead of a folder: ROS 1 .bag, ROS 2 .db3 (or bag directory), .mcap. Writes DIR/output.<same format> too."),
+    left_topic: str = typer.Option("/camera/left/image_raw", "--left-topic", help="[--bag] Left sensor_msgs/Image or CompressedImage topic."),
+    right_topic: str = typer.Option("/camera/right/image_raw", "--right-topic", help="[--bag] Right image topic."),
+    left_info: str = typer.Option("auto", "--left-info", help="[--bag] Left CameraInfo topic; auto = camera_info beside the image topic; none = ignore."),
+    right_info: str = typer.Option("auto", "--right-info", help="[--bag] Right CameraInfo topic (auto / none / a topic)."),
+    sync_tolerance: float = typer.Option(5.0, "--sync-tolerance", help="[--bag] Largest left/right stamp difference of a pair, ms."),
+    rectify: str = typer.Option("auto", "--rectify", help="[--bag] Rectify with CameraInfo: auto (unless already rectified) | yes | no."),
+    bag_outputs: str = typer.Option("all", "--bag-outputs", help="[--bag] Output bag content: all, or a comma list of odometry,tf,masked,masks,disparity."),
 ) -> None:
-    """Mask and track a stereo sequence: trajectory, timing and run summary out."""
-    from ..api import run_sequence
+    """Mask and track a stereo sequence (a folder or a ROS bag): trajectory, timing and run summary out."""
+    from ..api import run_bag, run_sequence
 
+    if (sequence is None) == (bag is None):
+        _fail(DynastereoError("give either a SEQUENCE folder or --bag FILE (not both)"))
+    report = None
     try:
         overrides = {"detector.name": detector, "stereo.algorithm": stereo, "masker.kind": masker}
         cfg = _build_config(config, overrides)
@@ -130,8 +141,17 @@ def run(
             def on_frame(done: int, total: int, rec: dict) -> None:
                 prog.update(task, completed=done, total=total, info=f"{rec['fps']:.1f} FPS  {rec['status']}")
 
-            result = run_sequence(sequence, out, cfg, frames=frames, calib=calib, models_dir=models_dir,
-                                  save_masks=save_masks, progress=on_frame)
+            if bag is not None:
+                info = {"auto": "auto", "none": None}
+                br = run_bag(bag, out, cfg, left_topic=left_topic, right_topic=right_topic,
+                             left_info=info.get(left_info.lower(), left_info),
+                             right_info=info.get(right_info.lower(), right_info), calib=calib, config_path=config,
+                             tolerance_s=sync_tolerance / 1000.0, rectify=rectify, frames=frames,
+                             models_dir=models_dir, save_masks=save_masks, outputs=bag_outputs, progress=on_frame)
+                result, report = br.slam, br.report
+            else:
+                result = run_sequence(sequence, out, cfg, frames=frames, calib=calib, models_dir=models_dir,
+                                      save_masks=save_masks, progress=on_frame)
     except DynastereoError as e:
         _fail(e)
     out_console.print(timing_table(result.summary, "timing (ms per frame)"))
@@ -140,6 +160,78 @@ def run(
         f"{len(result.frames)} frames, {result.fps:.1f} FPS end to end; lost {len(result.lost)}, "
         f"keyframes {st.get('keyframes')}, map points {st.get('map_points')} -> {out}"
     )
+    if report is not None:
+        out_console.print(
+            f"bag: {report['pairs']} stereo pairs from {report['left_topic']} + {report['right_topic']} "
+            f"(unpaired: {report['unpaired_left']} left, {report['unpaired_right']} right, "
+            f"tolerance {report['tolerance_s'] * 1000:g} ms); calibration: {report['calibration_source']}"
+            f"{', rectified on read' if report['rectified_on_read'] else ''}; output bag {report['output_bag']}",
+            highlight=False)
+
+
+@app.command("export-bag")
+def export_bag_cmd(
+    sequence: Path = typer.Argument(..., help="Sequence folder (KITTI layout; EuRoC and generic folders too)."),
+    out: Path = typer.Argument(..., help="Output bag file: .bag (ros1), .db3 (ros2), .mcap."),
+    fmt: Optional[str] = typer.Option(None, "--format", "-f", help="ros1 | ros2 | mcap (default: from OUT's suffix)."),
+    frames: Optional[str] = typer.Option(None, help="A count N, or inclusive index ranges a-b,c-d."),
+    encoding: str = typer.Option("auto", "--encoding", help="auto (mono8/bgr8) | mono8 | mono16 | bgr8 | rgb8 | png | jpeg (CompressedImage on <topic>/compressed)."),
+    color: bool = typer.Option(False, "--color", help="KITTI: the colour pair image_2/image_3."),
+    raw: bool = typer.Option(False, "--raw", help="Raw images + raw CameraInfo (K, D, R, P) for sequences rectified on read (EuRoC)."),
+    calib: Optional[Path] = typer.Option(None, "--calib", help="YAML calibration for a generic folder pair."),
+    time_offset: float = typer.Option(0.0, "--time-offset", help="Seconds added to every stamp."),
+    force: bool = typer.Option(False, "--force", help="Overwrite OUT."),
+) -> None:
+    """Write a stereo sequence as a ROS bag: /camera/{left,right}/image_raw + camera_info, stamps from times.txt."""
+    from ..api import export_bag
+    from ..ros.bags import BAG_SUFFIX, check_format
+
+    try:
+        if fmt is None:
+            suffix = out.suffix.lower()
+            fmt = next((k for k, v in BAG_SUFFIX.items() if v == suffix), None)
+            if fmt is None:
+                raise DynastereoError(f"--format not given and {out.name!r} has no .bag/.db3/.mcap suffix")
+        fmt = check_format(fmt)
+        if out.suffix.lower() != BAG_SUFFIX[fmt]:
+            raise DynastereoError(f"a {fmt} bag must be named *{BAG_SUFFIX[fmt]}, got {out.name!r}")
+        with _progress() as prog:
+            task = prog.add_task(f"export {fmt}", total=None, info="")
+            r = export_bag(sequence, out, fmt, frames=frames, calib=calib, color=color, encoding=encoding, raw=raw,
+                           time_offset_s=time_offset, overwrite=force,
+                           progress=lambda i, n: prog.update(task, completed=i, total=n))
+    except DynastereoError as e:
+        _fail(e)
+    out_console.print(f"wrote {r.path} ({r.format}, {r.frames} frames): "
+                      + ", ".join(f"{t} {n}" for t, n in r.topics.items()), highlight=False)
+
+
+@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def node(
+    ctx: typer.Context,
+    launch: bool = typer.Option(False, "--launch", help="Run `roslaunch dynastereo dynastereo.launch ARGS` (arg:=value ...)."),
+    package_path: bool = typer.Option(False, "--package-path", help="Print the ROS package folder (for ROS_PACKAGE_PATH) and exit."),
+) -> None:
+    """The live ROS 1 node (needs Debian's python3-rospy etc.; extra arguments go to ROS: remaps, _param:=value)."""
+    from importlib.resources import files
+
+    pkg = str(files("dynastereo.ros") / "ros_package")
+    if package_path:
+        print(pkg)
+        return
+    os.environ["DYNASTEREO_PYTHON"] = sys.executable
+    paths = [p for p in os.environ.get("ROS_PACKAGE_PATH", "").split(os.pathsep) if p]
+    os.environ["ROS_PACKAGE_PATH"] = os.pathsep.join([pkg] + [p for p in paths if p != pkg])
+    if launch:
+        import shutil
+
+        exe = shutil.which("roslaunch")
+        if exe is None:
+            _fail(DynastereoError("roslaunch not found (Debian: apt-get install python3-roslaunch rosout)"))
+        os.execv(exe, [exe, "dynastereo", "dynastereo.launch", *ctx.args])
+    from ..ros.ros1 import main as node_main
+
+    raise typer.Exit(node_main(["dynastereo_node", *ctx.args]))
 
 
 @models_app.callback()

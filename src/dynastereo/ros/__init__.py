@@ -1,0 +1,61 @@
+"""ROS interface: offline bags (no ROS installation needed) and a live ROS 1 node.
+
+* :mod:`.convert` -- numpy <-> message conversions (images, CameraInfo, poses); no cv_bridge.
+* :mod:`.messages` -- the output messages and topic names, for any message library.
+* :mod:`.bags` -- ROS 1 ``.bag`` / ROS 2 ``.db3`` / ``.mcap`` reading (:class:`BagStereoSequence`),
+  writing (:class:`BagWriter`) and :func:`export_bag` (a sequence folder as a bag).
+* :mod:`.bagrun` -- :func:`run_bag`, what ``dynastereo run --bag`` runs.
+* :mod:`.core` -- :class:`StereoNodeCore`, the node's transport-agnostic logic.
+* :mod:`.ros1` -- the ``rospy`` adapter (``dynastereo_node``), :mod:`.player` -- a sequence
+  published as live topics.  Both need ROS 1 (Debian: ``python3-rospy`` ...).
+
+Nothing here imports ``rospy`` at import time; only :mod:`.ros1` and :mod:`.player` need it.
+"""
+
+from __future__ import annotations
+
+from .bagrun import ALL_OUTPUTS, BagRunResult, run_bag
+from .bags import BAG_FORMATS, BagStereoSequence, BagWriter, ExportResult, bag_format, bag_topics, export_bag, \
+    read_messages, read_odometry
+from .convert import ImageDecoder, calibration_from_camera_info, camera_info_fields, image_fields
+from .core import DropOldestQueue, NodeResult, NodeSink, StereoInput, StereoNodeCore
+from .messages import (
+    DEFAULT_LEFT_INFO,
+    DEFAULT_LEFT_TOPIC,
+    DEFAULT_RIGHT_INFO,
+    DEFAULT_RIGHT_TOPIC,
+    OUTPUT_TOPICS,
+    DisparityData,
+    OdometryData,
+)
+
+__all__ = [
+    "ALL_OUTPUTS",
+    "BAG_FORMATS",
+    "BagRunResult",
+    "BagStereoSequence",
+    "BagWriter",
+    "DEFAULT_LEFT_INFO",
+    "DEFAULT_LEFT_TOPIC",
+    "DEFAULT_RIGHT_INFO",
+    "DEFAULT_RIGHT_TOPIC",
+    "DisparityData",
+    "DropOldestQueue",
+    "ExportResult",
+    "ImageDecoder",
+    "NodeResult",
+    "NodeSink",
+    "OUTPUT_TOPICS",
+    "OdometryData",
+    "StereoInput",
+    "StereoNodeCore",
+    "bag_format",
+    "bag_topics",
+    "calibration_from_camera_info",
+    "camera_info_fields",
+    "export_bag",
+    "image_fields",
+    "read_messages",
+    "read_odometry",
+    "run_bag",
+]

@@ -1,0 +1,181 @@
+"""``dynastereo run --bag``: a stereo bag through masking + SLAM, results into a bag.
+
+The bag is read as a :class:`~dynastereo.ros.bags.BagStereoSequence` and fed to the same
+job as a sequence folder (:func:`~dynastereo.pipeline.run_slam_job`: trajectory files,
+``timing.json``, ``run.json``), with the SLAM system wrapped so that every tracked frame
+is also written to ``DIR/output.{bag,db3,mcap}`` (the input's format): odometry, TF, the
+masked images, the masks and the disparity (topics in :mod:`dynastereo.ros.messages`).
+``DIR/bag.json`` records the pairing (pairs, unpaired left/right messages, tolerance),
+the calibration source and what was written.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from ..config import Config, to_dict
+from ..errors import InputError
+from ..types import StereoFrame, StereoMasks
+from .bags import BAG_SUFFIX, BagStereoSequence, BagWriter
+from .convert import masked_image, twist_between
+from .core import build_masker, disparity_data
+from .messages import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC, ODOM_FRAME, OUTPUT_TOPICS, OUTPUT_TYPES, OdometryData
+
+ALL_OUTPUTS = ("odometry", "tf", "masked", "masks", "disparity")
+
+
+def parse_outputs(spec: str | list[str] | tuple[str, ...] | None) -> tuple[str, ...]:
+    """``"all"`` / None -> every output; else a comma list of odometry, tf, masked, masks, disparity."""
+    if spec is None:
+        return ALL_OUTPUTS
+    items = [s.strip() for s in (spec.split(",") if isinstance(spec, str) else spec) if s.strip()]
+    if items == ["all"]:
+        return ALL_OUTPUTS
+    bad = [s for s in items if s not in ALL_OUTPUTS]
+    if bad:
+        raise InputError(f"unknown bag output(s) {', '.join(bad)}; choose from {', '.join(ALL_OUTPUTS)} or 'all'")
+    return tuple(items)
+
+
+class BagOutput:
+    """Writes the per-frame results into the output bag."""
+
+    def __init__(self, path: Path, fmt: str, cfg: Config, calibration, camera_frame: str,
+                 outputs: tuple[str, ...] = ALL_OUTPUTS) -> None:
+        self.writer = BagWriter(path, fmt, overwrite=True)
+        self.b = self.writer.builder
+        self.cfg = cfg
+        self.calibration = calibration
+        self.camera_frame = camera_frame
+        self.outputs = outputs
+        self._matcher = None
+        self._prev: tuple[np.ndarray, int] | None = None
+        keys = [k for k in OUTPUT_TOPICS if self._key_on(k)]
+        for k in keys:
+            self.writer.add(OUTPUT_TOPICS[k], OUTPUT_TYPES[k])
+
+    def _key_on(self, key: str) -> bool:
+        group = {"left_masked": "masked", "right_masked": "masked", "left_mask": "masks", "right_mask": "masks"}
+        return group.get(key, key) in self.outputs
+
+    def write(self, seq_pos: int, frame: StereoFrame, masks: StereoMasks | None, pose: np.ndarray,
+              stamp_ns: int) -> None:
+        w, b, cf = self.writer, self.b, self.camera_frame
+        T = np.vstack([np.asarray(pose, np.float64)[:3], [0.0, 0.0, 0.0, 1.0]])
+        prev = self._prev
+        lin, ang = twist_between(prev[0] if prev else None, T, (stamp_ns - prev[1]) * 1e-9 if prev else 0.0)
+        self._prev = (T, stamp_ns)
+        odo = OdometryData(stamp_ns=stamp_ns, pose=T, frame_id=ODOM_FRAME, child_frame_id=cf, linear=lin,
+                           angular=ang, seq=seq_pos)
+        if "odometry" in self.outputs:
+            w.write(OUTPUT_TOPICS["odometry"], stamp_ns, b.odometry(odo))
+        if "tf" in self.outputs:
+            w.write(OUTPUT_TOPICS["tf"], stamp_ns, b.tf(odo))
+        shape = frame.left.shape[:2]
+        ml = masks.left if masks is not None else np.zeros(shape, np.uint8)
+        mr = masks.right if masks is not None else np.zeros(shape, np.uint8)
+        if "masked" in self.outputs:
+            w.write(OUTPUT_TOPICS["left_masked"], stamp_ns, b.image(masked_image(frame.left, ml), stamp_ns, cf,
+                                                                    seq=seq_pos))
+            w.write(OUTPUT_TOPICS["right_masked"], stamp_ns, b.image(masked_image(frame.right, mr), stamp_ns, cf,
+                                                                     seq=seq_pos))
+        if "masks" in self.outputs:
+            w.write(OUTPUT_TOPICS["left_mask"], stamp_ns, b.image(ml, stamp_ns, cf, "mono8", seq=seq_pos))
+            w.write(OUTPUT_TOPICS["right_mask"], stamp_ns, b.image(mr, stamp_ns, cf, "mono8", seq=seq_pos))
+        if "disparity" in self.outputs:
+            if masks is not None and masks.disparity is not None:
+                d = masks.disparity
+            else:
+                from ..masking import StereoMatcher
+
+                if self._matcher is None:
+                    self._matcher = StereoMatcher(self.cfg.stereo)
+                d = self._matcher.compute(frame.left_gray, frame.right_gray, scale=int(self.cfg.stereo.scale))
+            w.write(OUTPUT_TOPICS["disparity"], stamp_ns,
+                    b.disparity(disparity_data(d, self.calibration, self.cfg), stamp_ns, cf, seq=seq_pos))
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+class _PublishingSystem:
+    """The SLAM system, plus: each tracked frame goes into the output bag."""
+
+    def __init__(self, system: Any, out: BagOutput, stamps_ns: np.ndarray) -> None:
+        self._system = system
+        self._out = out
+        self._stamps = stamps_ns
+        self._n = 0
+
+    def track(self, frame: StereoFrame, masks: StereoMasks | None = None, timer: Any = None) -> np.ndarray:
+        pose = self._system.track(frame, masks, timer)
+        self._out.write(self._n, frame, masks, pose, int(self._stamps[frame.index]))
+        self._n += 1
+        return pose
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._system, name)
+
+
+@dataclass
+class BagRunResult:
+    out: Path
+    output_bag: Path
+    slam: Any  # pipeline.SlamJobResult
+    report: dict[str, Any]  # pairing + output counts (bag.json)
+
+
+def run_bag(
+    bag: str | Path,
+    out: str | Path,
+    cfg: Config | None = None,
+    *,
+    left_topic: str = DEFAULT_LEFT_TOPIC,
+    right_topic: str = DEFAULT_RIGHT_TOPIC,
+    left_info: str | None = "auto",
+    right_info: str | None = "auto",
+    calib: str | Path | None = None,
+    fallback_calib: str | Path | None = None,
+    tolerance_s: float = 0.005,
+    rectify: str = "auto",
+    frames: str | int | None = None,
+    models_dir: str | Path | None = None,
+    save_masks: bool = False,
+    outputs: str | tuple[str, ...] | None = None,
+    progress: Callable[[int, int, dict], None] | None = None,
+) -> BagRunResult:
+    """Run masking + SLAM on a stereo bag (module doc); see :class:`BagStereoSequence` for
+    the topic, calibration and pairing arguments (``fallback_calib``: used only when the bag
+    has no CameraInfo, e.g. the ORB-SLAM2 settings file given as ``--config``)."""
+    from ..io.frames import parse_frame_spec
+    from ..pipeline import run_slam_job
+    from ..slam import System
+
+    cfg = cfg or Config()
+    outs = parse_outputs(outputs)
+    out = Path(out)
+    seq = BagStereoSequence(bag, left_topic, right_topic, left_info, right_info, calib, tolerance_s, rectify,
+                            fallback_calib=fallback_calib)
+    try:
+        indices = parse_frame_spec(frames, len(seq))
+        masker = build_masker(cfg, Path(models_dir) if models_dir else None)[0]  # as the node builds it
+        system = System(cfg, seq.calibration)
+        out.mkdir(parents=True, exist_ok=True)
+        out_bag = out / ("output" + BAG_SUFFIX[seq.format])
+        writer = BagOutput(out_bag, seq.format, cfg, seq.calibration, seq.frame_id, outs)
+        try:
+            res = run_slam_job(seq, masker, _PublishingSystem(system, writer, seq.stamps_ns), out, indices,
+                               config_dict=to_dict(cfg), save_masks=save_masks, progress=progress)
+        finally:
+            writer.close()
+        report = {"bag": str(Path(bag)), "format": seq.format, **seq.report.to_dict(),
+                  "frames_requested": len(indices), "output_bag": str(out_bag), "output_topics": writer.writer.counts}
+        (out / "bag.json").write_text(json.dumps(report, indent=1))
+        return BagRunResult(out, out_bag, res, report)
+    finally:
+        seq.close()

@@ -1,0 +1,661 @@
+"""The node's logic, transport-agnostic: :class:`StereoNodeCore`.
+
+A ROS adapter (ROS 1: :mod:`dynastereo.ros.ros1`; a ROS 2 ``rclpy`` one would be the same
+size) only converts messages to :class:`StereoInput` (numpy images + stamp), calls
+:meth:`StereoNodeCore.submit`, and implements :class:`NodeSink` to publish what the core
+hands back.  Everything else is here: rectification, masking, tracking, odometry and
+disparity, live parameter changes, the bounded queue and the statistics.
+
+Keeping up
+----------
+``submit`` never blocks and never queues without bound: the input queue holds at most
+``queue_size`` pairs (default 1) and, when a new pair arrives while it is full, the
+*oldest* waiting pair is dropped and counted (``stats.dropped``).  Processing runs on one
+thread by default; ``pipelined=True`` uses two: masking of pair k+1 overlaps tracking of
+pair k (OpenCV and onnxruntime release the GIL), and the masking thread takes the next
+pair only once the tracker has taken the previous one, so at most ``queue_size + 2``
+pairs are in flight and a busy tracker never makes masked pairs queue up.  Pipelining
+raises the frame rate a machine can sustain when it has cores to spare; on two shared
+cores the two stages slow each other down and latency rises (benchmarks/bench_ros_latency.py),
+hence serial is the default.  Poses are published as soon as tracking returns
+(:meth:`NodeSink.publish_pose`), images and disparity after that.
+
+Determinism
+-----------
+Frames that are not dropped are processed in arrival order with the same configuration,
+so the poses equal those of an offline run (``System.track`` on the same frames, same
+seed) -- the live test checks this.
+
+Parameters
+----------
+``update_params({"stereo.block_size": 21, ...})`` validates the change (the Config
+dataclasses and :func:`~dynastereo.masking.create_masker` raise ConfigError on a bad
+value, the old configuration stays), builds the new masker off the processing threads
+(the detector network is reloaded only when a ``detector.*`` key changed) and swaps it
+in before the next frame.  ``stereo.*``, ``masker.*`` and ``detector.*`` are live;
+``slam.*`` and ``seed`` are fixed at start-up (the map would not survive a change).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from ..config import Config, to_dict
+from ..errors import ConfigError
+from ..io.calib import RawStereoCalibration
+from ..io.rectify import Rectifier
+from ..timing import StageTimer
+from ..types import StereoCalibration, StereoFrame, StereoMasks
+from .convert import twist_between
+from .messages import DEFAULT_LEFT_FRAME, ODOM_FRAME, DisparityData, OdometryData
+
+log = logging.getLogger("dynastereo.ros")
+
+LIVE_SECTIONS = ("stereo", "masker", "detector")
+MASK_STAGES = ("disparity", "outline", "transfer", "segment", "boxes", "ground")
+
+
+@dataclass
+class StereoInput:
+    """One stereo pair as the transport delivered it (raw or rectified, per calibration)."""
+
+    left: np.ndarray  # uint8 gray (H, W) or BGR (H, W, 3)
+    right: np.ndarray
+    stamp_ns: int  # the left image's header stamp
+    frame_id: str = ""
+    received: float = field(default_factory=time.time)  # wall clock (s) when the pair was complete
+
+
+@dataclass
+class NodeResult:
+    """What processing one pair produced (handed to the :class:`NodeSink`)."""
+
+    position: int  # 0, 1, ... in the order tracked
+    stamp_ns: int
+    frame: StereoFrame  # rectified
+    masks: StereoMasks | None
+    pose: np.ndarray  # 3x4 camera-to-world (odom = first frame's left camera)
+    odometry: OdometryData
+    status: str  # init | tracked | lost
+    ms: dict[str, float]  # per stage
+    received: float  # wall clock s
+    pose_time: float  # wall clock s when tracking returned
+
+
+class NodeSink(Protocol):
+    """The publishing side of an adapter."""
+
+    def publish_pose(self, result: NodeResult) -> None: ...
+
+    def publish_images(self, result: NodeResult, disparity: DisparityData | None) -> None: ...
+
+    def wants_disparity(self) -> bool: ...
+
+
+class DropOldestQueue:
+    """A bounded FIFO: ``put`` on a full queue evicts (and counts) the oldest item."""
+
+    def __init__(self, maxsize: int = 1) -> None:
+        if int(maxsize) < 1:
+            raise ConfigError(f"queue_size must be >= 1, got {maxsize}")
+        self.maxsize = int(maxsize)
+        self._dq: deque = deque()
+        self._cv = threading.Condition()
+        self._closed = False
+        self.dropped = 0
+        self.high_water = 0
+
+    def put(self, item: Any) -> int:
+        """Append ``item``; returns how many old items were dropped for it (0 or more)."""
+        with self._cv:
+            if self._closed:
+                return 0
+            n = 0
+            while len(self._dq) >= self.maxsize:
+                self._dq.popleft()
+                n += 1
+            self._dq.append(item)
+            self.dropped += n
+            self.high_water = max(self.high_water, len(self._dq))
+            self._cv.notify()
+            return n
+
+    def get(self, timeout: float | None = None) -> Any:
+        """The oldest item; None when closed (or on timeout)."""
+        with self._cv:
+            end = None if timeout is None else time.monotonic() + timeout
+            while not self._dq and not self._closed:
+                left = None if end is None else end - time.monotonic()
+                if left is not None and left <= 0:
+                    return None
+                self._cv.wait(left)
+            if self._dq:
+                return self._dq.popleft()
+            return None
+
+    def resize(self, maxsize: int) -> int:
+        """New capacity; surplus oldest items are dropped (returned count)."""
+        if int(maxsize) < 1:
+            raise ConfigError(f"queue_size must be >= 1, got {maxsize}")
+        with self._cv:
+            self.maxsize = int(maxsize)
+            n = 0
+            while len(self._dq) > self.maxsize:
+                self._dq.popleft()
+                n += 1
+            self.dropped += n
+            return n
+
+    def close(self) -> int:
+        """Stop: waiting getters return None; returns the number of items discarded."""
+        with self._cv:
+            self._closed = True
+            n = len(self._dq)
+            self._dq.clear()
+            self._cv.notify_all()
+            return n
+
+    def __len__(self) -> int:
+        with self._cv:
+            return len(self._dq)
+
+
+@dataclass
+class NodeStats:
+    received: int = 0  # pairs submitted
+    processed: int = 0  # pairs tracked and published
+    dropped: int = 0  # pairs evicted from the full queue (never processed)
+    errors: int = 0  # pairs that raised while processing
+    discarded_at_stop: int = 0
+    lost: int = 0
+    param_updates: int = 0
+    param_rejections: int = 0
+    latency_stamp_ms: list[float] = field(default_factory=list)  # stamp -> odometry published
+    latency_receipt_ms: list[float] = field(default_factory=list)  # pair complete -> odometry published
+    last_error: str = ""
+
+    def summary(self) -> dict[str, Any]:
+        def q(v: list[float]) -> dict[str, float]:
+            if not v:
+                return {}
+            a = np.asarray(v, dtype=np.float64)
+            return {"median": round(float(np.median(a)), 3), "p95": round(float(np.percentile(a, 95)), 3),
+                    "max": round(float(a.max()), 3), "n": int(a.size)}
+
+        d = {k: getattr(self, k) for k in ("received", "processed", "dropped", "errors", "discarded_at_stop", "lost",
+                                            "param_updates", "param_rejections", "last_error")}
+        d["latency_stamp_ms"] = q(self.latency_stamp_ms)
+        d["latency_receipt_ms"] = q(self.latency_receipt_ms)
+        return d
+
+
+def flatten_live(cfg: Config) -> dict[str, Any]:
+    """``{"stereo.block_size": 15, ...}`` for the live sections (None values left out)."""
+    out: dict[str, Any] = {}
+
+    def walk(prefix: str, v: Any) -> None:
+        if isinstance(v, dict):
+            for k, vv in v.items():
+                walk(f"{prefix}.{k}" if prefix else k, vv)
+        elif v is not None:
+            out[prefix] = v
+
+    d = to_dict(cfg)
+    for s in LIVE_SECTIONS:
+        walk(s, d[s])
+    return out
+
+
+def disparity_data(disp: np.ndarray, calib: StereoCalibration, cfg: Config) -> DisparityData:
+    s = cfg.stereo
+    lo = float(max(s.min_disparity, 0))
+    return DisparityData(image=disp, f=calib.fx, T=calib.baseline, min_disparity=lo,
+                         max_disparity=lo + float(s.num_disparities), delta_d=1.0 / 16.0)
+
+
+def build_masker(cfg: Config, models_dir: Path | None = None, detector: Any = None,
+                 detector_cfg: dict | None = None) -> tuple[Any, Any, dict | None]:
+    """``(masker, detector, detector config)`` for ``cfg``: the detector is reused when its
+    configuration equals ``detector_cfg`` (or when it was given and ``detector_cfg`` is None),
+    else loaded anew.  The node and ``run --bag`` build their maskers with this."""
+    from ..masking import create_masker
+
+    if str(cfg.detector.name) == "oracle":
+        raise ConfigError("detector 'oracle' needs a synthetic sequence's ground truth; not available for bags "
+                          "or live topics")
+    kind = str(cfg.masker.kind).lower()
+    needs_detector = kind in ("outline", "box")
+    if needs_detector and (detector is None or (detector_cfg is not None and detector_cfg != to_dict(cfg.detector))):
+        from ..masking.detection import create_detector
+
+        detector, detector_cfg = create_detector(cfg.detector, models_dir), to_dict(cfg.detector)
+    masker = create_masker(cfg, models_dir=models_dir, detector=detector if needs_detector else None)
+    return masker, detector, detector_cfg
+
+
+class StereoNodeCore:
+    """Stereo pairs in; masks, poses and disparity out (module doc).
+
+    ``calibration``: known at start (a calibration file) or set later from the first
+    CameraInfo pair with :meth:`set_calibration` (raw calibrations are rectified with a
+    :class:`~dynastereo.io.rectify.Rectifier`).  ``detector``: a ready detector instead of the
+    one ``cfg.detector`` names; ``masker``: a ready masker instead of the one ``cfg``
+    builds (tests; a live parameter change replaces it with one built from ``cfg``).
+    ``sink``: where results go (may be None: then use :meth:`process` and its return value).
+    """
+
+    def __init__(
+        self,
+        cfg: Config | None = None,
+        *,
+        calibration: StereoCalibration | RawStereoCalibration | None = None,
+        models_dir: str | Path | None = None,
+        detector: Any = None,
+        masker: Any = None,
+        queue_size: int = 1,
+        pipelined: bool = False,
+        sink: NodeSink | None = None,
+        odom_frame: str = ODOM_FRAME,
+        camera_frame: str = "",
+    ) -> None:
+        self.cfg = cfg or Config()
+        self.models_dir = Path(models_dir) if models_dir else None
+        self.sink = sink
+        self.pipelined = bool(pipelined)
+        self.odom_frame = odom_frame
+        self.camera_frame = camera_frame
+        self.stats = NodeStats()
+        self.timer = StageTimer()
+        self.timer.add_derived("masking", ("detect",) + MASK_STAGES)
+        self._detector = detector
+        self._detector_cfg = to_dict(self.cfg.detector) if detector is None else None
+        self._masker = masker if masker is not None else self._build_masker(self.cfg)
+        self._masker_cfg = self.cfg
+        self._pending: tuple[Any, Config] | None = None
+        self._param_lock = threading.Lock()
+        self._slam_lock = threading.RLock()
+        self._matcher = None  # for published disparity when the masker computed none
+        self._matcher_cfg: Any = None
+        self._system: Any = None
+        self._calib_in: StereoCalibration | RawStereoCalibration | None = None
+        self.calibration: StereoCalibration | None = None
+        self.rectifier: Rectifier | None = None
+        self._stamps: list[int] = []
+        self._prev: tuple[np.ndarray, int] | None = None
+        self._position = 0
+        self._inq = DropOldestQueue(queue_size)
+        self._slot: list = []  # masked pair waiting for the tracker (0 or 1 item)
+        self._slot_cv = threading.Condition()
+        self._threads: list[threading.Thread] = []
+        self._running = False
+        self._idle = threading.Condition()
+        self._in_flight = 0
+        if calibration is not None:
+            self.set_calibration(calibration)
+
+    # ------------------------------------------------------------------ setup
+    def _build_masker(self, cfg: Config) -> Any:
+        masker, self._detector, self._detector_cfg = build_masker(cfg, self.models_dir, self._detector,
+                                                                  self._detector_cfg)
+        return masker
+
+    def set_calibration(self, calibration: StereoCalibration | RawStereoCalibration) -> bool:
+        """Set the camera once (creates the SLAM system); True if it was new.  A different
+        calibration later raises ConfigError (the map is in the first camera's units)."""
+        with self._slam_lock:
+            if self._calib_in is not None:
+                if _same_calibration(self._calib_in, calibration):
+                    return False
+                raise ConfigError("the stereo calibration changed while running; restart the node to use it")
+            from ..slam import System
+
+            if isinstance(calibration, RawStereoCalibration):
+                self.rectifier = Rectifier(calibration)
+                self.calibration = self.rectifier.calibration
+            else:
+                self.rectifier = None
+                self.calibration = calibration
+            with _sigint_blocked():  # the BA worker process inherits it: Ctrl-C / roslaunch's
+                self._system = System(self.cfg, self.calibration)  # SIGINT to the group is ours to handle
+            self._calib_in = calibration
+            return True
+
+    def warm_up(self) -> None:
+        """Run the detector once on a black image (its first call is slow: lazy
+        initialisation), so the first real frame does not pay for it.  No state changes."""
+        det = self._detector
+        if det is not None and self.calibration is not None:
+            c = self.calibration
+            det.detect(np.zeros((c.height, c.width, 3), np.uint8))
+
+    @property
+    def ready(self) -> bool:
+        return self._system is not None
+
+    @property
+    def queue_size(self) -> int:
+        return self._inq.maxsize
+
+    def set_queue_size(self, n: int) -> None:
+        self.stats.dropped += self._inq.resize(n)
+
+    # ------------------------------------------------------------------ params
+    def update_params(self, changes: dict[str, Any]) -> dict[str, Any]:
+        """Apply dotted-key changes of the live sections (module doc); returns those that
+        differ from the current values.  Raises ConfigError (nothing applied) on a bad
+        key or value."""
+        bad = [k for k in changes if k.split(".", 1)[0] not in LIVE_SECTIONS]
+        if bad:
+            self.stats.param_rejections += 1
+            raise ConfigError(f"not changeable at run time: {', '.join(sorted(bad))} (only "
+                              f"{', '.join(s + '.*' for s in LIVE_SECTIONS)}; slam.* and seed need a restart)")
+        current = flatten_live(self.cfg)
+        diff = {k: v for k, v in changes.items() if current.get(k, None) != v}
+        if not diff:
+            return {}
+        try:
+            new_cfg = self.cfg.with_overrides(diff)
+            if flatten_live(new_cfg) == current:
+                return {}
+            masker = self._build_masker(new_cfg)
+        except Exception as e:
+            self.stats.param_rejections += 1
+            if isinstance(e, ConfigError):
+                raise
+            raise ConfigError(f"parameters rejected: {type(e).__name__}: {e}") from None
+        with self._param_lock:
+            self._pending = (masker, new_cfg)
+            self.cfg = new_cfg
+        self.stats.param_updates += 1
+        log.info("parameters changed: %s", ", ".join(f"{k}={v!r}" for k, v in diff.items()))
+        return diff
+
+    def _take_pending(self) -> None:
+        with self._param_lock:
+            if self._pending is not None:
+                self._masker, self._masker_cfg = self._pending
+                self._pending = None
+
+    # ------------------------------------------------------------------ input
+    def submit(self, inp: StereoInput) -> int:
+        """Queue a pair for processing (never blocks); returns how many older waiting
+        pairs were dropped to make room."""
+        self.stats.received += 1
+        with self._idle:
+            self._in_flight += 1
+        n = self._inq.put(inp)
+        if n:
+            self.stats.dropped += n
+            with self._idle:
+                self._in_flight -= n
+                self._idle.notify_all()
+        return n
+
+    def start(self) -> None:
+        if self._running:
+            return
+        self._running = True
+        if self.pipelined:
+            self._threads = [threading.Thread(target=_thread_main(self._mask_loop), name="dynastereo-mask", daemon=True),
+                             threading.Thread(target=_thread_main(self._track_loop), name="dynastereo-track",
+                                              daemon=True)]
+        else:
+            self._threads = [threading.Thread(target=_thread_main(self._serial_loop), name="dynastereo-process",
+                                              daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    def wait_idle(self, timeout: float = 30.0) -> bool:
+        """Wait until every submitted pair is processed or dropped; False on timeout."""
+        end = time.monotonic() + timeout
+        with self._idle:
+            while self._in_flight > 0:
+                left = end - time.monotonic()
+                if left <= 0:
+                    return False
+                self._idle.wait(left)
+        return True
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop the threads (the pair being processed is finished, waiting ones discarded)."""
+        if not self._running:
+            return
+        self._running = False
+        n = self._inq.close()
+        with self._slot_cv:
+            self._slot_cv.notify_all()
+        self.stats.discarded_at_stop += n
+        for t in self._threads:
+            t.join(timeout)
+        self._threads = []
+
+    def shutdown(self) -> None:
+        """Stop and finish the SLAM (pending local BA; worker process stopped)."""
+        self.stop()
+        with self._slam_lock:
+            if self._system is not None:
+                self._system.shutdown()
+
+    # ------------------------------------------------------------------ processing
+    def _done(self) -> None:
+        with self._idle:
+            self._in_flight -= 1
+            self._idle.notify_all()
+
+    def _serial_loop(self) -> None:
+        while True:
+            inp = self._inq.get()
+            if inp is None:
+                return
+            try:
+                self.process(inp)
+            finally:
+                self._done()
+
+    def _mask_loop(self) -> None:
+        """Takes the next pair only when the tracker has taken the previous one: the pair
+        masked is always the newest waiting, never one queued behind a busy tracker."""
+        while True:
+            with self._slot_cv:
+                while self._slot and self._running:
+                    self._slot_cv.wait()
+            inp = self._inq.get()
+            if inp is None:
+                with self._slot_cv:
+                    self._slot.append(None)
+                    self._slot_cv.notify_all()
+                return
+            try:
+                item = self._mask_stage(inp)
+            except Exception as e:  # noqa: BLE001 - a bad frame must not stop the node
+                self._error(e)
+                self._done()
+                continue
+            with self._slot_cv:
+                self._slot.append(item)
+                self._slot_cv.notify_all()
+
+    def _track_loop(self) -> None:
+        while True:
+            with self._slot_cv:
+                while not self._slot:
+                    self._slot_cv.wait()
+                item = self._slot.pop(0)
+                self._slot_cv.notify_all()
+            if item is None:
+                return
+            try:
+                self._track_stage(*item)
+            except Exception as e:  # noqa: BLE001
+                self._error(e)
+            finally:
+                self._done()
+
+    def _error(self, e: Exception) -> None:
+        self.stats.errors += 1
+        self.stats.last_error = f"{type(e).__name__}: {e}"
+        log.error("frame failed: %s", self.stats.last_error, exc_info=log.isEnabledFor(logging.DEBUG))
+
+    def process(self, inp: StereoInput) -> NodeResult:
+        """Mask, track and publish one pair on the calling thread."""
+        return self._track_stage(*self._mask_stage(inp))
+
+    def _mask_stage(self, inp: StereoInput) -> tuple[StereoInput, StereoFrame, StereoMasks | None, dict[str, float]]:
+        if self._system is None:
+            raise ConfigError("no calibration yet (waiting for CameraInfo, or give a calibration file)")
+        self._take_pending()
+        t = StageTimer()
+        t.start_frame(0)
+        left, right = inp.left, inp.right
+        if self.rectifier is not None:
+            with t.stage("rectify"):
+                left, right = self.rectifier.rectify(left, right)
+        c = self.calibration
+        if (left.shape[1], left.shape[0]) != c.size or left.shape[:2] != right.shape[:2]:
+            raise ValueError(f"images are {left.shape[1]}x{left.shape[0]} / {right.shape[1]}x{right.shape[0]}, "
+                             f"the calibration is for {c.width}x{c.height}")
+        frame = StereoFrame(index=-1, timestamp=inp.stamp_ns * 1e-9, left=left, right=right)
+        masks = self._masker.mask(frame, t) if self._masker is not None else None
+        ms = t.end_frame()["ms"]
+        return inp, frame, masks, ms
+
+    def _track_stage(self, inp: StereoInput, frame: StereoFrame, masks: StereoMasks | None,
+                     mask_ms: dict[str, float]) -> NodeResult:
+        with self._slam_lock:
+            pos = self._position
+            frame.index = pos
+            self.timer.start_frame(pos)
+            for k, v in mask_ms.items():
+                if k not in ("total", "masking"):
+                    self.timer.add(k, v)
+            pose = self._system.track(frame, masks, self.timer)
+            status = self._system.frame_states()[-1].status
+            self._position += 1
+            self._stamps.append(int(inp.stamp_ns))
+        pose_time = time.time()
+        T = np.vstack([pose, [0.0, 0.0, 0.0, 1.0]])
+        prev = self._prev
+        lin, ang = twist_between(prev[0] if prev else None, T, (inp.stamp_ns - prev[1]) * 1e-9 if prev else 0.0)
+        self._prev = (T, int(inp.stamp_ns))
+        odo = OdometryData(stamp_ns=int(inp.stamp_ns), pose=T, frame_id=self.odom_frame,
+                           child_frame_id=self.camera_frame or inp.frame_id or DEFAULT_LEFT_FRAME,
+                           linear=lin, angular=ang, seq=pos)
+        rec = self.timer.end_frame(status=status)
+        res = NodeResult(pos, int(inp.stamp_ns), frame, masks, pose, odo, status, rec["ms"], inp.received, pose_time)
+        if self.sink is not None:
+            self.sink.publish_pose(res)
+        published = time.time()
+        self.stats.processed += 1
+        self.stats.lost += status == "lost"
+        self.stats.latency_stamp_ms.append((published - inp.stamp_ns * 1e-9) * 1000.0)
+        self.stats.latency_receipt_ms.append((published - inp.received) * 1000.0)
+        if self.sink is not None:
+            disp = None
+            if self.sink.wants_disparity():
+                disp = self.compute_disparity(frame, masks)
+            self.sink.publish_images(res, disp)
+        return res
+
+    def compute_disparity(self, frame: StereoFrame, masks: StereoMasks | None) -> DisparityData:
+        """The full-frame disparity to publish (the masker's when it made one)."""
+        cfg = self._masker_cfg
+        if masks is not None and masks.disparity is not None:
+            d = masks.disparity
+        else:
+            from ..masking import StereoMatcher
+
+            if self._matcher is None or self._matcher_cfg != cfg.stereo:
+                self._matcher, self._matcher_cfg = StereoMatcher(cfg.stereo), cfg.stereo
+            d = self._matcher.compute(frame.left_gray, frame.right_gray, scale=int(cfg.stereo.scale))
+        return disparity_data(d, self.calibration, cfg)
+
+    # ------------------------------------------------------------------ results
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(poses (N, 3, 4), stamps ns (N,))``: the current (locally bundle-adjusted) poses."""
+        with self._slam_lock:
+            if self._system is None or not self._stamps:
+                return np.zeros((0, 3, 4)), np.zeros(0, np.int64)
+            return self._system.trajectory(), np.asarray(self._stamps, np.int64)
+
+    def status(self) -> dict[str, Any]:
+        d = self.stats.summary()
+        d.update(queue_size=self.queue_size, queue_high_water=self._inq.high_water, ready=self.ready,
+                 pipelined=self.pipelined, config=to_dict(self.cfg))
+        if self.calibration is not None:
+            c = self.calibration
+            d["calibration"] = {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "baseline": c.baseline,
+                                "width": c.width, "height": c.height, "rectified_on_receipt": self.rectifier is not None}
+        return d
+
+    def save(self, out_dir: str | Path) -> dict[str, str]:
+        """Write ``trajectory.{kitti,tum,frames}.txt``, ``timing.json`` and ``node.json``
+        (statistics, latency, configuration) into ``out_dir``; returns the paths."""
+        from ..eval.trajectory import FRAMES_NAME, KITTI_NAME, TUM_NAME, _atomic_write, write_kitti, write_tum
+
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        poses, stamps = self.trajectory()
+        paths = {"kitti": out / KITTI_NAME, "tum": out / TUM_NAME, "frames": out / FRAMES_NAME,
+                 "timing": out / "timing.json", "node": out / "node.json"}
+        write_kitti(paths["kitti"], poses)
+        write_tum(paths["tum"], poses, stamps.astype(np.float64) * 1e-9)
+        _atomic_write(paths["frames"], "".join(f"{i}\n" for i in range(len(stamps))))
+        with self._slam_lock:
+            self.timer.write(paths["timing"], frames_done=len(stamps))
+        st = self.status()
+        if self._system is not None:
+            st["slam"] = self._system.stats()
+        _atomic_write(paths["node"], json.dumps(st, indent=1, default=float))
+        return {k: str(v) for k, v in paths.items()}
+
+
+class _sigint_blocked:
+    """Block SIGINT in this thread (child processes started meanwhile inherit the mask and
+    so ignore a SIGINT sent to the whole process group: the node shuts them down itself,
+    after the final local BA).  Python runs signal handlers in the main thread only, so
+    blocking it in other threads changes nothing else."""
+
+    def __enter__(self) -> None:
+        import signal
+
+        self._old = None
+        if hasattr(signal, "pthread_sigmask"):
+            self._old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+
+    def __exit__(self, *exc: object) -> None:
+        import signal
+
+        if self._old is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, self._old)
+
+
+def _thread_main(fn):
+    def run() -> None:
+        import signal
+
+        if hasattr(signal, "pthread_sigmask"):
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        fn()
+
+    return run
+
+
+def _same_calibration(a: Any, b: Any) -> bool:
+    if type(a) is not type(b):
+        return False
+    if isinstance(a, StereoCalibration):
+        return np.array_equal(a.K, b.K) and a.baseline == b.baseline and a.size == b.size
+    fa = {k: getattr(a, k) for k in ("K1", "D1", "K2", "D2", "R1", "R2", "P1", "P2", "R", "T")}
+    fb = {k: getattr(b, k) for k in fa}
+    return a.size == b.size and all(
+        (x is None and y is None) or (x is not None and y is not None and np.array_equal(x, y))
+        for x, y in ((fa[k], fb[k]) for k in fa))

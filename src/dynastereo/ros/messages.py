@@ -1,0 +1,256 @@
+"""What dynastereo publishes, built once for every message library.
+
+The output of one frame is plain data (:class:`OdometryData`, :class:`DisparityData`,
+numpy images); :class:`MessageBuilder` turns it into ROS messages.  Two builders exist:
+:class:`RosbagsBuilder` (the ``rosbags`` dataclasses, for ROS 1 ``.bag`` and ROS 2
+``.db3``/``.mcap`` files) here, and ``GenpyBuilder`` (``rospy``'s classes) in
+:mod:`dynastereo.ros.ros1`; a ROS 2 ``rclpy`` adapter needs one more small builder.  The
+builders differ only in how a time, a float array and a byte blob are represented and in
+field spellings (``K``/``k``, ``T``/``t``, ``seq``), which :meth:`MessageBuilder.make`
+smooths over.
+
+Topic names (bags; the node publishes the same under its private namespace
+``/dynastereo/...``):
+
+=============================  =========================  ==============================
+topic                          type                       content
+=============================  =========================  ==============================
+``/dynastereo/odometry``       nav_msgs/Odometry          left camera in ``odom``
+``/tf``                        tf2_msgs/TFMessage         ``odom`` -> camera frame
+``/dynastereo/left/masked``    sensor_msgs/Image          left image, dynamic pixels = 0
+``/dynastereo/right/masked``   sensor_msgs/Image          right image, dynamic pixels = 0
+``/dynastereo/left/mask``      sensor_msgs/Image mono8    255 = dynamic
+``/dynastereo/right/mask``     sensor_msgs/Image mono8    255 = dynamic
+``/dynastereo/disparity``      stereo_msgs/DisparityImage 32FC1 pixels, -1 = invalid
+=============================  =========================  ==============================
+
+``odom`` is the first frame's (rectified) left camera: the KITTI convention, camera axes
+x right, y down, z forward.  The odometry of frame k is the pose tracking returned for
+it, i.e. what a live node publishes; the trajectory files of ``run`` hold the final,
+bundle-adjusted poses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .convert import camera_info_fields, encode_compressed, image_fields, pose_quaternion, stamp_split
+
+DEFAULT_LEFT_TOPIC = "/camera/left/image_raw"
+DEFAULT_RIGHT_TOPIC = "/camera/right/image_raw"
+DEFAULT_LEFT_INFO = "/camera/left/camera_info"
+DEFAULT_RIGHT_INFO = "/camera/right/camera_info"
+DEFAULT_LEFT_FRAME = "camera_left"
+DEFAULT_RIGHT_FRAME = "camera_right"
+ODOM_FRAME = "odom"
+
+OUTPUT_TOPICS: dict[str, str] = {
+    "odometry": "/dynastereo/odometry",
+    "tf": "/tf",
+    "left_masked": "/dynastereo/left/masked",
+    "right_masked": "/dynastereo/right/masked",
+    "left_mask": "/dynastereo/left/mask",
+    "right_mask": "/dynastereo/right/mask",
+    "disparity": "/dynastereo/disparity",
+}
+OUTPUT_TYPES: dict[str, str] = {
+    "odometry": "nav_msgs/Odometry",
+    "tf": "tf2_msgs/TFMessage",
+    "left_masked": "sensor_msgs/Image",
+    "right_masked": "sensor_msgs/Image",
+    "left_mask": "sensor_msgs/Image",
+    "right_mask": "sensor_msgs/Image",
+    "disparity": "stereo_msgs/DisparityImage",
+}
+
+INVALID_DISPARITY = -1.0
+
+
+@dataclass
+class OdometryData:
+    """One odometry sample: the left camera's pose in ``frame_id`` (camera-to-world)."""
+
+    stamp_ns: int
+    pose: np.ndarray  # 3x4 or 4x4 camera-to-world
+    frame_id: str = ODOM_FRAME
+    child_frame_id: str = DEFAULT_LEFT_FRAME
+    linear: np.ndarray = field(default_factory=lambda: np.zeros(3))  # m/s, child frame
+    angular: np.ndarray = field(default_factory=lambda: np.zeros(3))  # rad/s, child frame
+    seq: int = 0
+
+
+@dataclass
+class DisparityData:
+    """A full-frame disparity map for ``stereo_msgs/DisparityImage``."""
+
+    image: np.ndarray  # float32 pixels, <= 0 invalid (written as -1)
+    f: float  # focal length, pixels
+    T: float  # baseline, metres
+    min_disparity: float
+    max_disparity: float
+    delta_d: float = 1.0 / 16.0  # StereoBM/SGBM resolution
+
+    def ros_image(self) -> np.ndarray:
+        d = np.asarray(self.image, dtype=np.float32)
+        return np.where(d > 0, d, np.float32(INVALID_DISPARITY)).astype(np.float32)
+
+
+class MessageBuilder:
+    """Builds ROS messages for one message library (subclass per library)."""
+
+    def cls(self, name: str) -> type:  # "sensor_msgs/Image"
+        raise NotImplementedError
+
+    def fields(self, cls: type) -> set[str]:
+        raise NotImplementedError
+
+    def time(self, stamp_ns: int) -> Any:
+        raise NotImplementedError
+
+    def floats(self, values: Any) -> Any:
+        """A float64[] field value."""
+        raise NotImplementedError
+
+    def blob(self, data: np.ndarray) -> Any:
+        """A uint8[] field value."""
+        raise NotImplementedError
+
+    def make(self, name: str, **kw: Any) -> Any:
+        """``name`` built from ``kw``; a key the type lacks is matched case-insensitively
+        (``D`` -> ``d``) or dropped (``seq`` in ROS 2)."""
+        c = self.cls(name)
+        names = self.fields(c)
+        out = {}
+        for k, v in kw.items():
+            if k in names:
+                out[k] = v
+            elif k.lower() in names:
+                out[k.lower()] = v
+            elif k.upper() in names:
+                out[k.upper()] = v
+        return c(**out)
+
+    # ------------------------------------------------------------------ messages
+    def header(self, stamp_ns: int, frame_id: str, seq: int = 0) -> Any:
+        return self.make("std_msgs/Header", seq=int(seq), stamp=self.time(stamp_ns), frame_id=str(frame_id))
+
+    def image(self, img: np.ndarray, stamp_ns: int, frame_id: str, encoding: str | None = None, seq: int = 0) -> Any:
+        f = image_fields(img, encoding)
+        return self.make("sensor_msgs/Image", header=self.header(stamp_ns, frame_id, seq), height=f["height"],
+                         width=f["width"], encoding=f["encoding"], is_bigendian=f["is_bigendian"], step=f["step"],
+                         data=self.blob(f["data"]))
+
+    def compressed(self, img: np.ndarray, stamp_ns: int, frame_id: str, fmt: str = "png", seq: int = 0) -> Any:
+        form, data = encode_compressed(img, fmt)
+        return self.make("sensor_msgs/CompressedImage", header=self.header(stamp_ns, frame_id, seq), format=form,
+                         data=self.blob(data))
+
+    def camera_info(self, info: dict[str, Any], stamp_ns: int, frame_id: str, seq: int = 0) -> Any:
+        """From :func:`~dynastereo.ros.convert.camera_info_fields`."""
+        roi = self.make("sensor_msgs/RegionOfInterest", x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        return self.make("sensor_msgs/CameraInfo", header=self.header(stamp_ns, frame_id, seq), height=info["height"],
+                         width=info["width"], distortion_model=info["distortion_model"], D=self.floats(info["D"]),
+                         K=self.floats(info["K"]), R=self.floats(info["R"]), P=self.floats(info["P"]),
+                         binning_x=0, binning_y=0, roi=roi)
+
+    def _vec3(self, name: str, v: np.ndarray) -> Any:
+        return self.make(name, x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+    def _quat(self, q: np.ndarray) -> Any:
+        return self.make("geometry_msgs/Quaternion", x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+
+    def odometry(self, o: OdometryData) -> Any:
+        p, q = pose_quaternion(o.pose)
+        pose = self.make("geometry_msgs/Pose", position=self._vec3("geometry_msgs/Point", p), orientation=self._quat(q))
+        twist = self.make("geometry_msgs/Twist", linear=self._vec3("geometry_msgs/Vector3", o.linear),
+                          angular=self._vec3("geometry_msgs/Vector3", o.angular))
+        zeros = self.floats(np.zeros(36))
+        return self.make(
+            "nav_msgs/Odometry",
+            header=self.header(o.stamp_ns, o.frame_id, o.seq),
+            child_frame_id=o.child_frame_id,
+            pose=self.make("geometry_msgs/PoseWithCovariance", pose=pose, covariance=zeros),
+            twist=self.make("geometry_msgs/TwistWithCovariance", twist=twist, covariance=self.floats(np.zeros(36))),
+        )
+
+    def transform(self, o: OdometryData) -> Any:
+        p, q = pose_quaternion(o.pose)
+        tr = self.make("geometry_msgs/Transform", translation=self._vec3("geometry_msgs/Vector3", p),
+                       rotation=self._quat(q))
+        return self.make("geometry_msgs/TransformStamped", header=self.header(o.stamp_ns, o.frame_id, o.seq),
+                         child_frame_id=o.child_frame_id, transform=tr)
+
+    def tf(self, o: OdometryData) -> Any:
+        return self.make("tf2_msgs/TFMessage", transforms=[self.transform(o)])
+
+    def disparity(self, d: DisparityData, stamp_ns: int, frame_id: str, seq: int = 0) -> Any:
+        img = d.ros_image()
+        h, w = img.shape
+        roi = self.make("sensor_msgs/RegionOfInterest", x_offset=0, y_offset=0, height=int(h), width=int(w),
+                        do_rectify=False)
+        return self.make("stereo_msgs/DisparityImage", header=self.header(stamp_ns, frame_id, seq),
+                         image=self.image(img, stamp_ns, frame_id, "32FC1", seq), f=float(d.f), T=float(d.T),
+                         valid_window=roi, min_disparity=float(d.min_disparity),
+                         max_disparity=float(d.max_disparity), delta_d=float(d.delta_d))
+
+
+# --------------------------------------------------------------------------- rosbags
+
+
+_TF_MSG = "geometry_msgs/TransformStamped[] transforms\n"
+
+
+def rosbags_typestore(ros1: bool):
+    """The ``rosbags`` typestore for ROS 1 (Noetic, + tf2_msgs/TFMessage) or ROS 2 (Humble)."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    if "tf2_msgs/msg/TFMessage" not in ts.types:
+        ts.register(get_types_from_msg(_TF_MSG, "tf2_msgs/msg/TFMessage"))
+    return ts
+
+
+def msg_type_name(name: str) -> str:
+    """``sensor_msgs/Image`` -> ``sensor_msgs/msg/Image`` (rosbags' spelling)."""
+    pkg, _, base = name.partition("/")
+    return name if base.startswith("msg/") else f"{pkg}/msg/{base}"
+
+
+class RosbagsBuilder(MessageBuilder):
+    def __init__(self, ros1: bool) -> None:
+        self.ros1 = ros1
+        self.typestore = rosbags_typestore(ros1)
+        self._fields: dict[type, set[str]] = {}
+
+    def cls(self, name: str) -> type:
+        return self.typestore.types[msg_type_name(name)]
+
+    def fields(self, cls: type) -> set[str]:
+        f = self._fields.get(cls)
+        if f is None:
+            f = self._fields[cls] = {k for k in cls.__dataclass_fields__ if not k.startswith("__")}
+        return f
+
+    def time(self, stamp_ns: int) -> Any:
+        sec, nsec = stamp_split(stamp_ns)
+        return self.make("builtin_interfaces/Time", sec=sec, nanosec=nsec)
+
+    def floats(self, values: Any) -> Any:
+        return np.asarray(values, dtype=np.float64).reshape(-1)
+
+    def blob(self, data: np.ndarray) -> Any:
+        return np.ascontiguousarray(data, dtype=np.uint8).reshape(-1)
+
+    def serialize(self, msg: Any) -> bytes:
+        t = msg.__msgtype__
+        if self.ros1:
+            return bytes(self.typestore.serialize_ros1(msg, t))
+        return bytes(self.typestore.serialize_cdr(msg, t))
+
+
+def stereo_camera_info(calib, P_left: np.ndarray | None = None, P_right: np.ndarray | None = None):
+    """``(left, right)`` CameraInfo field dicts for a rectified calibration (exact P optional)."""
+    return (camera_info_fields(calib, "left", P=P_left), camera_info_fields(calib, "right", P=P_right))
