@@ -76,11 +76,71 @@ def test_planes_recovered_within_one_pixel(planes, alg, block):
         assert abs(float(np.median(d[sel])) - level) < 0.5
 
 
-def test_leftmost_columns_invalid_and_no_negative(planes):
-    left, right, _ = planes
+def test_left_border_columns_matched_and_no_negative(planes):
+    """Both images are padded on the left before matching, so the leftmost numDisparities
+    columns (which OpenCV leaves invalid) get disparities wherever the match is inside the
+    right image (d <= x); never a match into the padding (d > x).  (Before the padding
+    the first 63 columns were all invalid: this test asserted that.)"""
+    left, right, gt = planes
     d = StereoMatcher(StereoConfig(num_disparities=64)).compute(left, right)
-    assert not (d[:, :60] > 0).any()
     assert (d >= 0).all()  # invalid is reported as 0, never as OpenCV's (minD-1)
+    xs = np.arange(d.shape[1])[None, :]
+    assert not (d > xs).any()  # x - d < 0: outside the right image
+    border = np.s_[15:-15, 12 + 8:60]  # background d = 12, matchable for x >= 12
+    assert (d[border] > 0).mean() > 0.9
+    assert np.median(np.abs(d[border] - 12)) < 0.5
+
+
+def test_left_border_object_recovered():
+    """A textured object at the image's left border (d = 20, columns 0..69) in front of a
+    background (d = 5): its pixels x >= 20 are matched at 20 -- OpenCV alone gives none
+    of them (it leaves columns < numDisparities - 1 invalid)."""
+    h, w = 160, 320
+    left, right, gt = layered_pair(h, w, 5, [(rect_mask(h, w, 0, 30, 70, 130), 20)], seed=3)
+    for alg, block in (("bm", 15), ("sgbm3way", 5)):
+        d = StereoMatcher(StereoConfig(algorithm=alg, block_size=block, num_disparities=64)).compute(left, right)
+        obj = np.s_[40:120, 20 + block:60]
+        assert (d[obj] > 0).mean() > 0.9, alg
+        assert np.median(np.abs(d[obj] - 20)) < 0.5, alg
+        assert not (d > np.arange(w)[None, :]).any()
+
+
+def test_bm_unchanged_away_from_left_border(planes):
+    """The padding changes nothing where OpenCV already had every candidate disparity."""
+    left, right, _ = planes
+    m = StereoMatcher(StereoConfig(num_disparities=64, block_size=15))
+    ours = m.compute(left, right)
+    raw = m._matcher(1).left.compute(left, right)
+    ref = m._matcher(1).to_float(raw, 1)
+    inner = np.s_[:, 64 + 15:]
+    np.testing.assert_array_equal(ours[inner], ref[inner])
+
+
+def test_sgbm_band_at_left_border_narrower_than_num_disparities(planes):
+    """A band touching the left border and narrower than numDisparities (a small box near
+    the border): SGBM used to fail inside OpenCV (negative allocation); it is padded now."""
+    left, right, _ = planes
+    m = StereoMatcher(StereoConfig(algorithm="sgbm3way", block_size=5, num_disparities=64))
+    b = m.compute_band(left, right, 60, 100, 0, 20)
+    assert b.shape == (40, 20)
+    assert (b <= np.arange(20)[None, :]).all()
+    assert np.median(b[b > 0]) == pytest.approx(12, abs=0.5)  # the background, where x >= 12
+
+
+def test_compute_coarse(planes):
+    left, right, gt = planes
+    m = StereoMatcher(StereoConfig(num_disparities=64))
+    for scale in (2, 4):
+        c = m.compute_coarse(left, right, y0=41, scale=scale)
+        y0 = 41 - 41 % scale
+        assert c.shape == ((200 - y0) // scale, 400 // scale)
+        # cell (r, k) covers rows y0 + r*scale.., columns k*scale..: the background (d = 12)
+        # right of the near plane (columns 200..330)
+        bg = c[3:-3, 340 // scale:-3]
+        assert (bg > 0).mean() > 0.8
+        assert np.median(np.abs(bg[bg > 0] - 12)) < 1.0
+        plane = c[(60 - y0) // scale:(140 - y0) // scale, 215 // scale:315 // scale]
+        assert np.median(plane[plane > 0]) == pytest.approx(37, abs=1.0)
 
 
 def test_min_disparity_invalid_maps_to_zero(planes):

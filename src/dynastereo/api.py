@@ -33,7 +33,10 @@ def build_masker(cfg: Config, sequence: Sequence, models_dir: str | Path | None 
         from .synth import OracleDetector
 
         detector = OracleDetector(sequence.path)
-    return create_masker(cfg, models_dir=Path(models_dir) if models_dir else None, detector=detector)
+    masker = create_masker(cfg, models_dir=Path(models_dir) if models_dir else None, detector=detector)
+    if hasattr(masker, "set_baseline"):  # the road line's slope is baseline / camera height
+        masker.set_baseline(sequence.calibration.baseline)
+    return masker
 
 
 def mask_sequence(

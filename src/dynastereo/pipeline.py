@@ -141,11 +141,15 @@ def run_mask_job(
                     write_disparity_png(dirs["disparity"] / name, masks.disparity)
                 if overlays:
                     _write_png(dirs["overlays"] / name, draw_overlay(frame, masks))
-                objects_log.write(json.dumps({
+                record = {
                     "frame": idx,
                     "objects": [o.to_dict() for o in masks.objects],
                     "fallbacks": sum(o.method.startswith("box-fallback") for o in masks.objects),
-                }) + "\n")
+                }
+                ground = getattr(masker, "last_ground", None)
+                if ground is not None:  # the road line the outlines left out (ok=False: not removed)
+                    record["road"] = ground.to_dict()
+                objects_log.write(json.dumps(record) + "\n")
                 objects_log.flush()
                 result.frames_done.append(idx)
                 if progress is not None:

@@ -12,6 +12,14 @@ so the crop handed to OpenCV is padded on the left by ``minD + numD`` columns (p
 block on every side); the padding columns are the ones OpenCV leaves invalid, so inside
 the requested region the band result is the full-frame result (up to the speckle filter
 and, for SGBM/WLS, the slightly shorter aggregation paths; tests bound the difference).
+
+Left image border: OpenCV leaves the leftmost ``minD + numD - 1`` columns invalid (not
+every candidate disparity fits there) -- 15 % of a 640-pixel image with numDisparities 96,
+where a pedestrian at the border would get no disparity at all.  When a crop reaches the
+left image border, both images are padded there (border replicate, featureless) by the
+missing columns before matching; a left pixel ``x`` whose true disparity ``d <= x`` is then
+matched, and any result ``d > x`` (a match into the padding, i.e. outside the right image)
+is invalid.  Away from the border the result is unchanged.
 """
 
 from __future__ import annotations
@@ -280,6 +288,13 @@ class StereoMatcher:
         cy0, cy1, cx0, cx1 = self.band_crop((h, w), y0, y1, x0, x1, scale)
         lc = left[cy0:cy1, cx0:cx1]
         rc = right[cy0:cy1, cx0:cx1]
+        # columns missing left of the crop (it reaches the image border): padded, so the
+        # pixels near x = 0 get every candidate disparity; crop coords = image coords + pad
+        pad = self.left_padding(x0, scale)
+        if pad:
+            lc = cv2.copyMakeBorder(lc, 0, 0, pad, 0, cv2.BORDER_REPLICATE)
+            rc = cv2.copyMakeBorder(rc, 0, 0, pad, 0, cv2.BORDER_REPLICATE)
+            cx0 -= pad
         if scale > 1:
             ch, cw = lc.shape
             ph, pw = (-ch) % scale, (-cw) % scale
@@ -302,9 +317,61 @@ class StereoMatcher:
             sub = m.to_float(raw[ry0:ry1, rx0:rx1], scale)
             big = np.repeat(np.repeat(sub, scale, axis=0), scale, axis=1)
             sy, sx = oy - ry0 * scale, ox - rx0 * scale
-            return np.ascontiguousarray(big[sy:sy + (y1 - y0), sx:sx + (x1 - x0)])
-        raw = raw[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0]
-        return m.to_float(raw, 1)
+            out = np.ascontiguousarray(big[sy:sy + (y1 - y0), sx:sx + (x1 - x0)])
+        else:
+            out = m.to_float(raw[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0], 1)
+        if pad:
+            _drop_matches_into_padding(out, x0)
+        return out
+
+    def compute_coarse(self, left: np.ndarray, right: np.ndarray, y0: int = 0, scale: int = 4) -> np.ndarray:
+        """Quick coarse disparity of rows ``y0:`` at full width, for large smooth
+        surfaces (the road): both images' rows from ``y0`` (rounded down to the
+        ``scale`` grid) shrunk by ``scale`` (INTER_AREA) and matched, no padding and no
+        WLS filter.
+
+        Returns the coarse map (cell ``(r, k)`` covers image rows
+        ``y0 - y0 % scale + r * scale ..`` and columns ``k * scale ..``), values in
+        full-resolution pixels, ``<= 0`` invalid (the leftmost ``numDisparities`` cells
+        included).
+        """
+        left = _gray(left)
+        right = _gray(right)
+        if left.shape != right.shape:
+            raise ValueError(f"left and right images differ in size: {left.shape} vs {right.shape}")
+        m = self._matcher(scale)
+        h, w = left.shape
+        y0 = max(0, min(int(y0), h - 1))
+        y0 -= y0 % scale
+        hh, ww = (h - y0) // scale, w // scale
+        if hh < 1 or ww < 1:
+            return np.zeros((0, 0), np.float32)
+        lc, rc = left[y0:y0 + hh * scale, :ww * scale], right[y0:y0 + hh * scale, :ww * scale]
+        if scale > 1:
+            lc = cv2.resize(lc, (ww, hh), interpolation=cv2.INTER_AREA)
+            rc = cv2.resize(rc, (ww, hh), interpolation=cv2.INTER_AREA)
+        else:
+            lc, rc = np.ascontiguousarray(lc), np.ascontiguousarray(rc)
+        # the left matcher alone: a WLS filter would smear the road into everything
+        return m.to_float(m.left.compute(lc, rc), scale)
+
+    def left_padding(self, x0: int, scale: int = 1) -> int:
+        """Columns :meth:`compute_band` adds left of the image for a region starting at
+        column ``x0`` (0 when the image has them): a multiple of ``scale``."""
+        p = self.params(scale)
+        need = (max(p.min_disparity, 0) + p.num_disparities) * scale + (p.block_size // 2) * scale
+        pad = max(0, need - int(x0))
+        return -(-pad // scale) * scale
+
+
+def _drop_matches_into_padding(d: np.ndarray, x0: int) -> None:
+    """Invalidate (in place) disparities ``d > x`` of the columns ``x = x0 + k``: the
+    matched right pixel ``x - d`` lies left of the right image, in the padding."""
+    n = min(d.shape[1], int(d.max(initial=0.0)) + 1 - int(x0))  # only these columns can
+    if n > 0:
+        xs = (int(x0) + np.arange(n)).astype(np.float32)
+        sub = d[:, :n]
+        sub[sub > xs[None, :]] = 0.0
 
 
 def normalize_disparity(disp: np.ndarray, enhance: bool = True) -> np.ndarray:

@@ -19,6 +19,7 @@ sums into ``mask``.
 from __future__ import annotations
 
 from contextlib import nullcontext
+from dataclasses import replace
 from typing import Any, ContextManager
 
 import numpy as np
@@ -29,6 +30,7 @@ from ..timing import StageTimer
 from ..types import Detections, ObjectMask, StereoFrame, StereoMasks
 from .base import Detector
 from .disparity import StereoMatcher
+from .ground import DEFAULT_BASELINE, GroundLine, fit_ground_line, road_samples, slope_range
 from .outline import (
     FALLBACK_NO_DISPARITY,
     LEFT_CONTEXT,
@@ -188,7 +190,14 @@ class _DisparityMasker:
 
 
 class OutlineMasker(_DisparityMasker):
-    """Outlines from the dominant disparity peak per box, moved to the right image."""
+    """Outlines from the dominant disparity peak per box, moved to the right image.
+
+    With ``cfg.ground_removal`` the road's disparity line is fitted per frame (in the
+    ``disparity`` stage: a coarse disparity of the image's lower part, :mod:`.ground`)
+    and road pixels leave the outlines; ``last_ground`` is the latest fit (``ok``,
+    ``reason``).  ``baseline`` (metres, the rig's) sets the plausible road slopes; without
+    it ``cfg.ground_baseline`` or KITTI's 0.54 m.
+    """
 
     name = "outline"
 
@@ -199,6 +208,7 @@ class OutlineMasker(_DisparityMasker):
         cfg: OutlineConfig | None = None,
         stereo: StereoConfig | None = None,
         full_disparity: bool = False,
+        baseline: float | None = None,
     ):
         super().__init__(detector, matcher, stereo, full_disparity)
         self.cfg = cfg or OutlineConfig()
@@ -206,6 +216,44 @@ class OutlineMasker(_DisparityMasker):
             raise ConfigError(
                 f"masker.outline.transfer must be one of {', '.join(TRANSFER_MODES)}, got {self.cfg.transfer!r}"
             )
+        c = self.cfg
+        if not (0 < c.ground_min_height < c.ground_max_height):
+            raise ConfigError(
+                "masker.outline.ground_min_height must be > 0 and below ground_max_height, got "
+                f"{c.ground_min_height} and {c.ground_max_height}"
+            )
+        if c.ground_tolerance < 0 or c.ground_fit_tolerance <= 0:
+            raise ConfigError(
+                "masker.outline.ground_tolerance must be >= 0 and ground_fit_tolerance > 0, got "
+                f"{c.ground_tolerance} and {c.ground_fit_tolerance}"
+            )
+        if not (0.0 <= c.ground_rows_from < 1.0):
+            raise ConfigError(f"masker.outline.ground_rows_from must be in [0, 1), got {c.ground_rows_from}")
+        for key in ("overlap_weight", "claim_fraction", "ground_max_fraction"):
+            v = getattr(c, key)
+            if not (0.0 <= v <= 1.0):
+                raise ConfigError(f"masker.outline.{key} must be in [0, 1], got {v}")
+        self.baseline = float(baseline) if baseline else None
+        self.last_ground: GroundLine | None = None
+
+    def set_baseline(self, baseline: float | None) -> None:
+        """The rig's stereo baseline in metres (from its calibration)."""
+        self.baseline = float(baseline) if baseline else None
+
+    def ground_slopes(self) -> tuple[float, float]:
+        """Plausible road slopes (disparity px per image row) for this rig."""
+        b = self.cfg.ground_baseline or self.baseline or DEFAULT_BASELINE
+        return slope_range(b, self.cfg.ground_min_height, self.cfg.ground_max_height)
+
+    def fit_ground(self, frame: StereoFrame) -> GroundLine:
+        """The road's disparity line in ``frame``, from a coarse disparity of the image's
+        lower part (the same whatever ``stereo.region``/``scale``: masks do not depend on
+        where the objects' disparity was computed)."""
+        c = self.cfg
+        rows, vals = road_samples(self.matcher, frame.left_gray, frame.right_gray, c.ground_rows_from)
+        line = fit_ground_line(rows, vals, self.ground_slopes(), frame.shape[0], tolerance=c.ground_fit_tolerance,
+                               min_inliers=c.ground_min_inliers)
+        return replace(line, baseline=self.cfg.ground_baseline or self.baseline or DEFAULT_BASELINE)
 
     def mask_detections(
         self, frame: StereoFrame, dets: Detections, timer: StageTimer | None = None
@@ -220,6 +268,7 @@ class OutlineMasker(_DisparityMasker):
         shape = frame.shape
         rois = clip_boxes(dets.boxes, shape)
         disp = self._disparity(frame, rois, timer, left_margin=LEFT_CONTEXT)
+        self.last_ground = None
         if len(dets) == 0:
             m = StereoMasks.empty(shape)
             m.detections = dets
@@ -227,8 +276,12 @@ class OutlineMasker(_DisparityMasker):
             z = np.zeros(shape, np.int32)
             return m, z, z
         assert disp is not None
+        ground = None
+        if self.cfg.ground_removal:
+            with _stage(timer, "disparity"):  # the road's disparity is disparity work too
+                ground = self.last_ground = self.fit_ground(frame)
         with _stage(timer, "outline"):
-            o: OutlineResult = outline_objects(disp, dets.boxes, shape, self.cfg)
+            o: OutlineResult = outline_objects(disp, dets.boxes, shape, self.cfg, ground=ground)
             left = _to_mask(o.labels)
         with _stage(timer, "transfer"):
             t = transfer_labels(

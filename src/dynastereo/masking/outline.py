@@ -4,6 +4,8 @@ For every box:
 
 1. the histogram of the valid disparities inside it -- bins ``bin_width`` wide at small
    disparities and ``peak_tolerance_rel * d`` wide for near objects, smoothed [1, 2, 1];
+   road pixels (below) are left out, and pixels the box shares with other boxes weigh
+   ``overlap_weight`` (a car's box reaching over the truck in front of it);
 2. its dominant peak -- the highest bin, or the *nearest* local maximum at least
    ``near_peak_ratio`` as high (the detected object stands in front of the rest of its
    box) -- is the object's disparity, refined by the mean of the values in the peak; the
@@ -12,19 +14,32 @@ For every box:
 3. invalid disparities (no texture, occlusion) are filled along each row from their
    valid neighbours, occlusion-aware (:func:`fill_invalid_rows`, looking
    ``LEFT_CONTEXT`` columns left of the box), and the pixels in the accepted range are
-   the object;
+   the object -- except the **road**: with a reliable road line
+   (:mod:`.ground`: ``d_road(v) = a v + c`` per frame), pixels whose (measured or
+   filled) disparity is less than ``ground_tolerance`` above the road's in their row are
+   road (around a car, under it, between a pedestrian's legs: the same disparity as the
+   object's bottom).  A line that would take more than ``ground_max_fraction`` of the
+   object's own in-peak pixels does not hold there (a slope, a kerb) and is not used
+   for that box;
 4. its largest connected component is kept, holes are flood-filled (from the border of
-   the ROI on the inverted mask) and the mask is dilated a little -- all inside the box.
+   the ROI on the inverted mask) and the mask is dilated a little -- all inside the box;
+   neither the filling nor the dilation brings road pixels back.
+
+One peak, one object (:func:`_resolve_claims`): a box whose peak is a neighbouring
+box's, and whose in-peak pixels lie mostly at that box (its object seen through this
+box, or its disparity spilled past its edge by the matcher -- a car in the occlusion
+shadow of the truck beside it), is outlined again without that peak.
 
 The result is an instance *label image* (``int32``, 0 = none, ``i`` = object ``i``,
 1-based in the order of the boxes).  Where boxes overlap, nearer objects (larger
 disparity) win the shared pixels.  Boxes masked whole record why
-(``ObjectMask.method``): ``box-fallback:tiny`` (fewer than ``min_box_pixels``),
-``box-fallback:no-disparity`` (fewer than ``min_valid_fraction`` of the box valid),
-``box-fallback:sparse-disparity`` (fewer than that on the object's own peak: a dark,
-shiny near car -- the box is still moved to the right image by the peak's disparity).
+(``ObjectMask.method``): ``box-fallback:tiny`` (fewer than ``min_box_pixels``, or a
+side shorter than ``min_box_side``), ``box-fallback:no-disparity`` (fewer than
+``min_valid_fraction`` of the box valid), ``box-fallback:sparse-disparity`` (fewer than
+that on the object's own peak: a dark, shiny near car -- the box is still moved to the
+right image by the peak's disparity).
 
-Everything is numpy/OpenCV on the box ROI; the only Python loop is over the boxes.
+Everything is numpy/OpenCV on the box ROI; the only Python loops are over the boxes.
 """
 
 from __future__ import annotations
@@ -35,6 +50,7 @@ import cv2
 import numpy as np
 
 from ..config import OutlineConfig
+from .ground import GroundLine
 
 METHOD_OUTLINE = "outline"
 FALLBACK_NO_DISPARITY = "box-fallback:no-disparity"
@@ -45,6 +61,9 @@ EMPTY = "empty:outside-image"
 # Columns left of each box whose disparity the outline looks at (to tell the background
 # band a near object occludes from the object itself); maskers compute disparity there too.
 LEFT_CONTEXT = 48
+# A box whose peak pixels lie within this many pixels of a neighbouring box holding the
+# same peak gives the peak up (:func:`_resolve_claims`): about a block's spill.
+CLAIM_MARGIN = 8
 
 
 @dataclass
@@ -57,6 +76,7 @@ class OutlineResult:
     rois: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), np.int32))  # (N, 4) x0 y0 x1 y1
     pixels: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (N,) pixels in labels
     ranges: list[tuple[float, float]] = field(default_factory=list)  # accepted disparity range
+    ground: GroundLine | None = None  # the road line given (used only when ``ground.ok``)
 
     @property
     def mask(self) -> np.ndarray:
@@ -248,52 +268,102 @@ class RoiOutline:
     method: str
     lo: float = 0.0  # accepted disparity range
     hi: float = 0.0
+    support: int = 0  # valid pixels measured in the range
 
 
-def object_mask_in_roi(droi: np.ndarray, cfg: OutlineConfig, context: np.ndarray | None = None) -> RoiOutline:
+def object_mask_in_roi(
+    droi: np.ndarray,
+    cfg: OutlineConfig,
+    context: np.ndarray | None = None,
+    road: np.ndarray | None = None,
+    shared: np.ndarray | None = None,
+    exclude: tuple[float, float] | None = None,
+) -> RoiOutline:
     """The object's mask in one box ROI of the disparity (see the module docstring).
 
     ``context`` is the disparity of the same rows left of the box (any width, may be
     empty): it lets :func:`fill_invalid_rows` see the background beyond the box's edge.
+    ``road`` is the road's disparity in each ROI row (``(h,)``, from a reliable
+    :class:`~.ground.GroundLine`) or None: pixels less than ``cfg.ground_tolerance``
+    above it -- measured, or filled along their row -- are road, never the object.
+    ``shared`` (bool, ROI-shaped) marks pixels inside other boxes too: they weigh
+    ``cfg.overlap_weight`` in the histogram (a car's box reaching over the truck in
+    front of it must not take the truck's peak).  Disparities in ``exclude`` (a
+    neighbour's range, see :func:`outline_objects`) count as invalid.
     """
+    if exclude is not None:
+        droi = np.where((droi >= exclude[0]) & (droi <= exclude[1]), np.float32(0), droi)
+        if context is not None:
+            context = np.where((context >= exclude[0]) & (context <= exclude[1]), np.float32(0), context)
     h, w = droi.shape
     area = h * w
     valid = droi > 0
     n_valid = int(np.count_nonzero(valid))
     med = float(np.median(droi[valid])) if n_valid else 0.0
-    if area < cfg.min_box_pixels:
+    if area < cfg.min_box_pixels or min(h, w) < cfg.min_box_side:
         return RoiOutline(None, med, FALLBACK_TINY, med, med)
     if n_valid < max(cfg.min_valid_fraction * area, 8):
         return RoiOutline(None, med, FALLBACK_NO_DISPARITY, med, med)
+    top = None  # per row: disparities below this are the road (or below it)
+    if road is not None:
+        top = (np.asarray(road, np.float32).reshape(h, 1) + np.float32(cfg.ground_tolerance))
+        above = valid & (droi >= top)
+        if np.count_nonzero(above) < max(cfg.min_valid_fraction * area, 8):
+            top = None  # (nearly) all of the box is road-like: the line does not fit here
+    sel = valid if top is None else above
+    weights = None
+    if shared is not None and cfg.overlap_weight < 1.0:
+        sh = shared[sel]
+        if sh.any() and not sh.all():
+            weights = np.where(sh, np.float32(cfg.overlap_weight), np.float32(1.0))
     peak = dominant_disparity(
-        droi[valid],
+        droi[sel],
         cfg.bin_width,
         rel=cfg.peak_tolerance_rel,
         near_ratio=cfg.near_peak_ratio,
+        weights=weights,
         extend_ratio=cfg.peak_extend_ratio,
     )
     assert peak is not None
     d = peak.disparity
     tol = tolerance(d, cfg)
-    lo, hi = min(d - tol, peak.lo), max(d + tol, peak.hi)
-    support = int(np.count_nonzero((droi >= lo) & (droi <= hi)))
+    lo, hi = max(min(d - tol, peak.lo), 1e-3), max(d + tol, peak.hi)  # lo > 0: never the invalid
+    in_range = (droi >= lo) & (droi <= hi)
+    support = int(np.count_nonzero(in_range))
     if support < cfg.min_valid_fraction * area:
         # too few pixels measured on the object itself (a dark, shiny near car): its
         # outline would be a guess -- mask the box, moved by the peak disparity
-        return RoiOutline(None, d, FALLBACK_SPARSE, lo, hi)
+        return RoiOutline(None, d, FALLBACK_SPARSE, lo, hi, support)
+    if top is not None and cfg.ground_max_fraction < 1.0:
+        # the object's own pixels the road would take: a line that does not hold here
+        # (a slope, a kerb, a wrong fit) would cut the object -- then leave it alone
+        on_road = np.count_nonzero(in_range & (droi < top))
+        if on_road > cfg.ground_max_fraction * support:
+            top = None
     if context is not None and context.shape[1] > 0:
         filled = fill_invalid_rows(np.concatenate([context, droi], axis=1))[:, context.shape[1]:]
     else:
         filled = fill_invalid_rows(droi)
-    m = ((filled >= lo) & (filled <= hi)).astype(np.uint8)
+    keep = (filled >= lo) & (filled <= hi)
+    road_px = None
+    if top is not None:
+        # road: measured on or below the road, or filled (along the row) from such a pixel
+        # or with a value below the road (an object's value carried past its footprint)
+        road_px = filled < top
+        keep &= ~road_px
+    m = keep.astype(np.uint8)
     if cfg.keep_largest_component:
         m = _largest_component(m)
     if cfg.fill_holes:
         m = _fill_holes(m)
+        if road_px is not None:
+            m[road_px] = 0  # filling must not bring the road back
     m = _dilate(m, int(cfg.dilate))
+    if road_px is not None and cfg.ground_after_dilate:
+        m[road_px] = 0
     if not m.any():
-        return RoiOutline(None, d, FALLBACK_NO_PEAK, lo, hi)
-    return RoiOutline(m, d, METHOD_OUTLINE, lo, hi)
+        return RoiOutline(None, d, FALLBACK_NO_PEAK, lo, hi, support)
+    return RoiOutline(m, d, METHOD_OUTLINE, lo, hi, support)
 
 
 def outline_objects(
@@ -302,32 +372,50 @@ def outline_objects(
     image_shape: tuple[int, int],
     cfg: OutlineConfig | None = None,
     origin: tuple[int, int] = (0, 0),
+    ground: GroundLine | None = None,
 ) -> OutlineResult:
     """Outline every box from the disparity.
 
     ``disp`` is float32 pixels (<= 0 invalid) of the whole image (``origin=(0, 0)``) or
     of a region whose top-left image pixel is ``origin = (x, y)``; pixels outside it count
-    as invalid.  ``boxes`` are ``(N, 4)`` x1, y1, x2, y2 in image pixels.
+    as invalid.  ``boxes`` are ``(N, 4)`` x1, y1, x2, y2 in image pixels.  ``ground``: the
+    road's disparity line (:func:`.ground.fit_ground_line`); with ``cfg.ground_removal``
+    and a reliable (``ok``) line, road pixels are removed from every object.
     """
     cfg = cfg or OutlineConfig()
+    use_road = ground is not None and ground.ok and cfg.ground_removal
     h, w = image_shape
     rois = clip_boxes(boxes, (h, w))
     n = len(rois)
+    cover = None  # how many boxes cover each pixel
+    if n > 1 and cfg.overlap_weight < 1.0:
+        cover = np.zeros((h, w), np.uint16)
+        for x0, y0, x1, y1 in rois:
+            cover[y0:y1, x0:x1] += 1
     labels = np.zeros((h, w), np.int32)
     disparity = np.zeros(n, np.float32)
     methods: list[str] = [EMPTY] * n
     masks: list[np.ndarray | None] = [None] * n
     ranges: list[tuple[float, float]] = [(0.0, 0.0)] * n
+    inputs: list[tuple | None] = [None] * n
+    results: list[RoiOutline | None] = [None] * n
     for i in range(n):
         x0, y0, x1, y1 = (int(v) for v in rois[i])
         if x1 <= x0 or y1 <= y0:
             continue
         cx0 = max(0, x0 - LEFT_CONTEXT)
-        r = object_mask_in_roi(
+        inputs[i] = (
             roi_disparity(disp, origin, (x0, y0, x1, y1)), cfg,
             roi_disparity(disp, origin, (cx0, y0, x0, y1)) if cx0 < x0 else None,
+            ground.at(np.arange(y0, y1)) if use_road else None,  # type: ignore[union-attr]
+            cover[y0:y1, x0:x1] > 1 if cover is not None else None,
         )
-        masks[i], disparity[i], methods[i], ranges[i] = r.mask, r.disparity, r.method, (r.lo, r.hi)
+        results[i] = object_mask_in_roi(*inputs[i])
+    if n > 1 and cfg.claim_fraction < 1.0:
+        _resolve_claims(rois, inputs, results, cfg)
+    for i, r in enumerate(results):
+        if r is not None:
+            masks[i], disparity[i], methods[i], ranges[i] = r.mask, r.disparity, r.method, (r.lo, r.hi)
     # Paint far to near so nearer objects win overlaps; whole-box fallbacks first.
     order = sorted(
         (i for i in range(n) if methods[i] != EMPTY),
@@ -345,7 +433,45 @@ def outline_objects(
         x0, y0, x1, y1 = (int(v) for v in rois[i])
         if x1 > x0 and y1 > y0:
             pixels[i] = int(np.count_nonzero(labels[y0:y1, x0:x1] == i + 1))
-    return OutlineResult(labels, disparity, methods, rois, pixels, ranges)
+    return OutlineResult(labels, disparity, methods, rois, pixels, ranges, ground)
+
+
+def _resolve_claims(rois: np.ndarray, inputs: list, results: list, cfg: OutlineConfig) -> None:
+    """One disparity peak, one object.  Boxes ``i`` and ``j`` holding the same peak: when
+    more than ``cfg.claim_fraction`` of ``i``'s in-peak pixels lie in ``j``'s box (grown
+    by ``CLAIM_MARGIN`` px) -- ``j``'s object seen through ``i``'s box, or its disparity
+    spilled past its edge by the matcher (a car in the occlusion shadow of the truck
+    beside it) -- and a smaller fraction of ``j``'s in-peak pixels lie in ``i``'s, the
+    peak is ``j``'s: ``i`` is outlined again without it.  Decided on the first outlines
+    (no chains); in place; a loop over the handful of boxes.
+    """
+    n = len(results)
+    inside = np.zeros((n, n))  # inside[i, j]: fraction of i's in-peak pixels in j's grown box
+    for i in range(n):
+        ri = results[i]
+        if ri is None or ri.support <= 0:
+            continue
+        x0, y0, x1, y1 = (int(v) for v in rois[i])
+        droi = inputs[i][0]
+        for j in range(n):
+            rj = results[j]
+            if j == i or rj is None or rj.support <= 0:
+                continue
+            if abs(ri.disparity - rj.disparity) > max(tolerance(ri.disparity, cfg), tolerance(rj.disparity, cfg)):
+                continue
+            jx0, jy0, jx1, jy1 = (int(v) for v in rois[j])
+            ax0, ax1 = max(jx0 - CLAIM_MARGIN, x0), min(jx1 + CLAIM_MARGIN, x1)
+            ay0, ay1 = max(jy0 - CLAIM_MARGIN, y0), min(jy1 + CLAIM_MARGIN, y1)
+            if ax1 <= ax0 or ay1 <= ay0:
+                continue
+            near_j = droi[ay0 - y0:ay1 - y0, ax0 - x0:ax1 - x0]
+            inside[i, j] = np.count_nonzero((near_j >= ri.lo) & (near_j <= ri.hi)) / ri.support
+    for i in range(n):
+        cand = [j for j in range(n) if inside[i, j] > cfg.claim_fraction and inside[j, i] < inside[i, j]]
+        if cand:
+            j = max(cand, key=lambda k: inside[i, k])
+            rj = results[j]
+            results[i] = object_mask_in_roi(*inputs[i], exclude=(rj.lo, rj.hi))
 
 
 def band_for_boxes(rois: np.ndarray, shape: tuple[int, int], margin: int = 0) -> tuple[int, int, int, int] | None:
