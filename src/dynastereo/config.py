@@ -67,6 +67,7 @@ class OutlineConfig:
     peak_tolerance_rel: float = 0.08  # relative tolerance, for near objects
     min_valid_fraction: float = 0.05  # fewer valid pixels than this -> box fallback
     min_box_pixels: int = 64  # smaller boxes are masked whole
+    min_box_side: int = 8  # boxes narrower or lower than this (px) are masked whole
     fill_holes: bool = True
     dilate: int = 3  # dilation radius in pixels applied to each object mask
     keep_largest_component: bool = True
@@ -79,6 +80,31 @@ class OutlineConfig:
     # How a left mask moves to the right image: "affine" (d = a + b x + c y fitted per
     # object, rigid when the fit is poor) or "rigid" (shift by the object's disparity).
     transfer: str = "affine"
+    # Histogram weight of pixels a box shares with other boxes (1 = off): a car's box
+    # reaching over the truck in front of it must not take the truck's disparity peak.
+    overlap_weight: float = 0.25
+    # A box whose peak is a neighbouring box's and more than this fraction of whose
+    # in-peak pixels lie at that box (inside or within a few pixels: the matcher spills a
+    # near object's disparity past its edge) gives the peak up. 1 = off.
+    claim_fraction: float = 0.5
+    # Ground removal (masking/ground.py): the road's disparity is a line in the image
+    # row, d = a v + c, fitted per frame (v-disparity Hough + least squares) to a coarse
+    # disparity of the image's lower part; pixels less than ground_tolerance px above
+    # it (measured, or filled along the row) are road and leave every object's mask.
+    ground_removal: bool = True
+    ground_tolerance: float = 1.0  # px above the road line still counted as road
+    # Plausible camera heights over the road (m): road slopes a = baseline / height
+    # outside baseline/max .. baseline/min are rejected (a truck filling the view).
+    ground_min_height: float = 0.8
+    ground_max_height: float = 3.0
+    ground_baseline: float = 0.0  # m; 0 = the rig's when the masker knows it, else 0.54 (KITTI)
+    ground_fit_tolerance: float = 1.0  # px: Hough bin width / inlier distance of the fit
+    ground_min_inliers: int = 150  # fewer sampled road points -> unreliable, no removal
+    ground_rows_from: float = 0.4  # fit on the rows below this fraction of the image height
+    # The road may take at most this fraction of an object's in-peak pixels; more means
+    # the line does not hold at the object (slope, kerb): no removal there. 1 = no check.
+    ground_max_fraction: float = 0.5
+    ground_after_dilate: bool = True  # the dilation must not grow into the road either
 
 
 @dataclass
@@ -102,23 +128,38 @@ class SlamConfig:
     n_features: int = 2000  # ORBextractor.nFeatures (the thesis used 4000)
     scale_factor: float = 1.2  # ORBextractor.scaleFactor
     n_levels: int = 8  # ORBextractor.nLevels (the thesis used 16)
-    ini_th_fast: int = 20  # ORBextractor.iniThFAST
-    min_th_fast: int = 7  # ORBextractor.minThFAST
+    ini_th_fast: int = 20  # ORBextractor.iniThFAST: FAST threshold
+    min_th_fast: int = 7  # ORBextractor.minThFAST: levels short of corners at ini_th_fast retry with it
     oversample: float = 2.0  # corners detected per kept one, before grid bucketing
     mask_margin: int = 0  # grow the dynamic mask by this many pixels before detection
     # stereo
     th_depth: float = 35.0  # ThDepth: close/far threshold, in baselines
+    # px added to every measured disparity (a right principal-point error of the
+    # rectification); the start value when self_calibrate
+    disparity_offset: float = 0.0
+    # estimate the disparity offset once, when the map has selfcal_keyframes keyframes:
+    # BA over the whole map solved at a few offsets (needs local_ba process / inline)
+    self_calibrate: bool = True
+    selfcal_keyframes: int = 8
     # tracking
-    min_inliers: int = 20  # fewer inliers after local-map tracking -> frame lost
+    min_inliers: int = 20  # fewer inliers after local-map tracking -> pose not supported
+    # fewer inliers than this fraction of the median of the last 5 tracked frames -> pose
+    # not supported either (a wrong pose keeps a few far points: a jump back in a revisit)
+    min_inlier_fraction: float = 0.25
+    # an unsupported pose is replaced by a prior-free search over the map's keyframes
+    # (descriptor votes -> best reloc_candidates keyframes -> PnP-RANSAC -> local map);
+    # its best hypothesis needs reloc_min_inliers, else the frame is lost.  0 = no search
+    reloc_candidates: int = 3
+    reloc_min_inliers: int = 50
     min_init_points: int = 100  # stereo points needed to (re)initialise a map
     max_frames: int = 10  # keyframe at least every max_frames (ORB-SLAM2: camera fps)
     min_frames: int = 0
     # local mapping
     local_ba: str = "process"  # process (worker process) | inline | off
-    ba_iterations: int = 5  # Levenberg-Marquardt iterations per local BA
+    ba_iterations: int = 3  # Levenberg-Marquardt iterations per local BA (converges in 2-3)
     ba_max_keyframes: int = 10  # optimised keyframes (current + best covisible)
     ba_max_fixed: int = 10  # fixed keyframes that anchor the local window
-    ba_lag_frames: int = 1  # a local BA submitted at frame k is applied before tracking frame k+lag
+    ba_lag_frames: int = 2  # a local BA submitted at frame k is applied after tracking frame k+lag
     triangulation_neighbours: int = 6  # covisible keyframes searched for new points
     fuse_neighbours: int = 6  # covisible keyframes searched for duplicate points
     keyframe_culling: bool = True
