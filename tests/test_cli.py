@@ -151,3 +151,15 @@ def test_mask_cli_on_raw_euroc(euroc_dir: Path, models_dir: Path, tmp_path: Path
     d = read_disparity_png(out / "disparity/000001.png")
     # an indoor room 2-8 m away: a dense, plausible disparity after rectification
     assert np.count_nonzero(d > 0) > 0.3 * d.size and 2 < np.median(d[d > 0]) < 60
+
+
+def test_config_file_documents_every_default(tmp_path: Path) -> None:
+    """configs/default.yaml (linked from README) is exactly what `dynastereo config` prints."""
+    shipped = Path(__file__).resolve().parent.parent / "configs" / "default.yaml"
+    r = runner.invoke(app, ["config"])
+    assert r.exit_code == 0
+    assert shipped.read_text() == r.stdout
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("stereo:\n  blocksize: 9\n")
+    r = runner.invoke(app, ["config", str(bad)])
+    assert r.exit_code == 2 and "stereo.blocksize" in r.output and "bad.yaml" in r.output

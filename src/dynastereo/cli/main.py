@@ -342,6 +342,20 @@ def demo(
         _fail(e)
 
 
+@app.command("config")
+def config_cmd(
+    config: Optional[Path] = typer.Argument(None, help="A YAML (or ORB-SLAM2 settings) file to check and print merged with the defaults."),
+) -> None:
+    """Print the configuration (defaults, or FILE merged over them) as YAML."""
+    from ..config import dump_config
+
+    try:
+        cfg = _build_config(config, {})
+    except DynastereoError as e:
+        _fail(e)
+    print(dump_config(cfg), end="")
+
+
 @app.command("eval")
 def eval_cmd(
     estimate: Path = typer.Argument(..., help="Estimated trajectory (KITTI 3x4 rows or TUM)."),
