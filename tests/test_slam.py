@@ -20,7 +20,7 @@ from dynastereo.errors import CalibrationError, ConfigError
 from dynastereo.slam import System, load_orbslam_settings
 from dynastereo.slam.geometry import desc_u64, inv_T, se3_exp
 from dynastereo.slam.matcher import KeypointGrid, search_by_projection, stereo_match
-from dynastereo.slam.optimizer import LocalBAProblem, local_ba, optimize_pose, project
+from dynastereo.slam.optimizer import LocalBAProblem, local_ba, optimize_pose, project, self_calibrating_ba
 from dynastereo.slam.orb import ORBExtractor
 from dynastereo.timing import StageTimer
 from dynastereo.types import StereoCalibration, StereoFrame, StereoMasks
@@ -230,6 +230,13 @@ def test_orb_features_spread_over_the_image():
     f = ex.extract(left)
     assert len(f) == 1000
     np.testing.assert_array_equal(np.bincount(f.octave, minlength=8), ex.quota)
+    # the corridor's smooth textures have too few corners at ini_th_fast (20) on some
+    # levels: those were detected again at min_th_fast (7); a busy image needs no retry
+    assert ex.fallbacks == 1
+    busy = cv2.GaussianBlur(np.random.default_rng(0).integers(0, 256, (2 * H, 2 * W), dtype=np.uint8), (3, 3), 0)
+    assert len(ex.extract(busy)) == 1000 and ex.fallbacks == 1
+    strict = ORBExtractor(1000, ini_th_fast=20, min_th_fast=20).extract(left)  # no retry: fewer
+    assert len(strict) < 1000
 
     def occupancy(uv: np.ndarray) -> np.ndarray:
         occ = np.zeros((4, 8), int)
@@ -325,6 +332,58 @@ def test_local_ba_recovers_perturbed_poses():
     np.testing.assert_allclose(res.T_wc[0], T_noisy[0], atol=1e-6)  # the fixed keyframe stays
 
 
+def _ba_problem_with_offset(offset: float, seed: int = 4):
+    """Five keyframes 1 m apart looking at points 6-40 m away, stereo observations whose
+    disparity is ``offset`` px too small (a rectification error), 0.3 px noise."""
+    rng = np.random.default_rng(seed)
+    n_kf, P = 5, 800
+    T_wc = np.stack([se3_exp(np.r_[0, 0.01 * i, 0, 0.05 * i, 0, 1.0 * i]) for i in range(n_kf)])
+    X = np.c_[rng.uniform(-12, 12, P), rng.uniform(-3, 2, P), rng.uniform(10, 45, P)]
+    kf_i, pt_i, uvs, urs = [], [], [], []
+    for i in range(n_kf):
+        Xc, u, v, ur = project(inv_T(T_wc[i]), X, K[0, 0], K[1, 1], K[0, 2], K[1, 2], CALIB.bf)
+        vis = np.flatnonzero((Xc[:, 2] > 1) & (u > 0) & (u < W) & (v > 0) & (v < H))
+        kf_i.append(np.full(len(vis), i))
+        pt_i.append(vis)
+        uvs.append(np.c_[u[vis], v[vis]] + rng.normal(0, 0.3, (len(vis), 2)))
+        urs.append(ur[vis] + offset + rng.normal(0, 0.3, len(vis)))
+    obs_kf, obs_pt = np.concatenate(kf_i), np.concatenate(pt_i)
+    seen = np.bincount(obs_pt, minlength=P) >= 2
+    keep = seen[obs_pt]
+    new_id = np.cumsum(seen) - 1
+    fixed = np.zeros(n_kf, bool)
+    fixed[0] = True
+    # the map as a tracker would have built it: points from the biased stereo depths
+    X0 = X[seen] * (1 + 0.002 * rng.normal(size=(seen.sum(), 1)))
+    prob = LocalBAProblem(
+        np.arange(n_kf), T_wc.copy(), fixed, np.flatnonzero(seen), X0, obs_kf[keep], new_id[obs_pt[keep]],
+        np.concatenate(uvs)[keep], np.concatenate(urs)[keep], np.full(keep.sum(), 0.3), K, BASELINE, iterations=10,
+    )
+    return prob, T_wc, X[seen]
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.35, -0.25])
+def test_self_calibrating_ba_recovers_a_known_disparity_offset(offset: float):
+    prob, T_true, X_true = _ba_problem_with_offset(offset)
+    prob.offset_grid = (-0.3, 0.0, 0.3)
+    prob.offset_prior_sigma = 100.0  # no shrinkage: the plain estimate
+    res = self_calibrating_ba(prob)
+    assert res.offset is not None and res.offset_sigma < 0.05
+    assert abs(res.offset - offset) < max(3 * res.offset_sigma, 0.05)
+    assert len(res.offset_costs) == 3
+    # with the offset estimated, the poses and points are right; without it, not
+    prob.offset_grid = None
+    plain = local_ba(prob)
+    err = lambda r: max(np.linalg.norm(r.T_wc[i][:3, 3] - T_true[i][:3, 3]) for i in range(5))  # noqa: E731
+    rel = lambda r: np.median(np.linalg.norm(r.X - X_true, axis=1) / np.linalg.norm(X_true, axis=1))  # noqa: E731
+    if offset != 0.0:
+        assert err(res) < 0.5 * err(plain) and rel(res) < 0.7 * rel(plain)
+    assert err(res) < 0.03 and rel(res) < 0.02  # points 10-45 m, disparities 3.5-16 px +- 0.3
+    # the prior shrinks a weak estimate towards 0
+    prob.offset_grid, prob.offset_prior_sigma = (-0.3, 0.0, 0.3), 0.002
+    assert abs(self_calibrating_ba(prob).offset) < 0.01
+
+
 # ------------------------------------------------------------------ the system, synthetic
 def _run(frames, cfg: SlamConfig, masks=None) -> System:
     sysm = System(cfg, CALIB)
@@ -394,7 +453,7 @@ def test_masked_regions_get_no_features_and_tracking_holds():
     assert sysm.stats()["lost"] == 0
 
 
-def test_lost_tracking_is_logged_filled_and_recovered(caplog):
+def test_lost_tracking_is_logged_filled_and_recovered_in_the_kept_map(caplog):
     frames, gt = _sequence()
     rng = np.random.default_rng(5)
     feed = list(frames[:12])
@@ -411,15 +470,77 @@ def test_lost_tracking_is_logged_filled_and_recovered(caplog):
     assert [s.status for s in states[12:14]] == ["lost", "lost"]
     assert sysm.lost_frames() == [12, 13]
     assert all(s.status in ("tracked", "init") for s in states[14:])
-    assert sysm.stats()["reinitialisations"] >= 1
     msgs = " ".join(r.getMessage() for r in caplog.records)
     assert "frame 100: tracking lost" in msgs and "constant-velocity prediction" in msgs
+    assert "too few to re-initialise" in msgs and "map is kept" in msgs
     # the lost rows are the constant-velocity prediction (smooth path: close to the truth)
     for i in (12, 13):
         assert np.linalg.norm(est[i, :, 3] - gt_feed[i, :3, 3]) < 0.2
-    # after recovery the new map is anchored to the predicted pose: the path continues
+    # neither lost frame could start a map: the old one was kept and frame 14 found its
+    # place in it again -- same map, same accuracy as without the gap
+    assert sysm.stats()["reinitialisations"] == 0 and {s.map_id for s in states} == {0}
     err = np.linalg.norm(est[14:, :, 3] - gt_feed[14:, :3, 3], axis=1)
-    assert err.max() < 0.3
+    assert err.max() < 0.05
+
+
+def test_jump_to_an_unknown_place_is_lost_and_reinitialised(caplog):
+    """The same path through a differently textured corridor from frame 12 on: nothing
+    matches the map, so frame 12 is lost and starts a new map at the predicted pose."""
+    frames, gt = _sequence()
+    other = Corridor(7)
+    feed = list(frames[:12])
+    for i in range(12, 20):
+        left, right, _, _ = other.stereo(_pose(i))
+        feed.append(StereoFrame(200 + i, 0.1 * i, left, right))
+    with caplog.at_level(logging.WARNING, logger="dynastereo.slam"):
+        sysm = _run(feed, _cfg())
+    states = sysm.frame_states()
+    assert [s.status for s in states[:12]] == ["init"] + ["tracked"] * 11
+    assert states[12].status == "lost" and states[12].keyframe  # the new map's first keyframe
+    assert [s.map_id for s in states] == [0] * 12 + [1] * 8
+    assert all(s.status == "tracked" for s in states[13:])
+    assert sysm.stats()["reinitialisations"] == 1
+    msgs = " ".join(r.getMessage() for r in caplog.records)
+    assert "frame 212: tracking lost" in msgs and "re-initialising the map at that pose" in msgs
+    # the new map is anchored to the constant-velocity prediction: the path continues
+    est = sysm.trajectory()
+    err = np.linalg.norm(est[:, :, 3] - gt[:20, :3, 3], axis=1)
+    assert err[:12].max() < 0.05 and err[12:].max() < 0.2
+
+
+def test_a_revisit_is_relocalised_not_mis_tracked(caplog):
+    """Frames 0-23 then 6-10 again: the jump back (6.8 m) breaks the motion model; the
+    pose must come from the map's keyframes (the first visit), not be accepted wrong."""
+    frames, gt = _sequence()
+    order = list(range(24)) + list(range(6, 11))
+    with caplog.at_level(logging.INFO, logger="dynastereo.slam"):
+        sysm = _run([frames[i] for i in order], _cfg())
+    est = sysm.trajectory()
+    states = sysm.frame_states()
+    assert sysm.stats()["lost"] == 0
+    # placed without the motion model: by the reference keyframe's descriptors or by the
+    # search over all keyframes; then the motion model takes over again (the velocity
+    # across the jump is not the jump)
+    assert states[24].method in ("reference", "reloc")
+    assert [s.method for s in states[25:]] == ["motion"] * 4
+    err = np.linalg.norm(est[:, :, 3] - gt[order, :3, 3], axis=1)
+    assert err.max() < 0.05
+    np.testing.assert_allclose(est[24:, :, 3], est[6:11, :, 3], atol=0.03)  # where the first visit was
+
+
+def test_a_disparity_offset_of_the_rig_is_self_calibrated():
+    """Right images moved 0.6 px to the right (every disparity 0.6 px short, as a
+    rectification error would make it): depths are too large, the path too long.  The
+    self-calibration measures the offset from the map and the path comes back."""
+    frames, gt = _sequence()
+    M = np.float32([[1, 0, 0.6], [0, 1, 0]])
+    feed = [StereoFrame(f.index, f.timestamp, f.left, cv2.warpAffine(f.right, M, (W, H))) for f in frames]
+    runs = {sc: _run(feed, _cfg(self_calibrate=sc, selfcal_keyframes=6)) for sc in (False, True)}
+    err = {sc: np.linalg.norm(r.trajectory()[:, :, 3] - gt[:, :3, 3], axis=1) for sc, r in runs.items()}
+    st = runs[True].stats()
+    assert runs[False].stats()["disparity_offset"] == 0.0
+    assert 0.25 < st["disparity_offset"] < 0.8 and st["disparity_offset_sigma"] < 0.2  # measured 0.40 +- 0.14
+    assert err[False][-1] > 0.3 and err[True][-1] < 0.6 * err[False][-1]
 
 
 def test_deterministic_with_the_worker_process():
@@ -534,8 +655,78 @@ def test_kitti06_first_30_frames_accuracy(kitti06: Path, data_dir: Path):
     poses = np.tile(np.eye(4), (n, 1, 1))
     poses[:, :3] = est
     res = evaluate(Trajectory(poses), gt, frame_indices=np.arange(n))
-    assert res.ape["rmse"] < 0.15  # 34 m of path (measured 0.078; ground truth of frames 0-13 is smoothed)
-    assert res.drift_percent < 2.0  # measured 1.17
+    # 34 m of path; measured 0.038 m and 0.90 % (0.086 m and 1.18 % without the disparity
+    # self-calibration); the ground truth of frames 0-13 is interpolated (its yaw is
+    # exactly linear), which alone puts 0.4 m of lateral error at the end of seq 06
+    assert res.ape["rmse"] < 0.07
+    assert res.drift_percent < 1.5
     st = sysm.stats()
     assert st["lost"] == 0 and st["keyframes_created"] >= 5 and st["map_points"] > 2000
-    assert res.rpe_rot_deg["mean"] < 0.1  # deg per frame, measured 0.062
+    assert res.rpe_rot_deg["mean"] < 0.1  # deg per frame, measured 0.061
+    # the rig's disparity offset, measured from the map alone: 0.15 +- 0.06 px (a BA over
+    # all 51 frames finds 0.15, seq 03 0.24; the ground truth's scale agrees with 0.2)
+    assert 0.05 < st["disparity_offset"] < 0.3 and st["disparity_offset_sigma"] < 0.1
+
+
+def _run_kitti(seq, feed, cfg: Config | None = None) -> System:
+    cfg = cfg or Config()
+    cfg.slam.local_ba = "inline"
+    sysm = System(cfg, seq.calibration)
+    try:
+        for f in feed:
+            sysm.track(f)
+    finally:
+        sysm.shutdown()
+    return sysm
+
+
+@pytest.mark.realdata
+def test_kitti06_jump_back_is_not_mis_tracked(kitti06: Path, data_dir: Path):
+    """``--frames 0-11,4-6``: after image 11 come images 4, 5, 6 again (8.4 m back).
+    Each of them is either lost, or tracked with the pose of its first visit."""
+    from dynastereo.eval import read_trajectory
+    from dynastereo.io import open_sequence
+
+    seq = open_sequence(kitti06)
+    order = list(range(12)) + [4, 5, 6]
+    sysm = _run_kitti(seq, [seq.frame(i) for i in order])
+    est = sysm.trajectory()
+    states = sysm.frame_states()
+    assert len(est) == 15
+    gt = read_trajectory(data_dir / "kitti_odometry/dataset/poses/06.txt").positions
+    for k in (12, 13, 14):
+        if states[k].status != "lost":
+            assert np.linalg.norm(est[k, :, 3] - est[order[k], :, 3]) < 0.3, k
+            assert np.linalg.norm(est[k, :, 3] - gt[order[k]]) < 0.3, k
+    # here the map holds the place: found again, nothing lost
+    assert [s.status for s in states[12:]] == ["tracked"] * 3 and states[12].method in ("reference", "reloc")
+
+
+@pytest.mark.realdata
+def test_kitti06_black_frames_are_lost_then_recovered(kitti06: Path, data_dir: Path):
+    """Images 0-9, ten black frames, images 10-19: no crash, a row per frame, the black
+    frames lost (rows: constant-velocity prediction), images 10-19 tracked in the map
+    that was kept (too few stereo points to start a new one) at their true place."""
+    from dynastereo.eval import read_trajectory
+    from dynastereo.io import open_sequence
+
+    seq = open_sequence(kitti06)
+    black = np.zeros((seq.calibration.height, seq.calibration.width), np.uint8)
+    feed = [seq.frame(i) for i in range(10)]
+    feed += [StereoFrame(1000 + j, 0.0, black, black) for j in range(10)]
+    feed += [seq.frame(i) for i in range(10, 20)]
+    sysm = _run_kitti(seq, feed)
+    est = sysm.trajectory()
+    assert est.shape == (30, 3, 4) and np.isfinite(est).all()
+    assert sysm.lost_frames() == list(range(10, 20))
+    states = sysm.frame_states()
+    assert all(s.status == "tracked" for s in states[20:])
+    assert sysm.stats()["reinitialisations"] == 0
+    gt = read_trajectory(data_dir / "kitti_odometry/dataset/poses/06.txt").positions
+    err = np.linalg.norm(est[20:, :, 3] - gt[10:20], axis=1)
+    assert err.max() < 0.5  # 0.28 measured: the drift of frames 0-19 without the gap
+    # the lost rows continue the last velocity (about 1.2 m per frame forward); frame 9's
+    # row moved a little since (local BA refines it through its keyframe)
+    steps = np.linalg.norm(np.diff(est[9:20, :, 3], axis=0), axis=1)
+    assert np.allclose(steps[1:], steps[1], atol=1e-6) and 1.0 < steps[1] < 1.4
+    assert abs(steps[0] - steps[1]) < 0.1

@@ -14,6 +14,13 @@ Modules follow ORB-SLAM2: ``orb`` (ORBExtractor: masked, grid-bucketed pyramid O
 motion-only BA, gtsam local BA), ``ba_worker`` (local BA process), ``settings``
 (ORB-SLAM2 settings files), ``system``.  Stage times: ``features``, ``stereo``,
 ``track``, ``local_mapping``.
+
+Beyond ORB-SLAM2's tracking: a pose needs support (inliers against the recent frames'
+median) or it is replaced by a prior-free search over the map's keyframes
+(``Tracker.relocalise``) -- revisits and gaps are found again or marked lost, never
+mis-tracked; and the stereo rig's disparity offset is self-calibrated once by a BA
+over the map (``optimizer.self_calibrating_ba``).  See ``system`` for the lost-frame
+policy.
 """
 
 from .settings import load_orbslam_settings

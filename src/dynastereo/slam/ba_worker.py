@@ -19,7 +19,7 @@ def main() -> int:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import gtsam  # noqa: F401 -- import before the first job
 
-    from .optimizer import local_ba
+    from .optimizer import run_ba
 
     inp = sys.stdin.buffer
     out = sys.stdout.buffer
@@ -33,7 +33,7 @@ def main() -> int:
             write_msg(out, "pong")
             continue
         try:
-            res = local_ba(msg)  # type: ignore[arg-type]
+            res = run_ba(msg)  # type: ignore[arg-type]
         except Exception as e:  # noqa: BLE001 -- report, keep serving
             res = e
         write_msg(out, res)

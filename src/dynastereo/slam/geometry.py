@@ -75,7 +75,7 @@ def orthonormalize(T: np.ndarray) -> np.ndarray:
 def desc_u64(desc: np.ndarray) -> np.ndarray:
     """(N, 32) uint8 ORB descriptors as (N, 4) uint64 for fast Hamming distances."""
     d = np.ascontiguousarray(desc, dtype=np.uint8)
-    return d.view(np.uint64).reshape(len(d), -1)
+    return d.reshape(len(d), 32).view(np.uint64)  # (N, 4); also for N = 0
 
 
 def hamming_pairs(a64: np.ndarray, ia: np.ndarray, b64: np.ndarray, ib: np.ndarray) -> np.ndarray:

@@ -41,9 +41,16 @@ from .ipc import read_msg, write_msg
 from .keyframe import KeyFrame
 from .map import Map
 from .matcher import TH_LOW, search_by_projection
-from .optimizer import LocalBAProblem, LocalBAResult, local_ba, project, reprojection_chi2
+from .optimizer import LocalBAProblem, LocalBAResult, project, reprojection_chi2, run_ba
 
 log = logging.getLogger("dynastereo.slam")
+
+# disparity offsets (px) at which the self-calibrating BA is solved
+SELFCAL_GRID = (-0.3, 0.0, 0.3)
+# frames tracked while the self-calibrating BA runs in the worker process
+SELFCAL_LAG_FRAMES = 5
+# points in the self-calibrating BA
+SELFCAL_MAX_POINTS = 1500
 
 
 @dataclass
@@ -60,6 +67,8 @@ class MappingParams:
     triangulation_neighbours: int = 6
     fuse_neighbours: int = 6
     keyframe_culling: bool = True
+    self_calibrate: bool = False
+    selfcal_keyframes: int = 8
 
 
 @dataclass
@@ -71,6 +80,8 @@ class MappingStats:
     points_culled: int = 0
     points_fused: int = 0
     keyframes_culled: int = 0
+    disparity_offset: float | None = None  # self-calibrated (px), None until estimated
+    disparity_offset_sigma: float | None = None
 
 
 class _Pending:
@@ -122,7 +133,7 @@ class BARunner:
                 log.warning("local BA worker process died (%s); running local BA inline", e)
                 self._stop()
                 self.mode = "inline"
-        return local_ba(problem)
+        return run_ba(problem)
 
     def _receive(self, problem: LocalBAProblem) -> LocalBAResult:
         res = None
@@ -139,7 +150,7 @@ class BARunner:
             log.warning("local BA worker process died; running local BA inline from now on")
             self._stop()
             self.mode = "inline"
-        return local_ba(problem)
+        return run_ba(problem)
 
     def _stop(self) -> None:
         p = self._proc
@@ -171,6 +182,10 @@ class LocalMapper:
         self._job_due = 0
         self._job_map = None
         self._pending_kf: KeyFrame | None = None
+        # self-calibration of the disparity offset: done once per System (``on_offset``
+        # applies the estimate to the map's keyframes and the frames in flight)
+        self.selfcal_due = params.self_calibrate
+        self.on_offset = None
 
     # ---------------------------------------------------------------- pipeline
     def process(self, kf: KeyFrame, new_points: np.ndarray, frame_index: int) -> None:
@@ -445,8 +460,39 @@ class LocalMapper:
                 oldest = min(local)
                 local.remove(oldest)
                 fixed_ids = [oldest]
-        if not local:
+        return self._problem(kf, local, fixed_ids, pts, rows)
+
+    def build_selfcal_problem(self, kf: KeyFrame) -> LocalBAProblem | None:
+        """BA over all keyframes of the map (the first one fixed) with the disparity
+        offset as an extra unknown (``optimizer.self_calibrating_ba``)."""
+        mp = self.mp
+        ids = sorted(mp.keyframes)
+        if len(ids) < 3:
             return None
+        pts = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in ids]))
+        pts = pts[pts >= 0]
+        pts = pts[~mp.bad[pts]]
+        if len(pts) == 0:
+            return None
+        # the offset shows in points seen from several keyframes: the most observed
+        # ones, at most SELFCAL_MAX_POINTS (the three solves stay cheap)
+        rows = mp.rows_of(pts)
+        n_kf = np.bincount(np.searchsorted(pts, mp.obs_pt[rows]), minlength=len(pts))
+        order = np.lexsort((pts, -n_kf))
+        keep = np.sort(order[: SELFCAL_MAX_POINTS][n_kf[order[:SELFCAL_MAX_POINTS]] >= 2])
+        pts = pts[keep]
+        prob = self._problem(kf, ids[1:], ids[:1], pts, mp.rows_of(pts))
+        if prob is not None:
+            prob.offset_grid = SELFCAL_GRID
+            prob.iterations = max(prob.iterations, 5)
+        return prob
+
+    def _problem(
+        self, kf: KeyFrame, local: list[int], fixed_ids: list[int], pts: np.ndarray, rows: np.ndarray
+    ) -> LocalBAProblem | None:
+        mp = self.mp
+        p = self.p
+        okf = mp.obs_kf[rows]
         all_kf = np.array(local + fixed_ids, np.int64)
         rows = rows[np.isin(okf, all_kf)]
         okf = mp.obs_kf[rows]
@@ -495,12 +541,19 @@ class LocalMapper:
         return prob
 
     def _submit(self, kf: KeyFrame, frame_index: int) -> None:
-        prob = self.build_problem(kf)
+        prob = None
+        if self.selfcal_due and len(self.mp.keyframes) >= self.p.selfcal_keyframes:
+            prob = self.build_selfcal_problem(kf)
+            self.selfcal_due = prob is None
+        if prob is None:
+            prob = self.build_problem(kf)
         if prob is None:
             return
         res = self.runner.submit(prob)
         self._job = res
-        self._job_due = frame_index + max(0, self.p.ba_lag_frames)
+        # the self-calibrating BA solves the map several times: more frames to run in
+        lag = max(self.p.ba_lag_frames, SELFCAL_LAG_FRAMES) if prob.offset_grid else self.p.ba_lag_frames
+        self._job_due = frame_index + max(0, lag)
         self._job_map = id(self.mp)
         if isinstance(res, LocalBAResult):
             self._apply(res)
@@ -530,6 +583,18 @@ class LocalMapper:
         mp = self.mp
         self.stats.ba_runs += 1
         self.stats.ba_ms.append(res.ms)
+        if res.offset_costs is not None:
+            self.stats.disparity_offset = res.offset
+            self.stats.disparity_offset_sigma = res.offset_sigma
+            log.info(
+                "disparity offset self-calibration: %s (costs %s; %.0f ms)",
+                "none" if res.offset is None else f"{res.offset:+.3f} +- {res.offset_sigma:.3f} px",
+                ", ".join(f"{x:.0f}" for x in res.offset_costs),
+                res.ms,
+            )
+            if res.offset is not None and self.on_offset is not None:
+                # the keyframes' stereo observations move to the offset the BA used
+                self.on_offset(res.offset, res.offset_sigma)
         for i, k in enumerate(res.kf_ids):
             kf = mp.keyframes.get(int(k))
             if kf is not None:

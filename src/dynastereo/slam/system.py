@@ -10,18 +10,44 @@ World = the first frame's left camera (KITTI ground-truth convention).  Every fr
 gets exactly one trajectory row.  Poses of tracked frames are kept relative to their
 reference keyframe (as ORB-SLAM2 does), so later local BA refines them too.
 
-When tracking is lost (too few inliers after local-map tracking, or no match at all)
-the frame is logged as lost at WARNING level, flagged ``lost`` in ``frame_states()``,
-and its trajectory row is the *constant-velocity prediction* (last pose times last
-velocity; the last pose if no velocity yet).  The map is then re-initialised from this
-frame's stereo points, anchored to that predicted pose, and tracking continues on
-the new map.  Frames that cannot even initialise a map (too few stereo points) are
-lost frames with the predicted pose as well; nothing raises.
+A pose is accepted only with enough support: after local-map tracking at least
+``min_inliers`` inliers and at least ``min_inlier_fraction`` (25 %) of the median of the
+last tracked frames.  A jump the motion model cannot follow (a revisit fed as
+``--frames 0-98,40-60``, a gap) leaves a wrong prediction with a few chance inliers on far
+points: such a pose is refused, and a prior-free search over the map's keyframes runs
+instead (``Tracker.relocalise``: descriptor votes pick candidate keyframes, PnP-RANSAC,
+motion-only BA, local map; ``reloc_min_inliers`` needed).  A frame placed that way is
+``tracked`` with method ``reloc`` (or ``reference`` when the reference keyframe's
+descriptors already placed it); the velocity is not taken across such a jump.
+
+When no pose is supported the frame is *lost*: a WARNING log line names the frame and
+the reason, ``frame_states()`` flags it ``lost``, and its trajectory row is the
+*constant-velocity prediction* (last pose times last velocity; the last pose if no
+velocity yet) -- over a run of lost frames the prediction continues at that velocity.
+Then:
+
+* the frame has at least ``min_init_points`` stereo points (a new place): a new map is
+  initialised from them, anchored to that predicted pose, and tracking continues on it
+  (``map_id`` increments; the frame is the new map's first keyframe);
+* it has fewer (a black or blank frame, a lens cover): the map is kept, and the next
+  frames are tracked / relocalised in it again -- after ten black frames KITTI 06 is
+  found again at its true place, no new map needed.
+
+Nothing raises on bad frames.
+
+Stereo self-calibration (``slam.self_calibrate``, on by default): rectified pairs often
+carry a small constant disparity offset (a right principal-point error; KITTI's is about
+0.15-0.25 px), which biases every depth by ``delta / bf`` in inverse depth -- on KITTI a
+0.7 % too long path.  When the map has ``selfcal_keyframes`` keyframes, a BA over the
+whole map is solved at three offsets in the local-BA worker; the parabola of its cost
+gives the offset (``optimizer.self_calibrating_ba``), which is then applied to every
+keyframe's and every later frame's stereo observations (``stats()["disparity_offset"]``).
 """
 
 from __future__ import annotations
 
 import logging
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -44,6 +70,16 @@ from .tracking import TrackParams, Tracker
 log = logging.getLogger("dynastereo.slam")
 
 
+def _shift_stereo(uv: np.ndarray, u_right: np.ndarray, depth: np.ndarray, delta: float, bf: float) -> None:
+    """Add ``delta`` px to the disparity of the stereo keypoints (in place; >= 0.01 px)."""
+    st = u_right >= 0
+    if not st.any():
+        return
+    disp = np.maximum(uv[st, 0] - u_right[st] + delta, 0.01)
+    u_right[st] = uv[st, 0] - disp
+    depth[st] = bf / disp
+
+
 @dataclass
 class FrameState:
     """What happened to one frame (``System.frame_states()``)."""
@@ -51,9 +87,9 @@ class FrameState:
     index: int  # position in the order fed
     frame_index: int  # StereoFrame.index
     status: str  # "init", "tracked", "lost"
-    method: str  # "init", "motion", "reference", "" (lost)
-    keyframe: bool
-    inliers: int
+    method: str  # "init", "motion", "reference", "reloc", "" (lost)
+    keyframe: bool  # a lost frame that starts a new map is its first keyframe
+    inliers: int  # after local-map tracking (lost: of the best refused pose, 0 if none)
     n_features: int
     n_stereo: int
     map_id: int  # increments at each re-initialisation
@@ -76,6 +112,14 @@ def _validate(cfg: SlamConfig) -> None:
         raise ConfigError(f"slam.local_ba must be process, inline or off, got {cfg.local_ba!r}")
     if cfg.th_depth <= 0:
         raise ConfigError(f"slam.th_depth must be positive, got {cfg.th_depth}")
+    if not 0.0 <= cfg.min_inlier_fraction < 1.0:
+        raise ConfigError(f"slam.min_inlier_fraction must be in [0, 1), got {cfg.min_inlier_fraction}")
+    if cfg.reloc_candidates < 0 or cfg.reloc_min_inliers < 0:
+        raise ConfigError("slam.reloc_candidates and slam.reloc_min_inliers must be >= 0")
+    if cfg.selfcal_keyframes < 3:
+        raise ConfigError(f"slam.selfcal_keyframes must be >= 3, got {cfg.selfcal_keyframes}")
+    if not np.isfinite(cfg.disparity_offset) or abs(cfg.disparity_offset) > 5.0:
+        raise ConfigError(f"slam.disparity_offset must be a few pixels at most, got {cfg.disparity_offset}")
 
 
 class System:
@@ -124,7 +168,14 @@ class System:
             triangulation_neighbours=cfg.triangulation_neighbours,
             fuse_neighbours=cfg.fuse_neighbours,
             keyframe_culling=cfg.keyframe_culling,
+            self_calibrate=cfg.self_calibrate and cfg.local_ba != "off",
+            selfcal_keyframes=cfg.selfcal_keyframes,
         )
+        # disparity offset (px) added to every measured disparity; self-calibrated once
+        # when slam.self_calibrate (see optimizer.self_calibrating_ba)
+        self.disparity_offset = float(cfg.disparity_offset)
+        self.disparity_offset_sigma: float | None = None
+        self._selfcal_due = self._map_params.self_calibrate
         self._threads = ThreadPoolExecutor(max_workers=2) if cfg.threads > 1 else None
         self.runner = BARunner(cfg.local_ba)
         self.timer = StageTimer()
@@ -135,6 +186,9 @@ class System:
         self._anchor = np.eye(4)
         self._velocity: np.ndarray | None = None
         self._last_T: np.ndarray | None = None
+        self._last_ok = False  # the last frame was tracked (not lost)
+        self._last_method = ""
+        self._recent_inliers: deque[int] = deque(maxlen=5)
         self._kf_total = 0
         self._closed = False
         self._new_map()
@@ -158,7 +212,45 @@ class System:
         self.tracker = Tracker(self._track_params)
         self.tracker.velocity = self._velocity
         self.mapper = LocalMapper(self.map, self._map_params, self.runner)
+        self.mapper.selfcal_due = self._selfcal_due
+        self.mapper.on_offset = self._set_disparity_offset
         self._initialised = False
+        self._recent_inliers = deque(maxlen=5)
+
+    def _set_disparity_offset(self, offset: float, sigma: float | None = None) -> None:
+        """Move every keyframe's and the last frame's stereo observations to ``offset``
+        (called by local mapping with the self-calibrated value, before it applies the
+        BA that was solved with it); later frames are matched with it."""
+        delta = float(offset) - self.disparity_offset
+        self._selfcal_due = self.mapper.selfcal_due = False
+        self.disparity_offset_sigma = sigma
+        if delta == 0.0:
+            return
+        self.disparity_offset = float(offset)
+        done: set[int] = set()
+        holders = list(self.map.keyframes.values())
+        if self.tracker.last is not None:
+            holders.append(self.tracker.last)
+        for h in holders:  # a keyframe shares its arrays with its frame: shift once
+            if id(h.u_right) in done:
+                continue
+            done.add(id(h.u_right))
+            _shift_stereo(h.uv, h.u_right, h.depth, delta, self.calib.bf)
+        # points seen by a single keyframe (not in the BA): from that keyframe's new depth
+        mp = self.map
+        for kf in self.map.keyframes.values():
+            kp = np.flatnonzero((kf.point_ids >= 0) & (kf.u_right >= 0))
+            pts = kf.point_ids[kp]
+            one = (mp.ref_kf[pts] == kf.id) & (mp.nobs[pts] <= 2) & ~mp.bad[pts]
+            if one.any():
+                mp.pos[pts[one]] = kf.unproject(kp[one])
+
+    def _sync_offset(self, f: Frame, offset_used: float) -> float:
+        """Move ``f``'s stereo observations to the disparity offset if a self-calibration
+        result was applied since ``f`` was matched with ``offset_used``."""
+        if self.disparity_offset != offset_used:
+            _shift_stereo(f.uv, f.u_right, f.depth, self.disparity_offset - offset_used, self.calib.bf)
+        return self.disparity_offset
 
     def _bake_records(self) -> None:
         """Make the poses of all frames so far absolute (before the map is dropped)."""
@@ -209,7 +301,10 @@ class System:
             st = stereo_match(
                 fl.uv, fl.octave, fl.desc, fr.uv, fr.octave, fr.desc, pl, pr, self.extractor.scales, c.fx, c.bf
             )
+            if self.disparity_offset != 0.0:
+                _shift_stereo(fl.uv, st.u_right, st.depth, self.disparity_offset, c.bf)
             f = Frame.from_features(n, fl, st.u_right, st.depth, c)
+            offset_used = self.disparity_offset
         self._refresh_last_pose()
         n_stereo = int(np.count_nonzero(f.depth > 0))
         status, method, is_kf = "tracked", "", False
@@ -218,15 +313,18 @@ class System:
             if not self._initialised:
                 ok = False
             else:
-                ok, method, reason = self._track_frame(f)
+                ok, method, reason = self._track_frame(f, frame.index)
                 f.T_cw = orthonormalize(f.T_cw)
+        track_inliers = int(self.tracker.n_inliers) if self._initialised else 0
         with tm.stage("local_mapping"):
             # the local BA submitted ba_lag_frames ago is applied now (waiting for it if
             # needed): it ran while this frame's features, stereo and tracking were computed
             self.mapper.collect(n)
+            offset_used = self._sync_offset(f, offset_used)
         if not self._initialised:
             T_pred = self._predict()
             f.T_cw = T_pred
+            f.clear_matches(np.arange(len(f)))
             with tm.stage("local_mapping"):
                 is_kf = self._initialise(f, first=(n == 0))
             status, method = ("init", "init") if is_kf else ("lost", "")
@@ -239,30 +337,52 @@ class System:
                     self.cfg.min_init_points,
                 )
         elif ok:
+            self._recent_inliers.append(int(self.tracker.n_inliers))
             with tm.stage("local_mapping"):
                 if self.tracker.need_new_keyframe(self.map, f):
                     self._create_keyframe(f)
                     is_kf = True
         else:
             T_pred = self._predict()
-            log.warning(
-                "frame %d: tracking lost (%s); pose from the constant-velocity prediction; "
-                "re-initialising the map at that pose",
-                frame.index,
-                reason,
-            )
             status, method = "lost", ""
             f.T_cw = T_pred
-            with tm.stage("local_mapping"):
-                self._new_map()
-                self._initialise(f, first=False)
+            f.clear_matches(np.arange(len(f)))
+            if n_stereo >= self.cfg.min_init_points:
+                log.warning(
+                    "frame %d: tracking lost (%s); pose from the constant-velocity prediction; "
+                    "re-initialising the map at that pose",
+                    frame.index,
+                    reason,
+                )
+                with tm.stage("local_mapping"):
+                    self._new_map()
+                    offset_used = self._sync_offset(f, offset_used)
+                    is_kf = self._initialise(f, first=False)
+            else:
+                log.warning(
+                    "frame %d: tracking lost (%s); pose from the constant-velocity prediction; "
+                    "%d stereo points are too few to re-initialise (< %d): the map is kept to "
+                    "relocalise the next frames in",
+                    frame.index,
+                    reason,
+                    n_stereo,
+                    self.cfg.min_init_points,
+                )
         T_cw = orthonormalize(f.T_cw)
         f.T_cw = T_cw
-        # velocity and last frame
-        if self._last_T is not None and status != "lost":
+        # velocity (the last frame's motion, in the camera frame), only between two frames
+        # tracked in a row.  A frame the motion model could not place (its pose from the
+        # reference keyframe or a relocalisation) may follow a jump (a revisit): it keeps
+        # the old velocity, unless the frame before it was placed that way too.
+        continuous = self._last_ok and status == "tracked" and (
+            method == "motion" or self._velocity is None or self._last_method in ("reference", "reloc", "init")
+        )
+        if self._last_T is not None and continuous:
             self._velocity = orthonormalize(T_cw @ inv_T(self._last_T))
             self.tracker.velocity = self._velocity
         self._last_T = T_cw
+        self._last_ok = status != "lost"
+        self._last_method = method
         # drop temporary VO matches; the frame becomes the tracker's last frame
         temp = f.matched & (f.point_ids < 0)
         f.clear_matches(np.flatnonzero(temp))
@@ -276,10 +396,9 @@ class System:
             self._records.append(_Record(ref.id, T_rel))
         else:
             self._records.append(_Record(None, T_cw.copy()))
+        inliers = track_inliers if status == "lost" else int(self.tracker.n_inliers)
         self._states.append(
-            FrameState(
-                n, frame.index, status, method, is_kf, int(self.tracker.n_inliers), len(f), n_stereo, self._map_id
-            )
+            FrameState(n, frame.index, status, method, is_kf, inliers, len(f), n_stereo, self._map_id)
         )
         self._n += 1
         if own:
@@ -308,25 +427,60 @@ class System:
             return self._last_T.copy()
         return self._velocity @ self._last_T
 
-    def _track_frame(self, f: Frame) -> tuple[bool, str, str]:
-        """Motion model, else reference keyframe; then the local map.
-        Returns ``(ok, method, reason for a failure)``."""
-        tr, mp = self.tracker, self.map
+    def _support_reference(self) -> float | None:
+        """Median inliers of the last tracked frames of this map (None: too few yet)."""
+        r = self._recent_inliers
+        return float(np.median(r)) if len(r) >= 3 else None
+
+    def _track_frame(self, f: Frame, frame_index: int) -> tuple[bool, str, str]:
+        """Motion model, else reference keyframe; then the local map.  A pose is accepted
+        only with enough support: at least ``min_inliers`` inliers after local-map
+        tracking and at least ``min_inlier_fraction`` of the recent frames' median.
+        Otherwise a prior-free search over the map's keyframes (relocalisation) is tried;
+        its best hypothesis needs ``reloc_min_inliers``.  Returns ``(ok, method, reason
+        for a failure)``."""
+        tr, mp, cfg = self.tracker, self.map, self.cfg
         tr.n_inliers = 0
+        f.T_cw = self._predict()
         if tr.ref_kf is not None and tr.ref_kf.id not in mp.keyframes:
             tr.ref_kf = mp.keyframes[max(mp.keyframes)] if mp.keyframes else None
+        if len(f) < 10:
+            return False, "", f"{len(f)} features"
         ok, method = False, ""
-        if tr.velocity is not None and tr.last is not None:
+        if tr.velocity is not None and tr.last is not None and self._last_ok:
             ok = tr.track_motion_model(mp, f)
             method = "motion"
         if not ok:
             ok = tr.track_reference_keyframe(mp, f, self._predict())
             method = "reference"
+        if ok:
+            tr.track_local_map(mp, f)
+        n = tr.n_inliers if ok else 0
+        ref = self._support_reference()
+        if ok and n >= cfg.min_inliers and (ref is None or n >= cfg.min_inlier_fraction * ref):
+            return True, method, ""
         if not ok:
-            return False, "", "no pose from the motion model nor from the reference keyframe"
-        if not tr.track_local_map(mp, f):
-            return False, method, f"{tr.n_inliers} inliers after local-map tracking < {self.cfg.min_inliers}"
-        return True, method, ""
+            why = "no pose from the motion model nor from the reference keyframe"
+        elif n < cfg.min_inliers:
+            why = f"{n} inliers after local-map tracking < {cfg.min_inliers}"
+        else:
+            why = (
+                f"{n} inliers after local-map tracking, {100.0 * n / ref:.0f}% of the recent median "
+                f"{ref:.0f} (< {100.0 * cfg.min_inlier_fraction:.0f}%)"
+            )
+        if cfg.reloc_candidates > 0:
+            found, kid = tr.relocalise(mp, f, cfg.reloc_candidates)
+            if found and tr.n_inliers >= max(cfg.reloc_min_inliers, cfg.min_inliers):
+                log.info(
+                    "frame %d: %s; relocalised against keyframe %d (%d inliers)", frame_index, why, kid, tr.n_inliers
+                )
+                return True, "reloc", ""
+            why += (
+                f"; relocalisation found {tr.n_inliers} inliers < {cfg.reloc_min_inliers}"
+                if found
+                else "; relocalisation found no keyframe"
+            )
+        return False, method, why
 
     # ------------------------------------------------------------ keyframes
     def _initialise(self, f: Frame, first: bool) -> bool:
@@ -425,6 +579,9 @@ class System:
             "points_fused": ms.points_fused,
             "points_culled": ms.points_culled,
             "keyframes_culled": ms.keyframes_culled,
+            "disparity_offset": self.disparity_offset,
+            "disparity_offset_sigma": self.disparity_offset_sigma,
+            "relocalisations": sum(s.method == "reloc" for s in st),
         }
 
     def shutdown(self) -> None:

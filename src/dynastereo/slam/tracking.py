@@ -146,18 +146,17 @@ class Tracker:
         n_all = int(frame.matched.sum())
         return n_all >= 10 if n < 10 else True
 
-    def track_reference_keyframe(self, mp: Map, frame: Frame, T_guess: np.ndarray | None) -> bool:
-        """Descriptor matching against the reference keyframe's map points (ORB-SLAM2
-        uses a bag of words here), pose from PnP-RANSAC, then motion-only BA."""
-        kf = self.ref_kf
-        if kf is None:
-            return False
+    def _keyframe_matches(self, mp: Map, kf: KeyFrame, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+        """Descriptor matches of a keyframe's map points to the frame's keypoints (ORB-SLAM2
+        uses a bag of words here): nearest of two (ratio 0.7, <= TH_LOW), one point per
+        keypoint, rotation consistency.  Returns ``(frame keypoint idx, point ids)``."""
+        z = np.zeros(0, np.int64)
         kp_kf = np.flatnonzero(kf.point_ids >= 0)
         pts = mp.resolve(kf.point_ids[kp_kf])
         ok = pts >= 0
         kp_kf, pts = kp_kf[ok], pts[ok]
         if len(pts) < 10 or len(frame) < 10:
-            return False
+            return z, z
         # two nearest frame descriptors of each point (OpenCV, SIMD popcount), ratio test
         dnn, inn = cv2.batchDistance(mp.desc[pts], frame.desc, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
         b1, b2, best = dnn[:, 0], dnn[:, 1], inn[:, 0]
@@ -169,34 +168,126 @@ class Tracker:
         if len(qi):
             rot = rotation_consistent(kf.angle[kp_kf[qi]] - frame.angle[ki])
             qi, ki = qi[rot], ki[rot]
-        if len(qi) < 15:
-            return False
-        X = mp.pos[pts[qi]]
-        c = frame.calib
+        return ki.astype(np.int64), pts[qi]
+
+    def _pnp(self, X: np.ndarray, uv: np.ndarray, frame: Frame) -> tuple[np.ndarray | None, int]:
+        """Prior-free PnP-RANSAC (EPnP, 3 px, fixed seed): ``(T_cw or None, inliers)``."""
         cv2.setRNGSeed(self.p.seed)
         okp, rvec, tvec, inl = cv2.solvePnPRansac(
             X.astype(np.float64),
-            frame.uv[ki].astype(np.float64),
-            c.K,
+            uv.astype(np.float64),
+            frame.calib.K,
             None,
             iterationsCount=200,
             reprojectionError=3.0,
             confidence=0.999,
             flags=cv2.SOLVEPNP_EPNP,
         )
-        if okp and inl is not None and len(inl) >= 10:
-            T = np.eye(4)
-            T[:3, :3] = cv2.Rodrigues(rvec)[0]
-            T[:3, 3] = tvec.ravel()
-        elif T_guess is not None:
-            T = T_guess.copy()
-        else:
+        if not okp or inl is None or len(inl) < 10:
+            return None, 0 if inl is None else len(inl)
+        T = np.eye(4)
+        T[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T[:3, 3] = tvec.ravel()
+        return T, len(inl)
+
+    def track_reference_keyframe(self, mp: Map, frame: Frame, T_guess: np.ndarray | None) -> bool:
+        """Descriptor matching against the reference keyframe's map points, pose from
+        PnP-RANSAC (else ``T_guess``), then motion-only BA."""
+        kf = self.ref_kf
+        if kf is None:
             return False
+        ki, pts = self._keyframe_matches(mp, kf, frame)
+        if len(ki) < 15:
+            return False
+        X = mp.pos[pts]
+        T, _ = self._pnp(X, frame.uv[ki], frame)
+        if T is None:
+            if T_guess is None:
+                return False
+            T = T_guess.copy()
         frame.T_cw = T
         frame.clear_matches(np.arange(len(frame)))
-        self._assign(frame, ki, pts[qi], X)
+        self._assign(frame, ki, pts, X)
         n = self._optimize(mp, frame)
         return n >= 10
+
+    # --------------------------------------------------------------- relocalisation
+    def candidate_keyframes(self, mp: Map, frame: Frame, n: int = 3, max_points: int = 20000) -> list[int]:
+        """Keyframes of the map most likely to see the frame's place: a sample of the
+        frame's descriptors is matched to the map's points (nearest, <= TH_LOW) and every
+        keyframe gets a vote per matched point it observes (a brute-force stand-in for
+        ORB-SLAM2's bag-of-words keyframe database, cheap on maps of a few dozen keyframes)."""
+        if len(frame) < 10 or not mp.keyframes:
+            return []
+        pts = np.flatnonzero(~mp.bad[: mp.n] & (mp.nobs[: mp.n] > 0))
+        if len(pts) == 0:
+            return []
+        if len(pts) > max_points:  # newest points (deterministic)
+            pts = pts[-max_points:]
+        step = max(1, len(frame) // 400)
+        sample = np.arange(0, len(frame), step)
+        dnn, inn = cv2.batchDistance(frame.desc[sample], mp.desc[pts], cv2.CV_32S, normType=cv2.NORM_HAMMING, K=1)
+        good = (inn[:, 0] >= 0) & (dnn[:, 0] <= TH_LOW)
+        matched = np.unique(pts[inn[good, 0]])
+        counts = mp.covisible_counts(matched)
+        ranked = sorted(
+            ((c, k) for k, c in counts.items() if k in mp.keyframes and c >= 5), key=lambda t: (-t[0], -t[1])
+        )
+        return [k for _, k in ranked[:n]]
+
+    def relocalise(self, mp: Map, frame: Frame, n_candidates: int = 3) -> tuple[bool, int]:
+        """Prior-free pose of the frame in the map (ORB-SLAM2 ``Relocalization`` without
+        bag of words): for each candidate keyframe, descriptor matches + PnP-RANSAC +
+        motion-only BA + local-map tracking; the hypothesis with most inliers wins.
+        Returns ``(found, keyframe id)``; the frame / tracker hold the best hypothesis
+        (or are left as they were when none is found)."""
+        saved = (
+            frame.T_cw.copy() if frame.T_cw is not None else None,
+            frame.point_ids.copy(),
+            frame.match_xyz.copy(),
+            frame.outlier.copy(),
+            self.ref_kf,
+            list(self.local_kfs),
+            self.n_inliers,
+        )
+        best: tuple | None = None
+        for kid in self.candidate_keyframes(mp, frame, n_candidates):
+            kf = mp.keyframes[kid]
+            ki, pts = self._keyframe_matches(mp, kf, frame)
+            if len(ki) < 15:
+                continue
+            X = mp.pos[pts]
+            T, _ = self._pnp(X, frame.uv[ki], frame)
+            if T is None:
+                continue
+            frame.T_cw = T
+            frame.clear_matches(np.arange(len(frame)))
+            self._assign(frame, ki, pts, X)
+            if self._optimize(mp, frame) < 10:
+                continue
+            self.ref_kf = kf
+            self.track_local_map(mp, frame, count=False)
+            if best is None or self.n_inliers > best[0]:
+                best = (
+                    self.n_inliers,
+                    kid,
+                    frame.T_cw.copy(),
+                    frame.point_ids.copy(),
+                    frame.match_xyz.copy(),
+                    frame.outlier.copy(),
+                    self.ref_kf,
+                    list(self.local_kfs),
+                )
+        if best is None:
+            (frame.T_cw, frame.point_ids, frame.match_xyz, frame.outlier, self.ref_kf, self.local_kfs,
+             self.n_inliers) = saved
+            return False, -1
+        n, kid, frame.T_cw, frame.point_ids, frame.match_xyz, frame.outlier, self.ref_kf, self.local_kfs = best
+        self.n_inliers = n
+        inl = frame.point_ids[frame.point_ids >= 0]
+        mp.found[inl] += 1
+        mp.visible[inl] += 1
+        return True, kid
 
     def update_local_keyframes(self, mp: Map, frame: Frame) -> list[int]:
         pid = frame.point_ids
@@ -223,7 +314,9 @@ class Tracker:
         self.local_kfs = local
         return local
 
-    def track_local_map(self, mp: Map, frame: Frame) -> bool:
+    def track_local_map(self, mp: Map, frame: Frame, count: bool = True) -> bool:
+        """Project the local map's points, match, motion-only BA.  ``count``: update the
+        points' visible / found counters (off for relocalisation hypotheses)."""
         local = self.update_local_keyframes(mp, frame)
         if not local:
             return False
@@ -236,7 +329,8 @@ class Tracker:
         frame.clear_matches(has[res < 0])
         frame.point_ids[has[res >= 0]] = res[res >= 0]
         already = frame.point_ids[frame.point_ids >= 0]
-        mp.visible[already] += 1
+        if count:
+            mp.visible[already] += 1
         ids = ids[~np.isin(ids, already)]
         c = frame.calib
         K = c.K
@@ -259,7 +353,8 @@ class Tracker:
                 & (cosv >= 0.5)
             )
             sel = np.flatnonzero(vis)
-            mp.visible[ids[sel]] += 1
+            if count:
+                mp.visible[ids[sel]] += 1
             if len(sel):
                 lev = mp.predict_level(ids[sel], dist[sel])
                 r = np.where(cosv[sel] > 0.998, 2.5, 4.0) * self.p.scales[lev]
@@ -285,8 +380,8 @@ class Tracker:
         has = frame.point_ids >= 0
         frame.match_xyz[has] = mp.pos[frame.point_ids[has]]
         n = self._optimize(mp, frame)
-        inl = frame.point_ids[frame.point_ids >= 0]
-        mp.found[inl] += 1
+        if count:
+            mp.found[frame.point_ids[frame.point_ids >= 0]] += 1
         self.n_inliers = n
         return n >= self.p.min_inliers
 
