@@ -63,7 +63,9 @@ def test_demo_runs_offline_with_the_oracle(tmp_path: Path) -> None:
     assert "ORACLE" in text and "ATE RMSE" in text
     assert [r.masker for r in rows] == ["none", "outline"]
     assert rows[0].iou_left is None and rows[1].iou_left > 0.5 and rows[1].iou_right > 0.4
-    assert all(np.isfinite(r.ate_rmse) and r.ate_rmse < 1.0 and r.fps > 0 for r in rows)
+    assert all(np.isfinite(r.ate_rmse) and r.fps > 0 for r in rows)
+    # convoy: the truck ahead at the camera's speed breaks the unmasked SLAM; masking fixes it
+    assert rows[1].ate_rmse < 0.3 and rows[0].ate_rmse > 3 * rows[1].ate_rmse
     assert (tmp_path / "demo/trajectories.png").read_bytes()[:4] == b"\x89PNG"
     d = json.loads((tmp_path / "demo/demo.json").read_text())
     assert d["detector"] == "oracle" and len(d["rows"]) == 2

@@ -176,7 +176,10 @@ def make_car(rng: np.random.Generator, shared: dict[str, Material]) -> Shape:
     return Shape("car", (W, H, L), mats, prims)
 
 
-def make_truck(rng: np.random.Generator, shared: dict[str, Material]) -> Shape:
+def make_truck(rng: np.random.Generator, shared: dict[str, Material], livery: bool = False) -> Shape:
+    """A box truck: cargo box, cab, chassis, six wheels.  ``livery`` prints an advertising
+    graphic (logo, company name, lettering) on the rear door -- delivery trucks' rears
+    are the most textured thing in a city street."""
     W = 2.5
     L = float(rng.uniform(8.0, 9.5))
     H = float(rng.uniform(3.4, 3.8))
@@ -194,6 +197,23 @@ def make_truck(rng: np.random.Generator, shared: dict[str, Material]) -> Shape:
     for z in (-L / 2 + 1.3, -L / 2 + 2.4, L / 2 - 1.3):
         prims.append(wheel(W / 2 - 0.35, W / 2 - 0.02, z, r, 3))
         prims.append(wheel(-W / 2 + 0.02, -W / 2 + 0.35, z, r, 3))
+    if livery:
+        # the rear door: a flat panel 2 cm proud of the cargo box, its own frame starting
+        # at the panel's top-left corner so that one tile of the poster covers it exactly
+        pw, ph = W - 0.24, H - 1.05 - 0.3
+        sub = np.random.default_rng(rng.integers(0, 2**63))  # one draw from rng, the poster's own stream
+        mats.append(Material(material_texture(sub, float(sub.choice([sub.uniform(0.08, 0.3), sub.uniform(0.7, 0.92)])), "poster", 128), pw / 128))
+        panel = Prim([(0, 0.0, pw), (1, 0.0, ph), (2, 0.0, 0.03)], [], np.zeros(3), np.array([pw, ph, 0.03]), len(mats) - 1)
+        prims.append(panel.posed(np.eye(3), np.array([-pw / 2, -H + 0.15, -L / 2 - 0.02])))
+        # rear end below the door: tail lights, number plate, under-run bar
+        mats.append(Material(material_texture(sub, 0.9, "skin", 128), 0.01))
+        lamp, zr = len(mats) - 1, -L / 2 + 0.1 - 0.03
+        for x0 in (-W / 2 * 0.9 + 0.05, W / 2 * 0.9 - 0.35):
+            prims.append(Prim([(0, x0, x0 + 0.3), (1, -1.02, -0.88), (2, zr, zr + 0.05)], [], np.array([x0, -1.02, zr]), np.array([x0 + 0.3, -0.88, zr + 0.05]), lamp))
+        mats.append(Material(material_texture(sub, 0.9, "plate", 128), 0.52 / 128))
+        plate = Prim([(0, 0.0, 0.52), (1, 0.0, 0.11), (2, 0.0, 0.02)], [], np.zeros(3), np.array([0.52, 0.11, 0.02]), len(mats) - 1)
+        prims.append(plate.posed(np.eye(3), np.array([-0.26, -0.85, zr - 0.01])))
+        prims.append(rounded_box((-W / 2 * 0.88, -0.56, -L / 2 - 0.05), (W / 2 * 0.88, -0.44, -L / 2 + 0.1), 1.3, 0.0, 3))
     return Shape("truck", (W, H, L), mats, prims)
 
 

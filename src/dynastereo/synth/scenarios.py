@@ -1,15 +1,22 @@
 """Scenarios: the camera's drive and the objects' motions, as a :class:`Plan`.
 
 Every scenario drives the stereo rig along the ring road (right-hand traffic, the block
-on the right, right turns at the corners, about 32 km/h on the straights and 16 km/h
-in the turns) through the same seeded city, with parked cars along both curbs and
-people on the sidewalks.  What differs is the traffic:
+on the right, right turns at the corners, about 32 km/h on the straights -- ``convoy``
+22 km/h -- and 16 km/h in the turns) through the same seeded city, with parked cars
+along both curbs and people on the sidewalks.  What differs is the traffic:
 
 ``static``    parked cars, a parked truck and standing people; nothing moves.
-``crossing``  people cross the road ahead (zebra crossings and mid-block) and cars cross
-              at the intersections, all timed to clear the rig's lane before it arrives.
-``convoy``    a truck drives 5 m ahead of the rig at the rig's speed, filling a large part
-              of the view for the whole sequence (the case that breaks SLAM without masks).
+``crossing``  the rig stops at the zebra crossing before the intersection and waits 6 s
+              while a group of people crosses right in front of it and a queue of cars
+              and a truck crawls through the congested intersection behind them (moving
+              objects are most of what the standing camera sees); people also cross
+              mid-block and at the far zebra, timed to clear the rig's lane before it
+              arrives.  Starts 23 m before the first stop line: brakes from frame ~9,
+              stands still from frame ~41 to ~101, then pulls away.
+``convoy``    a box truck with an advertising livery on its rear door drives 4.5 m ahead
+              of the rig at the rig's speed (22 km/h, dense city traffic), filling ~31 %
+              of the view and 30-40 % of the ORB features for the whole sequence: the
+              case that breaks SLAM without masks (it is pulled toward "standing still").
 ``oncoming``  cars and a truck in the opposite lane drive towards the rig and pass it.
 ``loop``      one full lap of the ~390 m ring (the rig returns to its start pose) with
               oncoming traffic, crossing and walking people: loop closure.
@@ -19,7 +26,7 @@ people on the sidewalks.  What differs is the traffic:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -58,9 +65,25 @@ class Plan:
 
 
 class _Drive:
-    """Camera arc length s(t) on the contour ``d``: fast on straights, slow in the corners."""
+    """Camera arc length s(t) on the contour ``d``: fast on straights, slow in the corners.
 
-    def __init__(self, world: World, d: float, s0: float, v_straight: float, v_turn: float, duration: float):
+    ``stops``: (arc length, seconds) where the rig comes to a halt and waits (at a stop
+    line): it brakes over ``brake`` metres and pulls away over ``pull_away`` metres
+    (constant deceleration / acceleration), standing exactly still in between.
+    """
+
+    def __init__(
+        self,
+        world: World,
+        d: float,
+        s0: float,
+        v_straight: float,
+        v_turn: float,
+        duration: float,
+        stops: Sequence[tuple[float, float]] = (),
+        brake: float = 15.0,
+        pull_away: float = 20.0,
+    ):
         self.ring = world.ring
         self.d = d
         ramp = 15.0
@@ -72,18 +95,36 @@ class _Drive:
         dist = np.minimum(local, side_len - local)
         wgt = np.where(seg % 2 == 1, 1.0, np.where(dist < ramp, 0.5 * (1 + np.cos(np.pi * np.minimum(dist, ramp) / ramp)), 0.0))
         v = v_straight + (v_turn - v_straight) * wgt
+        stops = sorted((float(a), float(w)) for a, w in stops if s0 < a < s[-1])
+        for s_stop, _ in stops:  # v = sqrt(2 a x) towards and away from the stop line
+            x = np.where(s < s_stop, (s_stop - s) / brake, (s - s_stop) / pull_away)
+            v = v * np.sqrt(np.clip(x, 1e-4, 1.0))
         t = np.concatenate([[0.0], np.cumsum(ds / (0.5 * (v[1:] + v[:-1])))])
+        for s_stop, wait in stops:  # stand still: the stop line's sample twice, ``wait`` apart
+            k = int(np.searchsorted(s, s_stop))
+            ts = float(np.interp(s_stop, s, t))
+            s = np.concatenate([s[:k], [s_stop, s_stop], s[k:]])
+            t = np.concatenate([t[:k], [ts, ts + wait], t[k:] + wait])
         self.t_tab = t
         self.s_tab = s
+        self.stops = stops
 
     def s(self, t: float) -> float:
         return float(np.interp(t, self.t_tab, self.s_tab))
 
     def t_at(self, s: float) -> float:
-        """Time when the camera reaches arc length ``s`` (inf if never)."""
+        """Time when the camera reaches arc length ``s`` (inf if never; the arrival at a stop line)."""
         if s > self.s_tab[-1]:
             return float("inf")
+        k = int(np.searchsorted(self.s_tab, s, side="left"))
+        if k < len(self.s_tab) and self.s_tab[k] == s:
+            return float(self.t_tab[k])
         return float(np.interp(s, self.s_tab, self.t_tab))
+
+    def stopped(self, s_stop: float) -> tuple[float, float]:
+        """(arrival, departure) times at the stop line ``s_stop``."""
+        k = int(np.searchsorted(self.s_tab, s_stop, side="left"))
+        return float(self.t_tab[k]), float(self.t_tab[k + 1])
 
 
 class _Builder:
@@ -105,8 +146,8 @@ class _Builder:
     def car(self):
         return make_car(self.rng, self.mats)
 
-    def truck(self):
-        return make_truck(self.rng, self.mats)
+    def truck(self, livery: bool = False):
+        return make_truck(self.rng, self.mats, livery=livery)
 
     def person(self):
         return make_person(self.rng, self.mats)
@@ -213,8 +254,8 @@ class _Builder:
         f = (lambda s_m, v, t_meet: (lambda t: s_m - v * (t - t_meet)))(s_m, v, t_meet)
         self._add(self.truck() if truck else self.car(), OnContour(ring, p.d_lane_out + float(rng.uniform(-0.2, 0.2)), f, backwards=True))
 
-    def ahead(self, drive: _Drive, gap: float, dv: float = 0.0, truck: bool = False) -> SceneObject:
-        shape = self.truck() if truck else self.car()
+    def ahead(self, drive: _Drive, gap: float, dv: float = 0.0, truck: bool = False, livery: bool = False) -> SceneObject:
+        shape = self.truck(livery) if truck else self.car()
         g = gap + shape.size[2] / 2
         f = (lambda g, dv: (lambda t: drive.s(t) + g + dv * t))(g, dv)
         return self._add(shape, OnContour(self.ring, drive.d, f))
@@ -267,13 +308,76 @@ class _Builder:
         return keep
 
     def _arrival(self, drive: _Drive, side: int, sigma: float) -> float:
+        return drive.t_at(self.s_ahead(drive, side, sigma))
+
+    def s_ahead(self, drive: _Drive, side: int, sigma: float) -> float:
+        """Arc length (on the camera's contour) of the next pass at (side, sigma)."""
         ring = self.ring
         ph = 2 * side + sigma / float(ring.side_len[side])
         s0 = drive.s(0.0)
         ph0 = float(ring.phi(s0, drive.d))
         while ph < ph0:
             ph += 8
-        return drive.t_at(float(ring.s_of_phi(ph, drive.d)))
+        return float(ring.s_of_phi(ph, drive.d))
+
+    # -- the rig waiting at a zebra crossing before an intersection
+    def crowd(self, side: int, zc: float, t_arr: float, t_dep: float) -> None:
+        """A group of people crossing the zebra at ``zc`` while the rig waits before it.
+
+        Most come from the far sidewalk towards the block (they cross the oncoming lane,
+        then the rig's), a few the other way; they walk in files 0.75 m apart across the
+        zebra, 0.8 m behind one another, each file at one pace (no overtaking), and all
+        have left the rig's lane 0.5 s before it pulls away.
+        """
+        p, ring, rng = self.p, self.ring, self.rng
+        lo, hi = p.d_park_in + p.parking / 2 - 0.6, p.d_centre + 0.6  # the rig's lane + margin
+        d_mid = p.d_lane_in
+        files = [(-1.15, True), (-0.4, True), (0.35, True), (1.1, False)]
+        for j, (off, inward) in enumerate(files):
+            rows = int(rng.integers(2, 4)) if inward else int(rng.integers(1, 3))
+            v = float(rng.uniform(1.15, 1.6))
+            # the file's first walker passes the lane centre at t_mid
+            t_mid = float(rng.uniform(t_arr + 0.3, t_arr + 2.0)) if inward else float(rng.uniform(t_arr + 0.8, t_arr + 3.0))
+            last_clear = t_mid + ((rows - 1) * 0.8 + (d_mid - lo if inward else hi - d_mid)) / v
+            if last_clear > t_dep - 0.5:
+                t_mid -= last_clear - (t_dep - 0.5)
+            sig = zc + off + float(rng.uniform(-0.05, 0.05))
+            back = 0.8 * (rows - 1)
+            for k in range(rows):  # the whole file starts and stops together, 0.8 m apart
+                if inward:
+                    d0, d1 = p.d_outer_curb + 1.0 + 0.8 * k, p.d_inner_curb - 1.2 - back + 0.8 * k
+                    t0 = t_mid - (p.d_outer_curb + 1.0 - d_mid) / v
+                else:
+                    d0, d1 = p.d_inner_curb - 1.0 - 0.8 * k, p.d_outer_curb + 1.2 + back - 0.8 * k
+                    t0 = t_mid - (d_mid - (p.d_inner_curb - 1.0)) / v
+                self._add(self.person(), Across(ring, side, sig, d0, d1, v, t0), stride=1.4)
+
+    def queue(self, side: int, mid: float, t_arr: float, t_dep: float, truck: bool) -> None:
+        """Congested cross street: a queue of vehicles (the second one a truck if ``truck``)
+        crawls through the intersection in its near lane, bumper to bumper at 1.6-2.4 m/s,
+        while the rig waits at the zebra before it.  The head passed the rig's lane 3-5 s
+        before the rig stopped; the tail clears the lane 2 s after the rig pulls away
+        (before it reaches the intersection); each vehicle stops at its own place in the
+        dead-end street."""
+        p, ring, rng = self.p, self.ring, self.rng
+        lane_d = p.d_lane_in
+        v = float(rng.uniform(1.6, 2.4))
+        t_head = t_arr - float(rng.uniform(3.0, 5.0))  # the head's front at lane_d
+        shapes: list = []
+        offsets: list[float] = []  # head front -> this vehicle's front, metres
+        room = p.inner_depth - 1.0  # they park one behind the other in the dead-end street
+        while True:
+            sh = self.truck() if (truck and len(shapes) == 1) else self.car()
+            off = 0.0 if not shapes else offsets[-1] + shapes[-1].size[2] + float(rng.uniform(1.5, 3.0))
+            # its rear leaves the rig's lane (+0.5 m) at t_head + (off + length + lane/2 + 0.5) / v
+            if shapes and (t_head + (off + sh.size[2] + p.lane / 2 + 0.5) / v > t_dep + 2.0 or off + sh.size[2] > room):
+                break
+            shapes.append(sh)
+            offsets.append(off)
+        for sh, off in zip(shapes, offsets):
+            d0 = lane_d + v * t_head + off + sh.size[2] / 2  # centre at t = 0, moving to smaller d
+            d1 = -room + off + sh.size[2] / 2
+            self._add(sh, Across(ring, side, mid - 2.0, d0, d1, v, 0.0))
 
     def events_ahead(self, drive: _Drive, duration: float):
         """(side, sigma, t_arr) of the intersections the camera reaches within ``duration``."""
@@ -331,24 +435,41 @@ def _static(world: World, rng, frames: int, horizon: int) -> Plan:
     return Plan("static", frames, 1 / FPS, d, drive.s, b.finalize(T), world.ring)
 
 
+WAIT = 6.0  # seconds the rig waits at a zebra crossing before an intersection (crossing)
+STOP_BACK = 2.5  # metres from the camera to the zebra's near edge when it waits
+
+
 def _crossing(world: World, rng, frames: int, horizon: int) -> Plan:
     b = _Builder(world, rng)
     p = world.params
     d = p.d_lane_in
     T = horizon / FPS
-    drive = _Drive(world, d, _start(world, 1, 5.0, d), 9.0, 4.5, T)
-    events = b.events_ahead(drive, T)
+    s0 = _start(world, 1, 20.0, d)
+    # the rig stops before the near zebra of every intersection it reaches
+    plain = _Drive(world, d, s0, 9.0, 4.5, T)
+    lines = {}
+    for side, mid, _ in b.events_ahead(plain, T):
+        zc = mid - p.gap / 2 - 2.2
+        lines[(side, mid)] = (zc, b.s_ahead(plain, side, zc - 1.5 - STOP_BACK))
+    drive = _Drive(world, d, s0, 9.0, 4.5, T, stops=[(sl, WAIT) for _, sl in lines.values()])
     spots = b.spots_ahead(drive, T, 35.0)
     b.parked(density=0.6, keepout=spots)
     b.standing(2)
-    for side, mid, t in events:
-        for zc in (mid - p.gap / 2 - 2.2, mid + p.gap / 2 + 2.2):
-            for k in range(int(rng.integers(1, 3))):
-                b.crossing_person(drive, side, zc, offset=(-0.9 + 1.8 * k) + float(rng.uniform(-0.2, 0.2)))
-        b.crossing_car(drive, side)
+    for n_event, (side, mid, t) in enumerate(b.events_ahead(drive, T)):
+        zc, s_line = lines.get((side, mid), (None, None))
+        if s_line is None:
+            continue
+        t_arr, t_dep = drive.stopped(s_line)
+        b.crowd(side, zc, t_arr, t_dep)
+        b.queue(side, mid, t_arr, t_dep, truck=n_event % 2 == 0)
+        b.crossing_person(drive, side, mid + p.gap / 2 + 2.2)  # the far zebra: clear before the rig comes
     for side, sg, t in spots:
         b.crossing_person(drive, side, sg)
     return Plan("crossing", frames, 1 / FPS, d, drive.s, b.finalize(T), world.ring)
+
+
+CONVOY_GAP = 4.5  # metres from the camera to the lead truck's rear (slow, dense city traffic)
+CONVOY_SPEED = 6.0  # m/s on the straights (22 km/h)
 
 
 def _convoy(world: World, rng, frames: int, horizon: int) -> Plan:
@@ -356,8 +477,8 @@ def _convoy(world: World, rng, frames: int, horizon: int) -> Plan:
     p = world.params
     d = p.d_lane_in
     T = horizon / FPS
-    drive = _Drive(world, d, _start(world, 1, 5.0, d), 7.0, 4.5, T)
-    b.ahead(drive, gap=5.0, truck=True)
+    drive = _Drive(world, d, _start(world, 1, 5.0, d), CONVOY_SPEED, 4.5, T)
+    b.ahead(drive, gap=CONVOY_GAP, truck=True, livery=True)
     b.parked(density=0.6)
     b.standing(2)
     for t in _meet_times(rng, T, 3.0, (4.0, 8.0), []):
@@ -448,8 +569,8 @@ SCENARIOS: dict[str, Scenario] = {
     s.name: s
     for s in (
         Scenario("static", "parked cars, a parked truck and standing people; nothing moves", 150, _static),
-        Scenario("crossing", "people and cars cross the road ahead of the rig (zebras, mid-block, intersections)", 200, _crossing),
-        Scenario("convoy", "a truck 5 m ahead drives at the rig's speed and fills a large part of the view", 200, _convoy),
+        Scenario("crossing", "the rig waits at a zebra while people cross right in front and a queue of cars and a truck crawls through the intersection", 200, _crossing),
+        Scenario("convoy", "a box truck with a printed rear door 4.5 m ahead drives at the rig's speed and fills ~30% of the view", 200, _convoy),
         Scenario("oncoming", "cars and a truck in the opposite lane drive towards the rig and pass it", 200, _oncoming),
         Scenario("loop", "one full lap of the ~390 m ring back to the start pose, with traffic and pedestrians", None, _loop),
         Scenario("mixed", "crossings, oncoming traffic, a car ahead, walkers and parked cars together", 300, _mixed),

@@ -271,9 +271,64 @@ def material_texture(
             m = (((xs - x0) % size) < rw) & (((ys - y0) % size) < rh)
             img = np.where(m, tone, img)
         img += 0.3 * speckle(rng, shape, 0.02, 0.9)
+    elif kind == "poster":
+        img = _poster(rng, base, size) + 0.04 * n
+    elif kind == "plate":  # number plate: dark characters on a light strip (the top 1/5 of the tile)
+        canvas = np.full(shape, int(base * 255), np.uint8)
+        text = "".join(rng.choice(list(_LETTERS), 2)) + "-" + "".join(rng.choice(list("0123456789"), 4))
+        (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.7 * size / 128, 2)
+        cv2.putText(canvas, text, (max(1, (size - tw) // 2), min(size // 5 - 3, th + 5)), cv2.FONT_HERSHEY_SIMPLEX,
+                    0.7 * size / 128, 20, 2, cv2.LINE_AA)
+        img = canvas.astype(np.float32) / 255.0 + 0.02 * n
     else:  # pragma: no cover - programming error
         raise ValueError(f"unknown material kind {kind!r}")
     return np.clip(img, 0.02, 0.98).astype(np.float32)
+
+
+_LETTERS = "ABCDEFGHKLMNOPRSTUVWXYZ"
+
+
+def _poster(rng: np.random.Generator, base: float, size: int) -> np.ndarray:
+    """Advertising livery (a truck's rear door, a bus's back): a logo of a few bold
+    shapes, a company name in large letters, a slogan and a phone number in small ones,
+    a frame.  Drawn with OpenCV primitives (no per-pixel Python), high contrast against
+    ``base``: the kind of surface ORB finds hundreds of corners on."""
+    canvas = np.full((size, size), int(round(base * 255)), np.uint8)
+    dark = base > 0.5
+
+    def tone() -> int:  # contrasting ink
+        return int(rng.uniform(0.02, 0.3) * 255) if dark else int(rng.uniform(0.7, 0.98) * 255)
+
+    s = size / 128.0
+    # logo: circles / rectangles / a triangle in the upper part
+    for _ in range(int(rng.integers(3, 6))):
+        cx, cy = int(rng.uniform(0.15, 0.85) * size), int(rng.uniform(0.1, 0.45) * size)
+        r = int(rng.uniform(5, 16) * s)
+        kind = int(rng.integers(0, 3))
+        ink = tone() if rng.random() < 0.7 else int(rng.uniform(0.3, 0.7) * 255)
+        if kind == 0:
+            cv2.circle(canvas, (cx, cy), r, ink, -1 if rng.random() < 0.6 else max(1, int(2 * s)), cv2.LINE_AA)
+        elif kind == 1:
+            cv2.rectangle(canvas, (cx - r, cy - r // 2), (cx + r, cy + r // 2), ink, -1)
+        else:
+            pts = np.array([[cx, cy - r], [cx - r, cy + r], [cx + r, cy + r]], np.int32)
+            cv2.fillConvexPoly(canvas, pts, ink, cv2.LINE_AA)
+    # lettering: a name in large letters, then smaller lines
+    fonts = (cv2.FONT_HERSHEY_SIMPLEX, cv2.FONT_HERSHEY_DUPLEX, cv2.FONT_HERSHEY_TRIPLEX)
+    y = int(0.55 * size)
+    for scale, thick, chars in ((0.62, 2, (4, 7)), (0.36, 1, (8, 12)), (0.36, 1, (8, 12)), (0.3, 1, (9, 13))):
+        word = "".join(rng.choice(list(_LETTERS + "   "), int(rng.integers(*chars))))
+        if scale == 0.3:
+            word = "".join(rng.choice(list("0123456789 -"), int(rng.integers(*chars))))
+        font = fonts[int(rng.integers(0, len(fonts)))]
+        (tw, th), _ = cv2.getTextSize(word, font, scale * s, thick)
+        x = int(max(2, (size - tw) / 2 + rng.uniform(-0.1, 0.1) * size))
+        cv2.putText(canvas, word, (x, y), font, scale * s, tone(), thick, cv2.LINE_AA)
+        y += int(th + 6 * s)
+        if y > size - 6:
+            break
+    cv2.rectangle(canvas, (1, 1), (size - 2, size - 2), tone(), max(1, int(2 * s)))
+    return canvas.astype(np.float32) / 255.0
 
 
 class TileAtlas:
