@@ -19,8 +19,34 @@ from .matcher import KeypointGrid
 from .orb import Features
 
 
+class KeypointSet:
+    """What frames and keyframes share: keypoints ``uv`` with descriptors ``desc``, a lazily
+    built search grid and the descriptors packed as uint64 words for Hamming distances."""
+
+    uv: np.ndarray
+    desc: np.ndarray
+    calib: StereoCalibration
+    _grid: KeypointGrid | None
+    _desc64: np.ndarray | None
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+    @property
+    def grid(self) -> KeypointGrid:
+        if self._grid is None:
+            self._grid = KeypointGrid(self.uv, self.calib.width, self.calib.height)
+        return self._grid
+
+    @property
+    def desc64(self) -> np.ndarray:
+        if self._desc64 is None:
+            self._desc64 = desc_u64(self.desc)
+        return self._desc64
+
+
 @dataclass
-class Frame:
+class Frame(KeypointSet):
     index: int
     uv: np.ndarray
     octave: np.ndarray
@@ -51,20 +77,6 @@ class Frame:
     ) -> "Frame":
         return cls(index, feats.uv, feats.octave, feats.angle, feats.desc, u_right, depth, calib)
 
-    def __len__(self) -> int:
-        return len(self.uv)
-
-    @property
-    def grid(self) -> KeypointGrid:
-        if self._grid is None:
-            self._grid = KeypointGrid(self.uv, self.calib.width, self.calib.height)
-        return self._grid
-
-    @property
-    def desc64(self) -> np.ndarray:
-        if self._desc64 is None:
-            self._desc64 = desc_u64(self.desc)
-        return self._desc64
 
     @property
     def matched(self) -> np.ndarray:

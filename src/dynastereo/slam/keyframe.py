@@ -12,12 +12,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..types import StereoCalibration
-from .geometry import camera_center, desc_u64, inv_T
+from .geometry import camera_center, inv_T
+from .frame import KeypointSet
 from .matcher import KeypointGrid
 
 
 @dataclass
-class KeyFrame:
+class KeyFrame(KeypointSet):
     id: int
     frame_index: int
     uv: np.ndarray
@@ -42,20 +43,6 @@ class KeyFrame:
         if self.obs_row is None:
             self.obs_row = np.full(n, -1, np.int64)
 
-    def __len__(self) -> int:
-        return len(self.uv)
-
-    @property
-    def grid(self) -> KeypointGrid:
-        if self._grid is None:
-            self._grid = KeypointGrid(self.uv, self.calib.width, self.calib.height)
-        return self._grid
-
-    @property
-    def desc64(self) -> np.ndarray:
-        if self._desc64 is None:
-            self._desc64 = desc_u64(self.desc)
-        return self._desc64
 
     @property
     def center(self) -> np.ndarray:

@@ -41,7 +41,7 @@ from .ipc import read_msg, write_msg
 from .keyframe import KeyFrame
 from .map import Map
 from .matcher import TH_LOW, search_by_projection
-from .optimizer import LocalBAProblem, LocalBAResult, project, reprojection_chi2, run_ba
+from .optimizer import LocalBAProblem, LocalBAResult, reprojection_chi2, run_ba
 
 log = logging.getLogger("dynastereo.slam")
 
@@ -354,26 +354,8 @@ class LocalMapper:
         pts = pts[~np.isin(pts, target.point_ids)]
         if len(pts) == 0:
             return 0
-        c = target.calib
-        K = c.K
-        Xw = mp.pos[pts]
-        Xc, u, v, ur = project(target.T_cw, Xw, K[0, 0], K[1, 1], K[0, 2], K[1, 2], c.bf)
-        Ow = target.center
-        PO = Xw - Ow
-        dist = np.linalg.norm(PO, axis=1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            cosv = (PO * mp.normal[pts]).sum(axis=1) / np.maximum(dist, 1e-12)
-        vis = (
-            (Xc[:, 2] > 0)
-            & (u >= 0)
-            & (u < c.width)
-            & (v >= 0)
-            & (v < c.height)
-            & (dist >= 0.8 * mp.min_dist[pts])
-            & (dist <= 1.2 * mp.max_dist[pts])
-            & (cosv >= 0.5)
-        )
-        sel = np.flatnonzero(vis)
+        f = mp.in_frustum(pts, target.T_cw, target.center, target.calib)
+        sel, u, v, ur, dist = f.sel, f.u, f.v, f.ur, f.dist
         if len(sel) == 0:
             return 0
         lev = mp.predict_level(pts[sel], dist[sel])

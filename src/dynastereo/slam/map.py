@@ -10,10 +10,26 @@ points (projection, normals, descriptors, culling) works on these arrays at once
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .geometry import desc_u64
 from .keyframe import KeyFrame
+
+
+@dataclass
+class Frustum:
+    """Result of :meth:`Map.in_frustum`: ``sel`` indexes the visible points; the other
+    arrays are per queried point (world position, projection, right u, distance, cos)."""
+
+    sel: np.ndarray
+    Xw: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    ur: np.ndarray
+    dist: np.ndarray
+    cosv: np.ndarray
 
 COVIS_MIN_WEIGHT = 15  # ORB-SLAM2: covisibility edge when >= 15 shared points
 
@@ -403,6 +419,31 @@ class Map:
         okp = bi >= 0
         sel_desc[okp] = descs[bi[okp]]
         self.desc[pts[okp]] = sel_desc[okp]
+
+    def in_frustum(self, pts: np.ndarray, T_cw: np.ndarray, center: np.ndarray, calib) -> "Frustum":
+        """ORB-SLAM2's ``isInFrustum`` for points ``pts`` seen from a camera at ``T_cw``
+        (optical centre ``center`` in world): in front, inside the image, within the
+        scale-invariance distances, viewing angle under 60 degrees; vectorised."""
+        from .optimizer import project
+
+        K = calib.K
+        Xw = self.pos[pts]
+        Xc, u, v, ur = project(T_cw, Xw, K[0, 0], K[1, 1], K[0, 2], K[1, 2], calib.bf)
+        PO = Xw - center
+        dist = np.linalg.norm(PO, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cosv = (PO * self.normal[pts]).sum(axis=1) / np.maximum(dist, 1e-12)
+        vis = (
+            (Xc[:, 2] > 0)
+            & (u >= 0)
+            & (u < calib.width)
+            & (v >= 0)
+            & (v < calib.height)
+            & (dist >= 0.8 * self.min_dist[pts])
+            & (dist <= 1.2 * self.max_dist[pts])
+            & (cosv >= 0.5)
+        )
+        return Frustum(np.flatnonzero(vis), Xw, u, v, ur, dist, cosv)
 
     def predict_level(self, pts: np.ndarray, dist: np.ndarray) -> np.ndarray:
         """Pyramid level at which a point at ``dist`` should be seen (``PredictScale``)."""

@@ -332,27 +332,9 @@ class Tracker:
         if count:
             mp.visible[already] += 1
         ids = ids[~np.isin(ids, already)]
-        c = frame.calib
-        K = c.K
         if len(ids):
-            Xw = mp.pos[ids]
-            Xc, u, v, ur = project(frame.T_cw, Xw, K[0, 0], K[1, 1], K[0, 2], K[1, 2], c.bf)
-            Ow = frame.T_wc[:3, 3]
-            PO = Xw - Ow
-            dist = np.linalg.norm(PO, axis=1)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                cosv = (PO * mp.normal[ids]).sum(axis=1) / np.maximum(dist, 1e-12)
-            vis = (
-                (Xc[:, 2] > 0)
-                & (u >= 0)
-                & (u < c.width)
-                & (v >= 0)
-                & (v < c.height)
-                & (dist >= 0.8 * mp.min_dist[ids])
-                & (dist <= 1.2 * mp.max_dist[ids])
-                & (cosv >= 0.5)
-            )
-            sel = np.flatnonzero(vis)
+            f = mp.in_frustum(ids, frame.T_cw, frame.T_wc[:3, 3], frame.calib)
+            sel, u, v, ur, dist, cosv, Xw = f.sel, f.u, f.v, f.ur, f.dist, f.cosv, f.Xw
             if count:
                 mp.visible[ids[sel]] += 1
             if len(sel):
