@@ -164,6 +164,12 @@ class _DisparityMasker:
         self.full_disparity = bool(full_disparity) or self.stereo.region == "full"
         self.scale = int(self.stereo.scale)
 
+    def mask_detections(
+        self, frame: StereoFrame, dets: Detections, timer: StageTimer | None = None
+    ) -> StereoMasks:
+        """Masks for given detections (the detector is not run)."""
+        return self.mask_labels(frame, dets, timer)[0]
+
     def _detect(self, frame: StereoFrame, timer: StageTimer | None) -> Detections:
         with _stage(timer, "detect"):
             return self.detector.detect(frame.left)
@@ -255,12 +261,6 @@ class OutlineMasker(_DisparityMasker):
                                min_inliers=c.ground_min_inliers)
         return replace(line, baseline=self.cfg.ground_baseline or self.baseline or DEFAULT_BASELINE)
 
-    def mask_detections(
-        self, frame: StereoFrame, dets: Detections, timer: StageTimer | None = None
-    ) -> StereoMasks:
-        """Masks for given detections (the detector is not run)."""
-        return self.mask_labels(frame, dets, timer)[0]
-
     def mask_labels(
         self, frame: StereoFrame, dets: Detections, timer: StageTimer | None = None
     ) -> tuple[StereoMasks, np.ndarray, np.ndarray]:
@@ -319,12 +319,6 @@ class BoxMasker(_DisparityMasker):
         super().__init__(detector, matcher, stereo, full_disparity)
         self.cfg = cfg or OutlineConfig()
         self.margin = int(margin)
-
-    def mask_detections(
-        self, frame: StereoFrame, dets: Detections, timer: StageTimer | None = None
-    ) -> StereoMasks:
-        """Masks for given detections (the detector is not run)."""
-        return self.mask_labels(frame, dets, timer)[0]
 
     def mask_labels(
         self, frame: StereoFrame, dets: Detections, timer: StageTimer | None = None
