@@ -89,13 +89,11 @@ def run_demo(
     console.print(f"[bold]dynastereo demo[/] -> {root}")
     console.print(why)
 
-    def bar(description: str):
-        if progress is None:
-            return None
-        return progress()
+    def bar():
+        return None if progress is None else progress()
 
     seq = root / "synth" / "sequences" / "00"
-    prog = bar("synth")
+    prog = bar()
     if prog is not None:
         with prog:
             task = prog.add_task(f"synth {scenario}", total=frames, info="")
@@ -116,7 +114,7 @@ def run_demo(
         run_dir = root / f"run_{kind}" if det == detector else root / f"run_{kind}_{det}"
         shutil.rmtree(run_dir, ignore_errors=True)
         c = cfg.with_overrides({"masker.kind": kind, "detector.name": det})
-        prog = bar(kind)
+        prog = bar()
         if prog is not None:
             with prog:
                 task = prog.add_task(f"SLAM, masker {label}", total=frames, info="")

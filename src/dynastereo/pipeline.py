@@ -125,9 +125,9 @@ def run_mask_job(
     try:
         with open(out / "objects.jsonl", "w") as objects_log:
             for k, idx in enumerate(frames):
-                with_read = time.perf_counter()
+                t_read = time.perf_counter()
                 frame = sequence.frame(idx)
-                read_ms = (time.perf_counter() - with_read) * 1000.0
+                read_ms = (time.perf_counter() - t_read) * 1000.0
                 timer.start_frame(idx)
                 timer.add("read", read_ms)
                 masks = masker.mask(frame, timer)
