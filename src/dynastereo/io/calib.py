@@ -149,18 +149,23 @@ class RawStereoCalibration:
 # --------------------------------------------------------------------------- KITTI
 
 
+def _read_calib_text(path: Path) -> str:
+    """The text of a calibration file; CalibrationError naming it when missing or unreadable."""
+    if not path.is_file():
+        raise CalibrationError("calibration file not found" if not path.exists() else "not a file", path)
+    try:
+        return path.read_text(encoding="utf-8", errors="replace")
+    except OSError as e:
+        raise CalibrationError(f"cannot read: {e.strerror}", path) from None
+
+
 def read_kitti_calib_rows(path: str | Path) -> dict[str, list[str]]:
     """The labelled rows of a KITTI ``calib.txt`` as raw tokens: ``{"P0": ["7.07e+02", ...], ...}``.
 
     Blank lines and ``#`` comments are skipped; a non-empty line without ``NAME:`` is an error.
     """
     path = Path(path)
-    if not path.is_file():
-        raise CalibrationError("calibration file not found" if not path.exists() else "not a file", path)
-    try:
-        text = path.read_text(encoding="utf-8", errors="replace")
-    except OSError as e:
-        raise CalibrationError(f"cannot read: {e.strerror}", path) from None
+    text = _read_calib_text(path)
     rows: dict[str, list[str]] = {}
     for lineno, line in enumerate(text.splitlines(), 1):
         s = line.strip()
@@ -295,12 +300,7 @@ def read_yaml_file(path: str | Path) -> dict[str, Any]:
     (which accepts their quirks, e.g. ``data:[...]``), anything else through PyYAML.
     ``!!opencv-matrix`` nodes become ``np.ndarray``."""
     path = Path(path)
-    if not path.is_file():
-        raise CalibrationError("calibration file not found" if not path.exists() else "not a file", path)
-    try:
-        text = path.read_text(encoding="utf-8", errors="replace")
-    except OSError as e:
-        raise CalibrationError(f"cannot read: {e.strerror}", path) from None
+    text = _read_calib_text(path)
     if text.lstrip().startswith("%YAML:"):
         try:
             fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
