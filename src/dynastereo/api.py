@@ -39,6 +39,12 @@ def build_masker(cfg: Config, sequence: Sequence, models_dir: str | Path | None 
     return masker
 
 
+def _prepare(sequence, cfg: Config, frames, calib, models_dir):
+    """(sequence, frame indices, masker) for a job."""
+    seq = load_sequence(sequence, calib)
+    return seq, parse_frame_spec(frames, len(seq)), build_masker(cfg, seq, models_dir)
+
+
 def mask_sequence(
     sequence: str | Path | Sequence,
     out: str | Path,
@@ -55,9 +61,7 @@ def mask_sequence(
     cfg = cfg or Config()
     if save_disparity and cfg.stereo.region != "full":
         cfg = cfg.with_overrides({"stereo.region": "full"})
-    seq = load_sequence(sequence, calib)
-    indices = parse_frame_spec(frames, len(seq))
-    masker = build_masker(cfg, seq, models_dir)
+    seq, indices, masker = _prepare(sequence, cfg, frames, calib, models_dir)
     return run_mask_job(seq, masker, out, indices, save_disparity=save_disparity, overlays=overlays, progress=progress)
 
 
@@ -80,9 +84,7 @@ def run_sequence(
     from .slam import System
 
     cfg = cfg or Config()
-    seq = load_sequence(sequence, calib)
-    indices = parse_frame_spec(frames, len(seq))
-    masker = build_masker(cfg, seq, models_dir)
+    seq, indices, masker = _prepare(sequence, cfg, frames, calib, models_dir)
     system = System(cfg, seq.calibration)
     return run_slam_job(seq, masker, system, out, indices, config_dict=to_dict(cfg),
                         save_masks=save_masks, progress=progress)

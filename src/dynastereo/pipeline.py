@@ -276,11 +276,11 @@ def run_slam_job(
                 n_done = k + 1
                 if progress is not None:
                     progress(k + 1, len(frames), dict(rec, fps=n_done / (time.perf_counter() - t0)))
-        system.shutdown()
     except BaseException as e:
         error = f"{type(e).__name__}: {e}"
         raise
     finally:
+        system.shutdown()  # finishes the pending local BA; also stops the worker on an error
         if pool is not None:
             pool.shutdown(wait=False, cancel_futures=True)
         wall = time.perf_counter() - t0
