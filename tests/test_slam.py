@@ -367,6 +367,7 @@ def test_self_calibrating_ba_recovers_a_known_disparity_offset(offset: float):
     prob, T_true, X_true = _ba_problem_with_offset(offset)
     prob.offset_grid = (-0.3, 0.0, 0.3)
     prob.offset_prior_sigma = 100.0  # no shrinkage: the plain estimate
+    prob.offset_min_sigmas = 0.0  # applied however small
     res = self_calibrating_ba(prob)
     assert res.offset is not None and res.offset_sigma < 0.05
     assert abs(res.offset - offset) < max(3 * res.offset_sigma, 0.05)
@@ -382,6 +383,11 @@ def test_self_calibrating_ba_recovers_a_known_disparity_offset(offset: float):
     # the prior shrinks a weak estimate towards 0
     prob.offset_grid, prob.offset_prior_sigma = (-0.3, 0.0, 0.3), 0.002
     assert abs(self_calibrating_ba(prob).offset) < 0.01
+    # an estimate within offset_min_sigmas of 0 is not applied: the solve at offset 0
+    prob.offset_prior_sigma, prob.offset_min_sigmas = 100.0, 1e6
+    gated = self_calibrating_ba(prob)
+    assert gated.offset is None and gated.offset_sigma is not None
+    assert np.allclose(gated.T_wc, plain.T_wc, atol=1e-6)
 
 
 # ------------------------------------------------------------------ the system, synthetic

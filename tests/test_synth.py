@@ -332,13 +332,18 @@ def test_loop_returns_to_its_start(tmp_path):
     P = np.loadtxt(seq.parent.parent / "poses" / "00.txt").reshape(-1, 3, 4)
     t = P[:, :, 3]
     length = np.linalg.norm(np.diff(t, axis=0), axis=1).sum()
-    assert 300.0 < length < 600.0, length
-    assert np.linalg.norm(t[-1]) < 3.0  # back at the start ...
-    cosang = (np.trace(P[-1][:, :3]) - 1) / 2
+    assert 350.0 < length < 650.0, length
+    half = len(t) // 2
+    k = half + int(np.argmin(np.linalg.norm(t[half:], axis=1)))
+    assert np.linalg.norm(t[k]) < 1.0  # back at the start ...
+    cosang = (np.trace(P[k][:, :3]) - 1) / 2
     assert cosang > math.cos(math.radians(5))  # ... facing the same way
+    overlap = np.linalg.norm(np.diff(t[k:], axis=0), axis=1).sum()
+    assert 40.0 < overlap < 80.0, overlap  # and on over the first stretch again
+    assert np.linalg.norm(t[-1] - t[int(np.argmin(np.linalg.norm(t[: half] - t[-1], axis=1)))]) < 1.0
     assert np.max(np.linalg.norm(t, axis=1)) > 80.0  # after going round the block
     yaw = np.unwrap(np.arctan2(P[:, 0, 2], P[:, 2, 2]))
-    assert abs(abs(yaw[-1] - yaw[0]) - 2 * math.pi) < 0.2  # one full turn
+    assert abs(abs(yaw[k] - yaw[0]) - 2 * math.pi) < 0.2  # one full turn
     gt = read_objects(seq)
     assert sum(o["moves"] for o in gt.objects.values()) >= 5
 

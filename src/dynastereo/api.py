@@ -75,19 +75,36 @@ def run_sequence(
     models_dir: str | Path | None = None,
     save_masks: bool = False,
     progress: Callable[[int, int, dict], None] | None = None,
+    save_map: str | Path | None = None,
+    load_map: str | Path | None = None,
+    localize_only: bool = False,
 ) -> SlamJobResult:
     """Mask and track ``sequence`` with the stereo SLAM; see ``pipeline.run_slam_job``.
 
     ``frames`` may revisit (``"0-98,40-60"``): frames are fed in the order given.
+    ``load_map``: start from a map file (``save_map`` of an earlier run); with
+    ``localize_only`` the map is only localised in (no new keyframes).  ``save_map``:
+    write the final map there.
     """
     from .config import to_dict
+    from .errors import ConfigError
     from .slam import System
 
+    if localize_only and load_map is None:
+        raise ConfigError("localisation only needs a map: give load_map (--load-map FILE)")
     cfg = cfg or Config()
     seq, indices, masker = _prepare(sequence, cfg, frames, calib, models_dir)
     system = System(cfg, seq.calibration)
+    info = {}
+    if load_map is not None:
+        try:
+            system.load_map(load_map, localize_only=localize_only)
+        except BaseException:
+            system.shutdown()
+            raise
+        info = {"loaded": str(load_map), "localize_only": bool(localize_only)}
     return run_slam_job(seq, masker, system, out, indices, config_dict=to_dict(cfg),
-                        save_masks=save_masks, progress=progress)
+                        save_masks=save_masks, progress=progress, save_map=save_map, map_info=info)
 
 
 # --------------------------------------------------------------------------- ROS bags

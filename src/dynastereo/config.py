@@ -141,6 +141,12 @@ class SlamConfig:
     # BA over the whole map solved at a few offsets (needs local_ba process / inline)
     self_calibrate: bool = True
     selfcal_keyframes: int = 8
+    # the estimate is refined over the whole map at 1.5x, 2.25x... selfcal_keyframes
+    # keyframes: this many estimates in all (KITTI 03: +0.13 px at 8 keyframes, +0.2 at 27)
+    selfcal_rounds: int = 4
+    # an estimate within this many sigmas of 0 is not applied (not significant: the
+    # synthetic rig, which has none, gave -0.03 +- 0.07 px; KITTI 0.04-0.15 +- 0.07 px)
+    selfcal_min_sigmas: float = 0.5
     # tracking
     min_inliers: int = 20  # fewer inliers after local-map tracking -> pose not supported
     # fewer inliers than this fraction of the median of the last 5 tracked frames -> pose
@@ -163,6 +169,13 @@ class SlamConfig:
     triangulation_neighbours: int = 6  # covisible keyframes searched for new points
     fuse_neighbours: int = 6  # covisible keyframes searched for duplicate points
     keyframe_culling: bool = True
+    # loop closing and place recognition (bag of words)
+    loop_closing: bool = True  # detect and close loops (off: --no-loop-closing)
+    vocabulary: str = ""  # ORB vocabulary file (dynastereo vocab); "" = the built-in one
+    loop_consistency: int = 3  # consecutive keyframes agreeing on a loop candidate
+    loop_min_inliers: int = 40  # inliers of the loop's geometric verification
+    loop_full_ba: bool = True  # full bundle adjustment (worker process) after each loop
+    loop_ba_lag_frames: int = 20  # the full BA is applied this many frames after the loop
     threads: int = 2  # threads for feature extraction (left/right in parallel)
 
 

@@ -39,3 +39,8 @@ class ModelError(InputError):
 
 class ConfigError(InputError):
     """A configuration file or value that is invalid."""
+
+
+class MapFileError(InputError):
+    """A saved SLAM map that cannot be used: missing, corrupt, of another format or a
+    newer version, inconsistent, or built for another camera / ORB setting."""

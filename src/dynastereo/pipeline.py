@@ -15,6 +15,7 @@ These names are a contract that later tools read.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from dataclasses import dataclass, field
@@ -218,6 +219,8 @@ def run_slam_job(
     save_masks: bool = False,
     prefetch: bool = True,
     progress: Callable[[int, int, dict], None] | None = None,
+    save_map: str | Path | None = None,
+    map_info: dict | None = None,
 ) -> SlamJobResult:
     """Feed ``frames`` of ``sequence`` (masked by ``masker``, None = unmasked) to the SLAM
     ``system`` and write, under ``out``:
@@ -227,7 +230,11 @@ def run_slam_job(
       rewritten at the end with the final, bundle-adjusted poses;
     * ``timing.json``: per frame ms for ``masking`` (= ``detect`` + ``mask``), ``features``,
       ``stereo``, ``track``; ``local_mapping`` separately; ``summary.fps`` end to end;
-    * ``run.json``: configuration, versions, frames tracked / lost, keyframes, map points.
+    * ``run.json``: configuration, versions, frames tracked / lost, keyframes, map points,
+      ``loops`` (every loop closed), ``recoveries`` (frames tracked again after lost ones),
+      ``map`` (the map file loaded / saved);
+    * ``save_map``: the final map (``System.save_map``), also after an error mid-sequence
+      (the map of the frames done).
 
     Masking of frame k+1 runs on a prefetch thread while frame k is tracked (OpenCV and
     onnxruntime release the GIL).
@@ -281,6 +288,14 @@ def run_slam_job(
         raise
     finally:
         system.shutdown()  # finishes the pending local BA; also stops the worker on an error
+        map_out = dict(map_info or {})
+        if save_map is not None and n_done:
+            try:
+                system.save_map(save_map, meta={"sequence": str(getattr(sequence, "path", "")),
+                                                "frames": [int(i) for i in frames[:n_done]]})
+                map_out["saved"] = str(save_map)
+            except Exception as e:  # noqa: BLE001 -- reported, and raised below when the run itself went well
+                map_out["save_error"] = f"{type(e).__name__}: {e}"
         if pool is not None:
             pool.shutdown(wait=False, cancel_futures=True)
         wall = time.perf_counter() - t0
@@ -308,6 +323,9 @@ def run_slam_job(
             "keyframes": stats.get("keyframes"),
             "map_points": stats.get("map_points"),
             "stats": stats,
+            "loops": [e.to_dict() for e in system.loops()] if n_done else [],
+            "recoveries": [dataclasses.asdict(r) for r in system.recoveries()] if n_done else [],
+            "map": map_out,
             "fps": round(fps, 3),
             "wall_s": round(wall, 3),
             "config": config_dict or {},
@@ -316,4 +334,8 @@ def run_slam_job(
         if error:
             run["error"] = error
         (out / "run.json").write_text(json.dumps(run, indent=1, default=float))
+    if "save_error" in map_out:
+        from .errors import DynastereoError
+
+        raise DynastereoError(f"{save_map}: saving the map failed ({map_out['save_error']})")
     return SlamJobResult(out, poses, frames[:n_done], stats, timer, wall, fps, lost)

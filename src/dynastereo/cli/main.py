@@ -125,15 +125,26 @@ def run(
     sync_tolerance: float = typer.Option(5.0, "--sync-tolerance", help="[--bag] Largest left/right stamp difference of a pair, ms."),
     rectify: str = typer.Option("auto", "--rectify", help="[--bag] Rectify with CameraInfo: auto (unless already rectified) | yes | no."),
     bag_outputs: str = typer.Option("all", "--bag-outputs", help="[--bag] Output bag content: all, or a comma list of odometry,tf,masked,masks,disparity."),
+    save_map: Optional[Path] = typer.Option(None, "--save-map", help="Write the final map to FILE (docs/map_format.md)."),
+    load_map: Optional[Path] = typer.Option(None, "--load-map", help="Start from the map in FILE (from --save-map)."),
+    localize_only: bool = typer.Option(False, "--localize-only", help="With --load-map: localise in the map, add no keyframes."),
+    no_loop_closing: bool = typer.Option(False, "--no-loop-closing", help="Turn loop closing off (slam.loop_closing: false)."),
+    vocabulary: Optional[Path] = typer.Option(None, "--vocabulary", help="ORB vocabulary file from `dynastereo vocab` (default: the built-in one)."),
 ) -> None:
     """Mask and track a stereo sequence (a folder or a ROS bag): trajectory, timing and run summary out."""
     from ..api import run_bag, run_sequence
 
     if (sequence is None) == (bag is None):
         _fail(DynastereoError("give either a SEQUENCE folder or --bag FILE (not both)"))
+    if bag is not None and (save_map or load_map):
+        _fail(DynastereoError("--save-map / --load-map work on sequence folders, not with --bag"))
+    if localize_only and load_map is None:
+        _fail(DynastereoError("--localize-only needs --load-map FILE"))
     report = None
     try:
-        overrides = {"detector.name": detector, "stereo.algorithm": stereo, "masker.kind": masker}
+        overrides = {"detector.name": detector, "stereo.algorithm": stereo, "masker.kind": masker,
+                     "slam.loop_closing": False if no_loop_closing else None,
+                     "slam.vocabulary": str(vocabulary) if vocabulary else None}
         cfg = _build_config(config, overrides)
         with _progress() as prog:
             task = prog.add_task("tracking", total=None, info="")
@@ -151,7 +162,8 @@ def run(
                 result, report = br.slam, br.report
             else:
                 result = run_sequence(sequence, out, cfg, frames=frames, calib=calib, models_dir=models_dir,
-                                      save_masks=save_masks, progress=on_frame)
+                                      save_masks=save_masks, progress=on_frame, save_map=save_map,
+                                      load_map=load_map, localize_only=localize_only)
     except DynastereoError as e:
         _fail(e)
     out_console.print(timing_table(result.summary, "timing (ms per frame)"))
@@ -160,6 +172,11 @@ def run(
         f"{len(result.frames)} frames, {result.fps:.1f} FPS end to end; lost {len(result.lost)}, "
         f"keyframes {st.get('keyframes')}, map points {st.get('map_points')} -> {out}"
     )
+    if st.get("loops") or st.get("recoveries"):
+        out_console.print(f"loops closed {st.get('loops', 0)}; frames tracked again after a loss: "
+                          f"{st.get('recoveries', 0)} (details in run.json)")
+    if save_map:
+        out_console.print(f"map saved to {save_map}")
     if report is not None:
         out_console.print(
             f"bag: {report['pairs']} stereo pairs from {report['left_topic']} + {report['right_topic']} "
@@ -383,6 +400,42 @@ def eval_cmd(
     else:
         print(format_table(r))
         print(f"plot: {png}")
+
+
+@app.command("vocab")
+def vocab_cmd(
+    images: list[str] = typer.Argument(..., help="Image files, folders (the images directly inside) or glob patterns ('**' recurses)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Vocabulary file to write (.npz; use it with slam.vocabulary in the config)."),
+    k: int = typer.Option(10, "--k", help="Branching factor of the vocabulary tree."),
+    levels: int = typer.Option(4, "--levels", help="Depth of the tree: at most k**levels words."),
+    features: int = typer.Option(2000, "--features", help="ORB features per image."),
+    seed: int = typer.Option(0, "--seed", help="Random seed (k-means++ seeding); the same seed gives the same file."),
+) -> None:
+    """Train an ORB bag-of-words vocabulary (place recognition, loop closing) on images."""
+    import time
+
+    from ..slam.vocabulary import collect_images, train_from_images
+
+    try:
+        paths = collect_images(images)
+        t0 = time.perf_counter()
+        with _progress() as prog:
+            tasks = {"features": prog.add_task("ORB features", total=len(paths), info=""),
+                     "train": prog.add_task("k-medians", total=levels, info=f"k={k}, {levels} levels")}
+
+            def on_progress(stage: str, done: int, total: int) -> None:
+                prog.update(tasks[stage], completed=done, total=total)
+
+            vocab = train_from_images(paths, k=k, levels=levels, n_features=features, seed=seed, progress=on_progress)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        vocab.save(out)
+    except DynastereoError as e:
+        _fail(e)
+    except OSError as e:
+        _fail(DynastereoError(f"{out}: {e.strerror or e}"))
+    out_console.print(
+        f"{len(paths)} images, {vocab.meta['descriptors']} descriptors -> {vocab.n_words} words (k={k}, {levels} levels) "
+        f"in {time.perf_counter() - t0:.1f} s; wrote {out} ({out.stat().st_size / 1024:.0f} KiB)", highlight=False)
 
 
 def main() -> None:

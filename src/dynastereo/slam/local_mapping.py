@@ -48,9 +48,9 @@ log = logging.getLogger("dynastereo.slam")
 # disparity offsets (px) at which the self-calibrating BA is solved
 SELFCAL_GRID = (-0.3, 0.0, 0.3)
 # frames tracked while the self-calibrating BA runs in the worker process
-SELFCAL_LAG_FRAMES = 5
+SELFCAL_LAG_FRAMES = 8
 # points in the self-calibrating BA
-SELFCAL_MAX_POINTS = 1500
+SELFCAL_MAX_POINTS = 6000
 
 
 @dataclass
@@ -69,6 +69,8 @@ class MappingParams:
     keyframe_culling: bool = True
     self_calibrate: bool = False
     selfcal_keyframes: int = 8
+    selfcal_rounds: int = 4
+    selfcal_min_sigmas: float = 0.5
 
 
 @dataclass
@@ -182,9 +184,15 @@ class LocalMapper:
         self._job_due = 0
         self._job_map = None
         self._pending_kf: KeyFrame | None = None
-        # self-calibration of the disparity offset: done once per System (``on_offset``
-        # applies the estimate to the map's keyframes and the frames in flight)
+        # self-calibration of the disparity offset, over the whole map when it has
+        # selfcal_keyframes keyframes, then again at 1.5x, 2.25x... (selfcal_rounds in all);
+        # ``on_offset`` applies an estimate (absolute, px) to the map's keyframes and the
+        # frames in flight; ``offset_now`` is the offset the keyframes carry now
         self.selfcal_due = params.self_calibrate
+        self.selfcal_at = params.selfcal_keyframes
+        self.selfcal_left = params.selfcal_rounds
+        self.offset_now = 0.0
+        self._selfcal_base = 0.0
         self.on_offset = None
 
     # ---------------------------------------------------------------- pipeline
@@ -466,6 +474,7 @@ class LocalMapper:
         prob = self._problem(kf, ids[1:], ids[:1], pts, mp.rows_of(pts))
         if prob is not None:
             prob.offset_grid = SELFCAL_GRID
+            prob.offset_min_sigmas = self.p.selfcal_min_sigmas
             prob.iterations = max(prob.iterations, 5)
         return prob
 
@@ -524,9 +533,13 @@ class LocalMapper:
 
     def _submit(self, kf: KeyFrame, frame_index: int) -> None:
         prob = None
-        if self.selfcal_due and len(self.mp.keyframes) >= self.p.selfcal_keyframes:
+        if self.selfcal_due and self.selfcal_left > 0 and len(self.mp.keyframes) >= self.selfcal_at:
             prob = self.build_selfcal_problem(kf)
-            self.selfcal_due = prob is None
+            if prob is not None:
+                self._selfcal_base = self.offset_now  # the problem's observations carry it
+                self.selfcal_left -= 1
+                self.selfcal_at = int(np.ceil(self.selfcal_at * 1.5))
+                self.selfcal_due = self.selfcal_left > 0
         if prob is None:
             prob = self.build_problem(kf)
         if prob is None:
@@ -576,7 +589,7 @@ class LocalMapper:
             )
             if res.offset is not None and self.on_offset is not None:
                 # the keyframes' stereo observations move to the offset the BA used
-                self.on_offset(res.offset, res.offset_sigma)
+                self.on_offset(self._selfcal_base + res.offset, res.offset_sigma)
         for i, k in enumerate(res.kf_ids):
             kf = mp.keyframes.get(int(k))
             if kf is not None:

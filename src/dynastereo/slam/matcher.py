@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from .geometry import CHI2_MONO, CHI2_STEREO, best_two_per_group, desc_u64, expand_ranges, hamming_pairs, rotation_consistent, unique_best
@@ -273,3 +274,28 @@ def search_by_projection(
         ok = rotation_consistent(qa[qm] - ka[km])
         qm, km, dm = qm[ok], km[ok], dm[ok]
     return ProjectionMatches(qm, km, dm)
+
+
+def keyframe_point_matches(mp, kf, target) -> tuple[np.ndarray, np.ndarray]:
+    """Descriptor matches of keyframe ``kf``'s map points (of map ``mp``) to the keypoints
+    of ``target`` (a frame or keyframe): nearest of two (ratio 0.7, <= TH_LOW), one point
+    per keypoint, rotation consistency.  ORB-SLAM2 restricts this search with the bag of
+    words' nodes; a brute-force Hamming search (OpenCV, SIMD popcount) over one keyframe's
+    points costs about as much here.  Returns ``(target keypoint idx, point ids)``."""
+    z = np.zeros(0, np.int64)
+    kp_kf = np.flatnonzero(kf.point_ids >= 0)
+    pts = mp.resolve(kf.point_ids[kp_kf])
+    ok = pts >= 0
+    kp_kf, pts = kp_kf[ok], pts[ok]
+    if len(pts) < 10 or len(target) < 10:
+        return z, z
+    dnn, inn = cv2.batchDistance(mp.desc[pts], target.desc, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
+    b1, b2, best = dnn[:, 0], dnn[:, 1], inn[:, 0]
+    good = (best >= 0) & (b1 <= TH_LOW) & (b1 < 0.7 * b2)
+    qi, ki = np.flatnonzero(good), best[good]
+    u_idx = unique_best(ki, b1[good])  # one point per keypoint
+    qi, ki = qi[u_idx], ki[u_idx]
+    if len(qi):
+        rot = rotation_consistent(kf.angle[kp_kf[qi]] - target.angle[ki])
+        qi, ki = qi[rot], ki[rot]
+    return ki.astype(np.int64), pts[qi]

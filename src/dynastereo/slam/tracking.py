@@ -19,7 +19,7 @@ from .frame import Frame
 from .geometry import desc_u64, inv_T, rotation_consistent, unique_best
 from .keyframe import KeyFrame
 from .map import Map
-from .matcher import TH_HIGH, TH_LOW, search_by_projection
+from .matcher import TH_HIGH, TH_LOW, keyframe_point_matches, search_by_projection
 from .optimizer import optimize_pose, project
 
 log = logging.getLogger("dynastereo.slam")
@@ -146,30 +146,6 @@ class Tracker:
         n_all = int(frame.matched.sum())
         return n_all >= 10 if n < 10 else True
 
-    def _keyframe_matches(self, mp: Map, kf: KeyFrame, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
-        """Descriptor matches of a keyframe's map points to the frame's keypoints (ORB-SLAM2
-        uses a bag of words here): nearest of two (ratio 0.7, <= TH_LOW), one point per
-        keypoint, rotation consistency.  Returns ``(frame keypoint idx, point ids)``."""
-        z = np.zeros(0, np.int64)
-        kp_kf = np.flatnonzero(kf.point_ids >= 0)
-        pts = mp.resolve(kf.point_ids[kp_kf])
-        ok = pts >= 0
-        kp_kf, pts = kp_kf[ok], pts[ok]
-        if len(pts) < 10 or len(frame) < 10:
-            return z, z
-        # two nearest frame descriptors of each point (OpenCV, SIMD popcount), ratio test
-        dnn, inn = cv2.batchDistance(mp.desc[pts], frame.desc, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
-        b1, b2, best = dnn[:, 0], dnn[:, 1], inn[:, 0]
-        good = (best >= 0) & (b1 <= TH_LOW) & (b1 < 0.7 * b2)
-        qi, ki = np.flatnonzero(good), best[good]
-        # one point per keypoint
-        u_idx = unique_best(ki, b1[good])
-        qi, ki = qi[u_idx], ki[u_idx]
-        if len(qi):
-            rot = rotation_consistent(kf.angle[kp_kf[qi]] - frame.angle[ki])
-            qi, ki = qi[rot], ki[rot]
-        return ki.astype(np.int64), pts[qi]
-
     def _pnp(self, X: np.ndarray, uv: np.ndarray, frame: Frame) -> tuple[np.ndarray | None, int]:
         """Prior-free PnP-RANSAC (EPnP, 3 px, fixed seed): ``(T_cw or None, inliers)``."""
         cv2.setRNGSeed(self.p.seed)
@@ -196,7 +172,7 @@ class Tracker:
         kf = self.ref_kf
         if kf is None:
             return False
-        ki, pts = self._keyframe_matches(mp, kf, frame)
+        ki, pts = keyframe_point_matches(mp, kf, frame)
         if len(ki) < 15:
             return False
         X = mp.pos[pts]
@@ -235,12 +211,12 @@ class Tracker:
         )
         return [k for _, k in ranked[:n]]
 
-    def relocalise(self, mp: Map, frame: Frame, n_candidates: int = 3) -> tuple[bool, int]:
-        """Prior-free pose of the frame in the map (ORB-SLAM2 ``Relocalization`` without
-        bag of words): for each candidate keyframe, descriptor matches + PnP-RANSAC +
-        motion-only BA + local-map tracking; the hypothesis with most inliers wins.
-        Returns ``(found, keyframe id)``; the frame / tracker hold the best hypothesis
-        (or are left as they were when none is found)."""
+    def relocalise(self, mp: Map, frame: Frame, candidates: list[int]) -> tuple[bool, int]:
+        """Prior-free pose of the frame in the map (ORB-SLAM2 ``Relocalization``): for each
+        candidate keyframe (from the bag-of-words database, or ``candidate_keyframes``),
+        descriptor matches + PnP-RANSAC + motion-only BA + local-map tracking; the
+        hypothesis with most inliers wins.  Returns ``(found, keyframe id)``; the frame /
+        tracker hold the best hypothesis (or are left as they were when none is found)."""
         saved = (
             frame.T_cw.copy() if frame.T_cw is not None else None,
             frame.point_ids.copy(),
@@ -251,9 +227,11 @@ class Tracker:
             self.n_inliers,
         )
         best: tuple | None = None
-        for kid in self.candidate_keyframes(mp, frame, n_candidates):
-            kf = mp.keyframes[kid]
-            ki, pts = self._keyframe_matches(mp, kf, frame)
+        for kid in candidates:
+            kf = mp.keyframes.get(kid)
+            if kf is None:
+                continue
+            ki, pts = keyframe_point_matches(mp, kf, frame)
             if len(ki) < 15:
                 continue
             X = mp.pos[pts]

@@ -18,8 +18,9 @@ along both curbs and people on the sidewalks.  What differs is the traffic:
               of the view and 30-40 % of the ORB features for the whole sequence: the
               case that breaks SLAM without masks (it is pulled toward "standing still").
 ``oncoming``  cars and a truck in the opposite lane drive towards the rig and pass it.
-``loop``      one full lap of the ~390 m ring (the rig returns to its start pose) with
-              oncoming traffic, crossing and walking people: loop closure.
+``loop``      one full lap of the ~390 m ring (the rig returns to its start pose) and on
+              over the first 60 m again, with oncoming traffic, crossing and walking
+              people: loop closure.
 ``mixed``     all of it: crossings, oncoming traffic, a car ahead, walkers, parked cars.
 """
 
@@ -501,10 +502,15 @@ def _oncoming(world: World, rng, frames: int, horizon: int) -> Plan:
     return Plan("oncoming", frames, 1 / FPS, d, drive.s, b.finalize(T), world.ring)
 
 
+# the loop scenario drives this far past its start again: the loop is then seen from the
+# places of the first pass (close points), as when a car drives round a block twice
+LOOP_OVERLAP_M = 60.0
+
+
 def _loop_frames(world: World) -> int:
     d = world.params.d_lane_in
     drive = _Drive(world, d, _start(world, 1, 10.0, d), 10.0, 4.5, 120.0)
-    s_end = drive.s(0.0) + world.ring.length(d)
+    s_end = drive.s(0.0) + world.ring.length(d) + LOOP_OVERLAP_M
     return int(np.ceil(drive.t_at(s_end) * FPS)) + 1
 
 
@@ -572,7 +578,7 @@ SCENARIOS: dict[str, Scenario] = {
         Scenario("crossing", "the rig waits at a zebra while people cross right in front and a queue of cars and a truck crawls through the intersection", 200, _crossing),
         Scenario("convoy", "a box truck with a printed rear door 4.5 m ahead drives at the rig's speed and fills ~30% of the view", 200, _convoy),
         Scenario("oncoming", "cars and a truck in the opposite lane drive towards the rig and pass it", 200, _oncoming),
-        Scenario("loop", "one full lap of the ~390 m ring back to the start pose, with traffic and pedestrians", None, _loop),
+        Scenario("loop", "one lap of the ~390 m ring and 60 m past the start again, with traffic and pedestrians", None, _loop),
         Scenario("mixed", "crossings, oncoming traffic, a car ahead, walkers and parked cars together", 300, _mixed),
     )
 }

@@ -125,7 +125,7 @@ def generate(
 ) -> Path:
     """Render ``scenario`` into a KITTI-odometry folder under ``out``; returns ``out/sequences/00``.
 
-    ``frames=None`` uses the scenario's default length (``loop``: one full lap);
+    ``frames=None`` uses the scenario's default length (``loop``: one lap and 60 m);
     ``noise`` is the standard deviation of Gaussian grey-level noise added to the images
     (0 = noise-free: the right image is exactly the left one warped by the disparity);
     ``progress(done, total)`` is called after every frame; ``threads`` > 1 renders the two

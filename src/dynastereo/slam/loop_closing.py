@@ -1,0 +1,524 @@
+"""Loop closing (ORB-SLAM2 ``LoopClosing``) for a stereo rig: SE(3), no scale drift.
+
+For every new keyframe (after its local mapping):
+
+1. **Detection** (``DetectLoop``): the keyframe's bag of words is scored against the
+   keyframe database; candidates must beat the keyframe's lowest score against its own
+   covisible keyframes and lie outside its covisibility neighbourhood
+   (``KeyFrameDatabase.detect_loop_candidates``).  A candidate is accepted once its
+   covisibility group was a candidate for ``consistency`` consecutive keyframes.
+2. **Geometric verification** (``ComputeSim3``; stereo: SE(3)): descriptor matches of
+   the candidate's map points to the keyframe's keypoints, PnP-RANSAC, motion-only BA
+   (stereo observations), then the map points of the candidate and its covisible
+   keyframes projected with that pose for more matches and a second BA; at least
+   ``min_inliers`` inliers.
+3. **Correction** (``CorrectLoop``): the keyframe and its covisible keyframes move by the
+   loop correction, their map points with them; duplicated map points are fused
+   (the loop side's points projected into the corrected keyframes); covisibility is
+   updated, and the new links across the loop become loop edges.
+4. **Essential-graph optimisation** with gtsam (``optimizer.optimize_pose_graph``):
+   spanning-tree edges (each keyframe to its strongest earlier covisible keyframe),
+   covisibility edges of weight >= ``covis_edge_weight``, all loop edges; the loop
+   keyframe and the map's first keyframe fixed.  Every map point then follows its
+   reference keyframe.
+5. **Full bundle adjustment** over the whole map, in a worker process (gtsam holds the
+   GIL), applied ``full_ba_lag_frames`` frames later; keyframes and points made in the
+   meantime follow the correction of their neighbours.  A second loop before it is
+   applied discards it (ORB-SLAM2 aborts it).
+
+Frame poses are stored relative to their reference keyframes (``System``), so the whole
+trajectory, past frames included, follows the corrected keyframes.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from .geometry import desc_u64, inv_T, orthonormalize
+from .keyframe import KeyFrame
+from .local_mapping import BARunner, LocalMapper
+from .map import Map
+from .matcher import TH_HIGH, keyframe_point_matches, search_by_projection
+from .keyframe_database import KeyFrameDatabase
+from .optimizer import LocalBAProblem, LocalBAResult, optimize_pose, optimize_pose_graph
+from .vocabulary import BowVector, Vocabulary
+
+log = logging.getLogger("dynastereo.slam")
+
+
+@dataclass
+class LoopParams:
+    min_kf_gap: int = 10  # keyframes since the map's start / the last loop before detecting
+    consistency: int = 3  # consecutive keyframes whose candidate groups agree
+    min_matches: int = 20  # descriptor matches to a candidate before RANSAC
+    min_inliers: int = 40  # inliers after projection matching and pose optimisation
+    # of those, at least this many close stereo points (depth < close_depth_m in the new
+    # keyframe): far points leave the distance along the view direction weak -- a loop
+    # seen from 20 m before the place came out 0.4 m short (synthetic ``loop``)
+    min_close_inliers: int = 20
+    close_depth_m: float = 35 * 0.54
+    covis_edge_weight: int = 100  # essential-graph covisibility edges (ORB-SLAM2: 100)
+    max_verify: int = 2  # consistent candidates verified per keyframe, best first
+    full_ba: bool = True
+    full_ba_iterations: int = 20
+    full_ba_lag_frames: int = 20
+    seed: int = 0
+
+
+@dataclass
+class LoopEvent:
+    """One closed loop (``System.loops()``, ``run.json`` ``loops``)."""
+
+    frame: int  # position (in the order fed) of the frame whose keyframe closed it
+    frame_index: int  # that frame's StereoFrame.index
+    keyframe: int
+    loop_keyframe: int
+    loop_frame_index: int  # StereoFrame.index of the loop keyframe's frame
+    score: float  # bag-of-words score keyframe / loop keyframe
+    matches: int  # descriptor matches to the loop keyframe
+    inliers: int  # after projection matching and pose optimisation
+    correction_m: float  # translation of the keyframe's correction
+    correction_deg: float  # rotation of the keyframe's correction
+    points_fused: int
+    loop_edges: int  # new covisibility links across the loop
+    pose_graph_keyframes: int
+    pose_graph_edges: int
+    pose_graph_ms: float
+    correct_ms: float  # whole correction: fusion + pose graph + point update
+    full_ba_ms: float | None = None  # set when the full BA is applied
+    full_ba_applied: bool = False
+    full_ba_iterations: int = 0
+    full_ba_cost: tuple[float, float] | None = None  # before / after
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class LoopStats:
+    query_ms: list[float] = field(default_factory=list)  # BoW transform + detection per keyframe
+    verify_ms: list[float] = field(default_factory=list)  # geometric verification per attempt
+    candidates: int = 0  # consistent candidates verified
+    rejected: int = 0  # of those, failed geometric verification
+    full_ba_discarded: int = 0
+
+
+def _rot_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+class LoopCloser:
+    """Loop detection and correction on one map; owns nothing but its loop state.  The
+    keyframe database (shared with relocalisation) is kept by ``System``."""
+
+    def __init__(
+        self,
+        mp: Map,
+        db: KeyFrameDatabase,
+        vocab: Vocabulary,
+        mapper: LocalMapper,
+        params: LoopParams,
+        inv_sigma2: np.ndarray,
+        scales: np.ndarray,
+        events: list[LoopEvent] | None = None,
+        stats: LoopStats | None = None,
+    ) -> None:
+        self.mp = mp
+        self.db = db
+        self.vocab = vocab
+        self.mapper = mapper
+        self.p = params
+        self.inv_sigma2 = inv_sigma2
+        self.scales = scales
+        # shared by the closers of a System's successive maps
+        self.events: list[LoopEvent] = [] if events is None else events
+        self.stats = LoopStats() if stats is None else stats
+        self.loop_edges: list[tuple[int, int]] = []
+        self._groups: list[tuple[set[int], int]] = []
+        self._last_loop_kf = -(10**9)
+        self._ba_runner: BARunner | None = None
+        self._ba_job = None  # (pending, problem, due frame, loop count)
+
+    # ------------------------------------------------------------- detection
+    def _covisibles(self, kid: int) -> list[int]:
+        kf = self.mp.keyframes.get(kid)
+        return [] if kf is None else [k for k in kf.best_covisibles(10) if k in self.mp.keyframes]
+
+    def detect(self, kf: KeyFrame, bow: BowVector) -> list[int]:
+        """Consistent loop candidates for ``kf`` (ORB-SLAM2 ``DetectLoop``)."""
+        mp = self.mp
+        if kf.id < self._last_loop_kf + self.p.min_kf_gap or len(mp.keyframes) <= self.p.min_kf_gap:
+            return []
+        connected = [k for k in kf.covis if k in mp.keyframes]
+        if not connected:
+            return []
+        in_db = [k for k in connected if k in self.db]
+        min_score = min(self.vocab.score(bow, self.db.bow(k)) for k in in_db) if in_db else 1.0
+        # not a loop: the keyframe's covisible keyframes and theirs (the place it is in)
+        near = set(connected) | {kf.id}
+        for k in connected:
+            near.update(mp.keyframes[k].covis)
+        cands = self.db.detect_loop_candidates(kf.id, bow, near, min_score, self._covisibles)
+        # the last keyframes are the same stretch of road, not a loop
+        cands = [c for c in cands if kf.id - c >= 2 * self.p.min_kf_gap]
+        if not cands:
+            self._groups = []
+            return []
+        new_groups: list[tuple[set[int], int]] = []
+        extended = [False] * len(self._groups)
+        enough: list[int] = []
+        for c in cands:
+            group = {c, *self._covisibles(c)}
+            consistent = False
+            for gi, (g, count) in enumerate(self._groups):
+                if group & g:
+                    consistent = True
+                    cur = count + 1
+                    if not extended[gi]:
+                        new_groups.append((group, cur))
+                        extended[gi] = True
+                    if cur >= self.p.consistency and c not in enough:
+                        enough.append(c)
+            if not consistent:
+                new_groups.append((group, 0))
+        self._groups = new_groups
+        return enough
+
+    # ---------------------------------------------------------- verification
+    def verify(self, kf: KeyFrame, cand: KeyFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray, int] | None:
+        """Corrected ``T_cw`` of ``kf`` from the loop keyframe ``cand``: returns
+        ``(T_cw, kf keypoints, loop map points, descriptor matches)`` for the inlier matches,
+        or None."""
+        import cv2
+
+        mp = self.mp
+        ki, pts = keyframe_point_matches(mp, cand, kf)
+        n_desc = len(ki)
+        if n_desc < self.p.min_matches:
+            return None
+        calib = kf.calib
+        cv2.setRNGSeed(self.p.seed)
+        okp, rvec, tvec, inl = cv2.solvePnPRansac(
+            mp.pos[pts].astype(np.float64),
+            kf.uv[ki].astype(np.float64),
+            calib.K,
+            None,
+            iterationsCount=300,
+            reprojectionError=3.0,
+            confidence=0.999,
+            flags=cv2.SOLVEPNP_EPNP,
+        )
+        if not okp or inl is None or len(inl) < self.p.min_matches // 2:
+            return None
+        T = np.eye(4)
+        T[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T[:3, 3] = tvec.ravel()
+        T, ok = self._optimize(T, ki, mp.pos[pts], kf)
+        ki, pts = ki[ok], pts[ok]
+        if len(ki) < self.p.min_matches:
+            return None
+        # more matches: the loop keyframe's neighbourhood projected with the new pose
+        loop_kfs = [cand.id] + [k for k in cand.covis if k in mp.keyframes]
+        cand_pts = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in loop_kfs]))
+        cand_pts = cand_pts[mp.good(cand_pts)]
+        cand_pts = cand_pts[~np.isin(cand_pts, pts)]
+        if len(cand_pts):
+            center = inv_T(T)[:3, 3]
+            f = mp.in_frustum(cand_pts, T, center, calib)
+            sel = f.sel
+            if len(sel):
+                lev = mp.predict_level(cand_pts[sel], f.dist[sel])
+                free = np.ones(len(kf), bool)
+                free[ki] = False
+                m = search_by_projection(
+                    kf.grid, kf.octave, kf.desc64, kf.u_right, free,
+                    f.u[sel], f.v[sel], 10.0 * self.scales[lev], desc_u64(mp.desc[cand_pts[sel]]),
+                    min_level=lev - 1, max_level=lev + 1, u_right=f.ur[sel], th_dist=TH_HIGH, ratio=None,
+                )
+                ki = np.concatenate([ki, m.kp])
+                pts = np.concatenate([pts, cand_pts[sel[m.query]]])
+        T, ok = self._optimize(T, ki, mp.pos[pts], kf)
+        ki, pts = ki[ok], pts[ok]
+        n_close = int(np.count_nonzero((kf.depth[ki] > 0) & (kf.depth[ki] < self.p.close_depth_m)))
+        if len(ki) < self.p.min_inliers or n_close < self.p.min_close_inliers:
+            return None
+        return T, ki, pts, n_desc
+
+    def _optimize(self, T: np.ndarray, ki: np.ndarray, X: np.ndarray, kf: KeyFrame):
+        return optimize_pose(
+            T, X, kf.uv[ki], kf.u_right[ki], self.inv_sigma2[kf.octave[ki]], kf.calib.K, kf.calib.bf
+        )
+
+    # ------------------------------------------------------------ the pipeline
+    def process(self, kf: KeyFrame, frame_pos: int) -> LoopEvent | None:
+        """Detect, verify and correct a loop for the new keyframe ``kf`` (its BoW is
+        added to the database in any case).  Returns the loop closed, if any."""
+        t0 = time.perf_counter()
+        bow, _ = self.vocab.transform(kf.desc)
+        self._sync_db()
+        cands = self.detect(kf, bow)
+        self.stats.query_ms.append((time.perf_counter() - t0) * 1e3)
+        if cands:  # the local BA in flight was solved before this keyframe: apply it first
+            self.mapper.collect(frame_pos, force=True)
+        event = None
+        for cid in cands[: self.p.max_verify]:
+            cand = self.mp.keyframes.get(cid)
+            if cand is None:
+                continue
+            self.stats.candidates += 1
+            t1 = time.perf_counter()
+            found = self.verify(kf, cand)
+            self.stats.verify_ms.append((time.perf_counter() - t1) * 1e3)
+            if found is None:
+                self.stats.rejected += 1
+                continue
+            T_new, ki, pts, n_desc = found
+            event = self.correct(kf, cand, T_new, ki, pts, frame_pos, self.vocab.score(bow, self.db.bow(cid)), n_desc)
+            break
+        self.db.add(kf.id, bow)
+        return event
+
+    def _sync_db(self) -> None:
+        """Culled keyframes leave the database."""
+        for k in [k for k in self.db.ids() if k not in self.mp.keyframes]:
+            self.db.erase(k)
+
+    # -------------------------------------------------------------- correction
+    def correct(
+        self,
+        kf: KeyFrame,
+        loop: KeyFrame,
+        T_new: np.ndarray,
+        ki: np.ndarray,
+        loop_pts: np.ndarray,
+        frame_pos: int,
+        score: float,
+        n_desc: int,
+    ) -> LoopEvent:
+        mp = self.mp
+        t0 = time.perf_counter()
+        # a full BA still running belongs to the map before this loop: dropped
+        if self._ba_job is not None:
+            self._ba_job = None
+            self.stats.full_ba_discarded += 1
+            if self._ba_runner is not None:  # the worker's answer is never read: restart it
+                self._ba_runner.shutdown()
+                self._ba_runner = None
+        # 1. the keyframe and its neighbours move by the correction, their points with them
+        T_old_all = {k: k_.T_cw.copy() for k, k_ in mp.keyframes.items()}
+        D = inv_T(kf.T_cw) @ T_new  # T_i_new = T_i_old @ D for every connected keyframe
+        connected = [kf.id] + [k for k in kf.covis if k in mp.keyframes]
+        for k in connected:
+            mp.keyframes[k].T_cw = orthonormalize(mp.keyframes[k].T_cw @ D)
+        pts = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in connected]))
+        pts = pts[mp.good(pts)]
+        Dinv = inv_T(D)
+        mp.pos[pts] = mp.pos[pts] @ Dinv[:3, :3].T + Dinv[:3, 3]
+        mp.normal[pts] = mp.normal[pts] @ Dinv[:3, :3].T
+        # 2. fusion: the verified matches, then the loop side's points in every connected keyframe
+        cur = kf.point_ids[ki]
+        has = cur >= 0
+        mp.replace(cur[has], loop_pts[has])
+        fused = int(has.sum())
+        free = ~has & (kf.point_ids[ki] < 0)
+        mp.add_observations(kf, ki[free], loop_pts[free])
+        loop_side = [loop.id] + [k for k in loop.covis if k in mp.keyframes and k not in connected]
+        side_pts = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in loop_side]))
+        side_pts = side_pts[mp.good(side_pts)]
+        for k in connected:
+            if k in mp.keyframes:
+                fused += self.mapper._fuse_into(mp.keyframes[k], side_pts)
+        # 3. covisibility and the new links across the loop
+        before = {k: set(mp.keyframes[k].covis) for k in connected if k in mp.keyframes}
+        for k in before:
+            mp.update_connections(mp.keyframes[k])
+        new_links: list[tuple[int, int]] = []
+        conn = set(connected)
+        for k in before:
+            for j in mp.keyframes[k].covis:
+                if j not in before[k] and j not in conn:
+                    new_links.append((k, j))
+        if not any(j == loop.id or k == loop.id for k, j in new_links):
+            new_links.append((kf.id, loop.id))
+        # 4. essential graph
+        t_pg = time.perf_counter()
+        n_kf, n_edges = self._optimize_essential_graph(kf, loop, T_old_all, new_links)
+        pg_ms = (time.perf_counter() - t_pg) * 1e3
+        self.loop_edges.extend(new_links)
+        self._last_loop_kf = kf.id
+        self._groups = []
+        dT = T_new @ inv_T(T_old_all[kf.id])
+        event = LoopEvent(
+            frame=frame_pos,
+            frame_index=kf.frame_index,
+            keyframe=kf.id,
+            loop_keyframe=loop.id,
+            loop_frame_index=loop.frame_index,
+            score=float(score),
+            matches=int(n_desc),
+            inliers=int(len(ki)),
+            correction_m=float(np.linalg.norm(inv_T(T_new)[:3, 3] - inv_T(T_old_all[kf.id])[:3, 3])),
+            correction_deg=_rot_deg(dT[:3, :3]),
+            points_fused=fused,
+            loop_edges=len(new_links),
+            pose_graph_keyframes=n_kf,
+            pose_graph_edges=n_edges,
+            pose_graph_ms=pg_ms,
+            correct_ms=(time.perf_counter() - t0) * 1e3,
+        )
+        self.events.append(event)
+        log.info(
+            "loop closed: keyframe %d (frame %d) with keyframe %d (frame %d): %d inliers, correction %.2f m / %.2f deg; "
+            "%d points fused; essential graph of %d keyframes / %d edges in %.0f ms",
+            kf.id, kf.frame_index, loop.id, loop.frame_index, event.inliers, event.correction_m,
+            event.correction_deg, fused, n_kf, n_edges, pg_ms,
+        )
+        if self.p.full_ba:
+            self._submit_full_ba(kf, frame_pos)
+        return event
+
+    def _optimize_essential_graph(
+        self, kf: KeyFrame, loop: KeyFrame, T_old: dict[int, np.ndarray], new_links: list[tuple[int, int]]
+    ) -> tuple[int, int]:
+        mp = self.mp
+        ids = sorted(mp.keyframes)
+        pos = {k: i for i, k in enumerate(ids)}
+        T_init = np.stack([mp.keyframes[k].T_cw for k in ids])  # corrected for the connected ones
+        T_wc = np.stack([inv_T(T) for T in T_init])
+        T_wc_old = {k: inv_T(T_old[k]) for k in ids if k in T_old}
+        edges: dict[tuple[int, int], np.ndarray] = {}
+
+        def rel(a: int, b: int, source: dict[int, np.ndarray] | None) -> np.ndarray:
+            if source is not None and a in source and b in source:
+                return inv_T(source[a]) @ source[b]
+            return inv_T(T_wc[pos[a]]) @ T_wc[pos[b]]
+
+        for k in ids:
+            kfo = mp.keyframes[k]
+            earlier = [(w, j) for j, w in kfo.covis.items() if j < k and j in pos]
+            if earlier:  # spanning tree: strongest earlier covisible keyframe
+                parent = max(earlier)[1]
+            else:
+                i = pos[k]
+                parent = ids[i - 1] if i > 0 else None
+            if parent is not None:
+                edges[(parent, k)] = rel(parent, k, T_wc_old)
+            for j, w in kfo.covis.items():
+                if j < k and j in pos and w >= self.p.covis_edge_weight and (j, k) not in edges:
+                    edges[(j, k)] = rel(j, k, T_wc_old)
+        for a, b in self.loop_edges:  # earlier loops, as they stand now
+            if a in pos and b in pos:
+                edges[(min(a, b), max(a, b))] = rel(min(a, b), max(a, b), T_wc_old)
+        for a, b in new_links:  # this loop: from the corrected poses
+            if a in pos and b in pos:
+                edges[(min(a, b), max(a, b))] = rel(min(a, b), max(a, b), None)
+        keys = list(edges)
+        e = np.array([(pos[a], pos[b]) for a, b in keys], np.int64).reshape(-1, 2)
+        meas = np.stack([edges[k] for k in keys]) if keys else np.zeros((0, 4, 4))
+        fixed = np.array(sorted({pos[loop.id], 0}), np.int64)
+        T_opt, _, _, _ = optimize_pose_graph(T_wc, e, meas, fixed)
+        # keyframes, then every point with its reference keyframe's correction
+        T_cw_new = np.stack([orthonormalize(inv_T(T)) for T in T_opt])
+        M = np.einsum("kij,kjl->kil", T_opt, T_init)  # world(init) -> world(new) per keyframe
+        for i, k in enumerate(ids):
+            mp.keyframes[k].T_cw = T_cw_new[i]
+        self._move_points(ids, M)
+        return len(ids), len(keys)
+
+    def _move_points(self, ids: list[int], M: np.ndarray, pts: np.ndarray | None = None) -> None:
+        """Points ``pts`` (default: all good ones) follow the correction ``M[i]`` (4x4, old
+        world -> new world) of their reference keyframe ``ids[i]`` (sorted ids; points
+        whose reference is unknown stay)."""
+        mp = self.mp
+        if pts is None:
+            pts = np.flatnonzero(~mp.bad[: mp.n])
+        ref = mp.ref_kf[pts]
+        sorted_ids = np.asarray(ids, np.int64)
+        loc = np.searchsorted(sorted_ids, ref)
+        ok = (loc < len(sorted_ids)) & (sorted_ids[np.minimum(loc, len(sorted_ids) - 1)] == ref)
+        pts, loc = pts[ok], loc[ok]
+        R = M[loc, :3, :3]
+        t = M[loc, :3, 3]
+        mp.pos[pts] = np.einsum("nij,nj->ni", R, mp.pos[pts]) + t
+        mp.normal[pts] = np.einsum("nij,nj->ni", R, mp.normal[pts])
+
+    # ----------------------------------------------------------------- full BA
+    def _submit_full_ba(self, kf: KeyFrame, frame_pos: int) -> None:
+        mp = self.mp
+        ids = sorted(mp.keyframes)
+        if len(ids) < 3:
+            return
+        pts = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in ids]))
+        pts = pts[mp.good(pts)]
+        if len(pts) == 0:
+            return
+        prob = self.mapper._problem(kf, ids[1:], ids[:1], pts, mp.rows_of(pts))
+        if prob is None:
+            return
+        prob.iterations = self.p.full_ba_iterations
+        prob.rel_tol = 1e-5
+        if self._ba_runner is None:
+            mode = self.mapper.p.local_ba if self.mapper.p.local_ba != "off" else "inline"
+            self._ba_runner = BARunner(mode)
+        job = self._ba_runner.submit(prob)
+        self._ba_job = (job, prob, frame_pos + max(0, self.p.full_ba_lag_frames), len(self.events))
+
+    def collect(self, frame_pos: int, force: bool = False) -> None:
+        """Apply the full BA when it is due (waits for it)."""
+        if self._ba_job is None:
+            return
+        job, prob, due, n_loops = self._ba_job
+        if not force and frame_pos < due:
+            return
+        self._ba_job = None
+        res = job if isinstance(job, LocalBAResult) else job.result()
+        if n_loops != len(self.events):
+            self.stats.full_ba_discarded += 1
+            return
+        # a local BA in flight was solved on the poses before this result: apply it first
+        self.mapper.collect(frame_pos, force=True)
+        self._apply_full_ba(prob, res)
+        ev = self.events[-1]
+        ev.full_ba_ms, ev.full_ba_applied, ev.full_ba_iterations = res.ms, True, res.iterations
+        ev.full_ba_cost = (res.error_before, res.error_after)
+        log.info("full BA after the loop applied: %d keyframes, %d points, %.0f ms", len(res.kf_ids), len(res.pt_ids), res.ms)
+
+    def _apply_full_ba(self, prob: LocalBAProblem, res: LocalBAResult) -> None:
+        mp = self.mp
+        ids = sorted(mp.keyframes)
+        in_res = {int(k): i for i, k in enumerate(res.kf_ids)}
+        T_in = {int(k): inv_T(prob.T_wc[i]) for i, k in enumerate(prob.kf_ids)}
+        T_before = {k: mp.keyframes[k].T_cw.copy() for k in ids}
+        for k in ids:
+            kfo = mp.keyframes[k]
+            if k in in_res:
+                kfo.T_cw = orthonormalize(inv_T(res.T_wc[in_res[k]]))
+                continue
+            # made since the BA was submitted: follows its strongest neighbour in the result
+            nbs = [j for j in kfo.best_covisibles() if j in in_res]
+            if not nbs:
+                continue
+            j = nbs[0]
+            D = inv_T(T_in[j]) @ inv_T(res.T_wc[in_res[j]])
+            kfo.T_cw = orthonormalize(kfo.T_cw @ D)
+        # points of the result take its positions; the others follow their reference keyframe
+        ok = mp.good(res.pt_ids)
+        M = np.stack([inv_T(mp.keyframes[k].T_cw) @ T_before[k] for k in ids])
+        in_prob = np.zeros(mp.n, bool)
+        in_prob[res.pt_ids[ok]] = True
+        self._move_points(ids, M, np.flatnonzero(~mp.bad[: mp.n] & ~in_prob))
+        mp.pos[res.pt_ids[ok]] = res.X[ok]
+
+    def shutdown(self) -> None:
+        if self._ba_job is not None:
+            self.collect(0, force=True)
+        if self._ba_runner is not None:
+            self._ba_runner.shutdown()
+            self._ba_runner = None
+
+    def events_as_dicts(self) -> list[dict]:
+        return [e.to_dict() for e in self.events]
