@@ -179,6 +179,35 @@ def black_frames(seq: Path, work: Path) -> dict:
     return res
 
 
+def pose_graph_scaling(sizes=(100, 500, 1000, 2000), repeats: int = 3) -> list[dict]:
+    """``optimize_pose_graph`` on a drifted ring of N keyframes with the essential graph's
+    shape (spanning tree + ~6 covisibility edges per keyframe + loop edges): median ms."""
+    from dynastereo.slam.geometry import se3_exp
+    from dynastereo.slam.optimizer import optimize_pose_graph
+
+    rng = np.random.default_rng(0)
+    rows = []
+    for n in sizes:
+        step = se3_exp(np.array([0.0, 2 * np.pi / n, 0.0, 0.0, 0.0, 1.0]))
+        T = [np.eye(4)]
+        for _ in range(n - 1):
+            T.append(T[-1] @ step)
+        T = np.stack(T)
+        edges = [(i, j) for i in range(n) for j in range(i + 1, min(n, i + 7))]
+        edges += [(n - 1 - k, k) for k in range(5)]
+        e = np.array(edges)
+        meas = np.stack([np.linalg.inv(T[i]) @ T[j] for i, j in edges])
+        drift = np.stack([T[i] @ se3_exp(np.r_[rng.normal(0, 1e-3, 3), rng.normal(0, 1e-2, 3)] * i / n * 10) for i in range(n)])
+        ms = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            optimize_pose_graph(drift, e, meas, np.array([0]))
+            ms.append((time.perf_counter() - t0) * 1e3)
+        rows.append({"keyframes": n, "edges": len(edges), "ms_median": float(np.median(ms))})
+        print(f"pose graph: {n} keyframes, {len(edges)} edges: {np.median(ms):.1f} ms", flush=True)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", default="0,1,2")
@@ -192,6 +221,7 @@ def main() -> None:
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
     result: dict = {"machine": platform.machine(), "cpus": os.cpu_count()}
+    result["pose_graph"] = pose_graph_scaling()
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         if not args.no_synth:

@@ -162,7 +162,7 @@ def test_map_is_saved_even_when_a_frame_fails(kitti06: Path, tmp_path: Path) -> 
             shutil.copy(kitti06 / cam / f"{i:06d}.png", seq / cam / f"{i:06d}.png")
     shutil.copy(kitti06 / "calib.txt", seq / "calib.txt")
     (seq / "times.txt").write_text("".join(f"{0.1 * i:.6f}\n" for i in range(8)))
-    (seq / "image_0/000006.png").write_bytes(b"\x89PNG broken")
+    (seq / "image_0/000006.png").write_bytes((seq / "image_0/000006.png").read_bytes()[:200])  # truncated
     m = tmp_path / "partial.dsmap"
     with pytest.raises(InputError):
         run_sequence(seq, tmp_path / "out", Config().with_overrides({"masker.kind": "none"}), save_map=m)

@@ -409,7 +409,7 @@ def vocab_cmd(
     k: int = typer.Option(10, "--k", help="Branching factor of the vocabulary tree."),
     levels: int = typer.Option(4, "--levels", help="Depth of the tree: at most k**levels words."),
     features: int = typer.Option(2000, "--features", help="ORB features per image."),
-    seed: int = typer.Option(0, "--seed", help="Random seed (k-means++ seeding); the same seed gives the same file."),
+    seed: int = typer.Option(0, "--seed", help="Random seed (k-means++ seeding); the same seed and images give the same vocabulary."),
 ) -> None:
     """Train an ORB bag-of-words vocabulary (place recognition, loop closing) on images."""
     import time

@@ -141,10 +141,9 @@ class KeyFrameDatabase:
         lo = self._indptr[qw]
         cnt = self._indptr[qw + 1] - lo
         total = int(cnt.sum())
-        qi = np.repeat(np.arange(len(qw)), cnt)
         pos = np.repeat(lo - np.cumsum(cnt) + cnt, cnt) + np.arange(total)
-        slots = self._p_slot[pos]
-        m = np.minimum(self._p_w[pos], qv[qi])
+        slots = np.take(self._p_slot, pos)  # np.take: faster than fancy indexing here
+        m = np.minimum(np.take(self._p_w, pos), np.repeat(qv, cnt))
         # delta postings whose word is in the query
         dw, ds, dv = self._delta()
         if len(dw):
