@@ -7,6 +7,8 @@ test's files are absent it is skipped with the reason -- unless
 
 from __future__ import annotations
 
+import logging
+
 import os
 from pathlib import Path
 
@@ -53,3 +55,11 @@ def kitti03(data_dir: Path) -> Path:
 @pytest.fixture(scope="session")
 def euroc_dir(data_dir: Path) -> Path:
     return require(data_dir / "euroc/V1_01_easy_first40", "EuRoC V1_01_easy_first40")
+
+
+@pytest.fixture
+def quiet_slam():
+    """The SLAM's WARNING lines (lost frames...) off for a test."""
+    logging.getLogger("dynastereo").setLevel(logging.ERROR)
+    yield
+    logging.getLogger("dynastereo").setLevel(logging.NOTSET)

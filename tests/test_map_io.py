@@ -13,7 +13,6 @@ import copy
 import inspect
 import io
 import json
-import logging
 import os
 import sys
 import types
@@ -56,6 +55,8 @@ POINT_ARRAYS = ("pos", "desc", "normal", "min_dist", "max_dist", "nobs", "visibl
 OBS_ARRAYS = ("obs_kf", "obs_kp", "obs_pt", "obs_alive", "next_row")
 KP_ARRAYS = ("uv", "octave", "angle", "desc", "u_right", "depth", "point_ids", "obs_row")
 
+pytestmark = pytest.mark.usefixtures("quiet_slam")
+
 
 class FakeVocabulary:
     """Stands in for dynastereo.slam.vocabulary.Vocabulary: only the two methods used."""
@@ -70,13 +71,6 @@ class FakeVocabulary:
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> "FakeVocabulary":
         assert arrays["k"].shape == () and int(arrays["k"]) == 10
         return cls(arrays["words"], arrays["idf"], str(arrays["name"][()]))
-
-
-@pytest.fixture(autouse=True)
-def _quiet_slam():
-    logging.getLogger("dynastereo").setLevel(logging.ERROR)
-    yield
-    logging.getLogger("dynastereo").setLevel(logging.NOTSET)
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,6 @@ detector, so the numbers do not depend on a network:
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +27,8 @@ from dynastereo.synth import generate, read_objects
 
 SIZE = (480, 144)
 
+pytestmark = pytest.mark.usefixtures("quiet_slam")
+
 
 def _slam(seq: Path, out: Path, masker: str, frames: str | None = None):
     """(evaluation against the GT poses, SlamJobResult) of one run with oracle boxes."""
@@ -39,13 +40,6 @@ def _slam(seq: Path, out: Path, masker: str, frames: str | None = None):
 
 def _path_length(poses: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
-
-
-@pytest.fixture(autouse=True)
-def _quiet_slam():
-    logging.getLogger("dynastereo").setLevel(logging.ERROR)
-    yield
-    logging.getLogger("dynastereo").setLevel(logging.NOTSET)
 
 
 @pytest.fixture(scope="module")
