@@ -155,7 +155,8 @@ def black_frames(seq: Path, work: Path) -> dict:
     for cam in ("image_0", "image_1"):
         (d / cam).mkdir(parents=True, exist_ok=True)
     shutil.copy(seq / "calib.txt", d / "calib.txt")
-    shutil.copy(seq / "times.txt", d / "times.txt")
+    if (seq / "times.txt").exists():
+        shutil.copy(seq / "times.txt", d / "times.txt")
     for cam in ("image_0", "image_1"):
         for i in range(99):
             src = seq / cam / f"{i:06d}.png"

@@ -172,6 +172,13 @@ class BARunner:
     def shutdown(self) -> None:
         self._stop()
 
+    def abort(self) -> None:
+        """Stop the worker process now, dropping the job it is solving."""
+        p = self._proc
+        if p is not None and p.poll() is None:
+            p.kill()
+        self._stop()
+
 
 class LocalMapper:
     def __init__(self, mp: Map, params: MappingParams, runner: BARunner) -> None:

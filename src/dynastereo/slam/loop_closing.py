@@ -262,8 +262,6 @@ class LoopCloser:
         self._sync_db()
         cands = self.detect(kf, bow)
         self.stats.query_ms.append((time.perf_counter() - t0) * 1e3)
-        if cands:  # the local BA in flight was solved before this keyframe: apply it first
-            self.mapper.collect(frame_pos, force=True)
         event = None
         for cid in cands[: self.p.max_verify]:
             cand = self.mp.keyframes.get(cid)
@@ -301,12 +299,14 @@ class LoopCloser:
     ) -> LoopEvent:
         mp = self.mp
         t0 = time.perf_counter()
+        # the local BA in flight was solved on the poses before the loop: applied first
+        self.mapper.collect(frame_pos, force=True)
         # a full BA still running belongs to the map before this loop: dropped
         if self._ba_job is not None:
             self._ba_job = None
             self.stats.full_ba_discarded += 1
-            if self._ba_runner is not None:  # the worker's answer is never read: restart it
-                self._ba_runner.shutdown()
+            if self._ba_runner is not None:  # its answer is never read: stop the worker now
+                self._ba_runner.abort()
                 self._ba_runner = None
         # 1. the keyframe and its neighbours move by the correction, their points with them
         T_old_all = {k: k_.T_cw.copy() for k, k_ in mp.keyframes.items()}
