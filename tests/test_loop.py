@@ -110,13 +110,14 @@ def test_kitti03_kidnapped_camera_relocalises(kitti03: Path, models_dir: Path, t
 
 
 def test_kitti03_map_reuse_localise_only(kitti03: Path, models_dir: Path, tmp_path: Path, data_dir: Path) -> None:
-    """Map 03 with --save-map, then --load-map --localize-only on the same frames: no new
-    keyframe, every frame tracked, ATE <= 0.10 m; run.json names the map files."""
+    """Map 03 with --save-map (default outline masks), then --load-map --localize-only on
+    the same frames: no new keyframe, every frame tracked, ATE <= 0.10 m; run.json names
+    the map files."""
     gt = data_dir / "kitti_odometry/dataset/poses/03.txt"
     map_file = tmp_path / "03.dsmap"
     r = runner.invoke(
         app,
-        ["run", str(kitti03), "--out", str(tmp_path / "map"), "--masker", "box", "--detector", "fastestdet",
+        ["run", str(kitti03), "--out", str(tmp_path / "map"), "--masker", "outline", "--detector", "yolox-nano",
          "--models-dir", str(models_dir), "--save-map", str(map_file)],
     )
     assert r.exit_code == 0, r.output
@@ -124,7 +125,7 @@ def test_kitti03_map_reuse_localise_only(kitti03: Path, models_dir: Path, tmp_pa
     assert json.loads((tmp_path / "map/run.json").read_text())["map"]["saved"] == str(map_file)
     r = runner.invoke(
         app,
-        ["run", str(kitti03), "--out", str(tmp_path / "loc"), "--masker", "box", "--detector", "fastestdet",
+        ["run", str(kitti03), "--out", str(tmp_path / "loc"), "--masker", "outline", "--detector", "yolox-nano",
          "--models-dir", str(models_dir), "--load-map", str(map_file), "--localize-only"],
     )
     assert r.exit_code == 0, r.output

@@ -70,7 +70,7 @@ class MappingParams:
     self_calibrate: bool = False
     selfcal_keyframes: int = 8
     selfcal_rounds: int = 4
-    selfcal_min_sigmas: float = 0.5
+    selfcal_min_sigmas: float = 2.0
 
 
 @dataclass
@@ -481,7 +481,9 @@ class LocalMapper:
         prob = self._problem(kf, ids[1:], ids[:1], pts, mp.rows_of(pts))
         if prob is not None:
             prob.offset_grid = SELFCAL_GRID
-            prob.offset_min_sigmas = self.p.selfcal_min_sigmas
+            # an offset must first be told apart from 0; once one is applied, the later
+            # rounds refine it whatever the size of the change
+            prob.offset_min_sigmas = self.p.selfcal_min_sigmas if self.offset_now == 0.0 else 0.0
             prob.iterations = max(prob.iterations, 5)
         return prob
 
@@ -560,6 +562,32 @@ class LocalMapper:
         if isinstance(res, LocalBAResult):
             self._apply(res)
             self._job = None
+
+    def optimize_whole_map(self) -> LocalBAResult | None:
+        """A final bundle adjustment over every keyframe (inline; the pending local BA is
+        applied first): with ``self_calibrate`` the self-calibrating one, which also refines
+        the disparity offset over the whole map.  Used before a map is saved."""
+        self.collect(0, force=True)
+        mp = self.mp
+        if len(mp.keyframes) < 3:
+            return None
+        kf = mp.keyframes[max(mp.keyframes)]
+        if self.p.self_calibrate:
+            prob = self.build_selfcal_problem(kf)
+            if prob is not None:
+                prob.offset_min_sigmas = self.p.selfcal_min_sigmas if self.offset_now == 0.0 else 0.0
+                self._selfcal_base = self.offset_now
+        else:
+            ids = sorted(mp.keyframes)
+            pts = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in ids]))
+            pts = pts[mp.good(pts)]
+            prob = self._problem(kf, ids[1:], ids[:1], pts, mp.rows_of(pts)) if len(pts) else None
+        if prob is None:
+            return None
+        prob.iterations, prob.rel_tol = max(prob.iterations, 10), 1e-5
+        res = run_ba(prob)
+        self._apply(res)
+        return res
 
     def collect(self, frame_index: int, force: bool = False) -> None:
         """Apply the running BA's result if it is due (waits for it)."""

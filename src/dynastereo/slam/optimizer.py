@@ -171,7 +171,7 @@ class LocalBAProblem:
     offset_grid: tuple[float, ...] | None = None
     offset_prior_sigma: float = 0.25
     # an estimate within this many sigmas of 0 is not significant: no offset applied
-    offset_min_sigmas: float = 0.5
+    offset_min_sigmas: float = 2.0
 
 
 @dataclass

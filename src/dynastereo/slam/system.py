@@ -706,16 +706,21 @@ class System:
         c = self.cfg
         return {"n_features": c.n_features, "scale_factor": c.scale_factor, "n_levels": c.n_levels}
 
-    def save_map(self, path, meta: dict[str, Any] | None = None) -> None:
+    def save_map(self, path, meta: dict[str, Any] | None = None, optimize: bool = True) -> None:
         """Write the current map (keyframes, map points, covisibility, bag of words, the
         vocabulary and the disparity offset) to ``path`` (``docs/map_format.md``).  The
-        local and full BAs in flight are applied first."""
+        local and full BAs in flight are applied first; with ``optimize`` (and mapping on)
+        a final bundle adjustment over the whole map -- self-calibrating, so the disparity
+        offset is refined over all keyframes -- makes the map the best it can be for reuse
+        (the frame poses, ``trajectory()``, follow it)."""
         from .map_io import MapFile, save_map
 
         if not self.localize_only:
             if self.closer is not None:
                 self.closer.collect(self._n, force=True)
             self.mapper.collect(self._n, force=True)
+            if optimize and self.cfg.local_ba != "off":
+                self.mapper.optimize_whole_map()
         bows = {}
         for k in self.map.keyframes:
             if k in self.kfdb:
