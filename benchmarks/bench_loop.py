@@ -2,7 +2,7 @@
 
 1. **Loop** -- the synthetic ``loop`` scenario (one lap of the ~390 m ring and 60 m over
    the start again, with traffic and pedestrians; 640x192), per seed: the whole pipeline
-   (``outline`` masks on the oracle boxes) with loop closing on and off.  ATE = APE RMSE
+   (``--masker``, default ``outline``, on the oracle boxes) with loop closing on and off.  ATE = APE RMSE
    after SE(3) alignment; the loop found (frame, loop keyframe, correction), the time per
    loop-detection query (BoW transform + database query, every keyframe), per pose-graph
    optimisation and per full BA (worker process).
@@ -43,7 +43,7 @@ def _ate(run_dir: Path, gt: Path) -> float:
     return float(evaluate_files(run_dir / "trajectory.kitti.txt", gt).ape["rmse"])
 
 
-def synthetic_loop(seeds: list[int], size: str, cache: Path, work: Path) -> dict:
+def synthetic_loop(seeds: list[int], size: str, cache: Path, work: Path, masker: str = "outline") -> dict:
     from dynastereo.synth import generate
 
     rows = []
@@ -56,7 +56,7 @@ def synthetic_loop(seeds: list[int], size: str, cache: Path, work: Path) -> dict
         row: dict = {"seed": seed, "frames": len(np.loadtxt(seq / "times.txt", ndmin=1))}
         for lc in (True, False):
             cfg = Config().with_overrides(
-                {"masker.kind": "outline", "detector.name": "oracle", "slam.loop_closing": lc}
+                {"masker.kind": masker, "detector.name": "oracle", "slam.loop_closing": lc}
             )
             out = work / f"loop-s{seed}-{'lc' if lc else 'nolc'}"
             t0 = time.perf_counter()
@@ -80,6 +80,7 @@ def synthetic_loop(seeds: list[int], size: str, cache: Path, work: Path) -> dict
         )
     loops = [e for r in rows for e in r["loops"]]
     return {
+        "masker": masker,
         "size": size,
         "runs": rows,
         "ate_lc_median": float(np.median([r["ate_lc"] for r in rows])),
@@ -213,6 +214,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--size", default="640x192")
+    ap.add_argument("--masker", default="outline", help="masker on the oracle boxes for the synthetic loop")
     ap.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "dynastereo-bench-loop"))
     ap.add_argument("--no-synth", action="store_true")
     ap.add_argument("--no-kitti", action="store_true")
@@ -226,7 +228,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         if not args.no_synth:
-            result["synthetic_loop"] = synthetic_loop([int(s) for s in args.seeds.split(",")], args.size, cache, work)
+            result["synthetic_loop"] = synthetic_loop(
+                [int(s) for s in args.seeds.split(",")], args.size, cache, work, args.masker
+            )
         data = os.environ.get("DYNASTEREO_DATA")
         seq = Path(data or "") / "kitti_odometry" / "dataset" / "sequences" / "03"
         if not args.no_kitti and data and seq.is_dir():

@@ -406,7 +406,7 @@ def eval_cmd(
 def vocab_cmd(
     images: list[str] = typer.Argument(..., help="Image files, folders (the images directly inside) or glob patterns ('**' recurses)."),
     out: Path = typer.Option(..., "--out", "-o", help="Vocabulary file to write (.npz; use it with slam.vocabulary in the config)."),
-    k: int = typer.Option(10, "--k", help="Branching factor of the vocabulary tree."),
+    k: int = typer.Option(12, "--k", help="Branching factor of the vocabulary tree."),
     levels: int = typer.Option(4, "--levels", help="Depth of the tree: at most k**levels words."),
     features: int = typer.Option(2000, "--features", help="ORB features per image."),
     seed: int = typer.Option(0, "--seed", help="Random seed (k-means++ seeding); the same seed and images give the same vocabulary."),
