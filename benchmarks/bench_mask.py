@@ -20,8 +20,9 @@ compare the masking alone:
    mixed; 40 frames at 640x192, generated into a temporary folder): the ORACLE boxes
    (no detector), outline vs box, per-object IoU / precision / recall against the GT
    instance masks, left and right images, objects nearer than 30 m
-   (``dynastereo.eval.masks.score_frame``) -- with the default stereo (BM 15) and with
-   two denser matchers (BM 9 + WLS, SGBM 3-way 5).
+   (``dynastereo.eval.masks.score_frame``) -- with the default stereo (BM 15), with
+   two denser matchers (BM 9 + WLS, SGBM 3-way 5) and with the scenes' exact disparity
+   (the ceiling of the outline algorithm).
 
 Prints tables; writes benchmarks/results/mask.json.
 Run: DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
@@ -276,7 +277,9 @@ SYNTH_STEREO = {
     "bm 15 (default)": {},
     "bm 9 + wls": {"stereo.block_size": 9, "stereo.wls": True},
     "sgbm3way 5": {"stereo.algorithm": "sgbm3way", "stereo.block_size": 5},
+    "exact (GT) disparity": {},  # the ceiling: the synthetic scene's exact disparity
 }
+EXACT = "exact (GT) disparity"
 
 
 def synth_section(frames: int) -> dict:
@@ -286,7 +289,7 @@ def synth_section(frames: int) -> dict:
     from dynastereo.api import build_masker, load_sequence
     from dynastereo.config import Config
     from dynastereo.eval.masks import MaskAgreement, score_frame
-    from dynastereo.synth import generate, read_gt_masks, read_objects
+    from dynastereo.synth import generate, read_gt_disparity, read_gt_masks, read_objects
 
     out: dict[str, dict] = {}
     t0 = time.perf_counter()
@@ -296,10 +299,12 @@ def synth_section(frames: int) -> dict:
             seq, gt = load_sequence(path), read_objects(path)
             for st_name, st in SYNTH_STEREO.items():
                 for kind in ("outline", "box"):
-                    if kind == "box" and st:
+                    if kind == "box" and (st or st_name == EXACT):
                         continue  # the boxes do not depend on the matcher (but for the right shift)
                     cfg = Config().with_overrides({"detector.name": "oracle", "masker.kind": kind, **st})
                     masker = build_masker(cfg, seq)
+                    if st_name == EXACT:  # the masker's disparity replaced by the exact one
+                        masker._disparity = lambda frame, *a, _p=path, **k: read_gt_disparity(_p, frame.index)
                     agg = MaskAgreement()
                     for i in range(len(seq)):
                         m = masker.mask(seq.frame(i))

@@ -7,6 +7,8 @@ whole pipeline (masking on the prefetch thread, stereo SLAM with local BA) with
 
 * masker ``none`` (unmasked SLAM);
 * maskers ``box`` and ``outline`` on the ground-truth **oracle** boxes;
+* masker ``gt``: the ground-truth instance masks of the oracle's objects in both images
+  (perfect masks: what the SLAM reaches when masking is not the limit);
 * maskers ``box`` and ``outline`` on the real detectors (``yolox-nano``, ``yolov3-tiny``,
   ``fastestdet`` from ``$DYNASTEREO_MODELS``) where they fire on these images: each
   detector's recall is measured first and a detector with recall < ``--min-recall`` on
@@ -59,7 +61,8 @@ from dynastereo.config import Config, DetectorConfig
 from dynastereo.errors import ModelError
 from dynastereo.eval import evaluate_files
 from dynastereo.eval.masks import score_mask_dir
-from dynastereo.synth import generate, read_objects
+from dynastereo.synth import OracleDetector, generate, read_gt_masks, read_objects
+from dynastereo.types import StereoMasks
 
 OUT = Path(__file__).resolve().parent / "results" / "synth_slam.json"
 SCENARIOS = ("static", "crossing", "convoy", "oncoming", "mixed")
@@ -163,11 +166,38 @@ def detector_recall(detector, seq: Path) -> dict:
 # ------------------------------------------------------------------------------ one run
 
 
+class GTMasker:
+    """Perfect masks: the GT instance masks (both images) of the objects the oracle
+    detector reports (the dynamic classes, moving or parked)."""
+
+    name = "gt"
+
+    def __init__(self, seq: Path):
+        self.seq = seq
+        self.oracle = OracleDetector(seq)
+
+    def mask(self, frame, timer=None) -> StereoMasks:
+        ids = [o.id for o in self.oracle.objects(frame.index)]
+        gl, gr = read_gt_masks(self.seq, frame.index)
+        return StereoMasks(np.isin(gl, ids).astype(np.uint8) * 255, np.isin(gr, ids).astype(np.uint8) * 255)
+
+
 def slam_run(seq: Path, work: Path, detector: str, masker: str, seed: int, models_dir: Path | None) -> dict:
     run_dir = work / f"run_{detector}_{masker}"
     shutil.rmtree(run_dir, ignore_errors=True)
-    cfg = Config().with_overrides({"detector.name": detector, "masker.kind": masker, "seed": seed})
-    res = run_sequence(seq, run_dir, cfg, models_dir=models_dir, save_masks=masker != "none")
+    if masker == "gt":
+        from dynastereo.config import to_dict
+        from dynastereo.io import open_sequence
+        from dynastereo.pipeline import run_slam_job
+        from dynastereo.slam import System
+
+        cfg = Config().with_overrides({"masker.kind": "none", "seed": seed})
+        sq = open_sequence(seq)
+        res = run_slam_job(sq, GTMasker(seq), System(cfg, sq.calibration), run_dir, list(range(len(sq))),
+                           config_dict=to_dict(cfg))
+    else:
+        cfg = Config().with_overrides({"detector.name": detector, "masker.kind": masker, "seed": seed})
+        res = run_sequence(seq, run_dir, cfg, models_dir=models_dir, save_masks=masker != "none")
     ev = evaluate_files(run_dir / "trajectory.kitti.txt", seq.parent.parent / "poses" / "00.txt")
     rec = {
         "ate_rmse": round(float(ev.ape["rmse"]), 4),
@@ -177,7 +207,7 @@ def slam_run(seq: Path, work: Path, detector: str, masker: str, seed: int, model
         "iou_left": None,
         "iou_right": None,
     }
-    if masker != "none":
+    if masker not in ("none", "gt"):
         agree = score_mask_dir(run_dir, seq, max_distance=MAX_DISTANCE).summary()
         rec.update(iou_left=agree["iou_left"], iou_right=agree["iou_right"], mask_precision=agree["precision"],
                    mask_recall=agree["recall"], scored_objects=agree["objects_left"] + agree["objects_right"])
@@ -250,6 +280,9 @@ def targets(runs: list[dict], summary: dict) -> dict:
                 if a_o is not None and s_n:
                     row["outline_over_static_none"] = round(a_o / s_n, 3)
                     row["ok_vs_static_none"] = bool(a_o <= TARGET_RATIO_STATIC * s_n)
+                a_g, s_g = ate(sc, "gt", "gt", seed), ate("static", "gt", "gt", seed)
+                if a_g is not None and s_g:  # the same ratio with perfect masks: the scene's own
+                    row.update(ate_gt=a_g, static_gt=s_g, gt_over_static_gt=round(a_g / s_g, 3))
                 t[key] = row
         i_o, i_b = iou(sc, "outline"), iou(sc, "box")
         if i_o is not None and i_b is not None:
@@ -286,7 +319,9 @@ def print_tables(summary: dict, tgt: dict, recalls: dict, frames: int, size) -> 
                 print(f"{sc:9s} {key:7s} ATE outline {fmt(row['ate_outline'])} / none {fmt(row['ate_none'])} = {row['outline_over_none']:.3f} "
                       f"(<= 0.333 {'OK' if row['ok_vs_none'] else 'MISSED'}); / static outline {fmt(row.get('outline_over_static_outline'), '.2f')} "
                       f"({'OK' if row.get('ok_vs_static_outline') else 'MISSED'}), / static none {fmt(row.get('outline_over_static_none'), '.2f')} "
-                      f"({'OK' if row.get('ok_vs_static_none') else 'MISSED'}) (<= 1.5)")
+                      f"({'OK' if row.get('ok_vs_static_none') else 'MISSED'}) (<= 1.5)"
+                      + (f"; GT masks: {fmt(row['ate_gt'])} / static {fmt(row['static_gt'])} = {row['gt_over_static_gt']:.2f}"
+                         if "gt_over_static_gt" in row else ""))
 
 
 # ------------------------------------------------------------------------------ main
@@ -298,7 +333,7 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--frames", type=int, default=120)
     ap.add_argument("--size", default="640x192")
-    ap.add_argument("--maskers", default="none,box,outline")
+    ap.add_argument("--maskers", default="none,box,outline,gt", help="none, box, outline, gt (GT masks)")
     ap.add_argument("--detectors", default=",".join(REAL_DETECTORS), help="real detectors, or 'none'")
     ap.add_argument("--detector-seeds", default=None, help="seeds for the real detectors (default: the first seed)")
     ap.add_argument("--min-recall", type=float, default=0.05, help="below this a detector 'does not fire' on a scenario")
@@ -348,7 +383,9 @@ def main() -> None:
                 jobs: list[tuple[str, str]] = []
                 if "none" in maskers:
                     jobs.append(("none", "none"))
-                jobs += [("oracle", m) for m in maskers if m != "none"]
+                jobs += [("oracle", m) for m in maskers if m not in ("none", "gt")]
+                if "gt" in maskers:
+                    jobs.append(("gt", "gt"))
                 if seed in det_seeds:
                     for name, det in detectors.items():
                         rec = detector_recall(det, seq)
@@ -358,12 +395,12 @@ def main() -> None:
                         print(f"[{sc} seed {seed}] {name}: recall {fmt(rec['recall'], '.2f')} "
                               f"({rec['matched']}/{rec['objects']}) {rec['per_label']}", flush=True)
                         if rec["fires"]:
-                            jobs += [(name, m) for m in maskers if m != "none"]
+                            jobs += [(name, m) for m in maskers if m not in ("none", "gt")]
                 for det, m in jobs:
                     t0 = time.perf_counter()
                     rec = slam_run(seq, work, det, m, seed, models_dir)
                     rec.update(scenario=sc, seed=seed, detector=det, masker=m, frames=args.frames)
-                    if det == "oracle":
+                    if det in ("oracle", "gt"):
                         rec["recall"] = 1.0
                     elif det != "none":
                         rec["recall"] = recalls[sc][det]["recall"]

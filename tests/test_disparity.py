@@ -105,15 +105,36 @@ def test_left_border_object_recovered():
         assert not (d > np.arange(w)[None, :]).any()
 
 
-def test_bm_unchanged_away_from_left_border(planes):
-    """The padding changes nothing where OpenCV already had every candidate disparity."""
+def test_bm_unchanged_away_from_the_borders(planes):
+    """The padding changes nothing where OpenCV already had every candidate disparity and
+    the whole block: away from the left border and half a block from the other three."""
     left, right, _ = planes
     m = StereoMatcher(StereoConfig(num_disparities=64, block_size=15))
     ours = m.compute(left, right)
     raw = m._matcher(1).left.compute(left, right)
     ref = m._matcher(1).to_float(raw, 1)
-    inner = np.s_[:, 64 + 15:]
+    inner = np.s_[8:-8, 64 + 15:-8]
     np.testing.assert_array_equal(ours[inner], ref[inner])
+    # OpenCV alone leaves the outer half block invalid; with the padding it is matched
+    for edge in (np.s_[:7, 64 + 15:], np.s_[-7:, 64 + 15:], np.s_[8:-8, -7:]):
+        assert (ref[edge] <= 0).all()
+        assert (ours[edge] > 0).mean() > 0.9
+
+
+def test_object_on_the_bottom_edge_keeps_its_bottom_rows():
+    """A textured object standing on the image's bottom edge (a truck close ahead): its
+    bottom rows get its disparity, in the full frame, in a band and at half resolution."""
+    h, w = 120, 320
+    obj = rect_mask(h, w, 120, 40, 260, h)
+    left, right, gt = layered_pair(h, w, 4, [(obj, 30)], seed=5)
+    m = StereoMatcher(StereoConfig(num_disparities=64, block_size=15))
+    full = m.compute(left, right)[h - 7:, 140:240]
+    band = m.compute_band(left, right, 60, h, 100, 280)[-7:, 40:140]  # band rows 60..h, cols 100..280
+    half = m.compute(left, right, scale=2)[h - 7:, 140:240]
+    for sub in (full, band, half):
+        assert (sub > 0).mean() > 0.9
+        assert np.median(np.abs(sub[sub > 0] - 30)) < 1.0
+    np.testing.assert_array_equal(full, band)
 
 
 def test_sgbm_band_at_left_border_narrower_than_num_disparities(planes):

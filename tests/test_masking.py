@@ -26,6 +26,8 @@ from dynastereo.masking.ground import GroundLine, fit_ground_line, road_samples,
 from dynastereo.masking.maskers import match_stereo_detections, plan_regions, region_disparity
 from dynastereo.masking.outline import (
     FALLBACK_NO_DISPARITY,
+    FALLBACK_RANGE,
+    FALLBACK_SMALL,
     FALLBACK_TINY,
     clip_boxes,
     dominant_disparity,
@@ -536,12 +538,53 @@ def test_box_in_occlusion_shadow_gives_up_spilled_peak():
     disp[10:110, 150:300] = 40.0  # truck
     disp[40:90, 144:150] = 40.0  # spilled past its left edge
     boxes = np.array([[150.0, 10.0, 300.0, 110.0], [110.0, 40.0, 150.0, 90.0]])
-    old = outline_objects(disp, boxes, disp.shape, OutlineConfig(claim_fraction=1.0))
+    old = outline_objects(disp, boxes, disp.shape, OutlineConfig(claim_fraction=1.0, min_outline_fraction=0.0))
     assert old.methods[1] == "outline" and abs(old.disparity[1] - 40) < 0.5  # the sliver
     o = outline_objects(disp, boxes, disp.shape, OutlineConfig())
     assert o.methods[0] == "outline" and abs(o.disparity[0] - 40) < 0.5
     assert o.methods[1] == FALLBACK_NO_DISPARITY
     assert (o.labels[40:90, 110:144] == 2).all()
+
+
+def test_small_outline_becomes_the_box():
+    """Inside a box the matcher measured only the background at its sides and a small
+    patch nearer (a near object with little texture, its plate): the outline is that patch
+    -- under min_outline_fraction of the box, so the box is masked whole."""
+    disp = np.zeros((120, 320), np.float32)
+    disp[20:100, 100:105] = 3.0  # background at the box's sides
+    disp[20:100, 135:140] = 3.0
+    disp[30:90, 115:125] = 20.0  # the patch measured on the object
+    box = np.array([[100.0, 20.0, 140.0, 100.0]])
+    off = outline_objects(disp, box, disp.shape, OutlineConfig(min_outline_fraction=0.0))
+    assert off.methods == ["outline"] and abs(off.disparity[0] - 20) < 0.5
+    assert 0.2 < (off.labels == 1).sum() / (40 * 80) < 0.4
+    o = outline_objects(disp, box, disp.shape, OutlineConfig(min_outline_fraction=0.4))
+    assert o.methods == [FALLBACK_SMALL] and abs(o.disparity[0] - 20) < 0.5
+    assert (o.labels[20:100, 100:140] == 1).all()
+
+
+def test_small_outline_counts_only_the_part_no_nearer_object_takes():
+    """A car mostly hidden behind a nearer truck inside its box: its visible part is small
+    against its box but not against the part the truck leaves -- it keeps its outline."""
+    disp = np.full((120, 320), 3.0, np.float32)
+    disp[10:110, 100:250] = 40.0  # truck
+    disp[50:100, 250:270] = 14.0  # car, visible right of it
+    boxes = np.array([[100.0, 10.0, 250.0, 110.0], [180.0, 50.0, 270.0, 100.0]])
+    o = outline_objects(disp, boxes, disp.shape, OutlineConfig(dilate=0))
+    assert o.methods == ["outline", "outline"]
+    assert iou(o.labels == 2, disp == 14.0) > 0.9
+
+
+def test_object_beyond_the_matchers_range_is_masked_whole():
+    """An object whose nearer part is beyond numDisparities (a car right beside the rig):
+    only its farther part has a disparity, at the top of the range -- the box is masked."""
+    disp = np.full((120, 320), 3.0, np.float32)
+    disp[40:120, 200:320] = 0.0  # too near to match
+    disp[40:120, 200:240] = 94.0  # the farther end, just within the range
+    box = np.array([[200.0, 40.0, 320.0, 120.0]])
+    o = outline_objects(disp, box, disp.shape, OutlineConfig(), max_disparity=95.0)
+    assert o.methods == [FALLBACK_RANGE] and (o.labels[40:120, 200:320] == 1).all()
+    assert outline_objects(disp, box, disp.shape, OutlineConfig()).methods == ["outline"]  # range unknown
 
 
 def test_side_by_side_objects_keep_the_same_peak():
@@ -606,12 +649,34 @@ def test_synth_exact_disparity_road_removal_beats_box(synth_crossing):
     meta = read_objects(synth_crossing)
     a = meta.calibration["baseline"] / meta.meta["camera_height"]
     line = GroundLine(a, -a * meta.calibration["cy"], True, "ok", baseline=meta.calibration["baseline"])
-    cfg = OutlineConfig(dilate=0)
+    cfg = OutlineConfig(dilate=0, min_outline_fraction=0.0)  # the road alone (no fallback guard)
     disp = lambda i: read_gt_disparity(synth_crossing, i)  # noqa: E731
     with_road = _synth_scores(synth_crossing, disp, cfg, lambda i: line)
     without = _synth_scores(synth_crossing, disp, cfg, lambda i: None)
     assert with_road["outline"] > with_road["box"] + 0.10, with_road  # the synthetic-scenes target
     assert with_road["outline"] > without["outline"] + 0.08, (with_road, without)
+
+
+def test_synth_convoy_truck_masked_to_the_image_bottom(tmp_path):
+    """The convoy's truck 4.5 m ahead stands on the image's bottom edge: its bumper and
+    plate rows there get a disparity (the matcher's border padding), so the outline covers
+    the truck in both views (IoU 0.89-0.91 without the padding, 0.93-0.95 with it)."""
+    from dynastereo.api import build_masker, load_sequence
+    from dynastereo.config import Config
+    from dynastereo.eval.masks import score_frame
+    from dynastereo.synth import generate, read_gt_masks, read_objects
+
+    seq_dir = generate(tmp_path / "convoy", "convoy", frames=4, seed=0)
+    gt, seq = read_objects(seq_dir), load_sequence(seq_dir)
+    masker = build_masker(Config().with_overrides({"detector.name": "oracle"}), seq)
+    ious = []
+    for i in range(len(seq)):
+        m = masker.mask_detections(seq.frame(i), masker.detector.detect_frame(i))
+        gl, gr = read_gt_masks(seq_dir, i)
+        ious += [s.iou for s in score_frame(i, {"left": m.left, "right": m.right}, {"left": gl, "right": gr},
+                                            gt.frames[i]) if s.label == "truck"]
+    assert len(ious) == 2 * len(seq)
+    assert min(ious) > 0.92, ious
 
 
 def test_synth_road_line_fitted_from_images(synth_crossing):
@@ -676,6 +741,25 @@ def test_transfer_extends_object_cut_by_right_border():
                         OutlineConfig(dilate=0)).mask(frame(left, right))
     assert iou(res.right, gt_right) > 0.97
     assert res.right[60:160, W - 5:].all()
+
+
+def test_transfer_uncovers_object_behind_nearer_one():
+    """A car (d = 10) behind the right edge of a truck (d = 40), its box reaching over the
+    truck: the right camera sees 30 more columns of it past the truck's edge.  With
+    ``transfer_occluded`` its right mask covers them; the truck's is unchanged."""
+    car = rect_mask(200, 100, 330, 180)
+    truck = rect_mask(120, 40, 280, 200)
+    left, right, (car_r, truck_r) = layered_pair(4, [(car, 10), (truck, 40)])
+    assert car_r[100:180, 240:270].all()  # the band seen only from the right
+    boxes = dets(box_of(truck), [250.0, 100.0, 330.0, 180.0])
+    out = {}
+    for occ in (False, True):
+        masker = OutlineMasker(FakeDetector(boxes), StereoMatcher(STEREO), OutlineConfig(dilate=0, transfer_occluded=occ))
+        _, _, lab_r = masker.mask_labels(frame(left, right), boxes)
+        out[occ] = lab_r
+    assert iou(out[True] == 2, car_r) > 0.9
+    assert iou(out[True] == 2, car_r) > iou(out[False] == 2, car_r) + 0.2
+    np.testing.assert_array_equal(out[True] == 1, out[False] == 1)
 
 
 def test_transfer_affine_follows_slanted_object():

@@ -77,9 +77,16 @@ class OutlineConfig:
     # Extend the peak over contiguous bins holding at least this fraction of its count
     # (slanted surfaces: a car seen from the side spans many disparities). 1 = off.
     peak_extend_ratio: float = 0.1
+    # An outline covering less than this fraction of its box (the part no nearer object
+    # takes) is a disparity failure (an object cut by the image border, a near one with
+    # little texture): the box is masked. 0 = off.
+    min_outline_fraction: float = 0.4
     # How a left mask moves to the right image: "affine" (d = a + b x + c y fitted per
     # object, rigid when the fit is poor) or "rigid" (shift by the object's disparity).
     transfer: str = "affine"
+    # An object partly hidden behind a nearer one in the left image also gets, in the right
+    # image, the band the right camera sees past the nearer object's right edge.
+    transfer_occluded: bool = True
     # Histogram weight of pixels a box shares with other boxes (1 = off): a car's box
     # reaching over the truck in front of it must not take the truck's disparity peak.
     overlap_weight: float = 0.25
@@ -144,9 +151,10 @@ class SlamConfig:
     # the estimate is refined over the whole map at 1.5x, 2.25x... selfcal_keyframes
     # keyframes: this many estimates in all (KITTI 03: +0.13 px at 8 keyframes, +0.2 at 27)
     selfcal_rounds: int = 4
-    # an estimate within this many sigmas of 0 is not applied (not significant: the
-    # synthetic rig, which has none, gave -0.03 +- 0.07 px; KITTI 0.04-0.15 +- 0.07 px)
-    selfcal_min_sigmas: float = 0.5
+    # no offset is applied until an estimate is this many sigmas from 0 (the later rounds
+    # then refine it): the synthetic rig, which has none, gives -0.03 +- 0.06 then
+    # +0.05 +- 0.04 px; KITTI 03 +0.13 +- 0.05, refined to +0.16 +- 0.04 px
+    selfcal_min_sigmas: float = 2.0
     # tracking
     min_inliers: int = 20  # fewer inliers after local-map tracking -> pose not supported
     # fewer inliers than this fraction of the median of the last 5 tracked frames -> pose

@@ -19,7 +19,9 @@ where a pedestrian at the border would get no disparity at all.  When a crop rea
 left image border, both images are padded there (border replicate, featureless) by the
 missing columns before matching; a left pixel ``x`` whose true disparity ``d <= x`` is then
 matched, and any result ``d > x`` (a match into the padding, i.e. outside the right image)
-is invalid.  Away from the border the result is unchanged.
+is invalid.  Away from the border the result is unchanged.  The other three borders lose
+half a block (OpenCV leaves it invalid); crops reaching them are padded by that much, so
+objects on the image's bottom edge keep their bottom rows (:meth:`StereoMatcher.border_padding`).
 """
 
 from __future__ import annotations
@@ -291,10 +293,13 @@ class StereoMatcher:
         # columns missing left of the crop (it reaches the image border): padded, so the
         # pixels near x = 0 get every candidate disparity; crop coords = image coords + pad
         pad = self.left_padding(x0, scale)
-        if pad:
-            lc = cv2.copyMakeBorder(lc, 0, 0, pad, 0, cv2.BORDER_REPLICATE)
-            rc = cv2.copyMakeBorder(rc, 0, 0, pad, 0, cv2.BORDER_REPLICATE)
+        # rows / columns the block needs beyond the top, bottom and right image borders
+        pt, pb, pr = self.border_padding((cy0, cy1, cx0, cx1), (h, w), scale)
+        if pad or pt or pb or pr:
+            lc = cv2.copyMakeBorder(lc, pt, pb, pad, pr, cv2.BORDER_REPLICATE)
+            rc = cv2.copyMakeBorder(rc, pt, pb, pad, pr, cv2.BORDER_REPLICATE)
             cx0 -= pad
+            cy0 -= pt
         if scale > 1:
             ch, cw = lc.shape
             ph, pw = (-ch) % scale, (-cw) % scale
@@ -354,6 +359,22 @@ class StereoMatcher:
             lc, rc = np.ascontiguousarray(lc), np.ascontiguousarray(rc)
         # the left matcher alone: a WLS filter would smear the road into everything
         return m.to_float(m.left.compute(lc, rc), scale)
+
+    def border_padding(self, crop: tuple[int, int, int, int], shape: tuple[int, int],
+                       scale: int = 1) -> tuple[int, int, int]:
+        """``(top, bottom, right)``: rows above / below and columns right of the image that
+        :meth:`compute_band` adds (border replicate) to a crop ``(cy0, cy1, cx0, cx1)``
+        reaching those image borders -- half a block and one more, a multiple of ``scale``.
+
+        OpenCV leaves the outer half block of its input invalid: without the padding the
+        bottom 7 rows of the image (block 15) have no disparity, and an object standing
+        on the image's bottom edge (a truck 4 m ahead, a pedestrian close by) loses them
+        -- the rows with its bumper and wheels.  Any crop reaching a border gets the same
+        padding, so a band equals the full frame there too."""
+        h, w = shape
+        cy0, cy1, _, cx1 = crop
+        half = (self.params(scale).block_size // 2 + 1) * scale
+        return (half if cy0 <= 0 else 0, half if cy1 >= h else 0, half if cx1 >= w else 0)
 
     def left_padding(self, x0: int, scale: int = 1) -> int:
         """Columns :meth:`compute_band` adds left of the image for a region starting at

@@ -235,7 +235,7 @@ class OutlineMasker(_DisparityMasker):
             )
         if not (0.0 <= c.ground_rows_from < 1.0):
             raise ConfigError(f"masker.outline.ground_rows_from must be in [0, 1), got {c.ground_rows_from}")
-        for key in ("overlap_weight", "claim_fraction", "ground_max_fraction"):
+        for key in ("overlap_weight", "claim_fraction", "ground_max_fraction", "min_outline_fraction"):
             v = getattr(c, key)
             if not (0.0 <= v <= 1.0):
                 raise ConfigError(f"masker.outline.{key} must be in [0, 1], got {v}")
@@ -281,12 +281,14 @@ class OutlineMasker(_DisparityMasker):
             with _stage(timer, "disparity"):  # the road's disparity is disparity work too
                 ground = self.last_ground = self.fit_ground(frame)
         with _stage(timer, "outline"):
-            o: OutlineResult = outline_objects(disp, dets.boxes, shape, self.cfg, ground=ground)
+            o: OutlineResult = outline_objects(disp, dets.boxes, shape, self.cfg, ground=ground,
+                                               max_disparity=self.matcher.max_disparity)
             left = _to_mask(o.labels)
         with _stage(timer, "transfer"):
             t = transfer_labels(
                 o.labels, o.disparity, o.rois,
                 mode=self.cfg.transfer, disp=disp, ranges=o.ranges, sweep=self._sweep(),
+                occluded=self.cfg.transfer_occluded,
             )
             right = _to_mask(t.labels)
         objects = _objects(dets, o.methods, o.disparity, o.pixels, t.pixels)

@@ -37,7 +37,13 @@ disparity) win the shared pixels.  Boxes masked whole record why
 side shorter than ``min_box_side``), ``box-fallback:no-disparity`` (fewer than
 ``min_valid_fraction`` of the box valid), ``box-fallback:sparse-disparity`` (fewer than
 that on the object's own peak: a dark, shiny near car -- the box is still moved to the
-right image by the peak's disparity).
+right image by the peak's disparity), ``box-fallback:beyond-range`` (the peak's range
+reaches the matcher's largest disparity: the object's nearer parts are beyond what the
+matcher can measure, so its outline would keep only the farther ones), and
+``box-fallback:small-outline`` (the outline covers less than ``min_outline_fraction`` of
+the part of its box no nearer object takes: a detected box is mostly its object, so an
+outline that small is more likely the disparity failing -- an object cut by the image
+border, a near object with little texture -- than a thin object).
 
 Everything is numpy/OpenCV on the box ROI; the only Python loops are over the boxes.
 """
@@ -57,6 +63,10 @@ FALLBACK_NO_DISPARITY = "box-fallback:no-disparity"
 FALLBACK_TINY = "box-fallback:tiny"
 FALLBACK_NO_PEAK = "box-fallback:no-object-pixels"
 FALLBACK_SPARSE = "box-fallback:sparse-disparity"
+FALLBACK_RANGE = "box-fallback:beyond-range"
+FALLBACK_SMALL = "box-fallback:small-outline"
+# A peak range ending this close (px) to the matcher's largest disparity reaches beyond it.
+RANGE_MARGIN = 3.0
 EMPTY = "empty:outside-image"
 # Columns left of each box whose disparity the outline looks at (to tell the background
 # band a near object occludes from the object itself); maskers compute disparity there too.
@@ -278,6 +288,7 @@ def object_mask_in_roi(
     road: np.ndarray | None = None,
     shared: np.ndarray | None = None,
     exclude: tuple[float, float] | None = None,
+    max_disparity: float | None = None,
 ) -> RoiOutline:
     """The object's mask in one box ROI of the disparity (see the module docstring).
 
@@ -289,7 +300,9 @@ def object_mask_in_roi(
     ``shared`` (bool, ROI-shaped) marks pixels inside other boxes too: they weigh
     ``cfg.overlap_weight`` in the histogram (a car's box reaching over the truck in
     front of it must not take the truck's peak).  Disparities in ``exclude`` (a
-    neighbour's range, see :func:`outline_objects`) count as invalid.
+    neighbour's range, see :func:`outline_objects`) count as invalid.  ``max_disparity``
+    is the largest disparity the matcher can report (None: unknown): a peak range
+    reaching it (within ``RANGE_MARGIN``) is a box fallback.
     """
     if exclude is not None:
         droi = np.where((droi >= exclude[0]) & (droi <= exclude[1]), np.float32(0), droi)
@@ -330,6 +343,10 @@ def object_mask_in_roi(
     lo, hi = max(min(d - tol, peak.lo), 1e-3), max(d + tol, peak.hi)  # lo > 0: never the invalid
     in_range = (droi >= lo) & (droi <= hi)
     support = int(np.count_nonzero(in_range))
+    if max_disparity is not None and hi >= max_disparity - RANGE_MARGIN:
+        # the object reaches nearer than the matcher sees (a car beside the rig): only its
+        # farther parts have a disparity, the outline would cut it there -- mask the box
+        return RoiOutline(None, d, FALLBACK_RANGE, lo, hi, support)
     if support < cfg.min_valid_fraction * area:
         # too few pixels measured on the object itself (a dark, shiny near car): its
         # outline would be a guess -- mask the box, moved by the peak disparity
@@ -373,6 +390,7 @@ def outline_objects(
     cfg: OutlineConfig | None = None,
     origin: tuple[int, int] = (0, 0),
     ground: GroundLine | None = None,
+    max_disparity: float | None = None,
 ) -> OutlineResult:
     """Outline every box from the disparity.
 
@@ -381,6 +399,7 @@ def outline_objects(
     as invalid.  ``boxes`` are ``(N, 4)`` x1, y1, x2, y2 in image pixels.  ``ground``: the
     road's disparity line (:func:`.ground.fit_ground_line`); with ``cfg.ground_removal``
     and a reliable (``ok``) line, road pixels are removed from every object.
+    ``max_disparity``: the matcher's largest disparity (see :func:`object_mask_in_roi`).
     """
     cfg = cfg or OutlineConfig()
     use_road = ground is not None and ground.ok and cfg.ground_removal
@@ -410,9 +429,11 @@ def outline_objects(
             ground.at(np.arange(y0, y1)) if use_road else None,  # type: ignore[union-attr]
             cover[y0:y1, x0:x1] > 1 if cover is not None else None,
         )
-        results[i] = object_mask_in_roi(*inputs[i])
+        results[i] = object_mask_in_roi(*inputs[i], max_disparity=max_disparity)
     if n > 1 and cfg.claim_fraction < 1.0:
-        _resolve_claims(rois, inputs, results, cfg)
+        _resolve_claims(rois, inputs, results, cfg, max_disparity)
+    if cfg.min_outline_fraction > 0:
+        _small_outlines_to_boxes(rois, results, cfg.min_outline_fraction)
     for i, r in enumerate(results):
         if r is not None:
             masks[i], disparity[i], methods[i], ranges[i] = r.mask, r.disparity, r.method, (r.lo, r.hi)
@@ -436,7 +457,9 @@ def outline_objects(
     return OutlineResult(labels, disparity, methods, rois, pixels, ranges, ground)
 
 
-def _resolve_claims(rois: np.ndarray, inputs: list, results: list, cfg: OutlineConfig) -> None:
+def _resolve_claims(
+    rois: np.ndarray, inputs: list, results: list, cfg: OutlineConfig, max_disparity: float | None = None
+) -> None:
     """One disparity peak, one object.  Boxes ``i`` and ``j`` holding the same peak: when
     more than ``cfg.claim_fraction`` of ``i``'s in-peak pixels lie in ``j``'s box (grown
     by ``CLAIM_MARGIN`` px) -- ``j``'s object seen through ``i``'s box, or its disparity
@@ -471,7 +494,42 @@ def _resolve_claims(rois: np.ndarray, inputs: list, results: list, cfg: OutlineC
         if cand:
             j = max(cand, key=lambda k: inside[i, k])
             rj = results[j]
-            results[i] = object_mask_in_roi(*inputs[i], exclude=(rj.lo, rj.hi))
+            results[i] = object_mask_in_roi(*inputs[i], exclude=(rj.lo, rj.hi), max_disparity=max_disparity)
+
+
+def _small_outlines_to_boxes(rois: np.ndarray, results: list, fraction: float) -> None:
+    """Outlines covering less than ``fraction`` of the part of their box that no nearer
+    object takes (its outline, or its whole box for a fallback) become box fallbacks
+    (``FALLBACK_SMALL``), in place: a detected box is mostly its object, so a much smaller
+    outline is the disparity failing (an object cut by the image border, a near one with
+    little texture) rather than a thin object.  A loop over the handful of boxes."""
+    n = len(results)
+    small = []
+    for i in range(n):
+        ri = results[i]
+        if ri is None or ri.mask is None:
+            continue
+        x0, y0, x1, y1 = (int(v) for v in rois[i])
+        taken = np.zeros((y1 - y0, x1 - x0), bool)  # by nearer objects
+        for j in range(n):
+            rj = results[j]
+            if j == i or rj is None or rj.disparity <= ri.disparity:
+                continue
+            jx0, jy0, jx1, jy1 = (int(v) for v in rois[j])
+            ax0, ax1, ay0, ay1 = max(x0, jx0), min(x1, jx1), max(y0, jy0), min(y1, jy1)
+            if ax1 <= ax0 or ay1 <= ay0:
+                continue
+            sub = taken[ay0 - y0:ay1 - y0, ax0 - x0:ax1 - x0]
+            if rj.mask is None:
+                sub[...] = True
+            else:
+                sub |= rj.mask[ay0 - jy0:ay1 - jy0, ax0 - jx0:ax1 - jx0] > 0
+        free = taken.size - int(np.count_nonzero(taken))
+        if np.count_nonzero((ri.mask > 0) & ~taken) < fraction * free:
+            small.append(i)
+    for i in small:  # decided on the outlines as they were: no order dependence
+        ri = results[i]
+        results[i] = RoiOutline(None, ri.disparity, FALLBACK_SMALL, ri.lo, ri.hi, ri.support)
 
 
 def band_for_boxes(rois: np.ndarray, shape: tuple[int, int], margin: int = 0) -> tuple[int, int, int, int] | None:

@@ -18,7 +18,9 @@ whole disparity range: the right mask is the union of all the shifts, wide but s
 Objects partly leaving the right image (``x - d < 0``) are clipped there; objects cut by
 the *left* image's right border continue in the right image (which sees ``d`` more
 columns there), so their rows touching that border are extended to the right border.  Where objects
-overlap in the right image the nearer one (larger disparity) wins, as in the left.
+overlap in the right image the nearer one (larger disparity) wins, as in the left.  With
+``occluded`` an object hidden in part behind a nearer one in the left image also covers
+the band the right camera sees past the nearer object's right edge.
 """
 
 from __future__ import annotations
@@ -82,6 +84,8 @@ def transfer_labels(
     ranges: list[tuple[float, float]] | None = None,
     sweep: tuple[float, float] = (0.0, 95.0),
     max_slope: float = 0.25,
+    occluded: bool = False,
+    occluded_margin: float = 1.0,
 ) -> TransferResult:
     """Right-image label image from the left one.
 
@@ -90,6 +94,13 @@ def transfer_labels(
     which its label pixels lie.  ``mode="affine"`` needs the disparity ``disp`` (region
     array with top-left ``origin``) and optionally each object's accepted disparity range
     ``ranges[i] = (lo, hi)`` used to select the pixels to fit.
+
+    ``occluded``: an object partly hidden in the left image behind a nearer object (larger
+    disparity, by more than ``occluded_margin`` px) is seen further in the right image --
+    the right camera looks past the nearer object's right edge.  Its box's pixels the
+    nearer object covers are moved with it, so that band, ``d_near - d`` pixels wide, is
+    masked too (the nearer object, painted later, keeps its own pixels): a car behind a
+    truck, a pedestrian behind another.
     """
     if mode not in MODES:
         raise ValueError(f"transfer mode must be one of {MODES}, got {mode!r}")
@@ -99,14 +110,24 @@ def transfer_labels(
     models: list[tuple[float, float, float]] = [(float(disparities[i]), 0.0, 0.0) for i in range(n)]
     rects: list[tuple[int, int, int, int]] = [(0, 0, 0, 0)] * n
     order = sorted(range(n), key=lambda i: float(disparities[i]))
+    label_disp = np.concatenate([[0.0], np.asarray(disparities, np.float64)]) if occluded else None
     for i in order:
         x0, y0, x1, y1 = (int(v) for v in rois[i])
         if x1 <= x0 or y1 <= y0:
             continue
-        m = left_labels[y0:y1, x0:x1] == i + 1
-        if not m.any():
+        lab = left_labels[y0:y1, x0:x1]
+        own = lab == i + 1
+        if not own.any():
             continue
         d = float(disparities[i])
+        m = own
+        if label_disp is not None and d > 0:
+            # the pixels of its box a nearer object covers in the left image may hide it;
+            # moved with it, they give the band the right camera sees past the nearer
+            # object's right edge (the nearer object, painted later, keeps its own pixels)
+            hidden = label_disp[lab] > d + occluded_margin
+            if hidden.any():
+                m = own | hidden
         if d <= 0:
             dmin, dmax = int(np.floor(max(sweep[0], 0.0))), int(np.ceil(sweep[1]))
             k = dmax - dmin + 1
@@ -118,7 +139,7 @@ def transfer_labels(
         model = None
         if mode == "affine" and disp is not None:
             droi = roi_disparity(disp, origin, (x0, y0, x1, y1))
-            sel = m & (droi > 0)
+            sel = own & (droi > 0)
             if ranges is not None:
                 lo, hi = ranges[i]
                 sel &= (droi >= lo) & (droi <= hi)
@@ -132,7 +153,7 @@ def transfer_labels(
             rects[i] = _paint(right, m, x0 - s, y0, i + 1)
             models[i] = (float(s), 0.0, 0.0)
             if x1 >= w - BORDER_TOUCH:
-                rects[i] = _extend_to_border(right, m[:, -1], y0, np.full(y1 - y0, x1 - s), i + 1, rects[i])
+                rects[i] = _extend_to_border(right, own[:, -1], y0, np.full(y1 - y0, x1 - s), i + 1, rects[i])
             continue
         a, b, c = model
         models[i] = model
@@ -153,7 +174,7 @@ def transfer_labels(
         rects[i] = _paint(right, vals, rx0, y0, i + 1)
         if x1 >= w - BORDER_TOUCH:
             start = np.rint((x1 - 1) - (a + b * (x1 - 1) + c * ys)).astype(np.int64) + 1
-            rects[i] = _extend_to_border(right, m[:, -1], y0, start, i + 1, rects[i])
+            rects[i] = _extend_to_border(right, own[:, -1], y0, start, i + 1, rects[i])
     pixels = np.zeros(n, np.int64)
     for i, (rx0, ry0, rx1, ry1) in enumerate(rects):
         if rx1 > rx0:
