@@ -5,6 +5,8 @@
     pose = system.track(stereo_frame, masks, timer)   # 3x4 camera-to-world, left camera
     poses = system.trajectory()                       # (N, 3, 4), one row per frame fed
     system.stats(); system.frame_states(); system.lost_frames()
+    system.loops(); system.recoveries()               # loops closed, frames found again
+    system.save_map("m.dsmap"); other.load_map("m.dsmap", localize_only=True)
     system.shutdown()                                 # finishes the local BA, stops its worker
 
 Modules follow ORB-SLAM2: ``orb`` (ORBExtractor: masked, grid-bucketed pyramid ORB),
@@ -12,18 +14,21 @@ Modules follow ORB-SLAM2: ``orb`` (ORBExtractor: masked, grid-bucketed pyramid O
 (array-wise map points and observations, covisibility), ``tracking``, ``local_mapping``
 (point creation / culling / fusion, local BA, keyframe culling), ``optimizer`` (numpy
 motion-only BA, gtsam local BA), ``ba_worker`` (local BA process), ``settings``
-(ORB-SLAM2 settings files), ``system``.  Stage times: ``features``, ``stereo``,
+(ORB-SLAM2 settings files), ``vocabulary`` / ``keyframe_database`` (bag of words, place
+recognition), ``loop_closing`` (detection, SE(3) verification, fusion, essential graph,
+full BA), ``map_io`` (map files), ``system``.  Stage times: ``features``, ``stereo``,
 ``track``, ``local_mapping``.
 
 Beyond ORB-SLAM2's tracking: a pose needs support (inliers against the recent frames'
 median) or it is replaced by a prior-free search over the map's keyframes
-(``Tracker.relocalise``) -- revisits and gaps are found again or marked lost, never
-mis-tracked; and the stereo rig's disparity offset is self-calibrated once by a BA
-over the map (``optimizer.self_calibrating_ba``).  See ``system`` for the lost-frame
+(``Tracker.relocalise`` on bag-of-words candidates) -- revisits and gaps are found again
+or marked lost, never mis-tracked; and the stereo rig's disparity offset is
+self-calibrated by BAs over the whole map (``optimizer.self_calibrating_ba``).  See ``system`` for the lost-frame
 policy.
 """
 
 from .settings import load_orbslam_settings
-from .system import FrameState, System
+from .loop_closing import LoopEvent
+from .system import FrameState, Recovery, System
 
-__all__ = ["System", "FrameState", "load_orbslam_settings"]
+__all__ = ["System", "FrameState", "Recovery", "LoopEvent", "load_orbslam_settings"]

@@ -44,8 +44,12 @@ gives the offset (``optimizer.self_calibrating_ba``), which is then applied to e
 keyframe's and every later frame's stereo observations (``stats()["disparity_offset"]``).
 It is refined the same way at 1.5x, 2.25x... that many keyframes (``selfcal_rounds``
 estimates in all): on KITTI 03 the first estimate is +0.13 +- 0.05 px, one over the 34
-keyframes of the clip +0.21 +- 0.03 px.  An estimate within ``selfcal_min_sigmas`` of 0 is not
-applied.
+keyframes of the clip +0.21 +- 0.03 px.  No offset is applied until an estimate is
+``selfcal_min_sigmas`` from 0; the later rounds then refine it.
+
+Loop closing (``loop_closing.LoopCloser``, after each new keyframe), relocalisation with
+the bag-of-words keyframe database and map files (``save_map`` / ``load_map``, with
+``localize_only``) are described in the README and in those modules.
 """
 
 from __future__ import annotations
@@ -266,7 +270,6 @@ class System:
         self.kfdb = KeyFrameDatabase(self.vocab)
         self.closer = None
         if self.cfg.loop_closing and not self.localize_only:
-
             ex = self.extractor
             self.closer = LoopCloser(
                 self.map, self.kfdb, self.vocab, self.mapper, self._loop_params, ex.inv_sigma2, ex.scales,
