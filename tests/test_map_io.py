@@ -10,7 +10,6 @@ save leaves no partial file.  Real data: a KITTI 06 map, and a seq 03 camera ref
 from __future__ import annotations
 
 import copy
-import inspect
 import io
 import json
 import os
@@ -105,10 +104,8 @@ def _frame(sysm: System, sf, index: int = 0) -> Frame:
 
 
 def _relocalise(tr: Tracker, mp: Map, f: Frame) -> tuple[bool, int]:
-    """``Tracker.relocalise`` on the descriptor-vote candidates (older signature: a count)."""
-    if "candidates" in inspect.signature(tr.relocalise).parameters:
-        return tr.relocalise(mp, f, tr.candidate_keyframes(mp, f, 3))
-    return tr.relocalise(mp, f, 3)
+    """``Tracker.relocalise`` on the descriptor-vote candidates."""
+    return tr.relocalise(mp, f, tr.candidate_keyframes(mp, f, 3))
 
 
 def _assert_same_map(a: Map, b: Map) -> None:

@@ -436,9 +436,7 @@ class LocalMapper:
         mp = self.mp
         p = self.p
         local = [kf.id] + [k for k in kf.best_covisibles() if k in mp.keyframes][: p.ba_max_keyframes - 1]
-        pts = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in local]))
-        pts = pts[pts >= 0]
-        pts = pts[~mp.bad[pts]]
+        pts = mp.points_of(local)
         if len(pts) == 0:
             return None
         rows = mp.rows_of(pts)
@@ -466,9 +464,7 @@ class LocalMapper:
         ids = sorted(mp.keyframes)
         if len(ids) < 3:
             return None
-        pts = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in ids]))
-        pts = pts[pts >= 0]
-        pts = pts[~mp.bad[pts]]
+        pts = mp.points_of(ids)
         if len(pts) == 0:
             return None
         # the offset shows in points seen from several keyframes: the most observed
@@ -486,6 +482,16 @@ class LocalMapper:
             prob.offset_min_sigmas = self.p.selfcal_min_sigmas if self.offset_now == 0.0 else 0.0
             prob.iterations = max(prob.iterations, 5)
         return prob
+
+    def build_global_problem(self, kf: KeyFrame) -> LocalBAProblem | None:
+        """BA over all keyframes and their points, the map's first keyframe fixed (the
+        full BA after a loop; the final BA of a saved map without self-calibration)."""
+        mp = self.mp
+        ids = sorted(mp.keyframes)
+        if len(ids) < 3:
+            return None
+        pts = mp.points_of(ids)
+        return self._problem(kf, ids[1:], ids[:1], pts, mp.rows_of(pts)) if len(pts) else None
 
     def _problem(
         self, kf: KeyFrame, local: list[int], fixed_ids: list[int], pts: np.ndarray, rows: np.ndarray
@@ -578,10 +584,7 @@ class LocalMapper:
                 prob.offset_min_sigmas = self.p.selfcal_min_sigmas if self.offset_now == 0.0 else 0.0
                 self._selfcal_base = self.offset_now
         else:
-            ids = sorted(mp.keyframes)
-            pts = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in ids]))
-            pts = pts[mp.good(pts)]
-            prob = self._problem(kf, ids[1:], ids[:1], pts, mp.rows_of(pts)) if len(pts) else None
+            prob = self.build_global_problem(kf)
         if prob is None:
             return None
         prob.iterations, prob.rel_tol = max(prob.iterations, 10), 1e-5

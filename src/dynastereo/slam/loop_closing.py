@@ -42,9 +42,10 @@ from .geometry import desc_u64, inv_T, orthonormalize
 from .keyframe import KeyFrame
 from .local_mapping import BARunner, LocalMapper
 from .map import Map
-from .matcher import TH_HIGH, keyframe_point_matches, search_by_projection
 from .keyframe_database import KeyFrameDatabase
+from .matcher import TH_HIGH, keyframe_point_matches, search_by_projection
 from .optimizer import LocalBAProblem, LocalBAResult, optimize_pose, optimize_pose_graph
+from .tracking import pnp_ransac
 from .vocabulary import BowVector, Vocabulary
 
 log = logging.getLogger("dynastereo.slam")
@@ -101,9 +102,7 @@ class LoopEvent:
 @dataclass
 class LoopStats:
     query_ms: list[float] = field(default_factory=list)  # BoW transform + detection per keyframe
-    verify_ms: list[float] = field(default_factory=list)  # geometric verification per attempt
-    candidates: int = 0  # consistent candidates verified
-    rejected: int = 0  # of those, failed geometric verification
+    rejected: int = 0  # consistent candidates that failed geometric verification
     full_ba_discarded: int = 0
 
 
@@ -144,10 +143,6 @@ class LoopCloser:
         self._ba_job = None  # (pending, problem, due frame, loop count)
 
     # ------------------------------------------------------------- detection
-    def _covisibles(self, kid: int) -> list[int]:
-        kf = self.mp.keyframes.get(kid)
-        return [] if kf is None else [k for k in kf.best_covisibles(10) if k in self.mp.keyframes]
-
     def detect(self, kf: KeyFrame, bow: BowVector) -> list[int]:
         """Consistent loop candidates for ``kf`` (ORB-SLAM2 ``DetectLoop``)."""
         mp = self.mp
@@ -162,7 +157,7 @@ class LoopCloser:
         near = set(connected) | {kf.id}
         for k in connected:
             near.update(mp.keyframes[k].covis)
-        cands = self.db.detect_loop_candidates(kf.id, bow, near, min_score, self._covisibles)
+        cands = self.db.detect_loop_candidates(kf.id, bow, near, min_score, mp.best_covisibles)
         # the last keyframes are the same stretch of road, not a loop
         cands = [c for c in cands if kf.id - c >= 2 * self.p.min_kf_gap]
         if not cands:
@@ -172,7 +167,7 @@ class LoopCloser:
         extended = [False] * len(self._groups)
         enough: list[int] = []
         for c in cands:
-            group = {c, *self._covisibles(c)}
+            group = {c, *mp.best_covisibles(c)}
             consistent = False
             for gi, (g, count) in enumerate(self._groups):
                 if group & g:
@@ -193,38 +188,21 @@ class LoopCloser:
         """Corrected ``T_cw`` of ``kf`` from the loop keyframe ``cand``: returns
         ``(T_cw, kf keypoints, loop map points, descriptor matches)`` for the inlier matches,
         or None."""
-        import cv2
-
         mp = self.mp
         ki, pts = keyframe_point_matches(mp, cand, kf)
         n_desc = len(ki)
         if n_desc < self.p.min_matches:
             return None
         calib = kf.calib
-        cv2.setRNGSeed(self.p.seed)
-        okp, rvec, tvec, inl = cv2.solvePnPRansac(
-            mp.pos[pts].astype(np.float64),
-            kf.uv[ki].astype(np.float64),
-            calib.K,
-            None,
-            iterationsCount=300,
-            reprojectionError=3.0,
-            confidence=0.999,
-            flags=cv2.SOLVEPNP_EPNP,
-        )
-        if not okp or inl is None or len(inl) < self.p.min_matches // 2:
+        T, _ = pnp_ransac(mp.pos[pts], kf.uv[ki], calib.K, self.p.seed, 300, self.p.min_matches // 2)
+        if T is None:
             return None
-        T = np.eye(4)
-        T[:3, :3] = cv2.Rodrigues(rvec)[0]
-        T[:3, 3] = tvec.ravel()
         T, ok = self._optimize(T, ki, mp.pos[pts], kf)
         ki, pts = ki[ok], pts[ok]
         if len(ki) < self.p.min_matches:
             return None
         # more matches: the loop keyframe's neighbourhood projected with the new pose
-        loop_kfs = [cand.id] + [k for k in cand.covis if k in mp.keyframes]
-        cand_pts = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in loop_kfs]))
-        cand_pts = cand_pts[mp.good(cand_pts)]
+        cand_pts = mp.points_of([cand.id] + [k for k in cand.covis if k in mp.keyframes])
         cand_pts = cand_pts[~np.isin(cand_pts, pts)]
         if len(cand_pts):
             center = inv_T(T)[:3, 3]
@@ -267,10 +245,7 @@ class LoopCloser:
             cand = self.mp.keyframes.get(cid)
             if cand is None:
                 continue
-            self.stats.candidates += 1
-            t1 = time.perf_counter()
             found = self.verify(kf, cand)
-            self.stats.verify_ms.append((time.perf_counter() - t1) * 1e3)
             if found is None:
                 self.stats.rejected += 1
                 continue
@@ -314,8 +289,7 @@ class LoopCloser:
         connected = [kf.id] + [k for k in kf.covis if k in mp.keyframes]
         for k in connected:
             mp.keyframes[k].T_cw = orthonormalize(mp.keyframes[k].T_cw @ D)
-        pts = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in connected]))
-        pts = pts[mp.good(pts)]
+        pts = mp.points_of(connected)
         Dinv = inv_T(D)
         mp.pos[pts] = mp.pos[pts] @ Dinv[:3, :3].T + Dinv[:3, 3]
         mp.normal[pts] = mp.normal[pts] @ Dinv[:3, :3].T
@@ -324,11 +298,9 @@ class LoopCloser:
         has = cur >= 0
         mp.replace(cur[has], loop_pts[has])
         fused = int(has.sum())
-        free = ~has & (kf.point_ids[ki] < 0)
-        mp.add_observations(kf, ki[free], loop_pts[free])
+        mp.add_observations(kf, ki[~has], loop_pts[~has])
         loop_side = [loop.id] + [k for k in loop.covis if k in mp.keyframes and k not in connected]
-        side_pts = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in loop_side]))
-        side_pts = side_pts[mp.good(side_pts)]
+        side_pts = mp.points_of(loop_side)
         for k in connected:
             if k in mp.keyframes:
                 fused += self.mapper._fuse_into(mp.keyframes[k], side_pts)
@@ -448,15 +420,7 @@ class LoopCloser:
 
     # ----------------------------------------------------------------- full BA
     def _submit_full_ba(self, kf: KeyFrame, frame_pos: int) -> None:
-        mp = self.mp
-        ids = sorted(mp.keyframes)
-        if len(ids) < 3:
-            return
-        pts = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in ids]))
-        pts = pts[mp.good(pts)]
-        if len(pts) == 0:
-            return
-        prob = self.mapper._problem(kf, ids[1:], ids[:1], pts, mp.rows_of(pts))
+        prob = self.mapper.build_global_problem(kf)
         if prob is None:
             return
         prob.iterations = self.p.full_ba_iterations
@@ -519,6 +483,3 @@ class LoopCloser:
         if self._ba_runner is not None:
             self._ba_runner.shutdown()
             self._ba_runner = None
-
-    def events_as_dicts(self) -> list[dict]:
-        return [e.to_dict() for e in self.events]

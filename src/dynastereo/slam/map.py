@@ -300,6 +300,17 @@ class Map:
         self.next_kf_id += 1
         return i
 
+    def points_of(self, kf_ids) -> np.ndarray:
+        """The good map points observed by the keyframes ``kf_ids`` (sorted, unique)."""
+        pts = np.unique(np.concatenate([self.keyframes[k].point_ids for k in kf_ids]))
+        return pts[self.good(pts)]
+
+    def best_covisibles(self, kf_id: int, n: int = 10) -> list[int]:
+        """The ``n`` strongest covisible keyframes of keyframe ``kf_id`` still in the map
+        (none for an unknown one); the ``covisibles`` callback of the keyframe database."""
+        kf = self.keyframes.get(kf_id)
+        return [] if kf is None else [k for k in kf.best_covisibles(n) if k in self.keyframes]
+
     def covisible_counts(self, pts: np.ndarray, exclude: int | None = None) -> dict[int, int]:
         """Number of the given points each keyframe observes."""
         rows = self.rows_of(pts)

@@ -569,7 +569,7 @@ class System:
         t0 = time.perf_counter()
         tr, mp, n = self.tracker, self.map, self.cfg.reloc_candidates
         bow, _ = self.vocab.transform(f.desc)
-        cands = [k for k in self.kfdb.detect_relocalisation_candidates(bow, self._covisibles) if k in mp.keyframes]
+        cands = [k for k in self.kfdb.detect_relocalisation_candidates(bow, mp.best_covisibles) if k in mp.keyframes]
         found, kid = tr.relocalise(mp, f, cands[:n])
         if not found or tr.n_inliers < max(self.cfg.reloc_min_inliers, self.cfg.min_inliers):
             more = [k for k in tr.candidate_keyframes(mp, f, n) if k not in cands[:n]]
@@ -577,10 +577,6 @@ class System:
                 found, kid = tr.relocalise(mp, f, more)
         self._reloc_ms.append((time.perf_counter() - t0) * 1e3)
         return found, kid
-
-    def _covisibles(self, kid: int) -> list[int]:
-        kf = self.map.keyframes.get(kid)
-        return [] if kf is None else [k for k in kf.best_covisibles(10) if k in self.map.keyframes]
 
     def _place_keyframe(self, kf: KeyFrame, frame_pos: int) -> None:
         """The new keyframe goes to loop closing (detection + correction) and to the

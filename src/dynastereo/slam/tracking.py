@@ -36,6 +36,30 @@ class TrackParams:
     seed: int = 0
 
 
+def pnp_ransac(
+    X: np.ndarray, uv: np.ndarray, K: np.ndarray, seed: int, iterations: int = 200, min_inliers: int = 10
+) -> tuple[np.ndarray | None, int]:
+    """Prior-free PnP-RANSAC (EPnP, 3 px, fixed seed): ``(T_cw or None, inliers)``; None
+    with fewer than ``min_inliers`` inliers."""
+    cv2.setRNGSeed(seed)
+    okp, rvec, tvec, inl = cv2.solvePnPRansac(
+        X.astype(np.float64),
+        uv.astype(np.float64),
+        K,
+        None,
+        iterationsCount=iterations,
+        reprojectionError=3.0,
+        confidence=0.999,
+        flags=cv2.SOLVEPNP_EPNP,
+    )
+    if not okp or inl is None or len(inl) < min_inliers:
+        return None, 0 if inl is None else len(inl)
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rvec)[0]
+    T[:3, 3] = tvec.ravel()
+    return T, len(inl)
+
+
 class Tracker:
     def __init__(self, params: TrackParams) -> None:
         self.p = params
@@ -147,24 +171,7 @@ class Tracker:
         return n_all >= 10 if n < 10 else True
 
     def _pnp(self, X: np.ndarray, uv: np.ndarray, frame: Frame) -> tuple[np.ndarray | None, int]:
-        """Prior-free PnP-RANSAC (EPnP, 3 px, fixed seed): ``(T_cw or None, inliers)``."""
-        cv2.setRNGSeed(self.p.seed)
-        okp, rvec, tvec, inl = cv2.solvePnPRansac(
-            X.astype(np.float64),
-            uv.astype(np.float64),
-            frame.calib.K,
-            None,
-            iterationsCount=200,
-            reprojectionError=3.0,
-            confidence=0.999,
-            flags=cv2.SOLVEPNP_EPNP,
-        )
-        if not okp or inl is None or len(inl) < 10:
-            return None, 0 if inl is None else len(inl)
-        T = np.eye(4)
-        T[:3, :3] = cv2.Rodrigues(rvec)[0]
-        T[:3, 3] = tvec.ravel()
-        return T, len(inl)
+        return pnp_ransac(X, uv, frame.calib.K, self.p.seed)
 
     def track_reference_keyframe(self, mp: Map, frame: Frame, T_guess: np.ndarray | None) -> bool:
         """Descriptor matching against the reference keyframe's map points, pose from
@@ -298,9 +305,7 @@ class Tracker:
         local = self.update_local_keyframes(mp, frame)
         if not local:
             return False
-        ids = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in local]))
-        ids = ids[ids >= 0]
-        ids = ids[~mp.bad[ids]]
+        ids = mp.points_of(local)
         # points already matched in this frame: counted visible, not searched again
         has = np.flatnonzero(frame.point_ids >= 0)
         res = mp.resolve(frame.point_ids[has])
