@@ -22,11 +22,13 @@ compare the masking alone:
    instance masks, left and right images, objects nearer than 30 m
    (``dynastereo.eval.masks.score_frame``) -- with the default stereo (BM 15), with
    two denser matchers (BM 9 + WLS, SGBM 3-way 5) and with the scenes' exact disparity
-   (the ceiling of the outline algorithm).
+   (the ceiling of the outline algorithm); and, for BM 15 and the exact disparity, where
+   the outline's pixels go wrong (``LossBudget``: its own false positives -- those at the
+   box's base, the road -- other boxes' false positives, missed pixels, box fallbacks).
 
 Prints tables; writes benchmarks/results/mask.json.
 Run: DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
-     .venv/bin/python benchmarks/bench_mask.py [--step 2] [--repeats 3] [--synth-frames 40 | --no-synth]
+     .venv/bin/python benchmarks/bench_mask.py [--step 2] [--repeats 3] [--synth-frames 40 | --no-synth] [--no-kitti]
 """
 
 from __future__ import annotations
@@ -127,8 +129,9 @@ def main() -> None:
     ap.add_argument("--no-kitti", action="store_true", help="skip the KITTI section")
     args = ap.parse_args()
     synth_res = None if args.no_synth else synth_section(args.synth_frames)
-    if args.no_kitti:
-        _write({"benchmark": "mask", "synth": synth_res})
+    if args.no_kitti:  # keep the KITTI section of an earlier run
+        old = json.loads(OUT.read_text()) if OUT.exists() else {"benchmark": "mask"}
+        _write({**old, "synth": synth_res})
         return
     data, models = env_dir("DYNASTEREO_DATA"), env_dir("DYNASTEREO_MODELS")
 
@@ -280,6 +283,8 @@ SYNTH_STEREO = {
     "exact (GT) disparity": {},  # the ceiling: the synthetic scene's exact disparity
 }
 EXACT = "exact (GT) disparity"
+# the matchers whose outline errors are broken down (the default and the exact disparity)
+BUDGET_STEREO = ("bm 15 (default)", EXACT)
 
 
 def synth_section(frames: int) -> dict:
@@ -288,10 +293,11 @@ def synth_section(frames: int) -> dict:
 
     from dynastereo.api import build_masker, load_sequence
     from dynastereo.config import Config
-    from dynastereo.eval.masks import MaskAgreement, score_frame
-    from dynastereo.synth import generate, read_gt_disparity, read_gt_masks, read_objects
+    from dynastereo.eval.masks import LossBudget, MaskAgreement, score_frame
+    from dynastereo.synth import OracleDetector, generate, read_gt_disparity, read_gt_masks, read_objects
 
     out: dict[str, dict] = {}
+    budgets: dict[str, dict] = {}
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="dynastereo-synth-") as tmp:
         for scn in SYNTH_SCENARIOS:
@@ -306,14 +312,21 @@ def synth_section(frames: int) -> dict:
                     if st_name == EXACT:  # the masker's disparity replaced by the exact one
                         masker._disparity = lambda frame, *a, _p=path, **k: read_gt_disparity(_p, frame.index)
                     agg = MaskAgreement()
+                    budget = LossBudget() if kind == "outline" and st_name in BUDGET_STEREO else None
+                    oracle = OracleDetector(path)
                     for i in range(len(seq)):
-                        m = masker.mask(seq.frame(i))
+                        dets = oracle.detect_frame(i)
+                        m, left_labels, _ = masker.mask_labels(seq.frame(i), dets)
                         gl, gr = read_gt_masks(path, i)
                         agg.scores += score_frame(i, {"left": m.left, "right": m.right}, {"left": gl, "right": gr},
                                                   gt.frames[i])
+                        if budget is not None:
+                            budget.add(gt.frames[i], oracle.objects(i), m.objects, left_labels, gl)
                     r = {f"{k}_{v}": round(agg.mean(v, k), 4) for k in ("iou", "precision", "recall")
                          for v in ("left", "right")}
                     r.update(agg.summary())
+                    if budget is not None:
+                        budgets[f"{scn} | {st_name}"] = budget.summary()
                     out[f"{scn} | {kind} | {st_name}" if kind == "outline" else f"{scn} | box"] = r
             print(f"synth {scn}: done ({time.perf_counter() - t0:.0f} s)", flush=True)
     print(f"\nsynthetic streets, {frames} frames each, 640x192, oracle boxes: per-object mean vs GT instance masks "
@@ -327,7 +340,17 @@ def synth_section(frames: int) -> dict:
         print(f"| {scn} | {kind} | {st_name} | {r['iou_left']:.3f} | {r['iou_right']:.3f} | {r['iou']:.3f} | "
               f"{r['precision_left']:.3f} | {r['precision_right']:.3f} | {r['recall_left']:.3f} | "
               f"{r['recall_right']:.3f} | {r['objects_left']}/{r['objects_right']} |")
-    return {"frames": frames, "size": "640x192", "detector": "oracle (GT boxes)", "results": out}
+    print("\nwhere the outline's left-image pixels go wrong (pixels inside the objects' GT boxes, objects < 30 m; "
+          "share of the object pixels; 'road at base' = false positives in the bottom quarter of the box)")
+    print("| scenario | stereo | objects outlined | box fallbacks | false pos. own | of which road at base | "
+          "false pos. other boxes | missed |")
+    print("|---|---|---|---|---|---|---|---|")
+    for key, b in budgets.items():
+        scn, st_name = key.split(" | ")
+        print(f"| {scn} | {st_name} | {b['outlined']} | {b['fallbacks']} | {b['fp_own']:.3f} | {b['fp_own_base']:.3f} | "
+              f"{b['fp_other']:.3f} | {b['missed']:.3f} |")
+    return {"frames": frames, "size": "640x192", "detector": "oracle (GT boxes)", "results": out,
+            "loss_budget": budgets}
 
 
 def _detect(detector, frame, timer: StageTimer) -> Detections:

@@ -486,3 +486,41 @@ def test_kitti06_first_frames_file_round_trip(kitti06_poses, tmp_path):
     assert 0.0 < r.ape["rmse"] < 1.0 and r.drift_percent > 0.0
     png = plot_trajectories(r.estimate, r.ground_truth, tmp_path / "traj.png", "KITTI 06, frames 0-50")
     assert png.read_bytes()[:8] == PNG_MAGIC
+
+
+def test_loss_budget_counts_known_errors():
+    """An ellipse-shaped object in a 20 x 40 box: its outline covers it plus a 2-row strip of
+    road at the box's bottom and 4 background pixels at the top; another box's mask takes 4
+    background pixels; 12 object pixels are missed.  Pixels of a second GT object inside the
+    box count as neither."""
+    from types import SimpleNamespace
+
+    from dynastereo.eval.masks import LossBudget
+
+    h, w = 60, 80
+    gt = np.zeros((h, w), np.uint8)
+    cv2.ellipse(gt, (30, 30), (9, 19), 0, 0, 360, 5, -1)  # object 5 in box x 21..40, y 11..50
+    box = (21, 11, 40, 50)
+    gt[30:34, 21:24] = 7  # a piece of another object inside the box, masked by nobody
+    labels = np.zeros((h, w), np.int32)
+    labels[gt == 5] = 1
+    labels[48:50, 21:40] = np.where(gt[48:50, 21:40] == 0, 1, labels[48:50, 21:40])  # road at the base
+    labels[11, 21:25] = 1  # background at the top-left corner of the box
+    labels[13, 21:25] = 2  # the other detection's mask over background
+    missed = np.argwhere(gt == 5)[:12]
+    labels[missed[:, 0], missed[:, 1]] = 0
+    n_obj = int(np.count_nonzero(gt == 5))
+    base_fp = int(np.count_nonzero((labels[48:50, 21:40] == 1) & (gt[48:50, 21:40] == 0)))
+    assert base_fp > 0 and not gt[11, 21:25].any() and not gt[13, 21:25].any()
+
+    obj = SimpleNamespace(id=5, box_left=box, distance=10.0, pixels_left=n_obj)
+    far = SimpleNamespace(id=7, box_left=(21, 30, 24, 34), distance=45.0, pixels_left=12)  # beyond 30 m: not scored
+    b = LossBudget()
+    b.add([obj, far], [obj, far], [SimpleNamespace(method="outline"), SimpleNamespace(method="box")], labels, gt)
+    s = b.summary()
+    assert s["objects"] == 1 and s["outlined"] == 1 and s["fallbacks"] == 0
+    assert s["object_pixels"] == n_obj
+    assert s["fp_own"] == round((base_fp + 4) / n_obj, 4)
+    assert s["fp_own_base"] == round(base_fp / n_obj, 4)
+    assert s["fp_other"] == round(4 / n_obj, 4)
+    assert s["missed"] == round(12 / n_obj, 4)

@@ -85,6 +85,56 @@ def score_frame(
     return out
 
 
+class LossBudget:
+    """Where an outline masker's left-image pixels go wrong, over the objects scored by
+    ``score_frame`` (nearer than 30 m, >= 50 px): inside each object's GT box, false
+    positives of its own outline (and those in the box's bottom quarter: the road at its
+    base), false positives of *other* boxes' masks, and missed object pixels -- each as a
+    share of the object pixels; plus how many objects were outlined or masked whole."""
+
+    def __init__(self, max_distance: float = 30.0, min_pixels: int = 50):
+        self.max_distance, self.min_pixels = max_distance, min_pixels
+        self.px = {"object": 0, "fp_own": 0, "fp_own_base": 0, "fp_other": 0, "missed": 0}
+        self.methods: dict[str, int] = {}
+
+    def add(self, gt_objects: list, detected: list, masks: list, labels: np.ndarray, gt_left: np.ndarray) -> None:
+        """One frame: its ``GTObject`` records, the objects the oracle detected (detection
+        order), the masker's ``ObjectMask`` records, its left label image (``k + 1`` =
+        detection ``k``) and the GT left instance mask."""
+        index = {o.id: k for k, o in enumerate(detected)}
+        for ob in gt_objects:
+            if ob.box_left is None or ob.distance > self.max_distance or ob.pixels_left < self.min_pixels:
+                continue
+            k = index.get(ob.id)
+            if k is None:
+                continue
+            x1, y1, x2, y2 = ob.box_left
+            g, lab = gt_left[y1:y2, x1:x2], labels[y1:y2, x1:x2]
+            mine = g == ob.id
+            counted = mine | (g == 0)  # other objects' pixels are masked rightly
+            own = lab == k + 1
+            fp_own = own & counted & ~mine
+            self.px["object"] += int(np.count_nonzero(mine))
+            self.px["fp_own"] += int(np.count_nonzero(fp_own))
+            self.px["fp_own_base"] += int(np.count_nonzero(fp_own[(3 * fp_own.shape[0]) // 4:]))
+            self.px["fp_other"] += int(np.count_nonzero((lab > 0) & ~own & counted & ~mine))
+            self.px["missed"] += int(np.count_nonzero(mine & (lab == 0)))
+            method = masks[k].method
+            self.methods[method] = self.methods.get(method, 0) + 1
+
+    def summary(self) -> dict:
+        n = max(self.px["object"], 1)
+        outlined = self.methods.get("outline", 0)
+        return {
+            "objects": sum(self.methods.values()),
+            "outlined": outlined,
+            "fallbacks": sum(self.methods.values()) - outlined,
+            "methods": dict(sorted(self.methods.items())),
+            "object_pixels": self.px["object"],
+            **{key: round(self.px[key] / n, 4) for key in ("fp_own", "fp_own_base", "fp_other", "missed")},
+        }
+
+
 def _read_mask(path: Path) -> np.ndarray:
     m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if m is None:
