@@ -4,6 +4,7 @@ Per object and per view, the IoU of the predicted binary mask with the object's 
 mask, measured inside the object's GT box and ignoring pixels of *other* GT objects
 (masking a neighbouring object is right, not a false positive). Objects farther than
 ``max_distance`` metres, or with fewer than ``min_pixels`` visible pixels, are left out.
+:class:`LossBudget` splits an outline masker's left-image errors by cause.
 """
 
 from __future__ import annotations
@@ -89,7 +90,7 @@ class LossBudget:
     """Where an outline masker's left-image pixels go wrong, over the objects scored by
     ``score_frame`` (nearer than 30 m, >= 50 px): inside each object's GT box, false
     positives of its own outline (and those in the box's bottom quarter: the road at its
-    base), false positives of *other* boxes' masks, and missed object pixels -- each as a
+    base), false positives of *other* boxes' masks, and object pixels no mask covers -- each as a
     share of the object pixels; plus how many objects were outlined or masked whole."""
 
     def __init__(self, max_distance: float = 30.0, min_pixels: int = 50):
