@@ -303,6 +303,7 @@ def synth_section(frames: int) -> dict:
         for scn in SYNTH_SCENARIOS:
             path = generate(Path(tmp) / scn, scn, frames=frames)
             seq, gt = load_sequence(path), read_objects(path)
+            oracle = OracleDetector(path)  # the same boxes the maskers' oracle detector returns
             for st_name, st in SYNTH_STEREO.items():
                 for kind in ("outline", "box"):
                     if kind == "box" and (st or st_name == EXACT):
@@ -313,7 +314,6 @@ def synth_section(frames: int) -> dict:
                         masker._disparity = lambda frame, *a, _p=path, **k: read_gt_disparity(_p, frame.index)
                     agg = MaskAgreement()
                     budget = LossBudget() if kind == "outline" and st_name in BUDGET_STEREO else None
-                    oracle = OracleDetector(path)
                     for i in range(len(seq)):
                         dets = oracle.detect_frame(i)
                         m, left_labels, _ = masker.mask_labels(seq.frame(i), dets)

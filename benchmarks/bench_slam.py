@@ -211,6 +211,10 @@ def bench_revisit(kitti: Path, seq_name: str, spec: str) -> dict:
             "relocalisations": st["relocalisations"], "reinitialisations": st["reinitialisations"], "rows": rows}
 
 
+def mask_mean_ms(stages: dict) -> float:
+    """Mean ms per frame of the masking stages except the detector (0 when unmasked)."""
+    return sum(v["mean_ms"] for k, v in stages.items() if k not in (*SLAM_STAGES, "total", "detect"))
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sequences", default="06,03")
@@ -325,7 +329,7 @@ def main() -> int:
     print(f"{'seq':4s} {'masker':8s} {'ATE m':>7s} {'drift%':>7s} {'fps':>6s}  " + " ".join(f"{c:>13s}" for c in cols))
     for r in results:
         st = r["stages"]
-        mask_ms = sum(st[s]["mean_ms"] for s in st if s not in (*SLAM_STAGES, "total", "detect"))
+        mask_ms = mask_mean_ms(st)
         cells = []
         for c in cols:
             if c == "mask":
@@ -344,7 +348,7 @@ def main() -> int:
     print(f"{'seq':4s} {'masker':8s} " + " ".join(f"{c:>13s}" for c in fcols))
     for r in results:
         st = r["stages"]
-        mask_ms = sum(st[s]["mean_ms"] for s in st if s not in (*SLAM_STAGES, "total", "detect"))
+        mask_ms = mask_mean_ms(st)
         cells = []
         for c in fcols:
             if c == "mask":

@@ -63,3 +63,26 @@ def quiet_slam():
     logging.getLogger("dynastereo").setLevel(logging.ERROR)
     yield
     logging.getLogger("dynastereo").setLevel(logging.NOTSET)
+
+
+def track_offline(sequence: Path, models_dir: Path, n_frames: int):
+    """The default configuration's SLAM on the first ``n_frames`` of a KITTI sequence
+    folder, read straight from the folder (the reference the ROS paths must reproduce):
+    the poses tracking returned per frame (``(n, 4, 4)``) and the shut-down ``System``."""
+    import numpy as np
+
+    from dynastereo.config import Config
+    from dynastereo.io import KittiSequence
+    from dynastereo.ros.core import build_masker
+    from dynastereo.slam import System
+
+    seq = KittiSequence(sequence)
+    cfg = Config()
+    masker = build_masker(cfg, models_dir)[0]
+    system = System(cfg, seq.calibration)
+    poses = []
+    for i in range(n_frames):
+        f = seq.frame(i)
+        poses.append(system.track(f, masker.mask(f)))
+    system.shutdown()
+    return np.array(poses), system

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from conftest import track_offline
 from dynastereo.cli.main import app
 from dynastereo.config import Config
 from dynastereo.errors import CalibrationError, InputError, SequenceError
@@ -28,7 +29,6 @@ from dynastereo.ros.convert import (
     image_fields,
     image_to_array,
 )
-from dynastereo.ros.core import build_masker
 from dynastereo.types import StereoCalibration
 
 runner = CliRunner()
@@ -256,18 +256,9 @@ def test_export_encodings_decode_back(kitti06: Path, tmp_path: Path, encoding: s
 def kitti_reference(kitti06: Path, models_dir: Path) -> dict:
     """SLAM on the first frames of KITTI 06 straight from the folder: the poses tracking
     returned (what odometry carries) and the final trajectory."""
-    from dynastereo.slam import System
-
+    live, system = track_offline(kitti06, models_dir, N_FRAMES)
     seq = KittiSequence(kitti06)
-    cfg = Config()
-    masker = build_masker(cfg, models_dir)[0]
-    system = System(cfg, seq.calibration)
-    live = []
-    for i in range(N_FRAMES):
-        f = seq.frame(i)
-        live.append(system.track(f, masker.mask(f)))
-    system.shutdown()
-    return {"live": np.array(live), "final": system.trajectory(),
+    return {"live": live, "final": system.trajectory(),
             "stamps_ns": np.round(seq.timestamps()[:N_FRAMES] * 1e9).astype(np.int64)}
 
 

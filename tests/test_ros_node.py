@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from conftest import REQUIRE
+from conftest import REQUIRE, track_offline
 from dynastereo.config import Config
 from dynastereo.errors import ConfigError
 from dynastereo.eval.trajectory import read_trajectory
 from dynastereo.io import KittiSequence
-from dynastereo.ros.core import DropOldestQueue, StereoInput, StereoNodeCore, build_masker
+from dynastereo.ros.core import DropOldestQueue, StereoInput, StereoNodeCore
 from dynastereo.types import StereoMasks
 
 LIVE_FRAMES = 25  # KITTI 06 frames 0..24 at 10 Hz
@@ -302,18 +302,7 @@ def live_run(kitti06: Path, models_dir: Path, tmp_path_factory) -> dict:
 
 
 def _offline_reference(kitti06: Path, models_dir: Path) -> dict:
-    from dynastereo.slam import System
-
-    seq = KittiSequence(kitti06)
-    cfg = Config()
-    masker = build_masker(cfg, models_dir)[0]
-    system = System(cfg, seq.calibration)
-    poses = []
-    for i in range(LIVE_FRAMES):
-        f = seq.frame(i)
-        poses.append(system.track(f, masker.mask(f)))
-    system.shutdown()
-    return {"poses": np.array(poses)}
+    return {"poses": track_offline(kitti06, models_dir, LIVE_FRAMES)[0]}
 
 
 def test_live_node_odometry_equals_the_offline_run(live_run: dict) -> None:
