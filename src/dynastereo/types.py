@@ -135,6 +135,10 @@ class Detections:
     class_ids: np.ndarray  # (N,) int32
     class_names: tuple[str, ...] = ()
     masks: np.ndarray | None = None  # optional (N, H, W) bool instance masks (seg models)
+    # Set by the box tracker (masking.detection.tracking): a track id per box (-1: none)
+    # and whether the box was carried from earlier frames rather than detected in this one.
+    track_ids: np.ndarray | None = None  # (N,) int64
+    carried: np.ndarray | None = None  # (N,) bool
 
     def __post_init__(self) -> None:
         self.boxes = np.asarray(self.boxes, dtype=np.float32).reshape(-1, 4)
@@ -142,6 +146,22 @@ class Detections:
         self.class_ids = np.asarray(self.class_ids, dtype=np.int32).reshape(-1)
         if not (len(self.boxes) == len(self.scores) == len(self.class_ids)):
             raise ValueError("boxes, scores and class_ids must have the same length")
+        if self.track_ids is not None:
+            self.track_ids = np.asarray(self.track_ids, dtype=np.int64).reshape(-1)
+            if len(self.track_ids) != len(self.boxes):
+                raise ValueError("track_ids must have one entry per box")
+        if self.carried is not None:
+            self.carried = np.asarray(self.carried, dtype=bool).reshape(-1)
+            if len(self.carried) != len(self.boxes):
+                raise ValueError("carried must have one entry per box")
+
+    def track_id(self, i: int) -> int:
+        """Track id of box ``i`` (-1 when the boxes are not tracked)."""
+        return int(self.track_ids[i]) if self.track_ids is not None else -1
+
+    def source(self, i: int) -> str:
+        """``"carried"`` when box ``i`` was carried from earlier frames, else ``"detected"``."""
+        return "carried" if self.carried is not None and bool(self.carried[i]) else "detected"
 
     def __len__(self) -> int:
         return len(self.boxes)
@@ -162,6 +182,8 @@ class Detections:
             self.class_ids[keep],
             self.class_names,
             None if self.masks is None else self.masks[keep],
+            None if self.track_ids is None else self.track_ids[keep],
+            None if self.carried is None else self.carried[keep],
         )
 
 
@@ -176,6 +198,8 @@ class ObjectMask:
     disparity: float  # the object's disparity (peak) in pixels, 0 if unknown
     pixels_left: int
     pixels_right: int
+    track_id: int = -1  # the box tracker's id (-1: boxes not tracked)
+    source: str = "detected"  # "detected" in this frame or "carried" from earlier ones
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -186,6 +210,8 @@ class ObjectMask:
             "disparity": round(float(self.disparity), 3),
             "pixels_left": int(self.pixels_left),
             "pixels_right": int(self.pixels_right),
+            "track_id": int(self.track_id),
+            "source": self.source,
         }
 
 

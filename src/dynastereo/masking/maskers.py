@@ -141,6 +141,8 @@ def _objects(
             disparity=float(disparity[i]),
             pixels_left=int(pixels_left[i]),
             pixels_right=int(pixels_right[i]),
+            track_id=dets.track_id(i),
+            source=dets.source(i),
         )
         for i in range(len(dets))
     ]
