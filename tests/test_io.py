@@ -348,8 +348,9 @@ def test_kitti_colour_pair_only(tmp_path):
     p2 = "P2: 7.0e+02 0 3.0e+01 4.0e+01 0 7.0e+02 1.2e+01 0 0 0 1 0"
     p3 = "P3: 7.0e+02 0 3.0e+01 -3.1e+02 0 7.0e+02 1.2e+01 0 0 0 1 0"
     (root / "calib.txt").write_text(f"{P0}\n{P1}\n{p2}\n{p3}\nTr: 1 0 0 0 0 1 0 0 0 0 1 0\n")
-    gray = open_sequence(root)  # no image_0/1: the colour pair read as gray, with P2/P3
+    gray = open_sequence(root, color=False)  # no image_0/1: the colour pair read as gray, with P2/P3
     assert gray.frame(0).left.shape == (24, 48) and gray.calibration.baseline == pytest.approx(0.5)
+    assert open_sequence(root).frame(0).left.shape == (24, 48, 3)  # the default (auto): colour, it is the pair used
     col = open_sequence(root, color=True)
     assert col.frame(1).right.shape == (24, 48, 3) and col.calibration.baseline == pytest.approx(0.5)
 

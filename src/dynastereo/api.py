@@ -17,7 +17,8 @@ from .io.frames import parse_frame_spec
 from .pipeline import MaskJobResult, SlamJobResult, run_mask_job, run_slam_job
 
 
-def load_sequence(sequence: str | Path | Sequence, calib: str | Path | None = None, color: bool = False) -> Sequence:
+def load_sequence(sequence: str | Path | Sequence, calib: str | Path | None = None,
+                  color: bool | None = None) -> Sequence:
     if isinstance(sequence, (str, Path)):
         return open_sequence(Path(sequence), calib=Path(calib) if calib else None, color=color)
     return sequence

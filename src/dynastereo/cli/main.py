@@ -68,7 +68,7 @@ def _build_config(config: Optional[Path], overrides: dict):
 
 @app.command()
 def mask(
-    sequence: Path = typer.Argument(..., help="Sequence folder: KITTI odometry, EuRoC mav0, or left/right folders + YAML calibration."),
+    sequence: Path = typer.Argument(..., help="Sequence folder: KITTI odometry, KITTI raw drive, EuRoC mav0, or left/right folders + YAML calibration."),
     out: Path = typer.Option(..., "--out", "-o", help="Output directory."),
     detector: Optional[str] = typer.Option(None, help="yolov3, yolov3-tiny, yolox-nano, fastestdet, yolo11n-int8, oracle, or a .cfg/.onnx path."),
     stereo: Optional[str] = typer.Option(None, help="Stereo matcher: bm | sgbm | sgbm3way."),
@@ -107,7 +107,7 @@ def mask(
 
 @app.command()
 def run(
-    sequence: Optional[Path] = typer.Argument(None, help="Sequence folder: KITTI odometry, EuRoC mav0, or left/right folders + YAML calibration (or --bag)."),
+    sequence: Optional[Path] = typer.Argument(None, help="Sequence folder: KITTI odometry, KITTI raw drive, EuRoC mav0, or left/right folders + YAML calibration (or --bag)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output directory."),
     masker: Optional[str] = typer.Option(None, help="none | box | outline | seg."),
     detector: Optional[str] = typer.Option(None, help="yolov3, yolov3-tiny, yolox-nano, fastestdet, yolo11n-int8, oracle, or a .cfg/.onnx path."),

@@ -4,9 +4,18 @@
 :class:`~dynastereo.io.base.Sequence` of rectified pairs:
 
 * **KITTI** odometry: ``calib.txt`` + ``image_0/``,``image_1/`` (gray) or ``image_2/``,``image_3/`` (colour);
+* **KITTI raw** drives: ``image_00/``,``image_01/`` (gray) or ``image_02/``,``image_03/`` (colour), each
+  with ``data/`` and ``timestamps.txt``, and ``calib_cam_to_cam.txt`` in the date folder above
+  (the drive folder, or a date folder holding one drive);
 * **EuRoC** MAV: ``mav0/`` (or ``cam0/sensor.yaml`` directly inside); raw, rectified on read;
 * **generic**: ``left/``+``right/`` (or ``cam0/``+``cam1/``) with ``calib.yaml`` / one ``*.yaml``,
   or any of these layouts with an explicit ``calib`` YAML.
+
+Colour: ``open_sequence(path, color=None)`` (the default, auto) gives BGR frames when the
+images the reader uses are colour (KITTI's colour pair when it is the one used, colour
+images in a generic folder), gray frames otherwise; ``color=False`` forces gray, ``color=True``
+asks for colour (KITTI: the colour pair, an error without it).  Disparity and SLAM read
+``frame.left_gray`` / ``frame.right_gray``; the detector gets ``frame.left`` as it is.
 """
 
 from __future__ import annotations
@@ -20,7 +29,9 @@ from .calib import (
     RawStereoCalibration,
     kitti_projections,
     load_euroc_calib,
+    kitti_raw_projections,
     load_kitti_calib,
+    load_kitti_raw_calib,
     load_middlebury_calib,
     load_orbslam2_settings,
     load_stereo_yaml,
@@ -41,13 +52,15 @@ from .images import (
     write_pfm,
 )
 from .kitti import KittiSequence, kitti_image_dirs
+from .kitti_raw import KittiRawSequence, read_kitti_raw_timestamps, resolve_kitti_raw_drive
 from .rectify import Rectifier
-from .sequence import ImagePairSequence
+from .sequence import ImagePairSequence, is_colour_image
 
 __all__ = [
     "EurocSequence",
     "FolderSequence",
     "ImagePairSequence",
+    "KittiRawSequence",
     "KittiSequence",
     "MiddleburyCalibration",
     "RawStereoCalibration",
@@ -55,10 +68,13 @@ __all__ = [
     "Sequence",
     "detect_format",
     "image_size",
+    "is_colour_image",
     "kitti_projections",
+    "kitti_raw_projections",
     "list_images",
     "load_euroc_calib",
     "load_kitti_calib",
+    "load_kitti_raw_calib",
     "load_middlebury_calib",
     "load_orbslam2_settings",
     "load_stereo_yaml",
@@ -69,6 +85,7 @@ __all__ = [
     "read_disparity_png",
     "read_image",
     "read_kitti_calib_rows",
+    "read_kitti_raw_timestamps",
     "read_pfm",
     "read_yaml_file",
     "write_disparity_png",
@@ -77,13 +94,15 @@ __all__ = [
 
 _LOOKED_FOR = (
     "KITTI: calib.txt with image_0/+image_1/ or image_2/+image_3/; "
+    "KITTI raw: a drive folder with image_00/+image_01/ or image_02/+image_03/ (or a date folder with one drive); "
     "EuRoC: mav0/cam0, mav0/cam1 (or cam0/sensor.yaml inside the folder); "
     "generic: left/+right/ (or cam0/+cam1/) with calib.yaml or a single *.yaml, or an explicit calibration YAML"
 )
 
 
 def detect_format(path: str | Path, calib: str | Path | None = None) -> str:
-    """``"kitti"``, ``"euroc"`` or ``"folder"`` for a sequence folder; SequenceError if none fits."""
+    """``"kitti"``, ``"kitti_raw"``, ``"euroc"`` or ``"folder"`` for a sequence folder; SequenceError if
+    none fits (or a KITTI raw date folder holds several drives)."""
     path = Path(path)
     if not path.exists():
         raise SequenceError("sequence folder not found", path)
@@ -94,6 +113,8 @@ def detect_format(path: str | Path, calib: str | Path | None = None) -> str:
     has_kitti_images = kitti_image_dirs(path, False) is not None  # either pair; KittiSequence checks colour
     if has_kitti_images and ((path / "calib.txt").is_file() or calib is not None):
         return "kitti"
+    if not has_kitti_images and resolve_kitti_raw_drive(path) is not None:
+        return "kitti_raw"
     if (path / "mav0").is_dir() or (path / "cam0" / "sensor.yaml").is_file():
         if euroc_mav_dir(path) is None:
             raise SequenceError("looks like EuRoC but mav0/cam0 and mav0/cam1 are incomplete", path)
@@ -114,16 +135,19 @@ def detect_format(path: str | Path, calib: str | Path | None = None) -> str:
     raise SequenceError(f"unrecognised sequence folder; looked for {_LOOKED_FOR}", path)
 
 
-def open_sequence(path: str | Path, calib: str | Path | None = None, color: bool = False) -> Sequence:
+def open_sequence(path: str | Path, calib: str | Path | None = None, color: bool | None = None) -> Sequence:
     """Open a stereo sequence folder in any supported format (see module doc).
 
     ``calib``: a YAML calibration overriding the folder's own (or supplying a missing one).
-    ``color``: BGR frames when the source has colour (KITTI's image_2/3, colour folders).
+    ``color``: ``None`` (auto) BGR frames when the images used are colour, else gray;
+    ``False`` gray; ``True`` BGR (KITTI: the colour pair).
     """
     path = Path(path)
     fmt = detect_format(path, calib)
     if fmt == "kitti":
         return KittiSequence(path, color=color, calib=calib)
+    if fmt == "kitti_raw":
+        return KittiRawSequence(path, color=color, calib=calib)
     if fmt == "euroc":
         return EurocSequence(path, calib=calib, color=color)
     return FolderSequence.from_root(path, calib=calib, color=color)

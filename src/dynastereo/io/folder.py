@@ -11,6 +11,10 @@ Images are paired in sorted-name order (the counts must match).  Without ``times
 timestamps are ``index * frame_interval`` (0.1 s by default).  The YAML is read by
 :func:`~dynastereo.io.calib.load_stereo_yaml`: dynastereo's own format (rectified or raw)
 or an ORB-SLAM2 settings file; raw calibrations are rectified on read.
+
+``color=None`` (the default) gives BGR frames when the images hold colour (the first left
+image decides, see :func:`~dynastereo.io.sequence.is_colour_image`), gray frames otherwise;
+``color=True`` / ``False`` force BGR / gray.
 """
 
 from __future__ import annotations
@@ -67,7 +71,7 @@ class FolderSequence(ImagePairSequence):
         left_dir: str | Path,
         right_dir: str | Path,
         calib_yaml: str | Path,
-        color: bool = False,
+        color: bool | None = None,
         times: str | Path | np.ndarray | None = None,
         frame_interval: float = 0.1,
         name: str | None = None,
@@ -115,7 +119,8 @@ class FolderSequence(ImagePairSequence):
         )
 
     @classmethod
-    def from_root(cls, root: str | Path, calib: str | Path | None = None, color: bool = False) -> "FolderSequence":
+    def from_root(cls, root: str | Path, calib: str | Path | None = None,
+                  color: bool | None = None) -> "FolderSequence":
         """Open ``root`` with ``left/``+``right/`` (or ``cam0/``+``cam1/``) and a YAML calibration."""
         root = Path(root)
         dirs = find_pair_dirs(root)

@@ -25,11 +25,11 @@ from .sequence import ImagePairSequence
 KITTI_FRAME_INTERVAL = 0.1  # s: KITTI's cameras run at about 10 Hz
 
 
-def kitti_image_dirs(path: Path, color: bool) -> tuple[Path, Path, bool] | None:
+def kitti_image_dirs(path: Path, color: bool | None) -> tuple[Path, Path, bool] | None:
     """``(left_dir, right_dir, uses_colour_pair)`` for a KITTI sequence folder, or None.
 
-    ``color=True`` needs image_2/image_3.  ``color=False`` prefers image_0/image_1 and falls
-    back to image_2/image_3 (read as gray, calibrated with P2/P3) when only those exist.
+    ``color=True`` needs image_2/image_3.  ``color=False`` or ``None`` prefers image_0/image_1
+    and falls back to image_2/image_3 (calibrated with P2/P3) when only those exist.
     """
     gray = (path / "image_0", path / "image_1")
     colour = (path / "image_2", path / "image_3")
@@ -43,9 +43,11 @@ def kitti_image_dirs(path: Path, color: bool) -> tuple[Path, Path, bool] | None:
 class KittiSequence(ImagePairSequence):
     """A KITTI odometry sequence (already rectified: frames are returned as stored).
 
-    ``color=False``: the gray pair ``image_0``/``image_1`` with P0/P1 (or, if a folder has only
-    the colour pair, ``image_2``/``image_3`` read as gray with P2/P3).  ``color=True``: the
-    colour pair ``image_2``/``image_3`` with P2/P3, as BGR.
+    ``color=None`` (the default, auto): the gray pair ``image_0``/``image_1`` with P0/P1 when
+    present, gray frames; else the colour pair ``image_2``/``image_3`` with P2/P3, BGR frames.
+    ``color=False``: the same pairs, always gray frames (a colour-only folder read as gray).
+    ``color=True``: the colour pair ``image_2``/``image_3`` with P2/P3, as BGR (an error
+    when it is absent).  ``uses_colour_pair`` says which pair was chosen.
 
     Timestamps come from ``times.txt`` when present (indexed by the frame number in the
     file name, so a folder holding the first N frames of a sequence can use the full
@@ -55,13 +57,14 @@ class KittiSequence(ImagePairSequence):
     used instead of ``calib.txt``.
     """
 
-    def __init__(self, path: str | Path, color: bool = False, calib: str | Path | None = None) -> None:
+    def __init__(self, path: str | Path, color: bool | None = None, calib: str | Path | None = None) -> None:
         path = Path(path)
         if not path.is_dir():
             raise SequenceError("KITTI sequence folder not found", path)
         dirs = kitti_image_dirs(path, color)
         if dirs is None:
-            want = "image_2/ and image_3/ (colour pair)" if color else "image_0/ and image_1/ (or image_2/ and image_3/)"
+            want = ("image_2/ and image_3/ (colour pair)" if color is True
+                    else "image_0/ and image_1/ (or image_2/ and image_3/)")
             raise SequenceError(f"not a KITTI sequence folder: {want} not found", path)
         left_dir, right_dir, colour_pair = dirs
         left = list_images(left_dir)
@@ -99,7 +102,7 @@ class KittiSequence(ImagePairSequence):
             right_paths=right,
             timestamps=times,
             calibration=calibration,
-            color=color,
+            color=colour_pair if color is None else bool(color),
             calib_path=calib_path,
             left_dir=left_dir,
             right_dir=right_dir,

@@ -15,6 +15,21 @@ from .images import image_size, read_image
 from .rectify import Rectifier
 
 
+def is_colour_image(path: str | Path) -> bool:
+    """Whether an image file holds colour: for PNG the header's colour type (RGB, RGBA or
+    palette) and, if so, the first image decoded (three equal channels count as gray);
+    other formats are decoded.  ImageReadError naming the file when it cannot be read."""
+    path = Path(path)
+    if path.suffix.lower() == ".png":
+        image_size(path)  # checks the file and the PNG header
+        with open(path, "rb") as f:
+            head = f.read(26)
+        if len(head) < 26 or head[25] not in (2, 3, 6):  # 0 gray, 4 gray + alpha
+            return False
+    img = read_image(path, True)
+    return not (np.array_equal(img[:, :, 0], img[:, :, 1]) and np.array_equal(img[:, :, 0], img[:, :, 2]))
+
+
 class ImagePairSequence:
     """Rectified stereo pairs read from two lists of image files.
 
@@ -23,6 +38,10 @@ class ImagePairSequence:
     read).  At construction the pair lists are checked (same length) and, for PNG files,
     every image's size is read from its header and checked against the calibration, so a
     bad file is reported before processing starts; other formats are checked on read.
+
+    ``color``: ``True`` BGR frames, ``False`` gray frames, ``None`` (auto) BGR when the first
+    left image holds colour (see :func:`is_colour_image`), else gray.  ``self.color`` is the
+    resolved ``bool``.
     """
 
     def __init__(
@@ -33,14 +52,13 @@ class ImagePairSequence:
         right_paths: list[Path],
         timestamps: np.ndarray,
         calibration: StereoCalibration | RawStereoCalibration,
-        color: bool = False,
+        color: bool | None = False,
         calib_path: Path | None = None,
         left_dir: Path | None = None,
         right_dir: Path | None = None,
     ) -> None:
         self.name = name
         self.path = Path(path)
-        self.color = color
         self.left_paths = list(left_paths)
         self.right_paths = list(right_paths)
         ldir = left_dir or (self.left_paths[0].parent if self.left_paths else self.path)
@@ -53,6 +71,7 @@ class ImagePairSequence:
             )
         if not self.left_paths:
             raise SequenceError(f"no images in {ldir}", self.path)
+        self.color: bool = is_colour_image(self.left_paths[0]) if color is None else bool(color)
         self._timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
         if len(self._timestamps) != len(self.left_paths):
             raise SequenceError(

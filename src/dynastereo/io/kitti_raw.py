@@ -1,0 +1,268 @@
+"""KITTI raw drives (the "synced + rectified" downloads) in KITTI's own layout.
+
+::
+
+    2011_09_26/                              the date folder
+        calib_cam_to_cam.txt                 P_rect_00..03, S_rect_00..03 (and the raw K/D/R/T)
+        2011_09_26_drive_0001_sync/          the drive folder: pass this one
+            image_00/ timestamps.txt  data/0000000000.png ...     gray left
+            image_01/ timestamps.txt  data/...                    gray right
+            image_02/ timestamps.txt  data/...                    colour left   (optional)
+            image_03/ timestamps.txt  data/...                    colour right  (optional)
+
+Pass the drive folder (``.../2011_09_26_drive_0001_sync``); the date folder is accepted too
+when it holds exactly one drive.
+
+**Which pair, and colour.**  Geometry uses one stereo pair, calibrated with its own rectified
+projections: the gray pair 00/01 (``P_rect_00``/``P_rect_01``, baseline
+``-P_rect_01[0,3] / fx``) or the colour pair 02/03 (``P_rect_02``/``P_rect_03``, baseline
+``(P_rect_02[0,3] - P_rect_03[0,3]) / fx``).  The choice is kept simple:
+
+* ``color=None`` (auto, the default): the gray pair with gray frames when ``image_00``/``image_01``
+  exist, else the colour pair with BGR frames;
+* ``color=False``: the same pairs, always gray frames;
+* ``color=True``: the colour pair with BGR frames (an error when the drive lacks it).
+
+The pairs are never mixed (e.g. gray geometry with the colour camera's image for the
+detector): cameras 02 and 00 are 6 cm apart, so a mask made on one does not fit the other.
+With BGR frames the detector sees colour while disparity and SLAM use ``frame.left_gray`` /
+``frame.right_gray``.
+
+**Timestamps.**  ``image_0x/timestamps.txt`` holds one date-time per image, e.g.
+``2011-09-26 13:02:25.967790592``.  They are parsed exactly (integer nanoseconds), must
+increase strictly, and are indexed by the number in each image's name (a folder holding
+some of a drive's images can keep the full file).  ``timestamps()`` gives seconds since the
+file's first stamp (float64); ``timestamps_ns`` the same in exact integer nanoseconds (which
+a bag export writes as they are).  The left camera's stamps are the frames' stamps; the right
+camera's file, when present, is checked the same way.
+
+**Sizes.**  The rows ``S_rect_0x`` of ``calib_cam_to_cam.txt`` must match the images (an
+unrectified "extract" drive is reported as such).
+"""
+
+from __future__ import annotations
+
+import re
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SequenceError
+from .calib import KITTI_RAW_COLOUR_PAIR, KITTI_RAW_GRAY_PAIR, load_kitti_raw_calib, load_stereo_yaml
+from .images import image_size, list_images
+from .sequence import ImagePairSequence
+
+CALIB_CAM_TO_CAM = "calib_cam_to_cam.txt"
+TIMESTAMPS = "timestamps.txt"
+
+_STAMP = re.compile(r"^(\d{4})-(\d{2})-(\d{2})[ T](\d{2}):(\d{2}):(\d{2})(?:\.(\d{1,9}))?$")
+_EPOCH = datetime(1970, 1, 1)
+
+
+def _cam_dir(drive: Path, cam: str) -> Path:
+    return drive / f"image_{cam}"
+
+
+def _data_dir(cam_dir: Path) -> Path:
+    """``image_0x/data`` (KITTI's layout), or ``image_0x`` itself when it has no ``data/``."""
+    return cam_dir / "data" if (cam_dir / "data").is_dir() else cam_dir
+
+
+def kitti_raw_pairs(drive: Path) -> dict[str, tuple[Path, Path]]:
+    """The stereo pairs present in a drive folder: ``{"gray": (image_00, image_01), "colour": ...}``."""
+    out: dict[str, tuple[Path, Path]] = {}
+    for kind, (cl, cr) in (("gray", KITTI_RAW_GRAY_PAIR), ("colour", KITTI_RAW_COLOUR_PAIR)):
+        l, r = _cam_dir(drive, cl), _cam_dir(drive, cr)
+        if l.is_dir() and r.is_dir():
+            out[kind] = (l, r)
+    return out
+
+
+def is_kitti_raw_drive(path: Path) -> bool:
+    """Whether ``path`` looks like a KITTI raw drive folder (``image_00``+``image_01`` or
+    ``image_02``+``image_03``)."""
+    return path.is_dir() and bool(kitti_raw_pairs(path))
+
+
+def kitti_raw_drives(path: Path) -> list[Path]:
+    """The drive folders directly inside a date folder, sorted by name."""
+    if not path.is_dir():
+        return []
+    return sorted(p for p in path.iterdir() if p.is_dir() and is_kitti_raw_drive(p))
+
+
+def resolve_kitti_raw_drive(path: Path) -> Path | None:
+    """The drive folder for ``path``: itself if it is a drive, the only drive of a date folder;
+    None if neither.  SequenceError for a date folder with several drives (or a
+    ``calib_cam_to_cam.txt`` and none)."""
+    path = Path(path)
+    if is_kitti_raw_drive(path):
+        return path
+    drives = kitti_raw_drives(path)
+    if len(drives) == 1:
+        return drives[0]
+    if len(drives) > 1:
+        names = ", ".join(p.name for p in drives)
+        raise SequenceError(
+            f"KITTI raw date folder with {len(drives)} drives ({names}); pass one drive folder, e.g. {drives[0]}",
+            path,
+        )
+    if (path / CALIB_CAM_TO_CAM).is_file():
+        raise SequenceError(
+            f"KITTI raw date folder ({CALIB_CAM_TO_CAM}) without a drive folder "
+            "(…_drive_NNNN_sync/ with image_00/+image_01/ or image_02/+image_03/)",
+            path,
+        )
+    return None
+
+
+def parse_kitti_raw_stamp(text: str) -> int:
+    """Nanoseconds since 1970-01-01 of a KITTI raw stamp ``YYYY-MM-DD HH:MM:SS.fffffffff``
+    (read as written, without a time zone); ValueError when malformed."""
+    m = _STAMP.match(text.strip())
+    if m is None:
+        raise ValueError("expected 'YYYY-MM-DD HH:MM:SS.fffffffff'")
+    y, mo, d, h, mi, s = (int(g) for g in m.groups()[:6])
+    whole = datetime(y, mo, d, h, mi, s)  # ValueError for month 13, second 61 ...
+    frac = m.group(7) or ""
+    days = (whole.date() - _EPOCH.date()).days
+    secs = days * 86400 + h * 3600 + mi * 60 + s
+    return secs * 1_000_000_000 + int(frac.ljust(9, "0") or 0)
+
+
+def read_kitti_raw_timestamps(path: str | Path) -> np.ndarray:
+    """Exact stamps (int64 nanoseconds since 1970, as written) of a ``timestamps.txt``.
+
+    SequenceError naming the file and line for a missing file, a malformed or blank line,
+    or stamps that do not increase strictly.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise SequenceError("timestamps file not found" if not path.exists() else "not a file", path)
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as e:
+        raise SequenceError(f"cannot read: {e.strerror}", path) from None
+    lines = text.rstrip().splitlines()
+    if not lines:
+        raise SequenceError("no timestamps (the file is empty)", path)
+    stamps: list[int] = []
+    for lineno, line in enumerate(lines, 1):
+        s = line.strip()
+        if not s:
+            raise SequenceError(f"line {lineno} is empty (one 'YYYY-MM-DD HH:MM:SS.fffffffff' per image)", path)
+        try:
+            ns = parse_kitti_raw_stamp(s)
+        except ValueError as e:
+            raise SequenceError(f"line {lineno}: {s[:60]!r} is not a timestamp ({e})", path) from None
+        if stamps and ns <= stamps[-1]:
+            rel = "equals" if ns == stamps[-1] else "is before"
+            raise SequenceError(
+                f"line {lineno}: timestamp {s} {rel} line {lineno - 1}'s {lines[lineno - 2].strip()} "
+                "(timestamps must increase strictly)",
+                path,
+            )
+        stamps.append(ns)
+    return np.array(stamps, dtype=np.int64)
+
+
+def _frame_numbers(paths: list[Path]) -> np.ndarray:
+    """Frame numbers from the names (0000000123.png -> 123); positions if not all numeric."""
+    stems = [p.stem for p in paths]
+    if all(s.isdigit() for s in stems):
+        return np.array([int(s) for s in stems], dtype=np.int64)
+    return np.arange(len(paths), dtype=np.int64)
+
+
+def _stamps_for(stamps_path: Path, numbers: np.ndarray) -> np.ndarray:
+    ns = read_kitti_raw_timestamps(stamps_path)
+    top = int(numbers.max())
+    if len(ns) <= top:
+        raise SequenceError(
+            f"{len(ns)} timestamps, but the images go up to frame {top} ({len(numbers)} images)", stamps_path
+        )
+    return ns
+
+
+class KittiRawSequence(ImagePairSequence):
+    """A KITTI raw drive (synced + rectified): frames are returned as stored (module doc).
+
+    ``color``: ``None`` auto (gray pair 00/01 when present, else colour pair 02/03 as BGR),
+    ``False`` gray frames, ``True`` the colour pair as BGR.  ``calib``: an optional YAML
+    calibration (see :func:`~dynastereo.io.calib.load_stereo_yaml`) used instead of
+    ``calib_cam_to_cam.txt``.
+
+    Attributes beyond :class:`ImagePairSequence`'s: ``drive`` (the drive folder),
+    ``uses_colour_pair``, ``cameras`` (``("00", "01")`` or ``("02", "03")``),
+    ``timestamps_ns`` (int64 ns since the first stamp of the left ``timestamps.txt``),
+    ``start_time_ns`` (that first stamp, ns since 1970 as written), ``times_path``.
+    """
+
+    def __init__(self, path: str | Path, color: bool | None = None, calib: str | Path | None = None) -> None:
+        path = Path(path)
+        if not path.is_dir():
+            raise SequenceError("KITTI raw drive folder not found", path)
+        drive = resolve_kitti_raw_drive(path)
+        if drive is None:
+            raise SequenceError(
+                "not a KITTI raw drive folder: image_00/ and image_01/ (or image_02/ and image_03/) not found", path
+            )
+        pairs = kitti_raw_pairs(drive)
+        if color is True:
+            if "colour" not in pairs:
+                raise SequenceError(
+                    "colour frames asked for, but the drive has no colour pair image_02/ and image_03/ "
+                    "(only image_00/ and image_01/, gray)",
+                    drive,
+                )
+            kind = "colour"
+        else:
+            kind = "gray" if "gray" in pairs else "colour"
+        colour_pair = kind == "colour"
+        self.drive = drive
+        self.uses_colour_pair = colour_pair
+        self.cameras = KITTI_RAW_COLOUR_PAIR if colour_pair else KITTI_RAW_GRAY_PAIR
+        lcam, rcam = pairs[kind]
+        left_dir, right_dir = _data_dir(lcam), _data_dir(rcam)
+        left, right = list_images(left_dir), list_images(right_dir)
+        if len(left) != len(right):
+            raise SequenceError(
+                f"left and right image counts differ: {len(left)} in {left_dir}, {len(right)} in {right_dir}", drive
+            )
+        if not left:
+            raise SequenceError(f"no images in {left_dir}", drive)
+        lnames, rnames = [p.name for p in left], [p.name for p in right]
+        if lnames != rnames:
+            i = next(k for k in range(len(lnames)) if lnames[k] != rnames[k])
+            raise SequenceError(
+                f"left and right file names differ: {left[i]} is paired with {right[i]} "
+                f"(folders {left_dir} and {right_dir})",
+                drive,
+            )
+        size = image_size(left[0])
+        if calib is not None:
+            calibration = load_stereo_yaml(calib, size)
+            calib_path = Path(calib)
+        else:
+            calib_path = drive.parent / CALIB_CAM_TO_CAM
+            calibration = load_kitti_raw_calib(calib_path, size, color=colour_pair, image_path=left[0])
+        numbers = _frame_numbers(left)
+        self.times_path = lcam / TIMESTAMPS
+        ns = _stamps_for(self.times_path, numbers)
+        if (rcam / TIMESTAMPS).is_file():
+            _stamps_for(rcam / TIMESTAMPS, numbers)  # checked like the left one; the frames use the left stamps
+        self.start_time_ns = int(ns[0])
+        self.timestamps_ns = (ns - ns[0])[numbers]
+        super().__init__(
+            name=drive.name,
+            path=drive,
+            left_paths=left,
+            right_paths=right,
+            timestamps=self.timestamps_ns.astype(np.float64) * 1e-9,
+            calibration=calibration,
+            color=colour_pair if color is None else bool(color),
+            calib_path=calib_path,
+            left_dir=left_dir,
+            right_dir=right_dir,
+        )
