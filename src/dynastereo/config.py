@@ -47,15 +47,77 @@ class StereoConfig:
     scale: int = 1
 
 
+DETECTOR_CANVASES = ("frame", "tiles", "model")
+DETECTOR_SCHEDULES = ("every", "interval", "rotate")
+DETECTOR_CONTRASTS = ("clahe", "none")
+
+
 @dataclass
 class DetectorConfig:
+    """The detector and how it meets the frame (``masking/detection/stage.py``).
+
+    The defaults are the row that wins ``benchmarks/bench_recall.py`` (README: "Finding
+    the objects"): the frame at its own scale in a rectangular canvas, CLAHE contrast,
+    the network on every other frame and the boxes carried by optical flow between runs.
+    """
+
     name: str = "yolox-nano"  # registry name or a path to a .cfg / .onnx file
-    score_threshold: float = 0.25
+    score_threshold: float = 0.15
     nms_threshold: float = 0.45
-    input_size: int | None = None  # None: the model's native size
+    input_size: int | None = None  # canvas "model" only; None: the model's native size
     dynamic_classes: list[str] = field(default_factory=lambda: list(DEFAULT_DYNAMIC_CLASSES))
     threads: int = 2
     min_box_size: float = 4.0  # boxes thinner than this (pixels) are dropped
+    # How the frame meets the network: "frame" = one canvas of the frame's aspect at
+    # `scale` (the ONNX graph rewritten exactly / Darknet at a rectangular blob); "tiles" =
+    # `tiles` overlapping tiles across the frame at `scale`, batched, boxes merged across
+    # the seams; "model" = letterboxed into the model's own square canvas (shrinks a wide
+    # frame: a KITTI frame to a third)
+    canvas: str = "frame"
+    scale: float = 1.0
+    tiles: int = 3
+    tile_overlap: float = 0.2  # share of a tile's width overlapping each neighbour
+    contrast: str = "clahe"  # clahe | none: the detector's input only
+    # When the network runs: "every" frame, every `interval`-th frame ("interval"), or
+    # one tile per frame in turn ("rotate", canvas "tiles"); boxes are carried between
+    schedule: str = "interval"
+    interval: int = 2
+    track: bool = True  # carry boxes between frames (optical flow), with track ids
+    max_carry: int = 2  # detector runs a box is carried without a confirming detection
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Range checks (ConfigError naming the key); run whenever one is made or loaded."""
+        def bad(key: str, want: str, got: Any) -> ConfigError:
+            return ConfigError(f"detector.{key} must be {want}, got {got!r}")
+
+        if self.canvas not in DETECTOR_CANVASES:
+            raise bad("canvas", "one of " + ", ".join(DETECTOR_CANVASES), self.canvas)
+        if self.schedule not in DETECTOR_SCHEDULES:
+            raise bad("schedule", "one of " + ", ".join(DETECTOR_SCHEDULES), self.schedule)
+        if self.contrast not in DETECTOR_CONTRASTS:
+            raise bad("contrast", "one of " + ", ".join(DETECTOR_CONTRASTS), self.contrast)
+        if not (0.1 <= self.scale <= 4.0):
+            raise bad("scale", "in [0.1, 4]", self.scale)
+        if self.tiles < 1:
+            raise bad("tiles", ">= 1", self.tiles)
+        if not (0.0 <= self.tile_overlap < 1.0):
+            raise bad("tile_overlap", "in [0, 1)", self.tile_overlap)
+        if self.interval < 1:
+            raise bad("interval", ">= 1", self.interval)
+        if self.max_carry < 0:
+            raise bad("max_carry", ">= 0", self.max_carry)
+        if not (0.0 <= self.score_threshold < 1.0):
+            raise bad("score_threshold", "in [0, 1)", self.score_threshold)
+        if not (0.0 < self.nms_threshold <= 1.0):
+            raise bad("nms_threshold", "in (0, 1]", self.nms_threshold)
+        if self.schedule == "rotate" and self.canvas != "tiles":
+            raise ConfigError("detector.schedule 'rotate' needs detector.canvas 'tiles' (one tile per frame)")
+        if self.schedule != "every" and not self.track:
+            raise ConfigError(f"detector.schedule {self.schedule!r} needs detector.track: true "
+                              "(boxes are carried between the detector's runs)")
 
 
 @dataclass

@@ -28,11 +28,10 @@ import numpy as np
 from .io.base import Sequence
 from .io.images import write_disparity_png
 from .masking.base import Masker
+from .masking.maskers import MASK_STAGES
 from .timing import StageTimer
 from .types import StereoFrame, StereoMasks
 
-# Stages that make up "mask": everything in masking but the detector network.
-MASK_STAGES = ("disparity", "outline", "transfer", "segment", "boxes")
 
 
 def frame_name(index: int) -> str:

@@ -17,7 +17,7 @@ from ..config import Config
 from ..errors import ConfigError
 from .base import Detector, DisparityEstimator, Masker
 from .disparity import StereoMatcher, normalize_disparity, validate_stereo_config
-from .maskers import MASKER_KINDS, BoxMasker, NoneMasker, OutlineMasker, SegMasker
+from .maskers import MASK_STAGES, MASKER_KINDS, BoxMasker, NoneMasker, OutlineMasker, SegMasker
 from .outline import OutlineResult, outline_objects
 from .transfer import TransferResult, transfer_labels
 
@@ -46,10 +46,12 @@ def create_masker(
         model = create_seg_model(cfg.masker.seg_model, cfg.detector, models_dir)
         return SegMasker(model, max_disparity=float(cfg.stereo.min_disparity + cfg.stereo.num_disparities))
     matcher = StereoMatcher(cfg.stereo)  # validates the stereo section first
-    if detector is None:
-        from .detection import create_detector
+    from .detection import DetectionStage, create_detector
 
+    if detector is None:
         detector = create_detector(cfg.detector, models_dir)
+    if not isinstance(detector, DetectionStage):
+        detector = DetectionStage(detector, cfg.detector)
     if kind == "box":
         return BoxMasker(detector, matcher, cfg.masker.outline, full_disparity=full_disparity,
                          margin=cfg.masker.box_margin)
@@ -58,6 +60,7 @@ def create_masker(
 
 __all__ = [
     "BoxMasker",
+    "MASK_STAGES",
     "Detector",
     "DisparityEstimator",
     "Masker",

@@ -44,6 +44,9 @@ from .transfer import MODES as TRANSFER_MODES
 from .transfer import transfer_labels
 
 MASKER_KINDS = ("outline", "box", "seg", "none")
+#: Stages that make up ``mask``: everything in masking but the detector network
+#: (``detect``); ``contrast`` and ``carry`` are the detection stage's own work.
+MASK_STAGES = ("contrast", "carry", "disparity", "outline", "transfer", "segment", "boxes")
 
 
 def _stage(timer: StageTimer | None, name: str) -> ContextManager[Any]:
@@ -173,6 +176,8 @@ class _DisparityMasker:
         return self.mask_labels(frame, dets, timer)[0]
 
     def _detect(self, frame: StereoFrame, timer: StageTimer | None) -> Detections:
+        if hasattr(self.detector, "detect_frame") and hasattr(self.detector, "tracker"):
+            return self.detector.detect_frame(frame, timer)  # a DetectionStage times itself
         with _stage(timer, "detect"):
             return self.detector.detect(frame.left)
 

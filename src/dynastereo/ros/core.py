@@ -53,6 +53,7 @@ from ..config import Config, to_dict
 from ..errors import ConfigError
 from ..io.calib import RawStereoCalibration
 from ..io.rectify import Rectifier
+from ..masking.maskers import MASK_STAGES
 from ..timing import StageTimer
 from ..types import StereoCalibration, StereoFrame, StereoMasks
 from .convert import twist_between
@@ -61,7 +62,6 @@ from .messages import DEFAULT_LEFT_FRAME, ODOM_FRAME, DisparityData, OdometryDat
 log = logging.getLogger("dynastereo.ros")
 
 LIVE_SECTIONS = ("stereo", "masker", "detector")
-MASK_STAGES = ("disparity", "outline", "transfer", "segment", "boxes", "ground")
 
 
 @dataclass

@@ -27,6 +27,9 @@ from .onnx import (
     detect_onnx_layout,
     make_session,
 )
+from .scale import CANVAS_MODES, ScaledDetector, Tile, merge_tile_boxes, tile_windows
+from .stage import SCHEDULES, Contrast, DetectionStage, validate_detector_config
+from .tracking import BoxTracker, TrackerParams
 from .postprocess import (
     DARKNET_LAYOUT,
     ULTRALYTICS_LAYOUT,
@@ -133,7 +136,18 @@ def create_seg_model(
 
 
 __all__ = [
+    "BoxTracker",
     "BoxTransform",
+    "CANVAS_MODES",
+    "Contrast",
+    "DetectionStage",
+    "SCHEDULES",
+    "ScaledDetector",
+    "Tile",
+    "TrackerParams",
+    "merge_tile_boxes",
+    "tile_windows",
+    "validate_detector_config",
     "COCO_CLASSES",
     "DARKNET_LAYOUT",
     "DarknetDetector",

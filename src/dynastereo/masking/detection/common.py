@@ -137,5 +137,13 @@ class YoloDetectorBase:
         """Dynamic-class detections in ``image`` pixel coordinates (BGR or gray input)."""
         return self.postprocess(self.raw_outputs(image))
 
+    def raw_outputs_batch(self, images: list[np.ndarray]) -> list[RawOutput]:
+        """:meth:`raw_outputs` of several images (one network call where the model allows)."""
+        return [self.raw_outputs(im) for im in images]
+
+    def detect_batch(self, images: list[np.ndarray]) -> list[Detections]:
+        """:meth:`detect` of several images, e.g. the tiles of one frame."""
+        return [self.postprocess(r) for r in self.raw_outputs_batch(images)]
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r})"

@@ -9,6 +9,7 @@ layer zeroes class scores <= 0.2, so a ``score_threshold`` below 0.2 changes not
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 from typing import Sequence
 
@@ -127,6 +128,23 @@ class DarknetDetector(YoloDetectorBase):
         self.net.setPreferableTarget(cv2.dnn.DNN_TARGET_CPU)
         self.out_names = tuple(self.net.getUnconnectedOutLayersNames())
         self.cfg_path, self.weights_path = cfg_path, weights_path
+
+    can_rewrite = True
+    batch = 1
+
+    def with_canvas(self, width: int, height: int, batch: int = 1) -> "DarknetDetector":
+        """The same network at a ``width`` x ``height`` blob (Darknet's YOLO layers take
+        any multiple of 32); shares the loaded network, so not for another thread."""
+        if width % 32 or height % 32 or width <= 0 or height <= 0:
+            raise ConfigError(f"Darknet YOLO canvas sides must be positive multiples of 32, got {width}x{height}")
+        if (width, height) == (self.input_w, self.input_h):
+            return self
+        other = copy.copy(self)
+        other.input_w, other.input_h = int(width), int(height)
+        return other
+
+    def raw_outputs_batch(self, images: list[np.ndarray]) -> list[RawOutput]:
+        return [self.raw_outputs(im) for im in images]
 
     def raw_outputs(self, image: np.ndarray) -> RawOutput:
         """Network outputs (one (N_l, 85) array per YOLO layer) for ``image``."""

@@ -7,6 +7,7 @@ used only as measured baselines (never a default).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -23,11 +24,12 @@ from .postprocess import ULTRALYTICS_LAYOUT, YOLOX_LAYOUT, PostResult
 STRIDES = (8, 16, 32)
 
 
-def make_session(path: Path, threads: int) -> Any:
-    """An onnxruntime CPU session with ``threads`` intra-op threads (1 inter-op thread)."""
+def make_session(path: Path, threads: int, model_bytes: bytes | None = None) -> Any:
+    """An onnxruntime CPU session with ``threads`` intra-op threads (1 inter-op thread);
+    ``model_bytes``: a rewritten graph of ``path`` (:mod:`.rewrite`) instead of the file."""
     import onnxruntime as ort
 
-    if not Path(path).is_file():
+    if model_bytes is None and not Path(path).is_file():
         raise ModelError("ONNX model file not found", path)
     so = ort.SessionOptions()
     if threads and threads > 0:
@@ -37,7 +39,8 @@ def make_session(path: Path, threads: int) -> Any:
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     so.log_severity_level = 3
     try:
-        return ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
+        src = model_bytes if model_bytes is not None else str(path)
+        return ort.InferenceSession(src, sess_options=so, providers=["CPUExecutionProvider"])
     except Exception as e:  # onnxruntime raises its own exception types (InvalidProtobuf, Fail, ...)
         raise ModelError(f"onnxruntime cannot load the model: {e}", path) from None
 
@@ -80,6 +83,7 @@ def detect_onnx_layout(session: Any, path: Path | str = "") -> str:
 
 class OnnxDetectorBase(YoloDetectorBase):
     default_size = 416
+    onnx_layout = ""  # the rewrite layout (.rewrite), "" = cannot be rewritten
 
     def __init__(
         self,
@@ -108,6 +112,7 @@ class OnnxDetectorBase(YoloDetectorBase):
         else:
             self.input_w = self.input_h = int(config.input_size or self.default_size)
         self.output_shapes = [_dims(o.shape) for o in self.session.get_outputs()]
+        self.batch = shape[0] or 1
         meta = self.session.get_modelmeta().custom_metadata_map or {}
         nc = self._num_classes()
         self._init_common(name or self.onnx_path.stem, resolve_class_names(self.onnx_path, nc, meta), config)
@@ -117,6 +122,45 @@ class OnnxDetectorBase(YoloDetectorBase):
 
     def _run(self, blob: np.ndarray) -> list[np.ndarray]:
         return self.session.run(None, {self.input_name: blob})
+
+    @property
+    def can_rewrite(self) -> bool:
+        return bool(self.onnx_layout) and self.onnx_path.is_file()
+
+    def with_canvas(self, width: int, height: int, batch: int = 1) -> "OnnxDetectorBase":
+        """The same weights on a ``width`` x ``height`` canvas, ``batch`` images per call
+        (the graph rewritten exactly, :mod:`.rewrite`); ``self`` when that is its canvas."""
+        if (width, height, batch) == (self.input_w, self.input_h, self.batch):
+            return self
+        from .rewrite import rewrite
+
+        if not self.can_rewrite:
+            raise ModelError(f"{type(self).__name__} cannot run at another canvas", self.onnx_path)
+        data = rewrite(self.onnx_path, self.onnx_layout, width, height, batch)
+        session = make_session(self.onnx_path, self.config.threads, data)
+        cfg = replace(self.config, input_size=None)
+        return type(self)(self.onnx_path, cfg, name=self.name, session=session, **self._native_kw())
+
+    def _native_kw(self) -> dict:
+        return {}
+
+    def raw_outputs_batch(self, images: list[np.ndarray]) -> list[RawOutput]:
+        """:meth:`raw_outputs` of several images in one network call when the session's
+        batch matches (a rewritten graph), else one call each."""
+        if self.batch != len(images) or len(images) < 2:
+            return [self.raw_outputs(im) for im in images]
+        prepared = [self._prepare(im) for im in images]
+        outs = self._run(np.concatenate([b for b, _ in prepared], axis=0))
+        return [RawOutput([o[k : k + 1] for o in outs], t, t_shape, extra)
+                for k, (_, (t, t_shape, extra)) in enumerate(prepared)]
+
+    def _prepare(self, image: np.ndarray) -> tuple[np.ndarray, tuple[BoxTransform, tuple[int, int], dict]]:
+        """(1x3xHxW blob, (transform, image shape, extra)) for one image."""
+        raise NotImplementedError
+
+    def raw_outputs(self, image: np.ndarray) -> RawOutput:
+        blob, (t, shape, extra) = self._prepare(image)
+        return RawOutput(list(self._run(blob)), t, shape, extra)
 
 
 class YoloxDetector(OnnxDetectorBase):
@@ -130,6 +174,7 @@ class YoloxDetector(OnnxDetectorBase):
 
     layout = YOLOX_LAYOUT
     default_size = 416
+    onnx_layout = "yolox"
 
     def __init__(
         self, onnx_path: str | Path, config: DetectorConfig | None = None, *, name: str | None = None, session: Any = None
@@ -153,13 +198,12 @@ class YoloxDetector(OnnxDetectorBase):
             raise ModelError(f"unexpected YOLOX output shape {self.output_shapes[0]}", self.onnx_path)
         return c - 5
 
-    def raw_outputs(self, image: np.ndarray) -> RawOutput:
+    def _prepare(self, image: np.ndarray) -> tuple[np.ndarray, tuple[BoxTransform, tuple[int, int], dict]]:
         img = to_bgr(image)
         h, w = img.shape[:2]
         padded, r, _ = letterbox(img, (self.input_w, self.input_h), 114, center=False)
         blob = cv2.dnn.blobFromImage(padded)  # 1x3xHxW float32, BGR, 0..255
-        out = self._run(blob)[0]
-        return RawOutput([out], BoxTransform(1.0 / r, 1.0 / r, 0.0, 0.0, w, h), (h, w))
+        return blob, (BoxTransform(1.0 / r, 1.0 / r, 0.0, 0.0, w, h), (h, w), {})
 
     def rows(self, raw: RawOutput) -> np.ndarray:
         p = raw.outputs[0].reshape(-1, raw.outputs[0].shape[-1])
@@ -181,11 +225,16 @@ class FastestDetDetector(OnnxDetectorBase):
 
     layout = YOLOX_LAYOUT
     default_size = 352
+    onnx_layout = "fastestdet"
 
     def __init__(
-        self, onnx_path: str | Path, config: DetectorConfig | None = None, *, name: str | None = None, session: Any = None
+        self, onnx_path: str | Path, config: DetectorConfig | None = None, *, name: str | None = None, session: Any = None,
+        native: tuple[int, int] | None = None,
     ) -> None:
         super().__init__(onnx_path, config, name=name, session=session)
+        # box sizes are sigmoids in units of the canvas the model was trained at: on a
+        # rewritten canvas they are rescaled from that (native) canvas to this one
+        self.native_w, self.native_h = native or (self.input_w, self.input_h)
         shp = self.output_shapes[0]
         gh = shp[2] or self.input_h // 16
         gw = shp[3] or self.input_w // 16
@@ -194,18 +243,20 @@ class FastestDetDetector(OnnxDetectorBase):
         self._gx = xv.reshape(-1).astype(np.float32)
         self._gy = yv.reshape(-1).astype(np.float32)
 
+    def _native_kw(self) -> dict:
+        return {"native": (self.native_w, self.native_h)}
+
     def _num_classes(self) -> int:
         c = self.output_shapes[0][1]
         if c is None or c <= 5:
             raise ModelError(f"unexpected FastestDet output shape {self.output_shapes[0]}", self.onnx_path)
         return c - 5
 
-    def raw_outputs(self, image: np.ndarray) -> RawOutput:
+    def _prepare(self, image: np.ndarray) -> tuple[np.ndarray, tuple[BoxTransform, tuple[int, int], dict]]:
         img = to_bgr(image)
         h, w = img.shape[:2]
         blob = cv2.dnn.blobFromImage(img, 1 / 255.0, (self.input_w, self.input_h), swapRB=False, crop=False)
-        out = self._run(blob)[0]
-        return RawOutput([out], BoxTransform(float(w), float(h), 0.0, 0.0, w, h), (h, w))
+        return blob, (BoxTransform(float(w), float(h), 0.0, 0.0, w, h), (h, w), {})
 
     def rows(self, raw: RawOutput) -> np.ndarray:
         f = raw.outputs[0]
@@ -221,6 +272,9 @@ class FastestDetDetector(OnnxDetectorBase):
         out[:, 0] = (np.tanh(p[:, 1]) + gx) / gw
         out[:, 1] = (np.tanh(p[:, 2]) + gy) / gh
         out[:, 2:4] = 1.0 / (1.0 + np.exp(-p[:, 3:5]))
+        if (self.native_w, self.native_h) != (self.input_w, self.input_h):
+            out[:, 2] *= self.native_w / self.input_w
+            out[:, 3] *= self.native_h / self.input_h
         out[:, 4] = p[:, 0]
         out[:, 5:] = p[:, 5:]
         return out
@@ -235,6 +289,7 @@ class UltralyticsDetector(OnnxDetectorBase):
 
     layout = ULTRALYTICS_LAYOUT
     default_size = 640
+    onnx_layout = "ultralytics"
     _extra_channels = 0  # mask coefficients (seg)
 
     def _det_output_index(self) -> int:
@@ -246,13 +301,12 @@ class UltralyticsDetector(OnnxDetectorBase):
             raise ModelError(f"unexpected Ultralytics output shape {self.output_shapes}", self.onnx_path)
         return c - 4 - self._extra_channels
 
-    def raw_outputs(self, image: np.ndarray) -> RawOutput:
+    def _prepare(self, image: np.ndarray) -> tuple[np.ndarray, tuple[BoxTransform, tuple[int, int], dict]]:
         img = to_bgr(image)
         h, w = img.shape[:2]
         padded, r, (px, py) = letterbox(img, (self.input_w, self.input_h), 114, center=True)
         blob = cv2.dnn.blobFromImage(padded, 1 / 255.0, swapRB=True)
-        outs = self._run(blob)
-        return RawOutput(list(outs), BoxTransform(1.0 / r, 1.0 / r, float(px), float(py), w, h), (h, w), {"ratio": r})
+        return blob, (BoxTransform(1.0 / r, 1.0 / r, float(px), float(py), w, h), (h, w), {"ratio": r})
 
     def rows(self, raw: RawOutput) -> np.ndarray:
         o = raw.outputs[self._det_output_index()]
@@ -263,6 +317,7 @@ class UltralyticsSegModel(UltralyticsDetector):
     """Ultralytics YOLOv8-seg export (AGPL-3.0: baseline only), e.g. yolov8n-seg.
 
     Outputs 1x(4+C+32)xN (box, C scores, 32 mask coefficients) and 1x32xMHxMW prototypes.
+    (Rewritten canvases: box decoding only; the mask resampling assumes square prototypes.)
     :meth:`detect` returns :class:`Detections` with ``masks``: (K, H, W) bool instance masks
     at full image resolution, each ``sigmoid(coef @ prototypes) > 0.5`` bilinearly
     resampled from the prototype grid and cropped to its box.

@@ -265,11 +265,15 @@ class BoxTracker:
         self._class_names = tuple(names)
 
     # ------------------------------------------------------------------ main
-    def update(self, gray: np.ndarray, detections: Detections | None) -> Detections:
+    def update(
+        self, gray: np.ndarray, detections: Detections | None, region: tuple[float, ...] | None = None
+    ) -> Detections:
         """Boxes to mask on this frame (see the module docstring for the rules).
 
         ``gray``: the frame's grey left image, ``uint8 (H, W)`` (a BGR image is converted).
         ``detections``: the detector's output for this frame, or ``None`` if it did not run.
+        ``region``: ``(x0, y0, x1, y1)`` when the detector searched only that part of the
+        frame (one tile): only tracks whose box centre lies in it count a miss.
         """
         p = self.params
         gray = np.asarray(gray)
@@ -342,9 +346,12 @@ class BoxTracker:
             if matched_det[ti] >= 0 or not ok[ti]:
                 continue
             t = self._tracks[ti]
-            t.misses += int(ran)
-            t.age += 1
             b = boxes[ti]
+            searched = region is None or (
+                region[0] <= (b[0] + b[2]) / 2 < region[2] and region[1] <= (b[1] + b[3]) / 2 < region[3]
+            )
+            t.misses += int(ran and searched)
+            t.age += 1
             if t.misses > p.max_carry or t.age > p.max_age_frames:
                 continue
             if b[2] - b[0] < p.min_box_size or b[3] - b[1] < p.min_box_size:
