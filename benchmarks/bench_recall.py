@@ -63,11 +63,17 @@ ROWS: dict[str, dict] = {
     "yolox frame clahe .15 every+track": {"name": "yolox-nano", "canvas": "frame", "schedule": "every"},
     "yolox frame clahe .15 interval 2+track": {"name": "yolox-nano", "canvas": "frame", "schedule": "interval",
                                                "interval": 2},
+    "yolox frame clahe .25 interval 2+track": {"name": "yolox-nano", "canvas": "frame", "schedule": "interval",
+                                               "interval": 2, "score_threshold": 0.25},
+    "yolox frame clahe .2 interval 2+track": {"name": "yolox-nano", "canvas": "frame", "schedule": "interval",
+                                              "interval": 2, "score_threshold": 0.2},
     "yolox frame clahe .15 interval 3+track": {"name": "yolox-nano", "canvas": "frame", "schedule": "interval",
                                                "interval": 3},
     "yolox tiles clahe .15 rotate+track": {"name": "yolox-nano", "canvas": "tiles", "schedule": "rotate"},
     "yolox frame 0.75 clahe .15 every+track": {"name": "yolox-nano", "canvas": "frame", "scale": 0.75,
                                                "schedule": "every"},
+    "default .1": {"score_threshold": 0.1},
+    "default every": {"schedule": "every"},
     "default": {},
 }
 QUICK = ["shipped-0.1 yolox-nano", "yolox frame", "yolox frame clahe .15", "default"]

@@ -156,6 +156,19 @@ def test_track_dropped_after_max_carry_detector_frames():
     assert len(out) == 0
 
 
+def test_a_track_seen_once_is_not_carried_past_a_miss_with_min_hits():
+    sc = Scene([((60, 100), (200, 120), (1.5, 0.5), 1.0)])
+    tr = BoxTracker(TrackerParams(max_carry=3, min_hits=2))
+    tr.update(sc.frame(0), dets(sc.box(0)))
+    assert tr.update(sc.frame(1), None).carried.tolist() == [True]  # no run: carried
+    assert len(tr.update(sc.frame(2), Detections.empty(COCO_CLASSES))) == 0  # one hit, one miss: gone
+    tr = BoxTracker(TrackerParams(max_carry=3, min_hits=2))
+    tr.update(sc.frame(0), dets(sc.box(0)))
+    tr.update(sc.frame(1), dets(sc.box(1)))  # confirmed: two hits
+    out = tr.update(sc.frame(2), Detections.empty(COCO_CLASSES))
+    assert out.track_ids.tolist() == [0] and out.carried.tolist() == [True]
+
+
 def test_max_age_frames_caps_carrying_without_detector_runs():
     sc = Scene([((60, 100), (200, 120), (1.5, 0.5), 1.0)])
     tr = BoxTracker(TrackerParams(max_age_frames=2))
@@ -176,6 +189,35 @@ def test_lost_points_drop_the_box_unless_detected():
     tr.update(flat, dets(box))
     out = tr.update(flat, dets(np.add(box, 2)))
     assert out.track_ids.tolist() == [0] and out.carried.tolist() == [False]
+
+
+def test_a_box_whose_points_are_lost_moves_on_by_its_velocity():
+    """Detected on two frames (a known velocity), then its texture is gone (points lost):
+    carried on by that velocity instead of dropped."""
+    flat = np.full((H, W), 128, np.uint8)
+    tr = BoxTracker()
+    tr.update(flat, dets([100, 80, 200, 150]))
+    tr.update(flat, dets([106, 81, 208, 152]))  # moved (+6, +1), grew by 2 / 1 px
+    out = tr.update(flat, None)
+    assert out.track_ids.tolist() == [0] and out.carried.tolist() == [True]
+    np.testing.assert_allclose(out.boxes[0], [112, 82, 216, 154], atol=1e-3)
+
+
+def test_a_new_box_without_points_follows_the_other_boxes_motion():
+    """Its own points lost and no velocity yet: the motion of the other boxes' points
+    (here all moving by the same known shift) carries it, within 2 px."""
+    sc = Scene([((60, 100), (80, 90), (4.0, 1.5), 1.0), ((300, 60), (90, 80), (4.0, 1.5), 1.0)], bg_v=(4.0, 1.5))
+    f0, f1 = sc.frame(0), sc.frame(1).copy()
+    blank = [150, 150, 230, 210]
+    f0 = f0.copy()
+    f0[150:210, 150:230] = 128  # a flat patch: no points of its own
+    f1[150:210, 150:230] = 128
+    tr = BoxTracker()
+    tr.update(f0, Detections(np.array([sc.box(0, 0), sc.box(0, 1), blank], np.float32), [0.9] * 3, [2, 2, 2],
+                             COCO_CLASSES))
+    out = tr.update(f1, None)
+    assert len(out) == 3 and out.carried.all()
+    np.testing.assert_allclose(out.boxes[2], np.add(blank, [4.0, 1.5, 4.0, 1.5]), atol=2.0)
 
 
 def test_box_leaving_the_image_is_clipped_then_dropped():

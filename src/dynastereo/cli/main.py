@@ -74,6 +74,8 @@ def mask(
     stereo: Optional[str] = typer.Option(None, help="Stereo matcher: bm | sgbm | sgbm3way."),
     wls: Optional[bool] = typer.Option(None, "--wls/--no-wls", help="WLS-filter the disparity."),
     masker: Optional[str] = typer.Option(None, help="outline | box | seg | none."),
+    canvas: Optional[str] = typer.Option(None, help="How the frame meets the detector: frame (its own scale, default) | tiles | model (the model's square canvas)."),
+    schedule: Optional[str] = typer.Option(None, help="When the detector runs: interval (every detector.interval-th frame, default 2) | every | rotate (one tile per frame); boxes are carried between runs."),
     frames: Optional[str] = typer.Option(None, help="A count N, or inclusive index ranges a-b,c-d."),
     save_disparity: bool = typer.Option(False, "--save-disparity", help="Write DIR/disparity/NNNNNN.png (uint16, disparity*256)."),
     overlays: bool = typer.Option(False, "--overlays", help="Write DIR/overlays/NNNNNN.png."),
@@ -85,7 +87,8 @@ def mask(
     from ..api import mask_sequence
 
     try:
-        overrides = {"detector.name": detector, "stereo.algorithm": stereo, "stereo.wls": wls, "masker.kind": masker}
+        overrides = {"detector.name": detector, "stereo.algorithm": stereo, "stereo.wls": wls, "masker.kind": masker,
+                     "detector.canvas": canvas, "detector.schedule": schedule}
         if save_disparity:
             overrides["stereo.region"] = "full"
         cfg = _build_config(config, overrides)
@@ -112,6 +115,8 @@ def run(
     masker: Optional[str] = typer.Option(None, help="none | box | outline | seg."),
     detector: Optional[str] = typer.Option(None, help="yolov3, yolov3-tiny, yolox-nano, fastestdet, yolo11n-int8, oracle, or a .cfg/.onnx path."),
     stereo: Optional[str] = typer.Option(None, help="Stereo matcher for the masks: bm | sgbm | sgbm3way."),
+    canvas: Optional[str] = typer.Option(None, help="How the frame meets the detector: frame (its own scale, default) | tiles | model (the model's square canvas)."),
+    schedule: Optional[str] = typer.Option(None, help="When the detector runs: interval (every detector.interval-th frame, default 2) | every | rotate (one tile per frame); boxes are carried between runs."),
     frames: Optional[str] = typer.Option(None, help="A count N, or inclusive index ranges a-b,c-d fed in that order (revisits allowed)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML configuration, or an ORB-SLAM2 stereo settings file."),
     calib: Optional[Path] = typer.Option(None, "--calib", help="YAML calibration for a generic folder pair."),
@@ -143,6 +148,7 @@ def run(
     report = None
     try:
         overrides = {"detector.name": detector, "stereo.algorithm": stereo, "masker.kind": masker,
+                     "detector.canvas": canvas, "detector.schedule": schedule,
                      "slam.loop_closing": False if no_loop_closing else None,
                      "slam.vocabulary": str(vocabulary) if vocabulary else None}
         cfg = _build_config(config, overrides)

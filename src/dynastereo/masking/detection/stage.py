@@ -51,6 +51,11 @@ class Contrast:
     def __call__(self, image: np.ndarray) -> np.ndarray:
         if image.ndim == 2:
             return self.clahe.apply(image)
+        if image.ndim == 3 and image.shape[2] == 1:
+            return self.clahe.apply(np.ascontiguousarray(image[:, :, 0]))
+        rows = image[::16]  # a grey image stored as colour (a bag's rgb8 of a grey camera):
+        if np.array_equal(rows[:, :, 0], rows[:, :, 1]) and np.array_equal(rows[:, :, 0], rows[:, :, 2]):
+            return self.clahe.apply(np.ascontiguousarray(image[:, :, 0]))  # the same as grey input
         lab = cv2.cvtColor(image[:, :, :3], cv2.COLOR_BGR2LAB)
         lab[:, :, 0] = self.clahe.apply(np.ascontiguousarray(lab[:, :, 0]))
         return cv2.cvtColor(lab, cv2.COLOR_LAB2BGR)
@@ -75,10 +80,11 @@ class DetectionStage:
         if self.network and not isinstance(detector, ScaledDetector):
             detector = ScaledDetector(detector, cfg.canvas, cfg.scale, cfg.tiles, cfg.tile_overlap)
         self.detector = detector
-        self.name = detector.name
-        self.class_names = detector.class_names
+        self.name = getattr(detector, "name", type(detector).__name__)
+        self.class_names = tuple(getattr(detector, "class_names", ()))
         self.contrast = Contrast() if cfg.contrast == "clahe" and self.network else None
-        self.tracker = BoxTracker(TrackerParams(max_carry=int(cfg.max_carry))) if cfg.track and self.network else None
+        self.tracker = (BoxTracker(TrackerParams(max_carry=int(cfg.max_carry), min_hits=2))
+                        if cfg.track and self.network else None)
         self._count = 0
 
     def reset(self) -> None:

@@ -41,7 +41,8 @@ unmatched detection starts a new track (ids count up from 0 per tracker, and
 *Carrying*.  A track that is not confirmed by a detection in this frame is returned with
 ``carried=True``.  Its ``misses`` count only frames where the detector RAN and did not
 confirm it (frames with ``None`` are not misses); it is dropped when ``misses >
-max_carry``.  Independently, it is dropped when it has been carried for more than
+max_carry`` -- or at its first miss when fewer than ``min_hits`` detector runs have
+seen it (a single low-score detection is often a false one).  Independently, it is dropped when it has been carried for more than
 ``max_age_frames`` frames in a row (any frames).  A carried box's score is its last
 detected score times ``score_decay`` per carried frame.  A carried box that overlaps a
 box of the same class group kept before it (this frame's detections first, then older
@@ -82,6 +83,9 @@ class TrackerParams:
     max_carry: int = 3
     # frames in a row (any frames) a track may be carried without a confirming detection
     max_age_frames: int = 12
+    # a track seen by fewer detector runs than this is not carried past a run that misses
+    # it (one low-score detection is often a false one); frames without a run still carry it
+    min_hits: int = 1
     # fewer points surviving the forward-backward check -> the box cannot be propagated
     min_points: int = 6
     # forward-backward LK error (px) to keep a point
@@ -133,6 +137,8 @@ class _Track:
     score: float  # last detected score
     class_id: int
     misses: int = 0  # detector frames without a confirming detection
+    hits: int = 1  # detector frames that detected it
+    vel: np.ndarray | None = None  # float64 (4,) box change over the last frame, if known
     age: int = 0  # frames carried since the last confirming detection
     mask: np.ndarray | None = field(default=None, repr=False)  # bool (H, W)
 
@@ -242,10 +248,32 @@ class BoxTracker:
             t = np.median(b - s * a, axis=0)
             aff[i] = (s, t[0], t[1])
             ok[i] = True
+        # A box whose own points are lost (too dark, too fast, too much scale change) is
+        # moved by its velocity of the last frame when it has one, else by the motion of
+        # all surviving points together (one scale + translation: the ego-motion's
+        # expansion, right for parked cars); only with neither is it lost.
+        fallback = np.zeros(T, bool)
+        if not ok.all():
+            glob = None
+            if np.count_nonzero(good) >= 2 * p.min_points:
+                a, b = p0[good].astype(np.float64), p1[good].astype(np.float64)
+                ac, bc = a - a.mean(0), b - b.mean(0)
+                sg = float(np.clip(np.sqrt((bc**2).sum() / max((ac**2).sum(), 1e-9)), lo, hi))
+                tg = b.mean(0) - sg * a.mean(0)
+                glob = (sg, tg[0], tg[1])
+            for i in np.flatnonzero(~ok):
+                if self._tracks[i].vel is not None:
+                    fallback[i] = True
+                elif glob is not None:
+                    aff[i] = glob
+                    ok[i] = True
         # box corners (x2/y2 exclusive) -> pixel-centre coordinates, map, and back
         s, tx, ty = aff[:, 0:1], aff[:, 1:2], aff[:, 2:3]
         moved = s * (boxes - 0.5) + np.concatenate([tx, ty, tx, ty], axis=1) + 0.5
         boxes = np.where(ok[:, None], moved, boxes)
+        for i in np.flatnonzero(fallback):
+            boxes[i] = boxes[i] + self._tracks[i].vel
+        ok |= fallback
         return boxes, ok, aff
 
     def _remap_classes(self, names: tuple[str, ...]) -> None:
@@ -331,7 +359,9 @@ class BoxTracker:
             score = float(detections.scores[j])  # type: ignore[union-attr]
             if det_track[j] >= 0:
                 t = by_id[int(det_track[j])]
+                t.vel = det_boxes[j] - t.box if self._prev is not None else None
                 t.box, t.score, t.class_id, t.misses, t.age, t.mask = det_boxes[j], score, cid, 0, 0, mask
+                t.hits += 1
             else:
                 t = _Track(self._next_id, det_boxes[j], score, cid, mask=mask)
                 self._next_id += 1
@@ -352,7 +382,7 @@ class BoxTracker:
             )
             t.misses += int(ran and searched)
             t.age += 1
-            if t.misses > p.max_carry or t.age > p.max_age_frames:
+            if t.misses > (p.max_carry if t.hits >= p.min_hits else 0) or t.age > p.max_age_frames:
                 continue
             if b[2] - b[0] < p.min_box_size or b[3] - b[1] < p.min_box_size:
                 continue
@@ -361,6 +391,7 @@ class BoxTracker:
                 iou = box_iou(b[None], np.array(kept_boxes))[0]
                 if any(iou[k] >= p.dup_iou and kept_groups[k] == g for k in range(len(kept_boxes))):
                     continue
+            t.vel = b - t.box
             t.box = b
             if t.mask is not None:
                 s, tx, ty = aff[ti]
