@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
+from ..masking.detection.tracking import box_iou
 
 VEHICLES = frozenset({"car", "truck", "bus"})
 RIDERS = frozenset({"person", "bicycle", "motorcycle"})
@@ -37,19 +38,7 @@ NEAR_AREA = 2000.0
 MATCH_IOU = 0.5
 FALSE_BOX_IOU = 0.1
 
-
-def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU matrix between (n, 4) and (m, 4) boxes x0, y0, x1, y1 (continuous coordinates)."""
-    a = np.asarray(a, np.float64).reshape(-1, 4)
-    b = np.asarray(b, np.float64).reshape(-1, 4)
-    x0 = np.maximum(a[:, None, 0], b[None, :, 0])
-    y0 = np.maximum(a[:, None, 1], b[None, :, 1])
-    x1 = np.minimum(a[:, None, 2], b[None, :, 2])
-    y1 = np.minimum(a[:, None, 3], b[None, :, 3])
-    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
-    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
-    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
-    return inter / (area_a[:, None] + area_b[None, :] - inter + 1e-9)
+__all__ = ["RecallScore", "ReferenceFrame", "box_iou", "load_references", "score_frame"]
 
 
 @dataclass

@@ -19,8 +19,8 @@ import numpy as np
 
 from ..errors import SequenceError
 from .calib import load_kitti_calib, load_stereo_yaml
-from .images import image_size, list_images
-from .sequence import ImagePairSequence
+from .images import image_size
+from .sequence import ImagePairSequence, list_image_pairs
 
 KITTI_FRAME_INTERVAL = 0.1  # s: KITTI's cameras run at about 10 Hz
 
@@ -67,23 +67,7 @@ class KittiSequence(ImagePairSequence):
                     else "image_0/ and image_1/ (or image_2/ and image_3/)")
             raise SequenceError(f"not a KITTI sequence folder: {want} not found", path)
         left_dir, right_dir, colour_pair = dirs
-        left = list_images(left_dir)
-        right = list_images(right_dir)
-        if len(left) != len(right):
-            raise SequenceError(
-                f"left and right image counts differ: {len(left)} in {left_dir}, {len(right)} in {right_dir}", path
-            )
-        if not left:
-            raise SequenceError(f"no images in {left_dir}", path)
-        lnames = [p.name for p in left]
-        rnames = [p.name for p in right]
-        if lnames != rnames:
-            i = next(k for k in range(len(lnames)) if lnames[k] != rnames[k])
-            raise SequenceError(
-                f"left and right file names differ: {left[i]} is paired with {right[i]} "
-                f"(folders {left_dir} and {right_dir})",
-                path,
-            )
+        left, right = list_image_pairs(left_dir, right_dir, path)
         size = image_size(left[0])
         if calib is not None:
             calibration = load_stereo_yaml(calib, size)

@@ -50,8 +50,8 @@ import numpy as np
 
 from ..errors import SequenceError
 from .calib import KITTI_RAW_COLOUR_PAIR, KITTI_RAW_GRAY_PAIR, load_kitti_raw_calib, load_stereo_yaml
-from .images import image_size, list_images
-from .sequence import ImagePairSequence
+from .images import image_size
+from .sequence import ImagePairSequence, list_image_pairs
 
 CALIB_CAM_TO_CAM = "calib_cam_to_cam.txt"
 TIMESTAMPS = "timestamps.txt"
@@ -225,21 +225,7 @@ class KittiRawSequence(ImagePairSequence):
         self.cameras = KITTI_RAW_COLOUR_PAIR if colour_pair else KITTI_RAW_GRAY_PAIR
         lcam, rcam = pairs[kind]
         left_dir, right_dir = _data_dir(lcam), _data_dir(rcam)
-        left, right = list_images(left_dir), list_images(right_dir)
-        if len(left) != len(right):
-            raise SequenceError(
-                f"left and right image counts differ: {len(left)} in {left_dir}, {len(right)} in {right_dir}", drive
-            )
-        if not left:
-            raise SequenceError(f"no images in {left_dir}", drive)
-        lnames, rnames = [p.name for p in left], [p.name for p in right]
-        if lnames != rnames:
-            i = next(k for k in range(len(lnames)) if lnames[k] != rnames[k])
-            raise SequenceError(
-                f"left and right file names differ: {left[i]} is paired with {right[i]} "
-                f"(folders {left_dir} and {right_dir})",
-                drive,
-            )
+        left, right = list_image_pairs(left_dir, right_dir, drive)
         size = image_size(left[0])
         if calib is not None:
             calibration = load_stereo_yaml(calib, size)

@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import CalibrationError, SequenceError
 from ..types import StereoCalibration, StereoFrame
 from .calib import RawStereoCalibration
-from .images import image_size, read_image
+from .images import image_size, list_images, read_image
 from .rectify import Rectifier
 
 
@@ -170,3 +170,24 @@ class ImagePairSequence:
             f"{type(self).__name__}({self.name!r}, {len(self)} frames, {c.width}x{c.height}, "
             f"fx={c.fx:.2f}, baseline={c.baseline:.4f} m{rect})"
         )
+
+
+def list_image_pairs(left_dir: Path, right_dir: Path, where: Path) -> tuple[list[Path], list[Path]]:
+    """The images of two folders as pairs, by file name: the counts and the names must
+    agree (a SequenceError naming ``where`` and the first mismatch otherwise)."""
+    left, right = list_images(left_dir), list_images(right_dir)
+    if len(left) != len(right):
+        raise SequenceError(
+            f"left and right image counts differ: {len(left)} in {left_dir}, {len(right)} in {right_dir}", where
+        )
+    if not left:
+        raise SequenceError(f"no images in {left_dir}", where)
+    lnames, rnames = [p.name for p in left], [p.name for p in right]
+    if lnames != rnames:
+        i = next(k for k in range(len(lnames)) if lnames[k] != rnames[k])
+        raise SequenceError(
+            f"left and right file names differ: {left[i]} is paired with {right[i]} "
+            f"(folders {left_dir} and {right_dir})",
+            where,
+        )
+    return left, right
