@@ -116,7 +116,7 @@ def run_row(overrides: dict, seq_dir: Path, ref_dir: Path, models: Path, step: i
     for i in range(0, len(seq), step):
         frame = seq.frame(i)
         timer.start_frame(i)
-        dets = outline._detect(frame, timer)
+        dets = outline.detector.detect_frame(frame, timer)  # the DetectionStage
         m = outline.mask_detections(frame, dets, timer)
         rec = timer.end_frame()["ms"]
         btimer.start_frame(i)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -98,3 +98,8 @@ class StageTimer:
         tmp = p.with_suffix(p.suffix + ".tmp")
         tmp.write_text(json.dumps(self.to_json(summary_extra, **extra), indent=1))
         tmp.replace(p)
+
+
+def timed(timer: "StageTimer | None", name: str):
+    """``timer.stage(name)``, or a no-op context when there is no timer."""
+    return timer.stage(name) if timer is not None else nullcontext()

@@ -18,15 +18,14 @@ sums into ``mask``.
 
 from __future__ import annotations
 
-from contextlib import nullcontext
 from dataclasses import replace
-from typing import Any, ContextManager
+from typing import Any
 
 import numpy as np
 
 from ..config import OutlineConfig, StereoConfig
 from ..errors import ConfigError
-from ..timing import StageTimer
+from ..timing import StageTimer, timed
 from ..types import Detections, ObjectMask, StereoFrame, StereoMasks
 from .base import Detector
 from .disparity import StereoMatcher
@@ -49,8 +48,7 @@ MASKER_KINDS = ("outline", "box", "seg", "none")
 MASK_STAGES = ("contrast", "carry", "disparity", "outline", "transfer", "segment", "boxes")
 
 
-def _stage(timer: StageTimer | None, name: str) -> ContextManager[Any]:
-    return timer.stage(name) if timer is not None else nullcontext()
+_stage = timed  # the maskers' stages, timed when a timer is given
 
 
 def _to_mask(labels: np.ndarray) -> np.ndarray:
@@ -176,8 +174,10 @@ class _DisparityMasker:
         return self.mask_labels(frame, dets, timer)[0]
 
     def _detect(self, frame: StereoFrame, timer: StageTimer | None) -> Detections:
-        if hasattr(self.detector, "detect_frame") and hasattr(self.detector, "tracker"):
-            return self.detector.detect_frame(frame, timer)  # a DetectionStage times itself
+        from .detection.stage import DetectionStage
+
+        if isinstance(self.detector, DetectionStage):
+            return self.detector.detect_frame(frame, timer)  # it times its own stages
         with _stage(timer, "detect"):
             return self.detector.detect(frame.left)
 

@@ -28,7 +28,7 @@ from .onnx import (
     make_session,
 )
 from .scale import CANVAS_MODES, ScaledDetector, Tile, merge_tile_boxes, tile_windows
-from .stage import SCHEDULES, Contrast, DetectionStage, validate_detector_config
+from .stage import Contrast, DetectionStage
 from .tracking import BoxTracker, TrackerParams
 from .postprocess import (
     DARKNET_LAYOUT,
@@ -141,13 +141,11 @@ __all__ = [
     "CANVAS_MODES",
     "Contrast",
     "DetectionStage",
-    "SCHEDULES",
     "ScaledDetector",
     "Tile",
     "TrackerParams",
     "merge_tile_boxes",
     "tile_windows",
-    "validate_detector_config",
     "COCO_CLASSES",
     "DARKNET_LAYOUT",
     "DarknetDetector",

@@ -23,23 +23,19 @@ Stage times: ``detect`` (the network, with tiling and merging), ``contrast`` and
 
 from __future__ import annotations
 
-from contextlib import nullcontext
 from typing import Any
 
 import cv2
 import numpy as np
 
-from ...config import DETECTOR_SCHEDULES, DetectorConfig
-from ...timing import StageTimer
+from ...config import DetectorConfig
+from ...timing import StageTimer, timed
 from ...types import Detections, StereoFrame
 from .scale import ScaledDetector
 from .tracking import BoxTracker, TrackerParams
 
-SCHEDULES = DETECTOR_SCHEDULES
 
-
-def _stage(timer: StageTimer | None, name: str):
-    return timer.stage(name) if timer is not None else nullcontext()
+_stage = timed
 
 
 class Contrast:
@@ -61,11 +57,6 @@ class Contrast:
         return cv2.cvtColor(lab, cv2.COLOR_LAB2BGR)
 
 
-def validate_detector_config(cfg: DetectorConfig) -> None:
-    """Range checks of the detector section (:meth:`DetectorConfig.validate`)."""
-    cfg.validate()
-
-
 class DetectionStage:
     """Detections for each frame (module docstring).  ``detector``: any object with
     ``detect(image) -> Detections`` (a plain YOLO detector is wrapped in a
@@ -73,7 +64,7 @@ class DetectionStage:
 
     def __init__(self, detector: Any, cfg: DetectorConfig | None = None):
         self.cfg = cfg = cfg or DetectorConfig()
-        validate_detector_config(cfg)
+        cfg.validate()  # (a configuration changed after it was made)
         # a network detector gets the scale, schedule, contrast and carrying; anything else
         # (the synthetic oracle, test doubles) is used as it is
         self.network = hasattr(detector, "detect_batch") or isinstance(detector, ScaledDetector)
@@ -93,17 +84,17 @@ class DetectionStage:
         if self.tracker is not None:
             self.tracker.reset()
 
-    def _detect(self, image: np.ndarray, k: int) -> tuple[Detections | None, tuple[float, ...] | None]:
-        """(detections or None when the schedule skips frame ``k``, region searched)."""
-        c = self.cfg
-        if c.schedule == "interval" and k % c.interval:
-            return None, None
-        if c.schedule == "rotate" and isinstance(self.detector, ScaledDetector):
+    def _runs(self, k: int) -> bool:
+        """Whether the network runs on the ``k``-th frame of the schedule."""
+        return not (self.cfg.schedule == "interval" and k % self.cfg.interval)
+
+    def _detect(self, image: np.ndarray, k: int) -> tuple[Detections, tuple[float, ...] | None]:
+        """(detections of frame ``k``, the region searched when only one tile was)."""
+        if self.cfg.schedule == "rotate" and isinstance(self.detector, ScaledDetector):
             h, w = image.shape[:2]
             windows, _ = self.detector.plan(w, h)
             t = windows[k % len(windows)]
-            d = self.detector.detect_window(image, k % len(windows))
-            return d, (t.x0, t.y0, t.x1, t.y1)
+            return self.detector.detect_window(image, k % len(windows)), (t.x0, t.y0, t.x1, t.y1)
         return self.detector.detect(image), None
 
     def detect_frame(self, frame: StereoFrame, timer: StageTimer | None = None) -> Detections:
@@ -116,8 +107,9 @@ class DetectionStage:
                 if hasattr(self.detector, "detect_frame"):
                     return self.detector.detect_frame(frame.index)
                 return self.detector.detect(image)
-        else:
-            if self.contrast is not None and not (self.cfg.schedule == "interval" and k % self.cfg.interval):
+        dets, region = None, None
+        if self._runs(k):
+            if self.contrast is not None:
                 with _stage(timer, "contrast"):
                     image = self.contrast(image)
             with _stage(timer, "detect"):
