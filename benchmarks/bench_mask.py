@@ -181,7 +181,7 @@ def main() -> None:
                 ms["n_det"] = len(dets)
                 per_frame[name].append(ms)
                 if name in ground_ok and len(dets):
-                    ground_ok[name].append(bool(masker.last_ground is not None and masker.last_ground.ok))
+                    ground_ok[name].append(bool(masks.ground is not None and masks.ground.ok))
                 if ref is None:
                     continue
                 _, sl, sr, match = ref
@@ -291,7 +291,8 @@ def synth_section(frames: int) -> dict:
     """Outline vs box on synthetic streets with exact GT (oracle boxes)."""
     import tempfile
 
-    from dynastereo.api import build_masker, load_sequence
+    from dynastereo.api import load_sequence
+    from dynastereo.masking import build_masker
     from dynastereo.config import Config
     from dynastereo.eval.masks import LossBudget, MaskAgreement, score_frame
     from dynastereo.synth import OracleDetector, generate, read_gt_disparity, read_gt_masks, read_objects
@@ -309,7 +310,7 @@ def synth_section(frames: int) -> dict:
                     if kind == "box" and (st or st_name == EXACT):
                         continue  # the boxes do not depend on the matcher (but for the right shift)
                     cfg = Config().with_overrides({"detector.name": "oracle", "masker.kind": kind, **st})
-                    masker = build_masker(cfg, seq)
+                    masker = build_masker(cfg, seq.calibration, ground_truth=path)
                     if st_name == EXACT:  # the masker's disparity replaced by the exact one
                         masker._disparity = lambda frame, *a, _p=path, **k: read_gt_disparity(_p, frame.index)
                     agg = MaskAgreement()

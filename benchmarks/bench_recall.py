@@ -14,7 +14,7 @@ scored exactly as ``shared/tools/score_masks.py`` does (``dynastereo.eval.refmas
   (disparity, outline, transfer) per stereo pair, mean over the sequence and median.
 
 Every frame of each sequence is processed in order (the schedule and the carried boxes
-need the sequence), with the masker ``dynastereo mask`` builds (``create_masker``).
+need the sequence), with the masker ``dynastereo mask`` builds (``build_masker``).
 
 Prints a table per sequence; writes benchmarks/results/recall.json.
 Run: DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
@@ -38,7 +38,7 @@ from dynastereo.config import Config
 from dynastereo.errors import ModelError
 from dynastereo.eval.refmasks import load_references, score_frame
 from dynastereo.io import open_sequence
-from dynastereo.masking import BoxMasker, create_masker
+from dynastereo.masking import BoxMasker, build_masker
 from dynastereo.timing import StageTimer
 
 OUT = Path(__file__).resolve().parent / "results" / "recall.json"
@@ -107,7 +107,7 @@ def stats(v: list[float]) -> dict[str, float]:
 def run_row(overrides: dict, seq_dir: Path, ref_dir: Path, models: Path, step: int) -> dict:
     cfg = Config().with_overrides({f"detector.{k}": v for k, v in overrides.items()})
     seq = open_sequence(seq_dir)
-    outline = create_masker(cfg, models_dir=models)
+    outline = build_masker(cfg, seq.calibration, models_dir=models)
     box = BoxMasker(outline.detector, outline.matcher, cfg.masker.outline)
     refs = {r.index: r for r in load_references(ref_dir)}
     timer, btimer = StageTimer(), StageTimer()

@@ -1,6 +1,6 @@
 """Benchmark the SLAM back-end on KITTI odometry seq 06 (51 frames) and 03 (99 frames).
 
-For every sequence and masker (none / box / outline / seg, through ``create_masker``)
+For every sequence and masker (none / box / outline / seg, through ``build_masker``)
 the whole pipeline runs in one process -- frames in, masks, ``System.track``, trajectory
 out -- at full resolution with the default configuration (2000 ORB features, 8 levels,
 local BA in the worker process):
@@ -46,7 +46,7 @@ from dynastereo.config import Config, to_dict
 from dynastereo.errors import ModelError
 from dynastereo.eval import Trajectory, evaluate, read_trajectory
 from dynastereo.io import open_sequence
-from dynastereo.masking import create_masker
+from dynastereo.masking import build_masker
 from dynastereo.io.frames import parse_frame_spec
 from dynastereo.slam import System
 from dynastereo.timing import StageTimer
@@ -256,7 +256,7 @@ def main() -> int:
             if args.levels:
                 cfg.slam.n_levels = args.levels
             try:
-                masker = None if kind == "none" else create_masker(cfg, models)
+                masker = None if kind == "none" else build_masker(cfg, seq.calibration, models_dir=models)
             except ModelError as e:
                 print(f"skip {seq_name}/{kind}: {e}")
                 continue

@@ -73,12 +73,12 @@ def track_offline(sequence: Path, models_dir: Path, n_frames: int):
 
     from dynastereo.config import Config
     from dynastereo.io import KittiSequence
-    from dynastereo.ros.core import build_masker
+    from dynastereo.masking import build_masker
     from dynastereo.slam import System
 
     seq = KittiSequence(sequence)
     cfg = Config()
-    masker = build_masker(cfg, models_dir)[0]
+    masker = build_masker(cfg, seq.calibration, models_dir=models_dir)
     system = System(cfg, seq.calibration)
     poses = []
     for i in range(n_frames):

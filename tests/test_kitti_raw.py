@@ -295,7 +295,7 @@ def test_folder_colour_auto(tmp_path):
 def test_detector_sees_colour_slam_gray(tmp_path):
     """The masker hands the detector ``frame.left`` (BGR here) and the matcher gray images."""
     from dynastereo.config import Config
-    from dynastereo.masking import create_masker
+    from dynastereo.masking import build_masker
     from dynastereo.types import Detections
 
     d = make_drive(tmp_path, n=1, cams=("02", "03"), size=(256, 64))
@@ -310,7 +310,7 @@ def test_detector_sees_colour_slam_gray(tmp_path):
             seen.append(img.shape)
             return Detections.empty(self.class_names)
 
-    masker = create_masker(Config(), detector=Spy(), full_disparity=True)  # the matcher runs on the gray pair
+    masker = build_masker(Config(), detector=Spy(), full_disparity=True)  # the matcher runs on the gray pair
     masks = masker.mask(frame)
     assert seen == [(64, 256, 3)] and masks.left.shape == (64, 256)
     assert masks.disparity is not None and masks.disparity.shape == (64, 256)

@@ -18,7 +18,7 @@ from dynastereo.masking import (
     OutlineMasker,
     SegMasker,
     StereoMatcher,
-    create_masker,
+    build_masker,
     outline_objects,
     transfer_labels,
 )
@@ -487,9 +487,9 @@ def test_outline_masker_removes_road_on_rendered_pair(road_scene, alg, block):
     for on in (False, True):
         masker = OutlineMasker(FakeDetector(boxes), StereoMatcher(StereoConfig(algorithm=alg, block_size=block)),
                                OutlineConfig(ground_removal=on))
-        _, lab, _ = masker.mask_labels(frame(left, right), boxes)
+        m, lab, _ = masker.mask_labels(frame(left, right), boxes)
         res[on] = lab
-        assert (masker.last_ground is not None and masker.last_ground.ok) == on
+        assert (m.ground is not None and m.ground.ok) == on
     kept = {on: int(((res[on] > 0) & road).sum()) for on in res}
     car_iou = {on: iou(res[on] == 2, car) for on in res}
     assert car_iou[True] >= car_iou[False] - 0.005
@@ -661,14 +661,14 @@ def test_synth_convoy_truck_masked_to_the_image_bottom(tmp_path):
     """The convoy's truck 4.5 m ahead stands on the image's bottom edge: its bumper and
     plate rows there get a disparity (the matcher's border padding), so the outline covers
     the truck in both views (IoU 0.89-0.91 without the padding, 0.93-0.95 with it)."""
-    from dynastereo.api import build_masker, load_sequence
+    from dynastereo.api import load_sequence
     from dynastereo.config import Config
     from dynastereo.eval.masks import score_frame
     from dynastereo.synth import generate, read_gt_masks, read_objects
 
     seq_dir = generate(tmp_path / "convoy", "convoy", frames=4, seed=0)
     gt, seq = read_objects(seq_dir), load_sequence(seq_dir)
-    masker = build_masker(Config().with_overrides({"detector.name": "oracle"}), seq)
+    masker = build_masker(Config().with_overrides({"detector.name": "oracle"}), seq.calibration, ground_truth=seq_dir)
     ious = []
     for i in range(len(seq)):
         m = masker.mask_detections(seq.frame(i), masker.detector.detector.detect_frame(i))
@@ -908,20 +908,20 @@ def test_match_stereo_detections():
     np.testing.assert_array_equal(match_stereo_detections(dets([100, 50, 200, 150]), dets([140, 50, 240, 150]), 64), [-1])
 
 
-def test_create_masker_kinds():
+def test_build_masker_kinds():
     cfg = Config()
     det = FakeDetector(Detections.empty())
-    assert isinstance(create_masker(cfg.with_overrides({"masker.kind": "none"})), NoneMasker)
-    assert isinstance(create_masker(cfg, detector=det), OutlineMasker)
-    assert isinstance(create_masker(cfg.with_overrides({"masker.kind": "box"}), detector=det), BoxMasker)
-    m = create_masker(cfg, detector=det, full_disparity=True)
+    assert isinstance(build_masker(cfg.with_overrides({"masker.kind": "none"})), NoneMasker)
+    assert isinstance(build_masker(cfg, detector=det), OutlineMasker)
+    assert isinstance(build_masker(cfg.with_overrides({"masker.kind": "box"}), detector=det), BoxMasker)
+    m = build_masker(cfg, detector=det, full_disparity=True)
     assert m.full_disparity
     with pytest.raises(ConfigError, match="masker.kind"):
-        create_masker(cfg.with_overrides({"masker.kind": "magic"}), detector=det)
+        build_masker(cfg.with_overrides({"masker.kind": "magic"}), detector=det)
     with pytest.raises(ConfigError, match="num_disparities"):
-        create_masker(cfg.with_overrides({"stereo.num_disparities": 90}), detector=det)
+        build_masker(cfg.with_overrides({"stereo.num_disparities": 90}), detector=det)
     with pytest.raises(ConfigError, match="transfer"):
-        create_masker(cfg.with_overrides({"masker.outline.transfer": "warp"}), detector=det)
+        build_masker(cfg.with_overrides({"masker.outline.transfer": "warp"}), detector=det)
 
 
 # ---------------------------------------------------------------------------------------

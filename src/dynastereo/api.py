@@ -24,28 +24,6 @@ def load_sequence(sequence: str | Path | Sequence, calib: str | Path | None = No
     return sequence
 
 
-def build_masker(cfg: Config, sequence: Sequence, models_dir: str | Path | None = None):
-    """The masker the configuration asks for; ``detector.name == "oracle"`` uses the
-    ground truth boxes of a synthetic sequence (``dynastereo synth``)."""
-    from .masking import create_masker
-
-    detector = None
-    if cfg.detector.name == "oracle" and cfg.masker.kind in ("outline", "box"):
-        from .synth import OracleDetector
-
-        detector = OracleDetector(sequence.path)
-    masker = create_masker(cfg, models_dir=Path(models_dir) if models_dir else None, detector=detector)
-    if hasattr(masker, "set_baseline"):  # the road line's slope is baseline / camera height
-        masker.set_baseline(sequence.calibration.baseline)
-    return masker
-
-
-def _prepare(sequence, cfg: Config, frames, calib, models_dir):
-    """(sequence, frame indices, masker) for a job."""
-    seq = load_sequence(sequence, calib)
-    return seq, parse_frame_spec(frames, len(seq)), build_masker(cfg, seq, models_dir)
-
-
 def mask_sequence(
     sequence: str | Path | Sequence,
     out: str | Path,
@@ -62,7 +40,11 @@ def mask_sequence(
     cfg = cfg or Config()
     if save_disparity and cfg.stereo.region != "full":
         cfg = cfg.with_overrides({"stereo.region": "full"})
-    seq, indices, masker = _prepare(sequence, cfg, frames, calib, models_dir)
+    from .masking import build_masker
+
+    seq = load_sequence(sequence, calib)
+    indices = parse_frame_spec(frames, len(seq))
+    masker = build_masker(cfg, seq.calibration, models_dir=models_dir, ground_truth=getattr(seq, "path", None))
     return run_mask_job(seq, masker, out, indices, save_disparity=save_disparity, overlays=overlays, progress=progress)
 
 
@@ -87,14 +69,42 @@ def run_sequence(
     ``localize_only`` the map is only localised in (no new keyframes).  ``save_map``:
     write the final map there.
     """
+    cfg = cfg or Config()
+    seq = load_sequence(sequence, calib)
+    return slam_job(seq, out, cfg, frames=frames, models_dir=models_dir, ground_truth=getattr(seq, "path", None),
+                    save_masks=save_masks, progress=progress, save_map=save_map, load_map=load_map,
+                    localize_only=localize_only)
+
+
+def slam_job(
+    seq: Sequence,
+    out: str | Path,
+    cfg: Config,
+    *,
+    frames: str | int | None = None,
+    models_dir: str | Path | None = None,
+    ground_truth: str | Path | None = None,
+    sinks: tuple = (),
+    save_masks: bool = False,
+    progress: Callable[[int, int, dict], None] | None = None,
+    save_map: str | Path | None = None,
+    load_map: str | Path | None = None,
+    localize_only: bool = False,
+) -> SlamJobResult:
+    """The one place that assembles reader -> masker -> SLAM -> writers, for a folder, a
+    bag or anything else that is a :class:`~dynastereo.io.base.Sequence`: the masker from
+    :func:`dynastereo.masking.build_masker` (the sequence's calibration), the SLAM system
+    (optionally from ``load_map``), then :func:`~dynastereo.pipeline.run_slam_job` with
+    ``sinks`` (per-frame writers such as a bag's, :class:`~dynastereo.pipeline.FrameSink`)."""
     from .config import to_dict
     from .errors import ConfigError
+    from .masking import build_masker as _build_masker
     from .slam import System
 
     if localize_only and load_map is None:
         raise ConfigError("localisation only needs a map: give load_map (--load-map FILE)")
-    cfg = cfg or Config()
-    seq, indices, masker = _prepare(sequence, cfg, frames, calib, models_dir)
+    indices = parse_frame_spec(frames, len(seq))
+    masker = _build_masker(cfg, seq.calibration, models_dir=models_dir, ground_truth=ground_truth)
     system = System(cfg, seq.calibration)
     info = {}
     if load_map is not None:
@@ -104,7 +114,7 @@ def run_sequence(
             system.shutdown()
             raise
         info = {"loaded": str(load_map), "localize_only": bool(localize_only)}
-    return run_slam_job(seq, masker, system, out, indices, config_dict=to_dict(cfg),
+    return run_slam_job(seq, masker, system, out, indices, config_dict=to_dict(cfg), sinks=sinks,
                         save_masks=save_masks, progress=progress, save_map=save_map, map_info=info)
 
 

@@ -20,7 +20,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterable, Protocol
 
 import cv2
 import numpy as np
@@ -146,9 +146,8 @@ def run_mask_job(
                     "objects": [o.to_dict() for o in masks.objects],
                     "fallbacks": sum(o.method.startswith("box-fallback") for o in masks.objects),
                 }
-                ground = getattr(masker, "last_ground", None)
-                if ground is not None:  # the road line the outlines left out (ok=False: not removed)
-                    record["road"] = ground.to_dict()
+                if masks.ground is not None:  # the road line the outlines left out (ok=False: not removed)
+                    record["road"] = masks.ground.to_dict()
                 objects_log.write(json.dumps(record) + "\n")
                 objects_log.flush()
                 result.frames_done.append(idx)
@@ -185,6 +184,13 @@ class SlamJobResult:
         return self.timer.summary()
 
 
+class FrameSink(Protocol):
+    """Something that takes every tracked frame as it is done (a bag writer, a viewer)."""
+
+    def on_frame(self, position: int, frame: StereoFrame, masks: StereoMasks | None, pose: np.ndarray) -> None:
+        """``position``: in the order fed; ``pose``: camera-to-world 3x4 as tracked."""
+
+
 def _versions() -> dict[str, str]:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -215,6 +221,7 @@ def run_slam_job(
     frames: list[int],
     *,
     config_dict: dict | None = None,
+    sinks: Iterable[FrameSink] = (),
     save_masks: bool = False,
     prefetch: bool = True,
     progress: Callable[[int, int, dict], None] | None = None,
@@ -233,7 +240,8 @@ def run_slam_job(
       ``loops`` (every loop closed), ``recoveries`` (frames tracked again after lost ones),
       ``map`` (the map file loaded / saved);
     * ``save_map``: the final map (``System.save_map``), also after an error mid-sequence
-      (the map of the frames done).
+      (the map of the frames done);
+    * and whatever the ``sinks`` write: each gets every frame once it is tracked.
 
     Masking of frame k+1 runs on a prefetch thread while frame k is tracked (OpenCV and
     onnxruntime release the GIL).
@@ -252,6 +260,7 @@ def run_slam_job(
     stamps = np.asarray(sequence.timestamps(), dtype=np.float64)
     pool = ThreadPoolExecutor(max_workers=1) if prefetch else None
     error: str | None = None
+    sinks = tuple(sinks)
     t0 = time.perf_counter()
     n_done = 0
 
@@ -276,6 +285,8 @@ def run_slam_job(
                 state = system.frame_states()[-1]
                 rec = timer.end_frame(status=state.status)
                 writer.append(pose, frame_index=idx, timestamp=float(stamps[idx]))
+                for sink in sinks:
+                    sink.on_frame(k, frame, masks, pose)
                 if save_masks and masks is not None:
                     _write_png(out / "masks" / "left" / frame_name(idx), masks.left)
                     _write_png(out / "masks" / "right" / frame_name(idx), masks.right)

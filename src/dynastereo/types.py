@@ -224,6 +224,7 @@ class StereoMasks:
     objects: list[ObjectMask] = field(default_factory=list)
     detections: Detections | None = None
     disparity: np.ndarray | None = None  # float32 pixels (full frame) if computed
+    ground: Any = None  # masking.ground.GroundLine: the road line the outlines left out, when fitted
 
     @classmethod
     def empty(cls, shape: tuple[int, int]) -> "StereoMasks":

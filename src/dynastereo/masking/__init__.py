@@ -1,6 +1,6 @@
 """Masking of dynamic objects in both stereo images (thesis 3.3).
 
-``create_masker(cfg)`` builds the masker ``cfg.masker.kind`` names:
+``build_masker(cfg, calibration)`` builds the masker ``cfg.masker.kind`` names:
 
 * ``outline`` (default): detector on the left image, disparity where the boxes need it,
   outline from the dominant disparity peak, mask moved to the right image by disparity;
@@ -15,6 +15,7 @@ from pathlib import Path
 
 from ..config import Config
 from ..errors import ConfigError
+from ..types import StereoCalibration
 from .base import Detector, DisparityEstimator, Masker
 from .disparity import StereoMatcher, normalize_disparity, validate_stereo_config
 from .maskers import MASK_STAGES, MASKER_KINDS, BoxMasker, NoneMasker, OutlineMasker, SegMasker
@@ -22,18 +23,25 @@ from .outline import OutlineResult, outline_objects
 from .transfer import TransferResult, transfer_labels
 
 
-def create_masker(
+def build_masker(
     cfg: Config,
+    calibration: StereoCalibration | None = None,
+    *,
     models_dir: str | Path | None = None,
     detector: Detector | None = None,
-    *,
+    ground_truth: str | Path | None = None,
     full_disparity: bool = False,
 ) -> Masker:
-    """The masker for ``cfg.masker.kind``.
+    """The masker for ``cfg.masker.kind`` -- the one factory ``mask``, ``run``, ``run --bag``
+    and the live node build their maskers with.
 
-    ``detector`` replaces the one ``cfg.detector`` names (tests, or sharing one network);
-    ``full_disparity=True`` makes disparity-based maskers compute the whole frame and
-    return it in ``StereoMasks.disparity`` (to save it), as ``stereo.region: full`` does.
+    ``calibration``: the rig's (its baseline sets the road line's plausible slopes; without
+    it ``masker.outline.ground_baseline`` or KITTI's).  ``detector`` replaces the one
+    ``cfg.detector`` names (tests, or a node that keeps its network across parameter
+    changes); ``detector.name: oracle`` uses the ground-truth boxes of the synthetic
+    sequence at ``ground_truth`` (``dynastereo synth``).  ``full_disparity=True`` makes the
+    disparity-based maskers compute the whole frame and return it in
+    ``StereoMasks.disparity`` (to save it), as ``stereo.region: full`` does.
     """
     kind = str(cfg.masker.kind).lower()
     if kind not in MASKER_KINDS:
@@ -49,13 +57,24 @@ def create_masker(
     from .detection import DetectionStage, create_detector
 
     if detector is None:
-        detector = create_detector(cfg.detector, models_dir)
+        detector = _oracle(ground_truth) if str(cfg.detector.name) == "oracle" else \
+            create_detector(cfg.detector, models_dir)
     if not isinstance(detector, DetectionStage):
         detector = DetectionStage(detector, cfg.detector)
+    baseline = calibration.baseline if calibration is not None else None
     if kind == "box":
         return BoxMasker(detector, matcher, cfg.masker.outline, full_disparity=full_disparity,
                          margin=cfg.masker.box_margin)
-    return OutlineMasker(detector, matcher, cfg.masker.outline, full_disparity=full_disparity)
+    return OutlineMasker(detector, matcher, cfg.masker.outline, full_disparity=full_disparity, baseline=baseline)
+
+
+def _oracle(ground_truth: str | Path | None) -> Detector:
+    if ground_truth is None:
+        raise ConfigError("detector 'oracle' needs a synthetic sequence's ground truth (dynastereo synth); "
+                          "not available for bags or live topics")
+    from ..synth import OracleDetector
+
+    return OracleDetector(ground_truth)
 
 
 __all__ = [
@@ -70,7 +89,7 @@ __all__ = [
     "SegMasker",
     "StereoMatcher",
     "TransferResult",
-    "create_masker",
+    "build_masker",
     "normalize_disparity",
     "outline_objects",
     "transfer_labels",

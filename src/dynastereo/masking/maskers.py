@@ -207,8 +207,8 @@ class OutlineMasker(_DisparityMasker):
 
     With ``cfg.ground_removal`` the road's disparity line is fitted per frame (in the
     ``disparity`` stage: a coarse disparity of the image's lower part, :mod:`.ground`)
-    and road pixels leave the outlines; ``last_ground`` is the latest fit (``ok``,
-    ``reason``).  ``baseline`` (metres, the rig's) sets the plausible road slopes; without
+    and road pixels leave the outlines; the fit (``ok``, ``reason``) is returned in
+    ``StereoMasks.ground``.  ``baseline`` (metres, the rig's) sets the plausible road slopes; without
     it ``cfg.ground_baseline`` or KITTI's 0.54 m.
     """
 
@@ -247,11 +247,6 @@ class OutlineMasker(_DisparityMasker):
             if not (0.0 <= v <= 1.0):
                 raise ConfigError(f"masker.outline.{key} must be in [0, 1], got {v}")
         self.baseline = float(baseline) if baseline else None
-        self.last_ground: GroundLine | None = None
-
-    def set_baseline(self, baseline: float | None) -> None:
-        """The rig's stereo baseline in metres (from its calibration)."""
-        self.baseline = float(baseline) if baseline else None
 
     def ground_slopes(self) -> tuple[float, float]:
         """Plausible road slopes (disparity px per image row) for this rig."""
@@ -275,7 +270,6 @@ class OutlineMasker(_DisparityMasker):
         shape = frame.shape
         rois = clip_boxes(dets.boxes, shape)
         disp = self._disparity(frame, rois, timer, left_margin=LEFT_CONTEXT)
-        self.last_ground = None
         if len(dets) == 0:
             m = StereoMasks.empty(shape)
             m.detections = dets
@@ -286,7 +280,7 @@ class OutlineMasker(_DisparityMasker):
         ground = None
         if self.cfg.ground_removal:
             with _stage(timer, "disparity"):  # the road's disparity is disparity work too
-                ground = self.last_ground = self.fit_ground(frame)
+                ground = self.fit_ground(frame)
         with _stage(timer, "outline"):
             o: OutlineResult = outline_objects(disp, dets.boxes, shape, self.cfg, ground=ground,
                                                max_disparity=self.matcher.max_disparity)
@@ -299,7 +293,7 @@ class OutlineMasker(_DisparityMasker):
             )
             right = _to_mask(t.labels)
         objects = _objects(dets, o.methods, o.disparity, o.pixels, t.pixels)
-        masks = StereoMasks(left, right, objects, dets, disp if self.full_disparity else None)
+        masks = StereoMasks(left, right, objects, dets, disp if self.full_disparity else None, ground=ground)
         return masks, o.labels, t.labels
 
     def mask(self, frame: StereoFrame, timer: StageTimer | None = None) -> StereoMasks:

@@ -1,9 +1,9 @@
 """``dynastereo run --bag``: a stereo bag through masking + SLAM, results into a bag.
 
 The bag is read as a :class:`~dynastereo.ros.bags.BagStereoSequence` and fed to the same
-job as a sequence folder (:func:`~dynastereo.pipeline.run_slam_job`: trajectory files,
-``timing.json``, ``run.json``), with the SLAM system wrapped so that every tracked frame
-is also written to ``DIR/output.{bag,db3,mcap}`` (the input's format): odometry, TF, the
+job as a sequence folder (:func:`dynastereo.api.slam_job`: trajectory files,
+``timing.json``, ``run.json``), with a :class:`BagOutput` sink that writes every tracked
+frame to ``DIR/output.{bag,db3,mcap}`` (the input's format): odometry, TF, the
 masked images, the masks and the disparity (topics in :mod:`dynastereo.ros.messages`).
 ``DIR/bag.json`` records the pairing (pairs, unpaired left/right messages, tolerance),
 the calibration source and what was written.
@@ -18,12 +18,12 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..config import Config, to_dict
+from ..config import Config
 from ..errors import InputError
 from ..types import StereoFrame, StereoMasks
 from .bags import BAG_SUFFIX, BagStereoSequence, BagWriter
 from .convert import masked_image, twist_between
-from .core import build_masker, disparity_data
+from .core import disparity_data
 from .messages import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC, ODOM_FRAME, OUTPUT_TOPICS, OUTPUT_TYPES, OdometryData
 
 ALL_OUTPUTS = ("odometry", "tf", "masked", "masks", "disparity")
@@ -46,7 +46,8 @@ class BagOutput:
     """Writes the per-frame results into the output bag."""
 
     def __init__(self, path: Path, fmt: str, cfg: Config, calibration, camera_frame: str,
-                 outputs: tuple[str, ...] = ALL_OUTPUTS) -> None:
+                 outputs: tuple[str, ...] = ALL_OUTPUTS, stamps_ns: np.ndarray | None = None) -> None:
+        self.stamps_ns = stamps_ns  # per sequence index, for on_frame
         self.writer = BagWriter(path, fmt, overwrite=True)
         self.b = self.writer.builder
         self.cfg = cfg
@@ -62,6 +63,10 @@ class BagOutput:
     def _key_on(self, key: str) -> bool:
         group = {"left_masked": "masked", "right_masked": "masked", "left_mask": "masks", "right_mask": "masks"}
         return group.get(key, key) in self.outputs
+
+    def on_frame(self, position: int, frame: StereoFrame, masks: StereoMasks | None, pose: np.ndarray) -> None:
+        """:class:`~dynastereo.pipeline.FrameSink`: the tracked frame into the bag, at its stamp."""
+        self.write(position, frame, masks, pose, int(self.stamps_ns[frame.index]))
 
     def write(self, seq_pos: int, frame: StereoFrame, masks: StereoMasks | None, pose: np.ndarray,
               stamp_ns: int) -> None:
@@ -103,25 +108,6 @@ class BagOutput:
         self.writer.close()
 
 
-class _PublishingSystem:
-    """The SLAM system, plus: each tracked frame goes into the output bag."""
-
-    def __init__(self, system: Any, out: BagOutput, stamps_ns: np.ndarray) -> None:
-        self._system = system
-        self._out = out
-        self._stamps = stamps_ns
-        self._n = 0
-
-    def track(self, frame: StereoFrame, masks: StereoMasks | None = None, timer: Any = None) -> np.ndarray:
-        pose = self._system.track(frame, masks, timer)
-        self._out.write(self._n, frame, masks, pose, int(self._stamps[frame.index]))
-        self._n += 1
-        return pose
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._system, name)
-
-
 @dataclass
 class BagRunResult:
     out: Path
@@ -152,9 +138,8 @@ def run_bag(
     """Run masking + SLAM on a stereo bag (module doc); see :class:`BagStereoSequence` for
     the topic, calibration and pairing arguments (``fallback_calib``: used only when the bag
     has no CameraInfo, e.g. the ORB-SLAM2 settings file given as ``--config``)."""
+    from ..api import slam_job
     from ..io.frames import parse_frame_spec
-    from ..pipeline import run_slam_job
-    from ..slam import System
 
     cfg = cfg or Config()
     outs = parse_outputs(outputs)
@@ -163,14 +148,12 @@ def run_bag(
                             fallback_calib=fallback_calib)
     try:
         indices = parse_frame_spec(frames, len(seq))
-        masker = build_masker(cfg, Path(models_dir) if models_dir else None)[0]  # as the node builds it
-        system = System(cfg, seq.calibration)
         out.mkdir(parents=True, exist_ok=True)
         out_bag = out / ("output" + BAG_SUFFIX[seq.format])
-        writer = BagOutput(out_bag, seq.format, cfg, seq.calibration, seq.frame_id, outs)
-        try:
-            res = run_slam_job(seq, masker, _PublishingSystem(system, writer, seq.stamps_ns), out, indices,
-                               config_dict=to_dict(cfg), save_masks=save_masks, progress=progress)
+        writer = BagOutput(out_bag, seq.format, cfg, seq.calibration, seq.frame_id, outs, stamps_ns=seq.stamps_ns)
+        try:  # a bag has no synthetic ground truth: detector 'oracle' is refused by the masker factory
+            res = slam_job(seq, out, cfg, frames=frames, models_dir=models_dir, sinks=(writer,),
+                           save_masks=save_masks, progress=progress)
         finally:
             writer.close()
         report = {"bag": str(Path(bag)), "format": seq.format, **seq.report.to_dict(),

@@ -29,7 +29,7 @@ seed) -- the live test checks this.
 Parameters
 ----------
 ``update_params({"stereo.block_size": 21, ...})`` validates the change (the Config
-dataclasses and :func:`~dynastereo.masking.create_masker` raise ConfigError on a bad
+dataclasses and :func:`~dynastereo.masking.build_masker` raise ConfigError on a bad
 value, the old configuration stays), builds the new masker off the processing threads
 (the detector network is reloaded only when a ``detector.*`` key changed) and swaps it
 in before the next frame.  ``stereo.*``, ``masker.*`` and ``detector.*`` are live;
@@ -222,24 +222,23 @@ def disparity_data(disp: np.ndarray, calib: StereoCalibration, cfg: Config) -> D
                          max_disparity=lo + float(s.num_disparities), delta_d=1.0 / 16.0)
 
 
-def build_masker(cfg: Config, models_dir: Path | None = None, detector: Any = None,
-                 detector_cfg: dict | None = None) -> tuple[Any, Any, dict | None]:
-    """``(masker, detector, detector config)`` for ``cfg``: the detector is reused when its
+def node_detector(cfg: Config, models_dir: Path | None = None, detector: Any = None,
+                  detector_cfg: dict | None = None) -> tuple[Any, dict | None]:
+    """``(detector, its configuration)`` for ``cfg``: ``detector`` is kept when its
     configuration equals ``detector_cfg`` (or when it was given and ``detector_cfg`` is None),
-    else loaded anew.  The node and ``run --bag`` build their maskers with this."""
-    from ..masking import create_masker
-
+    else the network is loaded anew (a live change of a ``detector.*`` key); None when the
+    masker needs no detector.  The masker itself is built by
+    :func:`dynastereo.masking.build_masker`, as for every other job."""
+    if str(cfg.masker.kind).lower() not in ("outline", "box"):
+        return None, detector_cfg
     if str(cfg.detector.name) == "oracle":
         raise ConfigError("detector 'oracle' needs a synthetic sequence's ground truth; not available for bags "
                           "or live topics")
-    kind = str(cfg.masker.kind).lower()
-    needs_detector = kind in ("outline", "box")
-    if needs_detector and (detector is None or (detector_cfg is not None and detector_cfg != to_dict(cfg.detector))):
+    if detector is None or (detector_cfg is not None and detector_cfg != to_dict(cfg.detector)):
         from ..masking.detection import create_detector
 
         detector, detector_cfg = create_detector(cfg.detector, models_dir), to_dict(cfg.detector)
-    masker = create_masker(cfg, models_dir=models_dir, detector=detector if needs_detector else None)
-    return masker, detector, detector_cfg
+    return detector, detector_cfg
 
 
 class StereoNodeCore:
@@ -278,6 +277,8 @@ class StereoNodeCore:
         self.timer.add_derived("masking", ("detect",) + MASK_STAGES)
         self._detector = detector
         self._detector_cfg = to_dict(self.cfg.detector) if detector is None else None
+        self.calibration: StereoCalibration | None = None
+        self._own_masker = masker is None  # built here: rebuilt for the rig once its calibration is known
         self._masker = masker if masker is not None else self._build_masker(self.cfg)
         self._masker_cfg = self.cfg
         self._pending: tuple[Any, Config] | None = None
@@ -287,7 +288,6 @@ class StereoNodeCore:
         self._matcher_cfg: Any = None
         self._system: Any = None
         self._calib_in: StereoCalibration | RawStereoCalibration | None = None
-        self.calibration: StereoCalibration | None = None
         self.rectifier: Rectifier | None = None
         self._stamps: list[int] = []
         self._prev: tuple[np.ndarray, int] | None = None
@@ -304,9 +304,12 @@ class StereoNodeCore:
 
     # ------------------------------------------------------------------ setup
     def _build_masker(self, cfg: Config) -> Any:
-        masker, self._detector, self._detector_cfg = build_masker(cfg, self.models_dir, self._detector,
-                                                                  self._detector_cfg)
-        return masker
+        from ..masking import build_masker
+
+        detector, self._detector_cfg = node_detector(cfg, self.models_dir, self._detector, self._detector_cfg)
+        if detector is not None:
+            self._detector = detector
+        return build_masker(cfg, self.calibration, models_dir=self.models_dir, detector=detector)
 
     def set_calibration(self, calibration: StereoCalibration | RawStereoCalibration) -> bool:
         """Set the camera once (creates the SLAM system); True if it was new.  A different
@@ -324,6 +327,9 @@ class StereoNodeCore:
             else:
                 self.rectifier = None
                 self.calibration = calibration
+            if self._own_masker:  # the road line's slopes follow the rig's baseline
+                with self._param_lock:
+                    self._masker = self._build_masker(self._masker_cfg)
             with _sigint_blocked():  # the BA worker process inherits it: Ctrl-C / roslaunch's
                 self._system = System(self.cfg, self.calibration)  # SIGINT to the group is ours to handle
             self._calib_in = calibration
@@ -383,6 +389,7 @@ class StereoNodeCore:
         with self._param_lock:
             if self._pending is not None:
                 self._masker, self._masker_cfg = self._pending
+                self._own_masker = True
                 self._pending = None
 
     # ------------------------------------------------------------------ input
