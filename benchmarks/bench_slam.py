@@ -143,7 +143,7 @@ def run_once(frames, calib, cfg: Config, masker) -> tuple[np.ndarray, StageTimer
         wall = time.perf_counter() - t0
     finally:
         system.shutdown()
-    return system.trajectory(), timer, wall, system.stats()
+    return system.trajectory(), timer, wall, system.stats().to_dict()
 
 
 def run_job_fps(seq_path: Path, kind: str, models: Path, repeats: int) -> dict:
@@ -188,7 +188,7 @@ def bench_revisit(kitti: Path, seq_name: str, spec: str) -> dict:
         system.shutdown()
         slam_log.setLevel(level)
     est = system.trajectory()[:, :, 3]
-    states = system.frame_states()
+    states = system.results()
     first: dict[int, int] = {}
     rows = []
     for k, i in enumerate(order):
@@ -206,7 +206,7 @@ def bench_revisit(kitti: Path, seq_name: str, spec: str) -> dict:
             "to_first_visit_m": None if i is None or first[i] == k else round(float(np.linalg.norm(est[k] - est[first[i]])), 3),
             "to_gt_m": None if i is None else round(float(np.linalg.norm(est[k] - gt[i])), 3),
         })
-    st = system.stats()
+    st = system.stats().to_dict()
     return {"sequence": seq_name, "order": spec, "frames": len(order), "lost": st["lost"],
             "relocalisations": st["relocalisations"], "reinitialisations": st["reinitialisations"], "rows": rows}
 

@@ -83,6 +83,6 @@ def track_offline(sequence: Path, models_dir: Path, n_frames: int):
     poses = []
     for i in range(n_frames):
         f = seq.frame(i)
-        poses.append(system.track(f, masker.mask(f)))
+        poses.append(system.track(f, masker.mask(f)).pose)
     system.shutdown()
     return np.array(poses), system

@@ -42,7 +42,7 @@ from dynastereo.slam.map_io import (
     save_map,
 )
 from dynastereo.slam.matcher import stereo_match
-from dynastereo.slam.system import _shift_stereo
+from dynastereo.slam.selfcal import shift_disparity
 from dynastereo.slam.tracking import Tracker
 from dynastereo.synth import generate
 from dynastereo.types import StereoCalibration
@@ -99,7 +99,7 @@ def _frame(sysm: System, sf, index: int = 0) -> Frame:
     fl, fr = ex.extract(left, None), ex.extract(right, None)
     st = stereo_match(fl.uv, fl.octave, fl.desc, fr.uv, fr.octave, fr.desc, left, right, ex.scales, c.fx, c.bf)
     if sysm.disparity_offset:
-        _shift_stereo(fl.uv, st.u_right, st.depth, sysm.disparity_offset, c.bf)
+        shift_disparity(fl.uv, st.u_right, st.depth, sysm.disparity_offset, c.bf)
     return Frame.from_features(index, fl, st.u_right, st.depth, c)
 
 
@@ -140,7 +140,7 @@ def _assert_same_map(a: Map, b: Map) -> None:
 # ------------------------------------------------------------------ round trip
 def test_the_run_made_a_real_map(built):
     st = built.sysm.stats()
-    assert st["lost"] == 0 and len(built.mp.keyframes) >= 3 and st["map_points"] > 500
+    assert st.lost == 0 and len(built.mp.keyframes) >= 3 and st.map_points > 500
     # fused / culled points and dead observation rows are part of what is stored
     assert built.mp.bad[: built.mp.n].any() and not built.mp.obs_alive[: built.mp.m].all()
     assert any(kf.covis for kf in built.mp.keyframes.values())
@@ -217,7 +217,7 @@ def test_a_frame_relocalises_in_the_loaded_map_as_in_the_original(built):
     traj_T_cw = inv_T(np.vstack([built.sysm.trajectory()[k], [0, 0, 0, 1]]))
     poses = []
     for mp in (copy.deepcopy(built.mp), load_map(built.path).map):
-        tr = Tracker(sysm._track_params)
+        tr = sysm.tracker
         f = _frame(sysm, built.seq.frame(k))
         found, kid = _relocalise(tr, mp, f)
         assert found and kid in mp.keyframes and tr.n_inliers > 100
@@ -534,7 +534,7 @@ def test_kitti06_map_round_trip_and_a_seq03_camera_is_refused(kitti06: Path, kit
     _assert_same_map(sysm.map, mf.map)
     assert mf.disparity_offset == sysm.disparity_offset
     # image 10 found again in the loaded map, where the SLAM had put it
-    tr = Tracker(sysm._track_params)
+    tr = sysm.tracker
     f = _frame(sysm, seq.frame(10))
     found, _ = _relocalise(tr, mf.map, f)
     assert found and tr.n_inliers > 300

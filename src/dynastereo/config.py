@@ -13,7 +13,7 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import yaml
 
@@ -21,11 +21,23 @@ from .errors import ConfigError
 from .types import DEFAULT_DYNAMIC_CLASSES
 
 
+StereoAlgorithm = Literal["bm", "sgbm", "sgbm3way", "hh", "hh4"]
+StereoRegion = Literal["full", "boxes"]
+STEREO_ALGORITHMS: tuple[str, ...] = typing.get_args(StereoAlgorithm)
+STEREO_REGIONS: tuple[str, ...] = typing.get_args(StereoRegion)
+STEREO_SCALES = (1, 2, 4)
+
+
+def _bad(key: str, want: str, got: Any) -> ConfigError:
+    """``ConfigError("<key> must be <want>, got <got>")``."""
+    return ConfigError(f"{key} must be {want}, got {got!r}")
+
+
 @dataclass
 class StereoConfig:
     """Disparity estimation (thesis 3.3.1/3.3.2): OpenCV StereoBM / StereoSGBM + WLS."""
 
-    algorithm: str = "bm"  # bm | sgbm | sgbm3way | hh
+    algorithm: StereoAlgorithm = "bm"
     min_disparity: int = 0
     num_disparities: int = 96  # multiple of 16
     block_size: int = 15  # odd; BM: 5..255, SGBM: 1..
@@ -42,14 +54,62 @@ class StereoConfig:
     wls_sigma: float = 1.5
     # Where to compute disparity when only the masks need it:
     # "full" = whole frame; "boxes" = only the image band covering the detections.
-    region: str = "boxes"
+    region: StereoRegion = "boxes"
     # Downscale factor for the masking disparity (1 = full resolution, 2 = half).
     scale: int = 1
 
+    def __post_init__(self) -> None:
+        self.validate()
 
-DETECTOR_CANVASES = ("frame", "tiles", "model")
-DETECTOR_SCHEDULES = ("every", "interval", "rotate")
-DETECTOR_CONTRASTS = ("clahe", "none")
+    def default_p(self, cn: int = 1) -> tuple[int, int]:
+        """SGBM's (P1, P2): the configured ones, else 8 / 32 * cn * block_size^2."""
+        area = self.block_size * self.block_size
+        return (8 * cn * area if self.p1 is None else int(self.p1), 32 * cn * area if self.p2 is None else int(self.p2))
+
+    def validate(self) -> None:
+        """Range checks (ConfigError naming the key); run whenever one is made or loaded."""
+        alg = str(self.algorithm).lower()
+        if alg not in STEREO_ALGORITHMS:
+            raise _bad("stereo.algorithm", "one of " + ", ".join(STEREO_ALGORITHMS), self.algorithm)
+        if self.num_disparities <= 0 or self.num_disparities % 16 != 0:
+            raise _bad("stereo.num_disparities", "a positive multiple of 16", self.num_disparities)
+        lo = 5 if alg == "bm" else 1
+        if self.block_size % 2 != 1 or not (lo <= self.block_size <= 255):
+            raise _bad("stereo.block_size", f"odd and in [{lo}, 255] for {alg}", self.block_size)
+        if alg == "bm":
+            if not (1 <= self.pre_filter_cap <= 63):
+                raise _bad("stereo.pre_filter_cap", "in [1, 63] for bm", self.pre_filter_cap)
+            if self.texture_threshold < 0:
+                raise _bad("stereo.texture_threshold", ">= 0", self.texture_threshold)
+        else:
+            if self.pre_filter_cap < 1:
+                raise _bad("stereo.pre_filter_cap", ">= 1", self.pre_filter_cap)
+            p1, p2 = self.default_p()
+            if p1 < 0 or p2 <= p1:
+                raise ConfigError(f"stereo.p2 must be greater than stereo.p1 (>= 0), got p1={p1}, p2={p2}")
+        if self.uniqueness_ratio < 0:
+            raise _bad("stereo.uniqueness_ratio", ">= 0", self.uniqueness_ratio)
+        if self.speckle_window_size < 0 or self.speckle_range < 0:
+            raise ConfigError(
+                "stereo.speckle_window_size and stereo.speckle_range must be >= 0, got "
+                f"{self.speckle_window_size} and {self.speckle_range}"
+            )
+        if self.wls and not (self.wls_lambda > 0 and self.wls_sigma > 0):
+            raise ConfigError(
+                f"stereo.wls_lambda and stereo.wls_sigma must be > 0, got {self.wls_lambda} and {self.wls_sigma}"
+            )
+        if self.region not in STEREO_REGIONS:
+            raise _bad("stereo.region", "one of " + ", ".join(STEREO_REGIONS), self.region)
+        if self.scale not in STEREO_SCALES:
+            raise _bad("stereo.scale", f"one of {STEREO_SCALES}", self.scale)
+
+
+DetectorCanvas = Literal["frame", "tiles", "model"]
+DetectorSchedule = Literal["every", "interval", "rotate"]
+DetectorContrast = Literal["clahe", "none"]
+DETECTOR_CANVASES: tuple[str, ...] = typing.get_args(DetectorCanvas)
+DETECTOR_SCHEDULES: tuple[str, ...] = typing.get_args(DetectorSchedule)
+DETECTOR_CONTRASTS: tuple[str, ...] = typing.get_args(DetectorContrast)
 
 
 @dataclass
@@ -73,14 +133,14 @@ class DetectorConfig:
     # `tiles` overlapping tiles across the frame at `scale`, batched, boxes merged across
     # the seams; "model" = letterboxed into the model's own square canvas (shrinks a wide
     # frame: a KITTI frame to a third)
-    canvas: str = "frame"
+    canvas: DetectorCanvas = "frame"
     scale: float = 1.0
     tiles: int = 3
     tile_overlap: float = 0.2  # share of a tile's width overlapping each neighbour
-    contrast: str = "clahe"  # clahe | none: the detector's input only
+    contrast: DetectorContrast = "clahe"  # the detector's input only
     # When the network runs: "every" frame, every `interval`-th frame ("interval"), or
     # one tile per frame in turn ("rotate", canvas "tiles"); boxes are carried between
-    schedule: str = "interval"
+    schedule: DetectorSchedule = "interval"
     interval: int = 2
     track: bool = True  # carry boxes between frames (optical flow), with track ids
     max_carry: int = 2  # detector runs a box is carried without a confirming detection
@@ -91,7 +151,7 @@ class DetectorConfig:
     def validate(self) -> None:
         """Range checks (ConfigError naming the key); run whenever one is made or loaded."""
         def bad(key: str, want: str, got: Any) -> ConfigError:
-            return ConfigError(f"detector.{key} must be {want}, got {got!r}")
+            return _bad(f"detector.{key}", want, got)
 
         if self.canvas not in DETECTOR_CANVASES:
             raise bad("canvas", "one of " + ", ".join(DETECTOR_CANVASES), self.canvas)
@@ -113,11 +173,23 @@ class DetectorConfig:
             raise bad("score_threshold", "in [0, 1)", self.score_threshold)
         if not (0.0 < self.nms_threshold <= 1.0):
             raise bad("nms_threshold", "in (0, 1]", self.nms_threshold)
+        if self.threads < 1:
+            raise bad("threads", ">= 1", self.threads)
+        if self.input_size is not None and self.input_size < 32:
+            raise bad("input_size", ">= 32 (or null: the model's own)", self.input_size)
+        if self.min_box_size < 0:
+            raise bad("min_box_size", ">= 0", self.min_box_size)
         if self.schedule == "rotate" and self.canvas != "tiles":
             raise ConfigError("detector.schedule 'rotate' needs detector.canvas 'tiles' (one tile per frame)")
         if self.schedule != "every" and not self.track:
             raise ConfigError(f"detector.schedule {self.schedule!r} needs detector.track: true "
                               "(boxes are carried between the detector's runs)")
+
+
+TransferMode = Literal["rigid", "affine"]
+MaskerKind = Literal["outline", "box", "seg", "none"]
+TRANSFER_MODES: tuple[str, ...] = typing.get_args(TransferMode)
+MASKER_KINDS: tuple[str, ...] = typing.get_args(MaskerKind)
 
 
 @dataclass
@@ -141,13 +213,11 @@ class OutlineConfig:
     peak_extend_ratio: float = 0.1
     # An outline covering less than this fraction of its box (the part no nearer object
     # takes) is a disparity failure (an object cut by the image border, a near one with
-    # little texture): the box is masked. 0 = off.  A car fills about three quarters of
-    # its box (the reference masks' box-only baseline, 0.75), so an outline under 0.6 of it
-    # is more likely the matcher's failure than the car's shape
+    # little texture): the box is masked. 0 = off.
     min_outline_fraction: float = 0.6
     # How a left mask moves to the right image: "affine" (d = a + b x + c y fitted per
     # object, rigid when the fit is poor) or "rigid" (shift by the object's disparity).
-    transfer: str = "affine"
+    transfer: TransferMode = "affine"
     # An object partly hidden behind a nearer one in the left image also gets, in the right
     # image, the band the right camera sees past the nearer object's right edge.
     transfer_occluded: bool = True
@@ -162,17 +232,14 @@ class OutlineConfig:
     # row, d = a v + c, fitted per frame (v-disparity Hough + least squares) to a coarse
     # disparity of the image's lower part; pixels less than ground_tolerance px above
     # it (measured, or filled along the row) are road and leave every object's mask.
-    # Off by default: on real KITTI frames the line also takes the lowest rows of every car
-    # (wheels, sills: their disparity is the road's where they meet it), so outlines lose
-    # 0.02-0.07 mask IoU against the reference masks (bench_recall); the synthetic scenes,
-    # with exact road geometry and thin pedestrians, gain from it (bench_mask)
+    # README ("Maskers") has when it helps and when it costs.
     ground_removal: bool = False
     ground_tolerance: float = 1.0  # px above the road line still counted as road
     # Plausible camera heights over the road (m): road slopes a = baseline / height
     # outside baseline/max .. baseline/min are rejected (a truck filling the view).
     ground_min_height: float = 0.8
     ground_max_height: float = 3.0
-    ground_baseline: float = 0.0  # m; 0 = the rig's when the masker knows it, else 0.54 (KITTI)
+    ground_baseline: float = 0.0  # m; 0 = the rig's (its calibration), else 0.54 (KITTI)
     ground_fit_tolerance: float = 1.0  # px: Hough bin width / inlier distance of the fit
     ground_min_inliers: int = 150  # fewer sampled road points -> unreliable, no removal
     ground_rows_from: float = 0.4  # fit on the rows below this fraction of the image height
@@ -181,13 +248,64 @@ class OutlineConfig:
     ground_max_fraction: float = 0.5
     ground_after_dilate: bool = True  # the dilation must not grow into the road either
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Range checks (ConfigError naming the key); run whenever one is made or loaded."""
+        def key(k: str) -> str:
+            return f"masker.outline.{k}"
+
+        if self.transfer not in TRANSFER_MODES:
+            raise _bad(key("transfer"), "one of " + ", ".join(TRANSFER_MODES), self.transfer)
+        if not (0 < self.ground_min_height < self.ground_max_height):
+            raise ConfigError(
+                "masker.outline.ground_min_height must be > 0 and below ground_max_height, got "
+                f"{self.ground_min_height} and {self.ground_max_height}"
+            )
+        if self.ground_tolerance < 0 or self.ground_fit_tolerance <= 0:
+            raise ConfigError(
+                "masker.outline.ground_tolerance must be >= 0 and ground_fit_tolerance > 0, got "
+                f"{self.ground_tolerance} and {self.ground_fit_tolerance}"
+            )
+        if not (0.0 <= self.ground_rows_from < 1.0):
+            raise _bad(key("ground_rows_from"), "in [0, 1)", self.ground_rows_from)
+        for k in ("overlap_weight", "claim_fraction", "ground_max_fraction", "min_outline_fraction",
+                  "min_valid_fraction", "near_peak_ratio", "peak_extend_ratio"):
+            v = getattr(self, k)
+            if not (0.0 <= v <= 1.0):
+                raise _bad(key(k), "in [0, 1]", v)
+        for k in ("bin_width", "peak_tolerance"):
+            if not getattr(self, k) > 0:
+                raise _bad(key(k), "> 0", getattr(self, k))
+        for k in ("peak_tolerance_rel", "ground_baseline"):
+            if getattr(self, k) < 0:
+                raise _bad(key(k), ">= 0", getattr(self, k))
+        for k in ("min_box_pixels", "min_box_side", "dilate", "ground_min_inliers"):
+            if getattr(self, k) < 0:
+                raise _bad(key(k), ">= 0", getattr(self, k))
+
 
 @dataclass
 class MaskerConfig:
-    kind: str = "outline"  # outline | box | seg | none
+    kind: MaskerKind = "outline"
     outline: OutlineConfig = field(default_factory=OutlineConfig)
     seg_model: str = "yolov8n-seg-int8"
     box_margin: int = 0
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        if str(self.kind).lower() not in MASKER_KINDS:
+            raise _bad("masker.kind", "one of " + ", ".join(MASKER_KINDS), self.kind)
+        if self.box_margin < 0:
+            raise _bad("masker.box_margin", ">= 0", self.box_margin)
+        self.outline.validate()
+
+
+LocalBAMode = Literal["process", "inline", "off"]
+LOCAL_BA_MODES: tuple[str, ...] = typing.get_args(LocalBAMode)
 
 
 @dataclass
@@ -195,14 +313,14 @@ class SlamConfig:
     """Stereo SLAM back-end (ORB-SLAM2-style tracking + local mapping), ``dynastereo.slam``.
 
     Names follow ORB-SLAM2's settings where one exists (``ORBextractor.nFeatures`` ->
-    ``n_features``, ``ThDepth`` -> ``th_depth``); ORB-SLAM2 settings files are read by
-    ``dynastereo.slam.settings.load_orbslam_settings``.
+    ``n_features``, ``ThDepth`` -> ``th_depth``); ORB-SLAM2 settings files are read with
+    :func:`orbslam2_slam_values`.
     """
 
     # ORB extractor
-    n_features: int = 2000  # ORBextractor.nFeatures (the thesis used 4000)
+    n_features: int = 2000  # ORBextractor.nFeatures
     scale_factor: float = 1.2  # ORBextractor.scaleFactor
-    n_levels: int = 8  # ORBextractor.nLevels (the thesis used 16)
+    n_levels: int = 8  # ORBextractor.nLevels
     ini_th_fast: int = 20  # ORBextractor.iniThFAST: FAST threshold
     min_th_fast: int = 7  # ORBextractor.minThFAST: levels short of corners at ini_th_fast retry with it
     oversample: float = 2.0  # corners detected per kept one, before grid bucketing
@@ -212,16 +330,15 @@ class SlamConfig:
     # px added to every measured disparity (a right principal-point error of the
     # rectification); the start value when self_calibrate
     disparity_offset: float = 0.0
-    # estimate the disparity offset once, when the map has selfcal_keyframes keyframes:
-    # BA over the whole map solved at a few offsets (needs local_ba process / inline)
+    # estimate the disparity offset when the map has selfcal_keyframes keyframes: BA over
+    # the whole map solved at a few offsets (needs local_ba process / inline), slam/selfcal.py
     self_calibrate: bool = True
     selfcal_keyframes: int = 8
     # the estimate is refined over the whole map at 1.5x, 2.25x... selfcal_keyframes
-    # keyframes: this many estimates in all (KITTI 03: +0.13 px at 8 keyframes, +0.2 at 27)
+    # keyframes: this many estimates in all
     selfcal_rounds: int = 4
     # no offset is applied until an estimate is this many sigmas from 0 (the later rounds
-    # then refine it): the synthetic rig, which has none, gives -0.03 +- 0.06 then
-    # +0.05 +- 0.04 px; KITTI 03 +0.13 +- 0.05, refined to +0.16 +- 0.04 px
+    # then refine it)
     selfcal_min_sigmas: float = 2.0
     # tracking
     min_inliers: int = 20  # fewer inliers after local-map tracking -> pose not supported
@@ -237,7 +354,7 @@ class SlamConfig:
     max_frames: int = 10  # keyframe at least every max_frames (ORB-SLAM2: camera fps)
     min_frames: int = 0
     # local mapping
-    local_ba: str = "process"  # process (worker process) | inline | off
+    local_ba: LocalBAMode = "process"  # in a worker process, inline, or none
     ba_iterations: int = 3  # Levenberg-Marquardt iterations per local BA (converges in 2-3)
     ba_max_keyframes: int = 10  # optimised keyframes (current + best covisible)
     ba_max_fixed: int = 10  # fixed keyframes that anchor the local window
@@ -248,11 +365,75 @@ class SlamConfig:
     # loop closing and place recognition (bag of words)
     loop_closing: bool = True  # detect and close loops (off: --no-loop-closing)
     vocabulary: str = ""  # ORB vocabulary file (dynastereo vocab); "" = the built-in one
+    loop_min_kf_gap: int = 10  # keyframes since the map's start / the last loop before detecting
     loop_consistency: int = 3  # consecutive keyframes agreeing on a loop candidate
+    loop_min_matches: int = 20  # descriptor matches to a candidate before RANSAC
     loop_min_inliers: int = 40  # inliers of the loop's geometric verification
+    # of those, at least this many close stereo points (closer than th_depth baselines in
+    # the new keyframe): far points leave the distance along the view direction weak
+    loop_min_close_inliers: int = 20
+    loop_max_verify: int = 2  # consistent candidates verified per keyframe, best first
+    loop_covis_edge_weight: int = 100  # essential-graph covisibility edges (ORB-SLAM2: 100)
     loop_full_ba: bool = True  # full bundle adjustment (worker process) after each loop
+    loop_full_ba_iterations: int = 20
     loop_ba_lag_frames: int = 20  # the full BA is applied this many frames after the loop
     threads: int = 2  # threads for feature extraction (left/right in parallel)
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    @property
+    def mapping_on(self) -> bool:
+        """Local BA runs (and with it self-calibration and the loops' full BA)."""
+        return self.local_ba != "off"
+
+    def validate(self) -> None:
+        """Range checks (ConfigError naming the key); run whenever one is made or loaded."""
+        import math
+
+        def key(k: str) -> str:
+            return f"slam.{k}"
+
+        if self.n_features < 50:
+            raise _bad(key("n_features"), ">= 50", self.n_features)
+        if not self.scale_factor > 1.0:
+            raise _bad(key("scale_factor"), "> 1", self.scale_factor)
+        if not 1 <= self.n_levels <= 32:
+            raise _bad(key("n_levels"), "in 1..32", self.n_levels)
+        if not (0 < self.min_th_fast <= self.ini_th_fast <= 255):
+            raise ConfigError(f"slam.min_th_fast and slam.ini_th_fast must satisfy 0 < min <= ini <= 255, got "
+                              f"{self.min_th_fast} and {self.ini_th_fast}")
+        if not self.oversample >= 1.0:
+            raise _bad(key("oversample"), ">= 1", self.oversample)
+        if self.local_ba not in LOCAL_BA_MODES:
+            raise _bad(key("local_ba"), "one of " + ", ".join(LOCAL_BA_MODES), self.local_ba)
+        if self.th_depth <= 0:
+            raise _bad(key("th_depth"), "positive", self.th_depth)
+        if not 0.0 <= self.min_inlier_fraction < 1.0:
+            raise _bad(key("min_inlier_fraction"), "in [0, 1)", self.min_inlier_fraction)
+        if self.reloc_candidates < 0 or self.reloc_min_inliers < 0:
+            raise ConfigError("slam.reloc_candidates and slam.reloc_min_inliers must be >= 0")
+        if self.loop_consistency < 0 or self.loop_min_inliers < 10 or self.loop_ba_lag_frames < 0:
+            raise ConfigError(
+                "slam.loop_consistency must be >= 0, slam.loop_min_inliers >= 10 and slam.loop_ba_lag_frames >= 0"
+            )
+        if self.selfcal_rounds < 1:
+            raise _bad(key("selfcal_rounds"), ">= 1", self.selfcal_rounds)
+        if self.selfcal_keyframes < 3:
+            raise _bad(key("selfcal_keyframes"), ">= 3", self.selfcal_keyframes)
+        if not math.isfinite(self.disparity_offset) or abs(self.disparity_offset) > 5.0:
+            raise _bad(key("disparity_offset"), "a few pixels at most", self.disparity_offset)
+        for k in ("mask_margin", "min_inliers", "min_init_points", "min_frames", "ba_lag_frames",
+                  "triangulation_neighbours", "fuse_neighbours", "loop_min_kf_gap", "loop_min_matches",
+                  "loop_min_close_inliers", "loop_covis_edge_weight", "selfcal_min_sigmas"):
+            if getattr(self, k) < 0:
+                raise _bad(key(k), ">= 0", getattr(self, k))
+        for k in ("max_frames", "ba_iterations", "ba_max_keyframes", "loop_max_verify", "loop_full_ba_iterations",
+                  "threads"):
+            if getattr(self, k) < 1:
+                raise _bad(key(k), ">= 1", getattr(self, k))
+        if self.ba_max_fixed < 0:
+            raise _bad(key("ba_max_fixed"), ">= 0", self.ba_max_fixed)
 
 
 # ORB-SLAM2 settings-file keys that set SlamConfig fields (Camera.fps -> max_frames too)
@@ -266,6 +447,30 @@ ORBSLAM2_SLAM_KEYS: dict[str, str] = {
 }
 
 
+def orbslam2_slam_values(settings: dict[str, Any], path: str | Path | None = None) -> dict[str, Any]:
+    """The ``slam`` section values an ORB-SLAM2 settings file sets (``ORBSLAM2_SLAM_KEYS``,
+    and ``Camera.fps`` as ``max_frames`` when positive) -- the one adapter, used by
+    :func:`load_config` and :func:`dynastereo.slam.settings.slam_config_from_orbslam`."""
+    hints = typing.get_type_hints(SlamConfig)
+    out: dict[str, Any] = {}
+    items = [(k, f) for k, f in ORBSLAM2_SLAM_KEYS.items() if k in settings]
+    if "Camera.fps" in settings:
+        items.append(("Camera.fps", "max_frames"))
+    for k, name in items:
+        try:
+            value = float(settings[k])
+        except (TypeError, ValueError):
+            raise ConfigError(f"'{k}' must be a number, got {settings[k]!r}", path) from None
+        if k == "Camera.fps":
+            if value <= 0:
+                continue
+            value = round(value)
+        if hints[name] is int and value != int(value):
+            raise ConfigError(f"'{k}' must be an integer, got {settings[k]!r}", path)
+        out[name] = int(value) if hints[name] is int else value
+    return out
+
+
 @dataclass
 class Config:
     stereo: StereoConfig = field(default_factory=StereoConfig)
@@ -273,6 +478,16 @@ class Config:
     masker: MaskerConfig = field(default_factory=MaskerConfig)
     slam: SlamConfig = field(default_factory=SlamConfig)
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.seed < 0:
+            raise _bad("seed", ">= 0", self.seed)
+
+    def validate(self) -> None:
+        """Every section's checks again (a configuration changed after it was made)."""
+        for section in (self.stereo, self.detector, self.masker, self.slam):
+            section.validate()
+        self.__post_init__()
 
     def with_overrides(self, overrides: dict[str, Any]) -> "Config":
         """Return a copy with dotted-key overrides applied (``{"stereo.wls": True}``)."""
@@ -315,6 +530,12 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
             except ConfigError as e:
                 last = e
         raise last or ConfigError(f"invalid value {value!r} for '{where}'")
+    if origin is Literal:
+        if isinstance(value, str) and value.lower() in args:
+            return value.lower()
+        if value in args and not isinstance(value, bool):
+            return value
+        raise ConfigError(f"'{where}' must be one of {', '.join(map(str, args))}, got {value!r}")
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
             raise ConfigError(f"'{where}' must be a mapping, got {type(value).__name__}")
@@ -328,8 +549,8 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
     if tp is bool:
         if isinstance(value, bool):
             return value
-        if isinstance(value, str) and value.lower() in ("1", "true", "yes", "on", "0", "false", "no", "off"):
-            return value.lower() in ("1", "true", "yes", "on")
+        if isinstance(value, str) and value.strip().lower() in ("true", "false"):  # a command line's text
+            return value.strip().lower() == "true"
         if isinstance(value, int) and value in (0, 1):
             return bool(value)
         raise ConfigError(f"'{where}' must be true/false, got {value!r}")
@@ -390,16 +611,9 @@ def load_config(path: str | Path | None = None) -> Config:
         raise ConfigError("top level must be a mapping", p)
     # ORB-SLAM2 settings files have flat dotted keys ("Camera.fx"); they carry no
     # dynastereo sections, so keep only our sections here (calibration is read by io),
-    # except the SLAM parameters ORB-SLAM2 shares with us (ORBSLAM2_SLAM_KEYS).
+    # except the SLAM parameters ORB-SLAM2 shares with us (orbslam2_slam_values).
     ours = {k: v for k, v in data.items() if "." not in k and k not in ORBSLAM2_SLAM_KEYS}
-    theirs = {ORBSLAM2_SLAM_KEYS[k]: v for k, v in data.items() if k in ORBSLAM2_SLAM_KEYS}
-    if "Camera.fps" in data and "max_frames" not in theirs:
-        try:
-            fps = float(data["Camera.fps"])
-        except (TypeError, ValueError):
-            raise ConfigError(f"'Camera.fps' must be a number, got {data['Camera.fps']!r}", p) from None
-        if fps > 0:
-            theirs["max_frames"] = int(round(fps))
+    theirs = orbslam2_slam_values(data, p)
     if theirs:
         slam = ours.get("slam") or {}
         if not isinstance(slam, dict):

@@ -281,9 +281,9 @@ def run_slam_job(
                 for name, ms in mask_ms.items():
                     if name not in ("total", "mask"):
                         timer.add(name, ms)
-                pose = system.track(frame, masks, timer)
-                state = system.frame_states()[-1]
-                rec = timer.end_frame(status=state.status)
+                tracked = system.track(frame, masks, timer)
+                pose = tracked.pose
+                rec = timer.end_frame(status=tracked.status)
                 writer.append(pose, frame_index=idx, timestamp=float(stamps[idx]))
                 for sink in sinks:
                     sink.on_frame(k, frame, masks, pose)
@@ -316,8 +316,8 @@ def run_slam_job(
             write_kitti(out / "trajectory.kitti.txt", poses)
             write_tum(out / "trajectory.tum.txt", poses, stamps[done])
             (out / FRAMES_NAME).write_text("".join(f"{i}\n" for i in done))
-        stats = system.stats() if n_done else {}
-        states = system.frame_states() if n_done else []
+        stats = system.stats().to_dict() if n_done else {}
+        states = system.results() if n_done else []
         lost = [k for k, s in enumerate(states) if s.status == "lost"]
         timer.write(out / "timing.json", summary_extra={"fps": round(fps, 3)}, wall_s=round(wall, 3),
                     frames_done=n_done, local_mapping={k: v for k, v in stats.items() if k.startswith("local_ba")},

@@ -17,8 +17,8 @@ from ..config import Config
 from ..errors import ConfigError
 from ..types import StereoCalibration
 from .base import Detector, DisparityEstimator, Masker
-from .disparity import StereoMatcher, normalize_disparity, validate_stereo_config
-from .maskers import MASK_STAGES, MASKER_KINDS, BoxMasker, NoneMasker, OutlineMasker, SegMasker
+from .disparity import StereoMatcher, normalize_disparity
+from .maskers import MASK_STAGES, BoxMasker, NoneMasker, OutlineMasker, SegMasker
 from .outline import OutlineResult, outline_objects
 from .transfer import TransferResult, transfer_labels
 
@@ -43,9 +43,8 @@ def build_masker(
     disparity-based maskers compute the whole frame and return it in
     ``StereoMasks.disparity`` (to save it), as ``stereo.region: full`` does.
     """
+    cfg.masker.validate()  # (a configuration changed after it was made)
     kind = str(cfg.masker.kind).lower()
-    if kind not in MASKER_KINDS:
-        raise ConfigError(f"masker.kind must be one of {', '.join(MASKER_KINDS)}, got {cfg.masker.kind!r}")
     if kind == "none":
         return NoneMasker()
     if kind == "seg":
@@ -93,5 +92,4 @@ __all__ = [
     "normalize_disparity",
     "outline_objects",
     "transfer_labels",
-    "validate_stereo_config",
 ]

@@ -32,18 +32,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..config import StereoConfig
+from ..config import STEREO_SCALES as SCALES, StereoConfig
 from ..errors import ConfigError
 
-ALGORITHMS = ("bm", "sgbm", "sgbm3way", "hh", "hh4")
 _SGBM_MODES = {
     "sgbm": cv2.STEREO_SGBM_MODE_SGBM,
     "sgbm3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
     "hh": cv2.STEREO_SGBM_MODE_HH,
     "hh4": cv2.STEREO_SGBM_MODE_HH4,
 }
-REGIONS = ("full", "boxes")
-SCALES = (1, 2, 4)
 
 
 @dataclass(frozen=True)
@@ -64,52 +61,6 @@ class MatcherParams:
     texture_threshold: int
 
 
-def validate_stereo_config(cfg: StereoConfig) -> None:
-    """Raise ConfigError naming the option when a StereoConfig value is invalid."""
-    alg = str(cfg.algorithm).lower()
-    if alg not in ALGORITHMS:
-        raise ConfigError(f"stereo.algorithm must be one of {', '.join(ALGORITHMS)}, got {cfg.algorithm!r}")
-    if cfg.num_disparities <= 0 or cfg.num_disparities % 16 != 0:
-        raise ConfigError(
-            f"stereo.num_disparities must be a positive multiple of 16, got {cfg.num_disparities}"
-        )
-    bs = cfg.block_size
-    lo = 5 if alg == "bm" else 1
-    if bs % 2 != 1 or not (lo <= bs <= 255):
-        raise ConfigError(f"stereo.block_size must be odd and in [{lo}, 255] for {alg}, got {bs}")
-    if alg == "bm":
-        if not (1 <= cfg.pre_filter_cap <= 63):
-            raise ConfigError(f"stereo.pre_filter_cap must be in [1, 63] for bm, got {cfg.pre_filter_cap}")
-        if cfg.texture_threshold < 0:
-            raise ConfigError(f"stereo.texture_threshold must be >= 0, got {cfg.texture_threshold}")
-    else:
-        if cfg.pre_filter_cap < 1:
-            raise ConfigError(f"stereo.pre_filter_cap must be >= 1, got {cfg.pre_filter_cap}")
-        p1, p2 = _default_p(cfg.block_size, cfg.p1, cfg.p2)
-        if p1 < 0 or p2 <= p1:
-            raise ConfigError(f"stereo.p2 must be greater than stereo.p1 (>= 0), got p1={p1}, p2={p2}")
-    if cfg.uniqueness_ratio < 0:
-        raise ConfigError(f"stereo.uniqueness_ratio must be >= 0, got {cfg.uniqueness_ratio}")
-    if cfg.speckle_window_size < 0 or cfg.speckle_range < 0:
-        raise ConfigError(
-            "stereo.speckle_window_size and stereo.speckle_range must be >= 0, got "
-            f"{cfg.speckle_window_size} and {cfg.speckle_range}"
-        )
-    if cfg.wls and not (cfg.wls_lambda > 0 and cfg.wls_sigma > 0):
-        raise ConfigError(
-            f"stereo.wls_lambda and stereo.wls_sigma must be > 0, got {cfg.wls_lambda} and {cfg.wls_sigma}"
-        )
-    if cfg.region not in REGIONS:
-        raise ConfigError(f"stereo.region must be one of {', '.join(REGIONS)}, got {cfg.region!r}")
-    if cfg.scale not in SCALES:
-        raise ConfigError(f"stereo.scale must be one of {SCALES}, got {cfg.scale}")
-
-
-def _default_p(block_size: int, p1: int | None, p2: int | None, cn: int = 1) -> tuple[int, int]:
-    area = block_size * block_size
-    return (8 * cn * area if p1 is None else int(p1), 32 * cn * area if p2 is None else int(p2))
-
-
 def params_at_scale(cfg: StereoConfig, scale: int) -> MatcherParams:
     """OpenCV parameters for images downscaled by ``scale`` (1 = as configured).
 
@@ -118,7 +69,7 @@ def params_at_scale(cfg: StereoConfig, scale: int) -> MatcherParams:
     the block area, the speckle window the image area.
     """
     alg = str(cfg.algorithm).lower()
-    p1, p2 = _default_p(cfg.block_size, cfg.p1, cfg.p2)
+    p1, p2 = cfg.default_p()
     if scale == 1:
         return MatcherParams(alg, cfg.min_disparity, cfg.num_disparities, cfg.block_size, p1, p2,
                              cfg.disp12_max_diff, cfg.pre_filter_cap, cfg.uniqueness_ratio,
@@ -215,7 +166,7 @@ class StereoMatcher:
 
     def __init__(self, cfg: StereoConfig | None = None):
         cfg = cfg or StereoConfig()
-        validate_stereo_config(cfg)
+        cfg.validate()  # (a configuration changed after it was made)
         self.cfg = cfg
         self.algorithm = str(cfg.algorithm).lower()
         self.name = self.algorithm + ("+wls" if cfg.wls else "")

@@ -39,10 +39,8 @@ from .outline import (
     outline_objects,
     roi_disparity,
 )
-from .transfer import MODES as TRANSFER_MODES
 from .transfer import transfer_labels
 
-MASKER_KINDS = ("outline", "box", "seg", "none")
 #: Stages that make up ``mask``: everything in masking but the detector network
 #: (``detect``); ``contrast`` and ``carry`` are the detection stage's own work.
 MASK_STAGES = ("contrast", "carry", "disparity", "outline", "transfer", "segment", "boxes")
@@ -225,27 +223,7 @@ class OutlineMasker(_DisparityMasker):
     ):
         super().__init__(detector, matcher, stereo, full_disparity)
         self.cfg = cfg or OutlineConfig()
-        if self.cfg.transfer not in TRANSFER_MODES:
-            raise ConfigError(
-                f"masker.outline.transfer must be one of {', '.join(TRANSFER_MODES)}, got {self.cfg.transfer!r}"
-            )
-        c = self.cfg
-        if not (0 < c.ground_min_height < c.ground_max_height):
-            raise ConfigError(
-                "masker.outline.ground_min_height must be > 0 and below ground_max_height, got "
-                f"{c.ground_min_height} and {c.ground_max_height}"
-            )
-        if c.ground_tolerance < 0 or c.ground_fit_tolerance <= 0:
-            raise ConfigError(
-                "masker.outline.ground_tolerance must be >= 0 and ground_fit_tolerance > 0, got "
-                f"{c.ground_tolerance} and {c.ground_fit_tolerance}"
-            )
-        if not (0.0 <= c.ground_rows_from < 1.0):
-            raise ConfigError(f"masker.outline.ground_rows_from must be in [0, 1), got {c.ground_rows_from}")
-        for key in ("overlap_weight", "claim_fraction", "ground_max_fraction", "min_outline_fraction"):
-            v = getattr(c, key)
-            if not (0.0 <= v <= 1.0):
-                raise ConfigError(f"masker.outline.{key} must be in [0, 1], got {v}")
+        self.cfg.validate()  # (a configuration changed after it was made)
         self.baseline = float(baseline) if baseline else None
 
     def ground_slopes(self) -> tuple[float, float]:

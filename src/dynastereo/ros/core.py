@@ -544,8 +544,8 @@ class StereoNodeCore:
             for k, v in mask_ms.items():
                 if k not in ("total", "masking"):
                     self.timer.add(k, v)
-            pose = self._system.track(frame, masks, self.timer)
-            status = self._system.frame_states()[-1].status
+            tracked = self._system.track(frame, masks, self.timer)
+            pose, status = tracked.pose, tracked.status
             self._position += 1
             self._stamps.append(int(inp.stamp_ns))
         pose_time = time.time()
@@ -620,7 +620,7 @@ class StereoNodeCore:
             self.timer.write(paths["timing"], frames_done=len(stamps))
         st = self.status()
         if self._system is not None:
-            st["slam"] = self._system.stats()
+            st["slam"] = self._system.stats().to_dict()
         _atomic_write(paths["node"], json.dumps(st, indent=1, default=float))
         return {k: str(v) for k, v in paths.items()}
 

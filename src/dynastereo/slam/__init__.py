@@ -2,16 +2,18 @@
 
     from dynastereo.slam import System
     system = System(config, sequence.calibration)     # Config or SlamConfig
-    pose = system.track(stereo_frame, masks, timer)   # 3x4 camera-to-world, left camera
+    res = system.track(stereo_frame, masks, timer)    # TrackResult; res.pose 3x4 camera-to-world
     poses = system.trajectory()                       # (N, 3, 4), one row per frame fed
-    system.stats(); system.frame_states(); system.lost_frames()
+    system.stats(); system.results(); system.lost_frames()
     system.loops(); system.recoveries()               # loops closed, frames found again
     system.save_map("m.dsmap"); other.load_map("m.dsmap", localize_only=True)
     system.shutdown()                                 # finishes the local BA, stops its worker
 
 Modules follow ORB-SLAM2: ``orb`` (ORBExtractor: masked, grid-bucketed pyramid ORB),
 ``matcher`` (stereo row matching, projection search), ``frame`` / ``keyframe`` / ``map``
-(array-wise map points and observations, covisibility), ``tracking``, ``local_mapping``
+(array-wise map points and observations, covisibility), ``tracking`` (the tracking state
+and its policy), ``trajectory`` (the per-frame rows), ``selfcal`` (the disparity offset),
+``active_map`` (the map with its mapper, database and loop closer), ``local_mapping``
 (point creation / culling / fusion, local BA, keyframe culling), ``optimizer`` (numpy
 motion-only BA, gtsam local BA), ``ba_worker`` (local BA process), ``settings``
 (ORB-SLAM2 settings files), ``vocabulary`` / ``keyframe_database`` (bag of words, place
@@ -29,6 +31,8 @@ policy.
 
 from .settings import load_orbslam_settings
 from .loop_closing import LoopEvent
-from .system import FrameState, Recovery, System
+from .system import System, SystemStats
+from .tracking import Recovery, TrackingMethod, TrackingState, TrackResult
 
-__all__ = ["System", "FrameState", "Recovery", "LoopEvent", "load_orbslam_settings"]
+__all__ = ["System", "SystemStats", "TrackResult", "TrackingState", "TrackingMethod", "Recovery", "LoopEvent",
+           "load_orbslam_settings"]

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ..config import SlamConfig
 from .geometry import (
     orthonormalize,
     CHI2_MONO,
@@ -42,36 +43,10 @@ from .keyframe import KeyFrame
 from .map import Map
 from .matcher import TH_LOW, search_by_projection
 from .optimizer import LocalBAProblem, LocalBAResult, reprojection_chi2, run_ba
+from .orb import ORBExtractor
+from .selfcal import MAX_POINTS, SelfCalibration
 
 log = logging.getLogger("dynastereo.slam")
-
-# disparity offsets (px) at which the self-calibrating BA is solved
-SELFCAL_GRID = (-0.3, 0.0, 0.3)
-# frames tracked while the self-calibrating BA runs in the worker process
-SELFCAL_LAG_FRAMES = 8
-# points in the self-calibrating BA
-SELFCAL_MAX_POINTS = 6000
-
-
-@dataclass
-class MappingParams:
-    scales: np.ndarray
-    sigma2: np.ndarray
-    inv_sigma2: np.ndarray
-    th_depth_m: float
-    local_ba: str = "process"
-    ba_iterations: int = 5
-    ba_max_keyframes: int = 10
-    ba_max_fixed: int = 10
-    ba_lag_frames: int = 1
-    triangulation_neighbours: int = 6
-    fuse_neighbours: int = 6
-    keyframe_culling: bool = True
-    self_calibrate: bool = False
-    selfcal_keyframes: int = 8
-    selfcal_rounds: int = 4
-    selfcal_min_sigmas: float = 2.0
-
 
 @dataclass
 class MappingStats:
@@ -82,8 +57,6 @@ class MappingStats:
     points_culled: int = 0
     points_fused: int = 0
     keyframes_culled: int = 0
-    disparity_offset: float | None = None  # self-calibrated (px), None until estimated
-    disparity_offset_sigma: float | None = None
 
 
 class _Pending:
@@ -181,26 +154,24 @@ class BARunner:
 
 
 class LocalMapper:
-    def __init__(self, mp: Map, params: MappingParams, runner: BARunner) -> None:
+    """Local mapping of one map.  ``cfg``: the ``slam`` section as loaded; ``orb``: the
+    pyramid the keypoints come from (scales, sigma^2); ``selfcal``: the disparity offset
+    (:mod:`.selfcal`), whose self-calibrating BA is one of this mapper's BAs."""
+
+    def __init__(self, mp: Map, cfg: SlamConfig, orb: ORBExtractor, th_depth_m: float, runner: BARunner,
+                 selfcal: SelfCalibration) -> None:
         self.mp = mp
-        self.p = params
+        self.cfg = cfg
+        self.orb = orb
+        self.th_depth_m = float(th_depth_m)
         self.runner = runner
+        self.selfcal = selfcal
         self.recent = np.zeros(0, np.int64)
         self.stats = MappingStats()
         self._job: _Pending | LocalBAResult | None = None
         self._job_due = 0
         self._job_map = None
         self._pending_kf: KeyFrame | None = None
-        # self-calibration of the disparity offset, over the whole map when it has
-        # selfcal_keyframes keyframes, then again at 1.5x, 2.25x... (selfcal_rounds in all);
-        # ``on_offset`` applies an estimate (absolute, px) to the map's keyframes and the
-        # frames in flight; ``offset_now`` is the offset the keyframes carry now
-        self.selfcal_due = params.self_calibrate
-        self.selfcal_at = params.selfcal_keyframes
-        self.selfcal_left = params.selfcal_rounds
-        self.offset_now = 0.0
-        self._selfcal_base = 0.0
-        self.on_offset = None
 
     # ---------------------------------------------------------------- pipeline
     def process(self, kf: KeyFrame, new_points: np.ndarray, frame_index: int) -> None:
@@ -214,12 +185,12 @@ class LocalMapper:
         self.recent = np.concatenate([self.recent, created])
         self.fuse(kf)
         mp.update_connections(kf)
-        if self.p.local_ba != "off":
+        if self.cfg.local_ba != "off":
             if self._job is None:
                 self._submit(kf, frame_index)
             else:
                 self._pending_kf = kf
-        if self.p.keyframe_culling:
+        if self.cfg.keyframe_culling:
             self.cull_keyframes(kf)
 
     def cull_points(self, kf: KeyFrame) -> None:
@@ -244,8 +215,8 @@ class LocalMapper:
         created: list[np.ndarray] = []
         C1 = kf1.center
         R1w, t1w = kf1.T_cw[:3, :3], kf1.T_cw[:3, 3]
-        ratio_factor = 1.5 * float(self.p.scales[1] if len(self.p.scales) > 1 else 1.2)
-        for nid in kf1.best_covisibles(self.p.triangulation_neighbours):
+        ratio_factor = 1.5 * float(self.orb.scales[1] if len(self.orb.scales) > 1 else 1.2)
+        for nid in kf1.best_covisibles(self.cfg.triangulation_neighbours):
             kf2 = mp.keyframes.get(nid)
             if kf2 is None:
                 continue
@@ -282,13 +253,13 @@ class LocalMapper:
             den = lines[:, 0] ** 2 + lines[:, 1] ** 2
             with np.errstate(divide="ignore", invalid="ignore"):
                 d2 = num**2 / den
-            ok = d2 < 3.84 * self.p.sigma2[kf2.octave[k2]]
+            ok = d2 < 3.84 * self.orb.sigma2[kf2.octave[k2]]
             # a keypoint of kf2 too close to the epipole is ambiguous (both monocular)
             ep = K @ (R2w @ C1 + t2w)
             if abs(ep[2]) > 1e-9:
                 ex, ey = ep[0] / ep[2], ep[1] / ep[2]
                 mono_pair = (kf1.u_right[k1] < 0) & (kf2.u_right[k2] < 0)
-                near = (kf2.uv[k2, 0] - ex) ** 2 + (kf2.uv[k2, 1] - ey) ** 2 < 100 * self.p.scales[kf2.octave[k2]]
+                near = (kf2.uv[k2, 0] - ex) ** 2 + (kf2.uv[k2, 1] - ey) ** 2 < 100 * self.orb.scales[kf2.octave[k2]]
                 ok &= ~(mono_pair & near)
             k1, k2, dist = k1[ok], k2[ok], dist[ok]
             if len(k1) == 0:
@@ -307,7 +278,7 @@ class LocalMapper:
             # in front of both cameras, reprojection error, scale consistency
             for kf, kk in ((kf1, k1), (kf2, k2)):
                 chi2, front = reprojection_chi2(
-                    kf.T_cw, np.nan_to_num(X), kf.uv[kk], kf.u_right[kk], self.p.inv_sigma2[kf.octave[kk]], K, bf
+                    kf.T_cw, np.nan_to_num(X), kf.uv[kk], kf.u_right[kk], self.orb.inv_sigma2[kf.octave[kk]], K, bf
                 )
                 th = np.where(kf.u_right[kk] >= 0, CHI2_STEREO, CHI2_MONO)
                 ok &= front & (chi2 <= th)
@@ -317,7 +288,7 @@ class LocalMapper:
             ok &= (dist1 > 0) & (dist2 > 0)
             with np.errstate(divide="ignore", invalid="ignore"):
                 ratio_dist = dist2 / dist1
-            ratio_oct = self.p.scales[kf1.octave[k1]] / self.p.scales[kf2.octave[k2]]
+            ratio_oct = self.orb.scales[kf1.octave[k1]] / self.orb.scales[kf2.octave[k2]]
             ok &= ~((ratio_dist * ratio_factor < ratio_oct) | (ratio_dist > ratio_oct * ratio_factor))
             k1, k2, X = k1[ok], k2[ok], X[ok]
             if len(k1) == 0:
@@ -374,7 +345,7 @@ class LocalMapper:
         if len(sel) == 0:
             return 0
         lev = mp.predict_level(pts[sel], dist[sel])
-        r = 3.0 * self.p.scales[lev]
+        r = 3.0 * self.orb.scales[lev]
         m = search_by_projection(
             target.grid,
             target.octave,
@@ -389,7 +360,7 @@ class LocalMapper:
             max_level=lev,
             u_right=ur[sel],
             th_dist=TH_LOW,
-            reproj_check=(target.uv, self.p.inv_sigma2[target.octave]),
+            reproj_check=(target.uv, self.orb.inv_sigma2[target.octave]),
         )
         if len(m.query) == 0:
             return 0
@@ -406,7 +377,7 @@ class LocalMapper:
 
     def fuse(self, kf: KeyFrame) -> None:
         mp = self.mp
-        n = self.p.fuse_neighbours
+        n = self.cfg.fuse_neighbours
         if n <= 0:
             return
         targets: list[int] = []
@@ -434,7 +405,7 @@ class LocalMapper:
     # -------------------------------------------------------------- local BA
     def build_problem(self, kf: KeyFrame) -> LocalBAProblem | None:
         mp = self.mp
-        p = self.p
+        p = self.cfg
         local = [kf.id] + [k for k in kf.best_covisibles() if k in mp.keyframes][: p.ba_max_keyframes - 1]
         pts = mp.points_of(local)
         if len(pts) == 0:
@@ -468,18 +439,15 @@ class LocalMapper:
         if len(pts) == 0:
             return None
         # the offset shows in points seen from several keyframes: the most observed
-        # ones, at most SELFCAL_MAX_POINTS (the three solves stay cheap)
+        # ones, at most selfcal.MAX_POINTS (the three solves stay cheap)
         rows = mp.rows_of(pts)
         n_kf = np.bincount(np.searchsorted(pts, mp.obs_pt[rows]), minlength=len(pts))
         order = np.lexsort((pts, -n_kf))
-        keep = np.sort(order[: SELFCAL_MAX_POINTS][n_kf[order[:SELFCAL_MAX_POINTS]] >= 2])
+        keep = np.sort(order[: MAX_POINTS][n_kf[order[:MAX_POINTS]] >= 2])
         pts = pts[keep]
         prob = self._problem(kf, ids[1:], ids[:1], pts, mp.rows_of(pts))
         if prob is not None:
-            prob.offset_grid = SELFCAL_GRID
-            # an offset must first be told apart from 0; once one is applied, the later
-            # rounds refine it whatever the size of the change
-            prob.offset_min_sigmas = self.p.selfcal_min_sigmas if self.offset_now == 0.0 else 0.0
+            self.selfcal.prepare(prob)
             prob.iterations = max(prob.iterations, 5)
         return prob
 
@@ -497,7 +465,6 @@ class LocalMapper:
         self, kf: KeyFrame, local: list[int], fixed_ids: list[int], pts: np.ndarray, rows: np.ndarray
     ) -> LocalBAProblem | None:
         mp = self.mp
-        p = self.p
         okf = mp.obs_kf[rows]
         all_kf = np.array(local + fixed_ids, np.int64)
         rows = rows[np.isin(okf, all_kf)]
@@ -539,30 +506,26 @@ class LocalMapper:
             obs_pt=obs_pt,
             uv=uv,
             ur=ur,
-            sigma=self.p.scales[lev],
+            sigma=self.orb.scales[lev],
             K=kf.calib.K,
             baseline=kf.calib.baseline,
-            iterations=p.ba_iterations,
+            iterations=self.cfg.ba_iterations,
         )
         return prob
 
     def _submit(self, kf: KeyFrame, frame_index: int) -> None:
         prob = None
-        if self.selfcal_due and self.selfcal_left > 0 and len(self.mp.keyframes) >= self.selfcal_at:
+        if self.selfcal.round_due(len(self.mp.keyframes)):
             prob = self.build_selfcal_problem(kf)
             if prob is not None:
-                self._selfcal_base = self.offset_now  # the problem's observations carry it
-                self.selfcal_left -= 1
-                self.selfcal_at = int(np.ceil(self.selfcal_at * 1.5))
-                self.selfcal_due = self.selfcal_left > 0
+                self.selfcal.start_round()
         if prob is None:
             prob = self.build_problem(kf)
         if prob is None:
             return
         res = self.runner.submit(prob)
         self._job = res
-        # the self-calibrating BA solves the map several times: more frames to run in
-        lag = max(self.p.ba_lag_frames, SELFCAL_LAG_FRAMES) if prob.offset_grid else self.p.ba_lag_frames
+        lag = self.selfcal.lag_frames(prob, self.cfg.ba_lag_frames)
         self._job_due = frame_index + max(0, lag)
         self._job_map = id(self.mp)
         if isinstance(res, LocalBAResult):
@@ -578,11 +541,8 @@ class LocalMapper:
         if len(mp.keyframes) < 3:
             return None
         kf = mp.keyframes[max(mp.keyframes)]
-        if self.p.self_calibrate:
+        if self.selfcal.enabled:
             prob = self.build_selfcal_problem(kf)
-            if prob is not None:
-                prob.offset_min_sigmas = self.p.selfcal_min_sigmas if self.offset_now == 0.0 else 0.0
-                self._selfcal_base = self.offset_now
         else:
             prob = self.build_global_problem(kf)
         if prob is None:
@@ -617,17 +577,16 @@ class LocalMapper:
         self.stats.ba_runs += 1
         self.stats.ba_ms.append(res.ms)
         if res.offset_costs is not None:
-            self.stats.disparity_offset = res.offset
-            self.stats.disparity_offset_sigma = res.offset_sigma
+            self.selfcal.estimate, self.selfcal.estimate_sigma = res.offset, res.offset_sigma
             log.info(
                 "disparity offset self-calibration: %s (costs %s; %.0f ms)",
                 "none" if res.offset is None else f"{res.offset:+.3f} +- {res.offset_sigma:.3f} px",
                 ", ".join(f"{x:.0f}" for x in res.offset_costs),
                 res.ms,
             )
-            if res.offset is not None and self.on_offset is not None:
+            if res.offset is not None:
                 # the keyframes' stereo observations move to the offset the BA used
-                self.on_offset(self._selfcal_base + res.offset, res.offset_sigma)
+                self.selfcal.apply(res.offset, res.offset_sigma, mp)
         for i, k in enumerate(res.kf_ids):
             kf = mp.keyframes.get(int(k))
             if kf is not None:
@@ -648,7 +607,7 @@ class LocalMapper:
             kp = okp[s]
             ptk = mp.obs_pt[rows[s]]
             chi2, front = reprojection_chi2(
-                kf.T_cw, mp.pos[ptk], kf.uv[kp], kf.u_right[kp], self.p.inv_sigma2[kf.octave[kp]], kf.calib.K, kf.calib.bf
+                kf.T_cw, mp.pos[ptk], kf.uv[kp], kf.u_right[kp], self.orb.inv_sigma2[kf.octave[kp]], kf.calib.K, kf.calib.bf
             )
             th = np.where(kf.u_right[kp] >= 0, CHI2_STEREO, CHI2_MONO)
             out = (chi2 > th) | ~front
@@ -668,7 +627,7 @@ class LocalMapper:
                 continue
             kf2 = mp.keyframes[k]
             idx = np.flatnonzero(kf2.point_ids >= 0)
-            close = (kf2.depth[idx] >= 0) & (kf2.depth[idx] <= self.p.th_depth_m)
+            close = (kf2.depth[idx] >= 0) & (kf2.depth[idx] <= self.th_depth_m)
             idx = idx[close]
             n_mps = len(idx)
             if n_mps == 0:

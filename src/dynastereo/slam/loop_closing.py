@@ -38,6 +38,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from ..config import SlamConfig
 from .geometry import desc_u64, inv_T, orthonormalize
 from .keyframe import KeyFrame
 from .local_mapping import BARunner, LocalMapper
@@ -49,25 +50,6 @@ from .tracking import pnp_ransac
 from .vocabulary import BowVector, Vocabulary
 
 log = logging.getLogger("dynastereo.slam")
-
-
-@dataclass
-class LoopParams:
-    min_kf_gap: int = 10  # keyframes since the map's start / the last loop before detecting
-    consistency: int = 3  # consecutive keyframes whose candidate groups agree
-    min_matches: int = 20  # descriptor matches to a candidate before RANSAC
-    min_inliers: int = 40  # inliers after projection matching and pose optimisation
-    # of those, at least this many close stereo points (depth < close_depth_m in the new
-    # keyframe): far points leave the distance along the view direction weak -- a loop
-    # seen from 20 m before the place came out 0.4 m short (synthetic ``loop``)
-    min_close_inliers: int = 20
-    close_depth_m: float = 35 * 0.54
-    covis_edge_weight: int = 100  # essential-graph covisibility edges (ORB-SLAM2: 100)
-    max_verify: int = 2  # consistent candidates verified per keyframe, best first
-    full_ba: bool = True
-    full_ba_iterations: int = 20
-    full_ba_lag_frames: int = 20
-    seed: int = 0
 
 
 @dataclass
@@ -120,7 +102,9 @@ class LoopCloser:
         db: KeyFrameDatabase,
         vocab: Vocabulary,
         mapper: LocalMapper,
-        params: LoopParams,
+        cfg: SlamConfig,
+        close_depth_m: float,
+        seed: int,
         inv_sigma2: np.ndarray,
         scales: np.ndarray,
         events: list[LoopEvent] | None = None,
@@ -130,7 +114,9 @@ class LoopCloser:
         self.db = db
         self.vocab = vocab
         self.mapper = mapper
-        self.p = params
+        self.cfg = cfg
+        self.close_depth_m = float(close_depth_m)  # "close" stereo points (th_depth baselines)
+        self.seed = int(seed)
         self.inv_sigma2 = inv_sigma2
         self.scales = scales
         # shared by the closers of a System's successive maps
@@ -146,7 +132,7 @@ class LoopCloser:
     def detect(self, kf: KeyFrame, bow: BowVector) -> list[int]:
         """Consistent loop candidates for ``kf`` (ORB-SLAM2 ``DetectLoop``)."""
         mp = self.mp
-        if kf.id < self._last_loop_kf + self.p.min_kf_gap or len(mp.keyframes) <= self.p.min_kf_gap:
+        if kf.id < self._last_loop_kf + self.cfg.loop_min_kf_gap or len(mp.keyframes) <= self.cfg.loop_min_kf_gap:
             return []
         connected = [k for k in kf.covis if k in mp.keyframes]
         if not connected:
@@ -159,7 +145,7 @@ class LoopCloser:
             near.update(mp.keyframes[k].covis)
         cands = self.db.detect_loop_candidates(kf.id, bow, near, min_score, mp.best_covisibles)
         # the last keyframes are the same stretch of road, not a loop
-        cands = [c for c in cands if kf.id - c >= 2 * self.p.min_kf_gap]
+        cands = [c for c in cands if kf.id - c >= 2 * self.cfg.loop_min_kf_gap]
         if not cands:
             self._groups = []
             return []
@@ -176,7 +162,7 @@ class LoopCloser:
                     if not extended[gi]:
                         new_groups.append((group, cur))
                         extended[gi] = True
-                    if cur >= self.p.consistency and c not in enough:
+                    if cur >= self.cfg.loop_consistency and c not in enough:
                         enough.append(c)
             if not consistent:
                 new_groups.append((group, 0))
@@ -191,15 +177,15 @@ class LoopCloser:
         mp = self.mp
         ki, pts = keyframe_point_matches(mp, cand, kf)
         n_desc = len(ki)
-        if n_desc < self.p.min_matches:
+        if n_desc < self.cfg.loop_min_matches:
             return None
         calib = kf.calib
-        T, _ = pnp_ransac(mp.pos[pts], kf.uv[ki], calib.K, self.p.seed, 300, self.p.min_matches // 2)
+        T, _ = pnp_ransac(mp.pos[pts], kf.uv[ki], calib.K, self.seed, 300, self.cfg.loop_min_matches // 2)
         if T is None:
             return None
         T, ok = self._optimize(T, ki, mp.pos[pts], kf)
         ki, pts = ki[ok], pts[ok]
-        if len(ki) < self.p.min_matches:
+        if len(ki) < self.cfg.loop_min_matches:
             return None
         # more matches: the loop keyframe's neighbourhood projected with the new pose
         cand_pts = mp.points_of([cand.id] + [k for k in cand.covis if k in mp.keyframes])
@@ -221,8 +207,8 @@ class LoopCloser:
                 pts = np.concatenate([pts, cand_pts[sel[m.query]]])
         T, ok = self._optimize(T, ki, mp.pos[pts], kf)
         ki, pts = ki[ok], pts[ok]
-        n_close = int(np.count_nonzero((kf.depth[ki] > 0) & (kf.depth[ki] < self.p.close_depth_m)))
-        if len(ki) < self.p.min_inliers or n_close < self.p.min_close_inliers:
+        n_close = int(np.count_nonzero((kf.depth[ki] > 0) & (kf.depth[ki] < self.close_depth_m)))
+        if len(ki) < self.cfg.loop_min_inliers or n_close < self.cfg.loop_min_close_inliers:
             return None
         return T, ki, pts, n_desc
 
@@ -241,7 +227,7 @@ class LoopCloser:
         cands = self.detect(kf, bow)
         self.stats.query_ms.append((time.perf_counter() - t0) * 1e3)
         event = None
-        for cid in cands[: self.p.max_verify]:
+        for cid in cands[: self.cfg.loop_max_verify]:
             cand = self.mp.keyframes.get(cid)
             if cand is None:
                 continue
@@ -349,7 +335,7 @@ class LoopCloser:
             kf.id, kf.frame_index, loop.id, loop.frame_index, event.inliers, event.correction_m,
             event.correction_deg, fused, n_kf, n_edges, pg_ms,
         )
-        if self.p.full_ba:
+        if self.cfg.loop_full_ba and self.cfg.mapping_on:
             self._submit_full_ba(kf, frame_pos)
         return event
 
@@ -380,7 +366,7 @@ class LoopCloser:
             if parent is not None:
                 edges[(parent, k)] = rel(parent, k, T_wc_old)
             for j, w in kfo.covis.items():
-                if j < k and j in pos and w >= self.p.covis_edge_weight and (j, k) not in edges:
+                if j < k and j in pos and w >= self.cfg.loop_covis_edge_weight and (j, k) not in edges:
                     edges[(j, k)] = rel(j, k, T_wc_old)
         for a, b in self.loop_edges:  # earlier loops, as they stand now
             if a in pos and b in pos:
@@ -423,13 +409,13 @@ class LoopCloser:
         prob = self.mapper.build_global_problem(kf)
         if prob is None:
             return
-        prob.iterations = self.p.full_ba_iterations
+        prob.iterations = self.cfg.loop_full_ba_iterations
         prob.rel_tol = 1e-5
         if self._ba_runner is None:
-            mode = self.mapper.p.local_ba if self.mapper.p.local_ba != "off" else "inline"
+            mode = self.cfg.local_ba if self.cfg.mapping_on else "inline"
             self._ba_runner = BARunner(mode)
         job = self._ba_runner.submit(prob)
-        self._ba_job = (job, prob, frame_pos + max(0, self.p.full_ba_lag_frames), len(self.events))
+        self._ba_job = (job, prob, frame_pos + max(0, self.cfg.loop_ba_lag_frames), len(self.events))
 
     def collect(self, frame_pos: int, force: bool = False) -> None:
         """Apply the full BA when it is due (waits for it)."""

@@ -9,8 +9,8 @@ An ORB-SLAM2 settings file (OpenCV FileStorage YAML, ``%YAML:1.0``) holds::
     ORBextractor.nFeatures / scaleFactor / nLevels / iniThFAST / minThFAST
                                                             -> n_features, scale_factor, ...
 
-``dynastereo.config.load_config`` applies the same SLAM keys when such a file is
-given as the configuration; the file is read by ``dynastereo.io.calib`` (which also
+``dynastereo.config.load_config`` applies the same SLAM keys (one adapter,
+``config.orbslam2_slam_values``) when such a file is given as the configuration; the file is read by ``dynastereo.io.calib`` (which also
 handles ``LEFT.*`` / ``RIGHT.*`` rectification for raw input).
 """
 
@@ -20,7 +20,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from ..config import ORBSLAM2_SLAM_KEYS, SlamConfig
+from ..config import SlamConfig, orbslam2_slam_values
 from ..errors import ConfigError
 from ..types import StereoCalibration
 
@@ -28,24 +28,15 @@ from ..types import StereoCalibration
 def slam_config_from_orbslam(
     settings: dict[str, Any], base: SlamConfig | None = None, path: str | Path | None = None
 ) -> SlamConfig:
-    """``base`` (default ``SlamConfig()``) with the ORB-SLAM2 keys of ``settings`` applied."""
-    cfg = dataclasses.replace(base or SlamConfig())
-    types = {f.name: f.type for f in dataclasses.fields(SlamConfig)}
-    items = [(k, f) for k, f in ORBSLAM2_SLAM_KEYS.items() if k in settings]
-    if "Camera.fps" in settings:
-        items.append(("Camera.fps", "max_frames"))
-    for key, name in items:
-        tp = int if types[name] in (int, "int") else float
-        try:
-            value = float(settings[key])
-        except (TypeError, ValueError):
-            raise ConfigError(f"'{key}' must be a number, got {settings[key]!r}", path) from None
-        if key == "Camera.fps":
-            if value <= 0:
-                continue
-            value = round(value)
-        setattr(cfg, name, tp(value))
-    return cfg
+    """``base`` (default ``SlamConfig()``) with the ORB-SLAM2 keys of ``settings`` applied
+    (:func:`dynastereo.config.orbslam2_slam_values`)."""
+    values = orbslam2_slam_values(settings, path)
+    try:
+        return dataclasses.replace(base or SlamConfig(), **values)  # validated again
+    except ConfigError as e:
+        if path is None or e.path is not None:
+            raise
+        raise ConfigError(str(e), path) from None
 
 
 def load_orbslam_settings(

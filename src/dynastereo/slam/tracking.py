@@ -1,39 +1,106 @@
-"""Tracking (ORB-SLAM2 ``Tracking``): pose of every frame against the map.
+"""Tracking (ORB-SLAM2 ``Tracking``): the pose of every frame against the map, and the
+tracking state -- last frame, velocity, reference keyframe -- held once, here.
 
-Order per frame: constant-velocity prediction + projection matching of the last
-frame's points (map points and temporary stereo "visual odometry" points), or, when
-that fails, descriptor matching against the reference keyframe with PnP-RANSAC; then
-local-map tracking (projection of the points of the covisible keyframes) and
-motion-only BA after each matching step; finally the keyframe decision.
+``Tracker.track(frame, masks) -> TrackResult`` per frame:
+
+1. **features** (left and right ORB outside the masks) and **stereo** row matching,
+   with the disparity offset of :mod:`.selfcal` applied;
+2. **pose**: constant-velocity prediction + projection matching of the last frame's
+   points (map points and temporary stereo "visual odometry" points), or, when that
+   fails, descriptor matching against the reference keyframe with PnP-RANSAC; then
+   local-map tracking (projection of the points of the covisible keyframes) and
+   motion-only BA after each matching step.  A pose is accepted only with enough
+   support: at least ``min_inliers`` inliers after local-map tracking and at least
+   ``min_inlier_fraction`` of the median of the last tracked frames.  Otherwise a
+   prior-free search over the map's keyframes runs (relocalisation: bag-of-words
+   candidates, PnP-RANSAC, motion-only BA, local map; ``reloc_min_inliers`` needed);
+3. **keyframe decision** (``need_new_keyframe``) and the keyframe handed to local
+   mapping and loop closing (:class:`~.active_map.ActiveMap`);
+4. **lost**: when no pose is supported the frame's pose is the constant-velocity
+   prediction; with ``min_init_points`` stereo points a new map is started there
+   (``reset_map``, the System's), else the map is kept to relocalise the next frames in.
 """
 
 from __future__ import annotations
 
 import logging
+import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from enum import StrEnum
+from typing import TYPE_CHECKING, Callable
 
 import cv2
 import numpy as np
 
+from ..config import SlamConfig
+from ..timing import StageTimer
+from ..types import StereoCalibration, StereoFrame, StereoMasks
 from .frame import Frame
-from .geometry import desc_u64, inv_T, rotation_consistent, unique_best
+from .geometry import desc_u64, inv_T, orthonormalize, rotation_consistent, unique_best
 from .keyframe import KeyFrame
 from .map import Map
-from .matcher import TH_HIGH, TH_LOW, keyframe_point_matches, search_by_projection
+from .matcher import TH_HIGH, TH_LOW, keyframe_point_matches, search_by_projection, stereo_match
 from .optimizer import optimize_pose, project
+from .orb import ORBExtractor
+from .selfcal import SelfCalibration
+from .trajectory import FrameTrajectory
+from .vocabulary import Vocabulary
+
+if TYPE_CHECKING:
+    from .active_map import ActiveMap
 
 log = logging.getLogger("dynastereo.slam")
 
 
+class TrackingState(StrEnum):
+    """What became of a frame."""
+
+    INIT = "init"  # it started a map (the first frame, or a re-initialisation)
+    TRACKED = "tracked"
+    LOST = "lost"  # no supported pose: the constant-velocity prediction
+
+
+class TrackingMethod(StrEnum):
+    """How a frame's pose was found."""
+
+    INIT = "init"
+    MOTION = "motion"  # constant-velocity model + the last frame's points
+    REFERENCE = "reference"  # the reference keyframe's descriptors + PnP-RANSAC
+    RELOC = "reloc"  # prior-free search over the map's keyframes
+    NONE = ""  # lost
+
+
 @dataclass
-class TrackParams:
-    scales: np.ndarray
-    inv_sigma2: np.ndarray
-    th_depth_m: float
-    min_inliers: int = 20
-    max_frames: int = 10
-    min_frames: int = 0
-    seed: int = 0
+class TrackResult:
+    """One frame as tracked (``System.track``, ``System.results()``)."""
+
+    index: int  # position in the order fed
+    frame_index: int  # StereoFrame.index
+    status: TrackingState
+    method: TrackingMethod
+    keyframe: bool  # a lost frame that starts a new map is its first keyframe
+    inliers: int  # after local-map tracking (lost: of the best refused pose, 0 if none)
+    n_features: int
+    n_stereo: int
+    map_id: int  # increments at each re-initialisation
+    pose: np.ndarray  # 3x4 camera-to-world as tracked (trajectory() has the refined one)
+
+    @property
+    def ok(self) -> bool:
+        return self.status != TrackingState.LOST
+
+
+@dataclass
+class Recovery:
+    """A frame tracked again after lost frames (``System.recoveries()``)."""
+
+    frame: int  # position in the order fed
+    frame_index: int
+    lost_frames: int  # lost frames just before it
+    method: TrackingMethod  # found in the same map (reloc / reference / motion) or INIT (a new map)
+    map_id: int
 
 
 def pnp_ransac(
@@ -61,15 +128,372 @@ def pnp_ransac(
 
 
 class Tracker:
-    def __init__(self, params: TrackParams) -> None:
-        self.p = params
+    """The tracking thread of ORB-SLAM2 (module doc).  ``cfg``: the ``slam`` section;
+    ``selfcal``: the disparity offset applied to every new frame; ``reset_map``: starts a
+    new map (``System``'s), which then calls :meth:`attach`."""
+
+    def __init__(
+        self,
+        cfg: SlamConfig,
+        calib: StereoCalibration,
+        orb: ORBExtractor,
+        selfcal: SelfCalibration,
+        vocab: Vocabulary,
+        *,
+        seed: int = 0,
+        reset_map: Callable[[], None] | None = None,
+        threads: ThreadPoolExecutor | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.calib = calib
+        self.orb = orb
+        self.selfcal = selfcal
+        self.vocab = vocab
+        self.seed = int(seed)
+        self.th_depth_m = cfg.th_depth * calib.baseline
+        self._reset_map = reset_map
+        self._threads = threads
+        self.localize_only = False
+        self.active: ActiveMap | None = None
+        # tracking state: kept across maps
+        self.velocity: np.ndarray | None = None  # the last frame's motion, camera frame
+        self.last_T: np.ndarray | None = None  # the last frame's T_cw
+        self.last_ok = False  # the last frame was tracked (not lost)
+        self.last_method = TrackingMethod.NONE
+        self.anchor = np.eye(4)  # the first frame's pose
+        # the frames fed
+        self.n = 0
+        self.trajectory = FrameTrajectory()
+        self.results: list[TrackResult] = []
+        self.recoveries: list[Recovery] = []
+        self.reloc_ms: list[float] = []
+        self.keyframes_created = 0
+        self._lost_run = 0
+        self._forget_map()
+
+    def _forget_map(self) -> None:
+        """Tracking state that belongs to one map."""
         self.last: Frame | None = None
-        self.velocity: np.ndarray | None = None
         self.ref_kf: KeyFrame | None = None
         self.last_kf_frame = -(10**9)
         self.n_inliers = 0
         self.local_kfs: list[int] = []
-        self.method = ""
+        self.initialised = False
+        self.recent_inliers: deque[int] = deque(maxlen=5)
+
+    def attach(self, active: "ActiveMap", initialised: bool = False) -> None:
+        """Track in ``active`` from now on (a new map; ``initialised``: a loaded one)."""
+        if self.active is not None:
+            self.trajectory.bake(self.active.map)  # the old map's frame poses made absolute
+        self.active = active
+        self._forget_map()
+        self.initialised = bool(initialised)
+
+    # --------------------------------------------------------------- features
+    def _features(self, frame: StereoFrame, masks: StereoMasks | None):
+        left = frame.left_gray
+        right = frame.right_gray
+        ml = masks.left if masks is not None else None
+        mr = masks.right if masks is not None else None
+        ex = self.orb
+        if self._threads is not None:
+            fr = self._threads.submit(ex.extract, right, mr)
+            fl = ex.extract(left, ml)
+            return fl, fr.result(), left, right
+        return ex.extract(left, ml), ex.extract(right, mr), left, right
+
+    def make_frame(self, frame: StereoFrame, masks: StereoMasks | None, tm: StageTimer) -> tuple[Frame, float]:
+        """Features and stereo matches of ``frame`` (``features`` / ``stereo`` stages):
+        ``(Frame, the disparity offset its matches carry)``."""
+        c = self.calib
+        if frame.left.shape[:2] != (c.height, c.width):
+            raise ValueError(
+                f"frame {frame.index}: image size {frame.left.shape[1]}x{frame.left.shape[0]} differs from the "
+                f"calibration's {c.width}x{c.height}"
+            )
+        with tm.stage("features"):
+            fl, fr, pl, pr = self._features(frame, masks)
+        with tm.stage("stereo"):
+            st = stereo_match(
+                fl.uv, fl.octave, fl.desc, fr.uv, fr.octave, fr.desc, pl, pr, self.orb.scales, c.fx, c.bf
+            )
+            offset_used = self.selfcal.on_frame(fl.uv, st.u_right, st.depth)
+            f = Frame.from_features(self.n, fl, st.u_right, st.depth, c)
+        return f, offset_used
+
+    # ------------------------------------------------------------------ track
+    def track(self, frame: StereoFrame, masks: StereoMasks | None, tm: StageTimer) -> TrackResult:
+        """Track one rectified stereo frame (module doc); stage times go to ``tm``."""
+        assert self.active is not None, "Tracker.attach(map) first"
+        n = self.n
+        f, offset_used = self.make_frame(frame, masks, tm)
+        self._refresh_last_pose()
+        n_stereo = int(np.count_nonzero(f.depth > 0))
+        status, method, is_kf = TrackingState.TRACKED, TrackingMethod.NONE, False
+        reason = ""
+        with tm.stage("track"):
+            if not self.initialised:
+                ok = False
+            else:
+                ok, method, reason = self._track_frame(f, frame.index)
+                f.T_cw = orthonormalize(f.T_cw)
+        track_inliers = int(self.n_inliers) if self.initialised else 0
+        with tm.stage("local_mapping"):
+            # the local BA submitted ba_lag_frames ago is applied now (waiting for it if
+            # needed): it ran while this frame's features, stereo and tracking were computed
+            self.active.collect(n)
+            offset_used = self.selfcal.sync(f, offset_used)
+        if not self.initialised:
+            f.T_cw = self._predict()
+            f.clear_matches(np.arange(len(f)))
+            with tm.stage("local_mapping"):
+                is_kf = self._initialise(f, first=(n == 0))
+            status, method = (TrackingState.INIT, TrackingMethod.INIT) if is_kf else \
+                (TrackingState.LOST, TrackingMethod.NONE)
+            if not is_kf:
+                log.warning(
+                    "frame %d: cannot initialise the map (%d stereo points < %d); "
+                    "pose from the constant-velocity prediction",
+                    frame.index, n_stereo, self.cfg.min_init_points,
+                )
+        elif ok:
+            self.recent_inliers.append(int(self.n_inliers))
+            if not self.localize_only:
+                with tm.stage("local_mapping"):
+                    if self.need_new_keyframe(self.active.map, f):
+                        self._create_keyframe(f)
+                        is_kf = True
+        else:
+            status, method = TrackingState.LOST, TrackingMethod.NONE
+            f.T_cw = self._predict()
+            f.clear_matches(np.arange(len(f)))
+            is_kf = self._lost(f, frame.index, reason, n_stereo, tm, offset_used)
+        T_cw = orthonormalize(f.T_cw)
+        f.T_cw = T_cw
+        self._update_motion(T_cw, status, method)
+        # drop temporary VO matches; the frame becomes the last frame
+        temp = f.matched & (f.point_ids < 0)
+        f.clear_matches(np.flatnonzero(temp))
+        self.last = f
+        self.selfcal.follow = f
+        self._record(T_cw, status, is_kf, n)
+        if status == TrackingState.LOST:
+            self._lost_run += 1
+        elif self._lost_run:
+            self.recoveries.append(Recovery(n, frame.index, self._lost_run, method, self.active.id))
+            log.info("frame %d: tracked again (%s) after %d lost frames", frame.index, method, self._lost_run)
+            self._lost_run = 0
+        inliers = track_inliers if status == TrackingState.LOST else int(self.n_inliers)
+        res = TrackResult(n, frame.index, status, method, is_kf, inliers, len(f), n_stereo, self.active.id,
+                          inv_T(T_cw)[:3].copy())
+        self.results.append(res)
+        self.n += 1
+        return res
+
+    def _lost(self, f: Frame, frame_index: int, reason: str, n_stereo: int, tm: StageTimer,
+              offset_used: float) -> bool:
+        """No supported pose: keep the map (localisation only, or too few stereo points),
+        else start a new map at the predicted pose.  True when ``f`` became a keyframe."""
+        if self.localize_only:
+            log.warning(
+                "frame %d: tracking lost (%s); pose from the constant-velocity prediction; "
+                "localisation only: the map is kept",
+                frame_index, reason,
+            )
+            return False
+        if n_stereo >= self.cfg.min_init_points:
+            log.warning(
+                "frame %d: tracking lost (%s); pose from the constant-velocity prediction; "
+                "re-initialising the map at that pose",
+                frame_index, reason,
+            )
+            with tm.stage("local_mapping"):
+                self._reset_map()
+                self.selfcal.sync(f, offset_used)
+                return self._initialise(f, first=False)
+        log.warning(
+            "frame %d: tracking lost (%s); pose from the constant-velocity prediction; "
+            "%d stereo points are too few to re-initialise (< %d): the map is kept to "
+            "relocalise the next frames in",
+            frame_index, reason, n_stereo, self.cfg.min_init_points,
+        )
+        return False
+
+    def _update_motion(self, T_cw: np.ndarray, status: TrackingState, method: TrackingMethod) -> None:
+        """The velocity (the last frame's motion, in the camera frame), only between two
+        frames tracked in a row.  A frame the motion model could not place (its pose from
+        the reference keyframe or a relocalisation) may follow a jump (a revisit): it keeps
+        the old velocity, unless the frame before it was placed that way too."""
+        continuous = self.last_ok and status == TrackingState.TRACKED and (
+            method == TrackingMethod.MOTION or self.velocity is None
+            or self.last_method in (TrackingMethod.REFERENCE, TrackingMethod.RELOC, TrackingMethod.INIT)
+        )
+        if self.last_T is not None and continuous:
+            self.velocity = orthonormalize(T_cw @ inv_T(self.last_T))
+        self.last_T = T_cw
+        self.last_ok = status != TrackingState.LOST
+        self.last_method = method
+
+    def _record(self, T_cw: np.ndarray, status: TrackingState, is_kf: bool, n: int) -> None:
+        """The frame's trajectory row, relative to its reference keyframe when it has one."""
+        ref = self.ref_kf
+        if status != TrackingState.LOST and ref is not None and ref.id in self.active.map.keyframes:
+            # a keyframe's own frame follows the keyframe exactly (an inline local BA may
+            # already have moved it)
+            T_rel = np.eye(4) if (is_kf and ref.frame_index == n) else T_cw @ inv_T(ref.T_cw)
+            self.trajectory.add(T_rel, ref.id)
+        else:
+            self.trajectory.add(T_cw.copy())
+
+    def _refresh_last_pose(self) -> None:
+        """The last frame's pose from its reference keyframe, which local BA may have
+        moved since (ORB-SLAM2's ``UpdateLastFrame``): prediction and velocity use it."""
+        if self.last is None:
+            return
+        T = self.trajectory.last_pose(self.active.map)
+        if T is None:
+            return
+        self.last_T = T
+        self.last.T_cw = T
+
+    def _predict(self) -> np.ndarray:
+        if self.last_T is None:
+            return self.anchor.copy()
+        if self.velocity is None:
+            return self.last_T.copy()
+        return self.velocity @ self.last_T
+
+    def _support_reference(self) -> float | None:
+        """Median inliers of the last tracked frames of this map (None: too few yet)."""
+        r = self.recent_inliers
+        return float(np.median(r)) if len(r) >= 3 else None
+
+    def _track_frame(self, f: Frame, frame_index: int) -> tuple[bool, TrackingMethod, str]:
+        """Motion model, else reference keyframe; then the local map; a supported pose,
+        else relocalisation (module doc).  Returns ``(ok, method, reason for a failure)``."""
+        mp, cfg = self.active.map, self.cfg
+        self.n_inliers = 0
+        f.T_cw = self._predict()
+        if self.ref_kf is not None and self.ref_kf.id not in mp.keyframes:
+            self.ref_kf = mp.keyframes[max(mp.keyframes)] if mp.keyframes else None
+        if len(f) < 10:
+            return False, TrackingMethod.NONE, f"{len(f)} features"
+        ok, method = False, TrackingMethod.NONE
+        if self.velocity is not None and self.last is not None and self.last_ok:
+            ok = self.track_motion_model(mp, f)
+            method = TrackingMethod.MOTION
+        if not ok:
+            ok = self.track_reference_keyframe(mp, f, self._predict())
+            method = TrackingMethod.REFERENCE
+        if ok:
+            self.track_local_map(mp, f)
+        n = self.n_inliers if ok else 0
+        ref = self._support_reference()
+        if ok and n >= cfg.min_inliers and (ref is None or n >= cfg.min_inlier_fraction * ref):
+            return True, method, ""
+        if not ok:
+            why = "no pose from the motion model nor from the reference keyframe"
+        elif n < cfg.min_inliers:
+            why = f"{n} inliers after local-map tracking < {cfg.min_inliers}"
+        else:
+            why = (
+                f"{n} inliers after local-map tracking, {100.0 * n / ref:.0f}% of the recent median "
+                f"{ref:.0f} (< {100.0 * cfg.min_inlier_fraction:.0f}%)"
+            )
+        if cfg.reloc_candidates > 0:
+            found, kid = self._relocalise(f)
+            if found and self.n_inliers >= max(cfg.reloc_min_inliers, cfg.min_inliers):
+                log.info(
+                    "frame %d: %s; relocalised against keyframe %d (%d inliers)", frame_index, why, kid, self.n_inliers
+                )
+                return True, TrackingMethod.RELOC, ""
+            why += (
+                f"; relocalisation found {self.n_inliers} inliers < {cfg.reloc_min_inliers}"
+                if found
+                else "; relocalisation found no keyframe"
+            )
+        return False, method, why
+
+    def _relocalise(self, f: Frame) -> tuple[bool, int]:
+        """:meth:`relocalise` on the bag-of-words candidates (ORB-SLAM2's
+        ``DetectRelocalizationCandidates``); when none of them holds, on the keyframes
+        that see most of a sample of the frame's descriptors (brute force)."""
+        t0 = time.perf_counter()
+        mp, n = self.active.map, self.cfg.reloc_candidates
+        bow, _ = self.vocab.transform(f.desc)
+        cands = [k for k in self.active.kfdb.detect_relocalisation_candidates(bow, mp.best_covisibles)
+                 if k in mp.keyframes]
+        found, kid = self.relocalise(mp, f, cands[:n])
+        if not found or self.n_inliers < max(self.cfg.reloc_min_inliers, self.cfg.min_inliers):
+            more = [k for k in self.candidate_keyframes(mp, f, n) if k not in cands[:n]]
+            if more:
+                found, kid = self.relocalise(mp, f, more)
+        self.reloc_ms.append((time.perf_counter() - t0) * 1e3)
+        return found, kid
+
+    # ------------------------------------------------------------ keyframes
+    def _initialise(self, f: Frame, first: bool) -> bool:
+        """A map from the frame's stereo points (at least ``min_init_points``)."""
+        idx = np.flatnonzero(f.depth > 0)
+        if len(idx) < self.cfg.min_init_points:
+            return False
+        if first:
+            f.T_cw = self.anchor.copy()
+        mp = self.active.map
+        kf = self._make_keyframe(f)
+        ids = mp.new_points(kf.unproject(idx), kf.desc[idx], kf.id)
+        mp.add_observations(kf, idx, ids)
+        f.point_ids[idx] = ids
+        f.match_xyz[idx] = mp.pos[ids]
+        mp.update_points(ids)
+        self.ref_kf = kf
+        self.last_kf_frame = f.index
+        self.n_inliers = len(idx)
+        self.active.mapper.process(kf, np.zeros(0, np.int64), f.index)
+        self.active.place_keyframe(kf, f.index, self.vocab)
+        self.initialised = True
+        return True
+
+    def _make_keyframe(self, f: Frame) -> KeyFrame:
+        mp = self.active.map
+        kf = KeyFrame(
+            id=mp.new_kf_id(),
+            frame_index=f.index,
+            uv=f.uv,
+            octave=f.octave,
+            angle=f.angle,
+            desc=f.desc,
+            u_right=f.u_right,
+            depth=f.depth,
+            calib=f.calib,
+            T_cw=f.T_cw.copy(),
+        )
+        mp.add_keyframe(kf)
+        self.keyframes_created += 1
+        return kf
+
+    def _create_keyframe(self, f: Frame) -> None:
+        """``Tracking::CreateNewKeyFrame`` + local mapping of the new keyframe."""
+        mp = self.active.map
+        kf = self._make_keyframe(f)
+        has = np.flatnonzero(f.point_ids >= 0)
+        mp.add_observations(kf, has, f.point_ids[has])
+        # new points from close stereo keypoints (all closer than th_depth, at least 100)
+        cand = np.flatnonzero((f.depth > 0) & (kf.point_ids < 0))
+        cand = cand[np.argsort(f.depth[cand], kind="stable")]
+        n_close = int(np.count_nonzero(f.depth[cand] < self.th_depth_m))
+        cand = cand[: max(n_close, min(100, len(cand)))]
+        ids = np.zeros(0, np.int64)
+        if len(cand):
+            ids = mp.new_points(kf.unproject(cand), kf.desc[cand], kf.id)
+            keep = mp.add_observations(kf, cand, ids)
+            f.point_ids[cand[keep]] = ids[keep]
+            f.match_xyz[cand[keep]] = mp.pos[ids[keep]]
+            ids = ids[keep]
+        self.ref_kf = kf
+        self.last_kf_frame = f.index
+        self.active.mapper.process(kf, ids, f.index)
+        self.active.place_keyframe(kf, f.index, self.vocab)
 
     # ----------------------------------------------------------------- helpers
     def _optimize(self, mp: Map, frame: Frame) -> int:
@@ -84,7 +508,7 @@ class Tracker:
             frame.match_xyz[idx],
             frame.uv[idx],
             frame.u_right[idx],
-            self.p.inv_sigma2[frame.octave[idx]],
+            self.orb.inv_sigma2[frame.octave[idx]],
             calib.K,
             calib.bf,
         )
@@ -100,7 +524,7 @@ class Tracker:
         # temporary stereo points: closest first, all closer than th_depth, at least 100
         cand = np.flatnonzero((last.depth > 0) & ~has_mp)
         cand = cand[np.argsort(last.depth[cand], kind="stable")]
-        close = last.depth[cand] < self.p.th_depth_m
+        close = last.depth[cand] < self.th_depth_m
         n_take = max(int(close.sum()), min(100, len(cand)))
         tmp = cand[:n_take]
         idx_mp = np.flatnonzero(has_mp)
@@ -141,7 +565,7 @@ class Tracker:
         sel = np.flatnonzero(inside)
         matches = None
         for th in (7.0, 14.0):
-            radius = th * self.p.scales[oct_last[sel]]
+            radius = th * self.orb.scales[oct_last[sel]]
             m = search_by_projection(
                 frame.grid,
                 frame.octave,
@@ -171,7 +595,7 @@ class Tracker:
         return n_all >= 10 if n < 10 else True
 
     def _pnp(self, X: np.ndarray, uv: np.ndarray, frame: Frame) -> tuple[np.ndarray | None, int]:
-        return pnp_ransac(X, uv, frame.calib.K, self.p.seed)
+        return pnp_ransac(X, uv, frame.calib.K, self.seed)
 
     def track_reference_keyframe(self, mp: Map, frame: Frame, T_guess: np.ndarray | None) -> bool:
         """Descriptor matching against the reference keyframe's map points, pose from
@@ -322,7 +746,7 @@ class Tracker:
                 mp.visible[ids[sel]] += 1
             if len(sel):
                 lev = mp.predict_level(ids[sel], dist[sel])
-                r = np.where(cosv[sel] > 0.998, 2.5, 4.0) * self.p.scales[lev]
+                r = np.where(cosv[sel] > 0.998, 2.5, 4.0) * self.orb.scales[lev]
                 m = search_by_projection(
                     frame.grid,
                     frame.octave,
@@ -348,7 +772,7 @@ class Tracker:
         if count:
             mp.found[frame.point_ids[frame.point_ids >= 0]] += 1
         self.n_inliers = n
-        return n >= self.p.min_inliers
+        return n >= self.cfg.min_inliers
 
     # ---------------------------------------------------------- keyframe policy
     def need_new_keyframe(self, mp: Map, frame: Frame) -> bool:
@@ -358,15 +782,15 @@ class Tracker:
         min_obs = 3 if n_kfs > 2 else 2
         ref_pts = self.ref_kf.point_ids[self.ref_kf.point_ids >= 0]
         n_ref = int(np.count_nonzero(mp.nobs[ref_pts] >= min_obs))
-        close = (frame.depth > 0) & (frame.depth < self.p.th_depth_m)
+        close = (frame.depth > 0) & (frame.depth < self.th_depth_m)
         tracked = frame.point_ids >= 0
         n_tracked_close = int(np.count_nonzero(close & tracked))
         n_non_tracked_close = int(np.count_nonzero(close & ~tracked))
         need_close = n_tracked_close < 100 and n_non_tracked_close > 70
         th_ref = 0.4 if n_kfs < 2 else 0.75
         since = frame.index - self.last_kf_frame
-        c1a = since >= self.p.max_frames
-        c1b = since >= self.p.min_frames  # local mapping is never busy from tracking's view
+        c1a = since >= self.cfg.max_frames
+        c1b = since >= self.cfg.min_frames  # local mapping is never busy from tracking's view
         c1c = self.n_inliers < n_ref * 0.25 or need_close
         c2 = (self.n_inliers < n_ref * th_ref or need_close) and self.n_inliers > 15
         return bool((c1a or c1b or c1c) and c2)
