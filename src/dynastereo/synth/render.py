@@ -86,6 +86,20 @@ class _Facades:
     tk_f: np.ndarray  # depth; 1e9 without a hit
 
 
+@dataclass(frozen=True)
+class _Hits:
+    """Winning (primitive, pixel) pairs in float64: entry depth ``t``, the constraint
+    entered through ``wc``, the rays ``Dw`` / origins ``ow`` in the primitive frames (3
+    arrays each) and the primitives' quadric coefficients and centres."""
+
+    t: np.ndarray
+    wc: np.ndarray
+    Dw: list
+    ow: list
+    qk2: np.ndarray
+    qc: np.ndarray
+
+
 class Renderer:
     """Renders views of ``world`` with a pinhole camera (fx, fy, cx, cy) of size width x height."""
 
@@ -477,6 +491,40 @@ class Renderer:
             self._cast(rest, prm, img, depth, ids)
 
     def _cast(self, sel: np.ndarray, prm: dict, img, depth, ids) -> None:
+        """Intersect primitives ``sel`` with the rays of their projected boxes: all
+        (primitive, pixel) pairs in float32, the z-buffer keeps one nearest winner per
+        pixel, the winners are intersected again in float64 and shaded."""
+        pairs = self._pairs(sel, prm, depth)
+        if pairs is None:
+            return
+        row, col, pix, counts, rep = pairs
+        tin, tout = self._intersect_pairs(sel, prm, row, col, rep)
+        dflat = depth.reshape(-1)
+        won = self._z_winners(tin, tout, pix, dflat)
+        if won is None:
+            return
+        h_idx, ph = won
+        # winners in float64: exact depth and the constraint the ray enters through
+        P = len(sel)
+        if P == 1:
+            pw = np.zeros(len(h_idx), np.int64)
+        else:  # sorted: winners grouped by primitive
+            pw = np.searchsorted(np.cumsum(counts), h_idx, side="right")
+        wcount = np.bincount(pw, minlength=P)
+
+        def repw(a: np.ndarray) -> np.ndarray:  # per-primitive value -> per winner
+            return np.repeat(a, wcount, axis=0)
+
+        hits = self._entry_hits(sel, prm, repw, self.uc[col[h_idx]], self.vc[row[h_idx]])
+        dflat[ph] = hits.t.astype(np.float32)
+        g = sel[pw]
+        img.reshape(-1)[ph] = self._shade_hits(sel, prm, repw, hits, g)
+        ids.reshape(-1)[ph] = prm["oid"][g]
+
+    def _pairs(self, sel: np.ndarray, prm: dict, depth: np.ndarray):
+        """The (primitive, pixel) pairs of the boxes of ``sel``: row, col, flat pixel,
+        pairs per primitive and ``rep`` (per-primitive value -> per pair); None when a
+        single primitive's pixels are all nearer than it already (early z)."""
         W = self.W
         f32 = np.float32
         rect = prm["rect"][sel]
@@ -484,30 +532,36 @@ class Renderer:
         ww = rect[:, 3] - rect[:, 2]
         counts = hh * ww
         N = int(counts.sum())
-        P = len(sel)
 
         def rep(a: np.ndarray) -> np.ndarray:  # per-primitive value -> per pair
             return np.repeat(a, counts)
 
-        # (primitive, pixel) pairs: float32 here; the winners are redone in float64 below
+        # float32 here; the winners are redone in float64
         local = (np.arange(N) - rep(np.cumsum(counts) - counts)).astype(f32)
         wf = rep(ww.astype(f32))
         rl = np.floor((local + f32(0.5)) / wf)
         row = (rep(rect[:, 0].astype(f32)) + rl).astype(np.int64)
         col = (rep(rect[:, 2].astype(f32)) + local - rl * wf).astype(np.int64)
         pix = row * W + col
-        if P == 1:
+        if len(sel) == 1:
             # a single (big) primitive: its parameters are scalars, and pixels already
             # nearer than its nearest point (early z) need no intersection at all
             idx = np.flatnonzero(depth.reshape(-1)[pix] > prm["zmin"][sel[0]])
             if idx.size == 0:
-                return
+                return None
             row, col, pix = row[idx], col[idx], pix[idx]
-            N = idx.size
 
             def rep(a: np.ndarray) -> np.ndarray:  # noqa: F811 - scalar broadcast
                 return a[0]
 
+        return row, col, pix, counts, rep
+
+    def _intersect_pairs(self, sel: np.ndarray, prm: dict, row: np.ndarray, col: np.ndarray,
+                         rep) -> tuple[np.ndarray, np.ndarray]:
+        """Entry and exit ray parameters (float32) of every pair: the primitive is the
+        intersection of up to three slabs and two quadrics."""
+        f32 = np.float32
+        N = len(row)
         M = prm["M"][sel].astype(f32)
         o = prm["o"][sel].astype(f32)
         slo = prm["slo"][sel].astype(f32)
@@ -543,12 +597,18 @@ class Renderer:
                 sq = np.sqrt(np.maximum(qb * qb - qa * qcc, f32(0.0)))
                 np.maximum(tin, (-qb - sq) / qa, out=tin)
                 np.minimum(tout, (-qb + sq) / qa, out=tout)
-        dflat = depth.reshape(-1)
+        return tin, tout
+
+    @staticmethod
+    def _z_winners(tin: np.ndarray, tout: np.ndarray, pix: np.ndarray,
+                   dflat: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """The pairs that hit nearer than the z-buffer ``dflat`` (updated in place), one
+        winner per pixel (exact ties: one of them); (pair index, pixel) or None."""
         hit = (tin > _NEAR) & (tin < tout)
         hit &= tin < dflat[pix]
         h_idx = np.flatnonzero(hit)
         if h_idx.size == 0:
-            return
+            return None
         th = tin[h_idx]
         ph = pix[h_idx]
         np.minimum.at(dflat, ph, th)
@@ -558,30 +618,24 @@ class Renderer:
         claim = np.full(dflat.size, -1, np.int64)  # exact ties: one winner per pixel
         claim[ph] = np.arange(len(ph))
         keep = np.flatnonzero(claim[ph] == np.arange(len(ph)))
-        h_idx = h_idx[keep]
-        ph = ph[keep]
-        # winners in float64: exact depth and the constraint the ray enters through
-        if P == 1:
-            pw = np.zeros(len(h_idx), np.int64)
-        else:  # sorted: winners grouped by primitive
-            pw = np.searchsorted(np.cumsum(counts), h_idx, side="right")
-        wcount = np.bincount(pw, minlength=P)
+        return h_idx[keep], ph[keep]
 
-        def repw(a: np.ndarray) -> np.ndarray:  # per-primitive value -> per winner
-            return np.repeat(a, wcount, axis=0)
-
-        g = sel[pw]
-        uu = self.uc[col[h_idx]]
-        vv = self.vc[row[h_idx]]
+    @staticmethod
+    def _entry_hits(sel: np.ndarray, prm: dict, repw, uu: np.ndarray, vv: np.ndarray) -> _Hits:
+        """The winners' rays again in float64: entry depth and the constraint entered
+        through (0..2: slab axis, 3..4: quadric)."""
         Ms = prm["M"][sel]
         Dw = [repw(Ms[:, i, 0]) * uu + repw(Ms[:, i, 1]) * vv + repw(Ms[:, i, 2]) for i in range(3)]
         os_ = prm["o"][sel]
         ow = [repw(os_[:, i]) for i in range(3)]
-        n = len(h_idx)
+        n = len(uu)
         t = np.full(n, -np.inf)
         wc = np.zeros(n, np.int8)
         slo_g = repw(prm["slo"][sel])
         shi_g = repw(prm["shi"][sel])
+        qv_g = repw(prm["qv"][sel])
+        qk2_g = repw(prm["qk2"][sel])
+        qc_g = repw(prm["qc"][sel])
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             for i in range(3):
                 lo_i = slo_g[:, i]
@@ -592,9 +646,6 @@ class Renderer:
                 upd = (tn > t) & (lo_i > -_BIG_SLAB)
                 t = np.where(upd, tn, t)
                 wc = np.where(upd, i, wc)
-            qv_g = repw(prm["qv"][sel])
-            qk2_g = repw(prm["qk2"][sel])
-            qc_g = repw(prm["qc"][sel])
             for q in range(2):
                 if not qv_g[:, q].any():
                     continue
@@ -607,8 +658,13 @@ class Renderer:
                 upd = (tn > t) & qv_g[:, q]
                 t = np.where(upd, tn, t)
                 wc = np.where(upd, 3 + q, wc)
-        dflat[ph] = t.astype(np.float32)
-        # shading: normal of the entering constraint, texture by the dominant normal axis
+        return _Hits(t, wc, Dw, ow, qk2_g, qc_g)
+
+    def _shade_hits(self, sel: np.ndarray, prm: dict, repw, hits: _Hits, g: np.ndarray) -> np.ndarray:
+        """Grey levels of the winners (primitives ``g``): normal of the entering
+        constraint, texture by the dominant normal axis, mip level from lod_origin."""
+        t, wc, Dw, ow, qk2_g, qc_g = hits.t, hits.wc, hits.Dw, hits.ow, hits.qk2, hits.qc
+        n = len(t)
         Pp = [ow[i] + t * Dw[i] for i in range(3)]
         nrm = [np.zeros(n) for _ in range(3)]
         for i in range(3):
@@ -637,5 +693,4 @@ class Renderer:
         Lp = repw(self.L @ prm["Rw"][sel])  # light direction in each primitive frame
         ndl = Lp[:, 0] * nrm[0] + Lp[:, 1] * nrm[1] + Lp[:, 2] * nrm[2]
         shade = self.light.ambient + self.light.diffuse * np.maximum(0.0, ndl)
-        img.reshape(-1)[ph] = (alb * prm["gain"][g] * shade * (255.0 * self.light.exposure)).astype(np.float32)
-        ids.reshape(-1)[ph] = prm["oid"][g]
+        return (alb * prm["gain"][g] * shade * (255.0 * self.light.exposure)).astype(np.float32)
