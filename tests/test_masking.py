@@ -1035,3 +1035,21 @@ def test_kitti_seg_masker_both_images(kitti06, models_dir):
     assert {"detect", "segment"} <= set(rec["ms"])
     assert res.left.any() and res.right.any()
     assert any(o.pixels_right > 0 and o.disparity > 0 for o in res.objects)
+
+
+def test_object_method_and_source_are_enums_written_as_their_strings() -> None:
+    import json
+
+    from dynastereo.types import DetectionSource, ObjectMask
+
+    ob = ObjectMask((1.0, 2.0, 3.0, 4.0), "car", 0.9, "box-fallback:tiny", 5.0, 6, 7, source="carried")
+    assert ob.method is MaskMethod.FALLBACK_TINY and ob.method.is_fallback and ob.source is DetectionSource.CARRIED
+    assert not MaskMethod.OUTLINE.is_fallback and not MaskMethod.EMPTY.is_fallback
+    assert f"{ob.label} {ob.method}" == "car box-fallback:tiny"  # the pictures' captions
+    d = ob.to_dict()
+    assert type(d["method"]) is str and type(d["source"]) is str
+    assert json.dumps(d) == json.dumps({"box": [1.0, 2.0, 3.0, 4.0], "label": "car", "score": 0.9,
+                                        "method": "box-fallback:tiny", "disparity": 5.0, "pixels_left": 6,
+                                        "pixels_right": 7, "track_id": -1, "source": "carried"})
+    with pytest.raises(ValueError):
+        ObjectMask((0.0, 0.0, 1.0, 1.0), "car", 0.5, "bogus", 0.0, 0, 0)

@@ -211,11 +211,6 @@ class MaskMethod(StrEnum):
         """A whole box masked because the outline failed."""
         return self.value.startswith(FALLBACK_PREFIX)
 
-    @property
-    def reason(self) -> str:
-        """Why the outline failed (``"tiny"``, ...), ``""`` for the other methods."""
-        return self.value[len(FALLBACK_PREFIX):] if self.is_fallback else ""
-
 
 FALLBACK_PREFIX = "box-fallback:"
 
