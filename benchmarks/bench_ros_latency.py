@@ -3,7 +3,7 @@
 For each mode (``serial``: one processing thread, the default; ``pipelined``: masking of
 frame k+1 overlaps tracking of frame k) and each repeat, a fresh private rosmaster
 and ``dynastereo_node`` (launch file, default configuration: outline masker, yolox-nano,
-StereoBM, **queue_size 1**) are started (``dynastereo.ros.harness latency``, its own
+StereoBM, **queue_size 1**) are started (``tests/ros_harness.py latency``, its own
 process), KITTI 06 (51 frames, 1226x370, gray) is published at 10 Hz as
 ``sensor_msgs/Image`` + ``CameraInfo`` stamped with the wall clock at publication, and a
 subscriber records when each ``nav_msgs/Odometry`` arrives.
@@ -34,12 +34,13 @@ from pathlib import Path
 import numpy as np
 
 TARGET_MEDIAN_MS = 100.0
+HARNESS = Path(__file__).resolve().parents[1] / "tests" / "ros_harness.py"  # test code, not in the package
 
 
 def run_once(seq: Path, frames: int, rate: float, pipelined: bool, timeout: float) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench_ros_") as work:
         out = Path(work) / "res.json"
-        cmd = [sys.executable, "-m", "dynastereo.ros.harness", "latency", "--sequence", str(seq),
+        cmd = [sys.executable, str(HARNESS), "latency", "--sequence", str(seq),
                "--frames", str(frames), "--rate", str(rate), "--queue-size", "1", "--workdir", work,
                "--json", str(out), "--launch-arg", f"pipelined:={'true' if pipelined else 'false'}",
                "--timeout", str(timeout)]

@@ -25,16 +25,12 @@ from dynastereo.masking import (
 from dynastereo.masking.ground import GroundLine, fit_ground_line, road_samples, sample_valid, slope_range
 from dynastereo.masking.maskers import match_stereo_detections, plan_regions, region_disparity
 from dynastereo.masking.outline import (
-    FALLBACK_NO_DISPARITY,
-    FALLBACK_RANGE,
-    FALLBACK_SMALL,
-    FALLBACK_TINY,
     clip_boxes,
     dominant_disparity,
     fill_invalid_rows,
 )
 from dynastereo.timing import StageTimer
-from dynastereo.types import Detections, StereoFrame
+from dynastereo.types import Detections, MaskMethod, StereoFrame
 
 H, W = 240, 480
 
@@ -224,7 +220,7 @@ def test_no_valid_disparity_falls_back_to_box():
     m = OutlineMasker(FakeDetector(dets(box)), StereoMatcher(STEREO))
     res = m.mask(frame(left, right))
     ob = res.objects[0]
-    assert ob.method == FALLBACK_NO_DISPARITY == "box-fallback:no-disparity"
+    assert ob.method == MaskMethod.FALLBACK_NO_DISPARITY == "box-fallback:no-disparity"
     assert ob.disparity == 0.0
     assert iou(res.left, rect_mask(200, 100, 280, 160)) == 1.0
     # unknown disparity: the right mask covers every possible shift 0..63
@@ -263,7 +259,7 @@ def test_tiny_box_masked_whole(blob_scene):
     left, right, _, _ = blob_scene
     disp = StereoMatcher(STEREO).compute(left, right)
     o = outline_objects(disp, np.array([[100.0, 30.0, 106.0, 38.0]]), (H, W), OutlineConfig(min_box_pixels=64))
-    assert o.methods == [FALLBACK_TINY]
+    assert o.methods == [MaskMethod.FALLBACK_TINY]
     assert (o.labels[30:38, 100:106] == 1).all() and o.pixels[0] == 48
 
 
@@ -542,7 +538,7 @@ def test_box_in_occlusion_shadow_gives_up_spilled_peak():
     assert old.methods[1] == "outline" and abs(old.disparity[1] - 40) < 0.5  # the sliver
     o = outline_objects(disp, boxes, disp.shape, OutlineConfig())
     assert o.methods[0] == "outline" and abs(o.disparity[0] - 40) < 0.5
-    assert o.methods[1] == FALLBACK_NO_DISPARITY
+    assert o.methods[1] == MaskMethod.FALLBACK_NO_DISPARITY
     assert (o.labels[40:90, 110:144] == 2).all()
 
 
@@ -559,7 +555,7 @@ def test_small_outline_becomes_the_box():
     assert off.methods == ["outline"] and abs(off.disparity[0] - 20) < 0.5
     assert 0.2 < (off.labels == 1).sum() / (40 * 80) < 0.4
     o = outline_objects(disp, box, disp.shape, OutlineConfig(min_outline_fraction=0.4))
-    assert o.methods == [FALLBACK_SMALL] and abs(o.disparity[0] - 20) < 0.5
+    assert o.methods == [MaskMethod.FALLBACK_SMALL] and abs(o.disparity[0] - 20) < 0.5
     assert (o.labels[20:100, 100:140] == 1).all()
 
 
@@ -583,7 +579,7 @@ def test_object_beyond_the_matchers_range_is_masked_whole():
     disp[40:120, 200:240] = 94.0  # the farther end, just within the range
     box = np.array([[200.0, 40.0, 320.0, 120.0]])
     o = outline_objects(disp, box, disp.shape, OutlineConfig(), max_disparity=95.0)
-    assert o.methods == [FALLBACK_RANGE] and (o.labels[40:120, 200:320] == 1).all()
+    assert o.methods == [MaskMethod.FALLBACK_RANGE] and (o.labels[40:120, 200:320] == 1).all()
     assert outline_objects(disp, box, disp.shape, OutlineConfig()).methods == ["outline"]  # range unknown
 
 
@@ -603,7 +599,7 @@ def test_side_by_side_objects_keep_the_same_peak():
 def test_narrow_box_masked_whole():
     disp = np.full((100, 100), 10.0, np.float32)
     o = outline_objects(disp, np.array([[10.0, 10.0, 16.0, 90.0]]), disp.shape, OutlineConfig(min_box_side=8))
-    assert o.methods == [FALLBACK_TINY] and o.pixels[0] == 6 * 80
+    assert o.methods == [MaskMethod.FALLBACK_TINY] and o.pixels[0] == 6 * 80
 
 
 # ---------------------------------------------------------------------------------------
@@ -1039,3 +1035,21 @@ def test_kitti_seg_masker_both_images(kitti06, models_dir):
     assert {"detect", "segment"} <= set(rec["ms"])
     assert res.left.any() and res.right.any()
     assert any(o.pixels_right > 0 and o.disparity > 0 for o in res.objects)
+
+
+def test_object_method_and_source_are_enums_written_as_their_strings() -> None:
+    import json
+
+    from dynastereo.types import DetectionSource, ObjectMask
+
+    ob = ObjectMask((1.0, 2.0, 3.0, 4.0), "car", 0.9, "box-fallback:tiny", 5.0, 6, 7, source="carried")
+    assert ob.method is MaskMethod.FALLBACK_TINY and ob.method.is_fallback and ob.source is DetectionSource.CARRIED
+    assert not MaskMethod.OUTLINE.is_fallback and not MaskMethod.EMPTY.is_fallback
+    assert f"{ob.label} {ob.method}" == "car box-fallback:tiny"  # the pictures' captions
+    d = ob.to_dict()
+    assert type(d["method"]) is str and type(d["source"]) is str
+    assert json.dumps(d) == json.dumps({"box": [1.0, 2.0, 3.0, 4.0], "label": "car", "score": 0.9,
+                                        "method": "box-fallback:tiny", "disparity": 5.0, "pixels_left": 6,
+                                        "pixels_right": 7, "track_id": -1, "source": "carried"})
+    with pytest.raises(ValueError):
+        ObjectMask((0.0, 0.0, 1.0, 1.0), "car", 0.5, "bogus", 0.0, 0, 0)

@@ -278,12 +278,12 @@ def test_genpy_messages_with_numpy2_round_trip() -> None:
 @pytest.fixture(scope="module")
 def live_run(kitti06: Path, models_dir: Path, tmp_path_factory) -> dict:
     """The node on a private master: KITTI 06 frames 0..24 at 10 Hz, then parameters, a
-    burst, save, SIGINT (``dynastereo.ros.harness check``, its own process: rospy joins
+    burst, save, SIGINT (``tests/ros_harness.py check``, its own process: rospy joins
     one master per process).  Meanwhile the offline reference runs here."""
     _require_ros1()
     work = tmp_path_factory.mktemp("live")
     env = dict(os.environ, DYNASTEREO_MODELS=str(models_dir))
-    cmd = [sys.executable, "-m", "dynastereo.ros.harness", "check", "--sequence", str(kitti06),
+    cmd = [sys.executable, str(Path(__file__).with_name("ros_harness.py")), "check", "--sequence", str(kitti06),
            "--frames", str(LIVE_FRAMES), "--burst", BURST, "--queue-size", "40", "--rate", "10",
            "--timeout", "90", "--workdir", str(work), "--json", str(work / "live.json")]
     p = subprocess.Popen(cmd, env=env, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
@@ -291,7 +291,7 @@ def live_run(kitti06: Path, models_dir: Path, tmp_path_factory) -> dict:
         ref = _offline_reference(kitti06, models_dir)
         out, _ = p.communicate(timeout=240)
     finally:
-        from dynastereo.ros.harness import stop_process
+        from ros_harness import stop_process
 
         stop_process(p, timeout=5)  # bounded: whatever is left of the group goes
     res = json.loads((work / "live.json").read_text()) if (work / "live.json").is_file() else {}

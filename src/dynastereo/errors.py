@@ -44,3 +44,8 @@ class ConfigError(InputError):
 class MapFileError(InputError):
     """A saved SLAM map that cannot be used: missing, corrupt, of another format or a
     newer version, inconsistent, or built for another camera / ORB setting."""
+
+
+class RosUnavailable(DynastereoError):
+    """ROS 1 (``rospy`` and the message packages) is not importable; the message names the
+    Debian packages to install."""

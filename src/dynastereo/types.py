@@ -14,6 +14,7 @@ Conventions
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -159,9 +160,10 @@ class Detections:
         """Track id of box ``i`` (-1 when the boxes are not tracked)."""
         return int(self.track_ids[i]) if self.track_ids is not None else -1
 
-    def source(self, i: int) -> str:
-        """``"carried"`` when box ``i`` was carried from earlier frames, else ``"detected"``."""
-        return "carried" if self.carried is not None and bool(self.carried[i]) else "detected"
+    def source(self, i: int) -> "DetectionSource":
+        """``CARRIED`` when box ``i`` was carried from earlier frames, else ``DETECTED``."""
+        carried = self.carried is not None and bool(self.carried[i])
+        return DetectionSource.CARRIED if carried else DetectionSource.DETECTED
 
     def __len__(self) -> int:
         return len(self.boxes)
@@ -187,6 +189,40 @@ class Detections:
         )
 
 
+class MaskMethod(StrEnum):
+    """How the masker made an object's mask (``ObjectMask.method``; JSON and the
+    pictures write the value): its outline, its whole box, an instance-segmentation
+    mask, or its whole box because the outline failed -- ``box-fallback:<reason>``, the
+    reasons explained in :mod:`dynastereo.masking.outline`."""
+
+    OUTLINE = "outline"
+    BOX = "box"
+    SEG = "seg"
+    FALLBACK_TINY = "box-fallback:tiny"
+    FALLBACK_NO_DISPARITY = "box-fallback:no-disparity"
+    FALLBACK_NO_PEAK = "box-fallback:no-object-pixels"
+    FALLBACK_SPARSE = "box-fallback:sparse-disparity"
+    FALLBACK_RANGE = "box-fallback:beyond-range"
+    FALLBACK_SMALL = "box-fallback:small-outline"
+    EMPTY = "empty:outside-image"  # the box lies outside the image: nothing masked
+
+    @property
+    def is_fallback(self) -> bool:
+        """A whole box masked because the outline failed."""
+        return self.value.startswith(FALLBACK_PREFIX)
+
+
+FALLBACK_PREFIX = "box-fallback:"
+
+
+class DetectionSource(StrEnum):
+    """Where an object's box comes from: the detector in this frame, or carried from
+    earlier frames by the box tracker (``ObjectMask.source``)."""
+
+    DETECTED = "detected"
+    CARRIED = "carried"
+
+
 @dataclass
 class ObjectMask:
     """What the masker decided for one detected object (per-frame record)."""
@@ -194,24 +230,28 @@ class ObjectMask:
     box: tuple[float, float, float, float]
     label: str
     score: float
-    method: str  # "outline", "box", "box-fallback:<reason>", "seg"
+    method: MaskMethod
     disparity: float  # the object's disparity (peak) in pixels, 0 if unknown
     pixels_left: int
     pixels_right: int
     track_id: int = -1  # the box tracker's id (-1: boxes not tracked)
-    source: str = "detected"  # "detected" in this frame or "carried" from earlier ones
+    source: DetectionSource = DetectionSource.DETECTED
+
+    def __post_init__(self) -> None:
+        self.method = MaskMethod(self.method)
+        self.source = DetectionSource(self.source)
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "box": [round(float(v), 1) for v in self.box],
             "label": self.label,
             "score": round(float(self.score), 4),
-            "method": self.method,
+            "method": self.method.value,
             "disparity": round(float(self.disparity), 3),
             "pixels_left": int(self.pixels_left),
             "pixels_right": int(self.pixels_right),
             "track_id": int(self.track_id),
-            "source": self.source,
+            "source": self.source.value,
         }
 
 

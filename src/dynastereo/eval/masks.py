@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from ..errors import ImageReadError
+from ..types import MaskMethod
 
 
 @dataclass
@@ -125,7 +126,7 @@ class LossBudget:
 
     def summary(self) -> dict:
         n = max(self.px["object"], 1)
-        outlined = self.methods.get("outline", 0)
+        outlined = self.methods.get(MaskMethod.OUTLINE, 0)
         return {
             "objects": sum(self.methods.values()),
             "outlined": outlined,

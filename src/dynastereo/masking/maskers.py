@@ -26,12 +26,11 @@ import numpy as np
 from ..config import OutlineConfig, StereoConfig
 from ..errors import ConfigError
 from ..timing import StageTimer, timed
-from ..types import Detections, ObjectMask, StereoFrame, StereoMasks
+from ..types import Detections, MaskMethod, ObjectMask, StereoFrame, StereoMasks
 from .base import Detector
 from .disparity import StereoMatcher
 from .ground import DEFAULT_BASELINE, GroundLine, fit_ground_line, road_samples, slope_range
 from .outline import (
-    FALLBACK_NO_DISPARITY,
     LEFT_CONTEXT,
     OutlineResult,
     clip_boxes,
@@ -125,7 +124,7 @@ def region_disparity(
 
 def _objects(
     dets: Detections,
-    method: list[str],
+    method: list[MaskMethod],
     disparity: np.ndarray,
     pixels_left: np.ndarray,
     pixels_right: np.ndarray,
@@ -318,7 +317,7 @@ class BoxMasker(_DisparityMasker):
         n = len(dets)
         with _stage(timer, "boxes"):
             disparity = np.zeros(n, np.float32)
-            methods = ["box"] * n
+            methods = [MaskMethod.BOX] * n
             for i in range(n):
                 x0, y0, x1, y1 = (int(v) for v in rois[i])
                 droi = roi_disparity(disp, (0, 0), (x0, y0, x1, y1))
@@ -326,7 +325,7 @@ class BoxMasker(_DisparityMasker):
                 area = max((x1 - x0) * (y1 - y0), 1)
                 if v.size < max(self.cfg.min_valid_fraction * area, 8):
                     disparity[i] = float(np.median(v)) if v.size else 0.0
-                    methods[i] = FALLBACK_NO_DISPARITY
+                    methods[i] = MaskMethod.FALLBACK_NO_DISPARITY
                     continue
                 p = dominant_disparity(v, self.cfg.bin_width, rel=self.cfg.peak_tolerance_rel,
                                        near_ratio=self.cfg.near_peak_ratio)
@@ -449,7 +448,7 @@ class SegMasker:
                     if dr.masks is not None:
                         pr[i] = int(np.count_nonzero(dr.masks[j]))
                     disp[i] = float((dl.boxes[i, 0] + dl.boxes[i, 2] - dr.boxes[j, 0] - dr.boxes[j, 2]) / 2)
-        objects = _objects(dl, ["seg"] * n, disp, pl, pr)
+        objects = _objects(dl, [MaskMethod.SEG] * n, disp, pl, pr)
         return StereoMasks(left, right, objects, dl, None), dl, dr, match
 
 

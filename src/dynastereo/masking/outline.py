@@ -56,18 +56,11 @@ import cv2
 import numpy as np
 
 from ..config import OutlineConfig
+from ..types import MaskMethod
 from .ground import GroundLine
 
-METHOD_OUTLINE = "outline"
-FALLBACK_NO_DISPARITY = "box-fallback:no-disparity"
-FALLBACK_TINY = "box-fallback:tiny"
-FALLBACK_NO_PEAK = "box-fallback:no-object-pixels"
-FALLBACK_SPARSE = "box-fallback:sparse-disparity"
-FALLBACK_RANGE = "box-fallback:beyond-range"
-FALLBACK_SMALL = "box-fallback:small-outline"
 # A peak range ending this close (px) to the matcher's largest disparity reaches beyond it.
 RANGE_MARGIN = 3.0
-EMPTY = "empty:outside-image"
 # Columns left of each box whose disparity the outline looks at (to tell the background
 # band a near object occludes from the object itself); maskers compute disparity there too.
 LEFT_CONTEXT = 48
@@ -82,7 +75,7 @@ class OutlineResult:
 
     labels: np.ndarray  # int32 (H, W): 0 = none, i = object i (1-based, box order)
     disparity: np.ndarray  # float32 (N,): the object's disparity in pixels, 0 = unknown
-    methods: list[str] = field(default_factory=list)
+    methods: list[MaskMethod] = field(default_factory=list)
     rois: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), np.int32))  # (N, 4) x0 y0 x1 y1
     pixels: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (N,) pixels in labels
     ranges: list[tuple[float, float]] = field(default_factory=list)  # accepted disparity range
@@ -275,7 +268,7 @@ class RoiOutline:
 
     mask: np.ndarray | None
     disparity: float  # the object's disparity; for fallbacks the median valid one, 0 if none
-    method: str
+    method: MaskMethod
     lo: float = 0.0  # accepted disparity range
     hi: float = 0.0
     support: int = 0  # valid pixels measured in the range
@@ -314,9 +307,9 @@ def object_mask_in_roi(
     n_valid = int(np.count_nonzero(valid))
     med = float(np.median(droi[valid])) if n_valid else 0.0
     if area < cfg.min_box_pixels or min(h, w) < cfg.min_box_side:
-        return RoiOutline(None, med, FALLBACK_TINY, med, med)
+        return RoiOutline(None, med, MaskMethod.FALLBACK_TINY, med, med)
     if n_valid < max(cfg.min_valid_fraction * area, 8):
-        return RoiOutline(None, med, FALLBACK_NO_DISPARITY, med, med)
+        return RoiOutline(None, med, MaskMethod.FALLBACK_NO_DISPARITY, med, med)
     top = None  # per row: disparities below this are the road (or below it)
     if road is not None:
         top = (np.asarray(road, np.float32).reshape(h, 1) + np.float32(cfg.ground_tolerance))
@@ -346,11 +339,11 @@ def object_mask_in_roi(
     if max_disparity is not None and hi >= max_disparity - RANGE_MARGIN:
         # the object reaches nearer than the matcher sees (a car beside the rig): only its
         # farther parts have a disparity, the outline would cut it there -- mask the box
-        return RoiOutline(None, d, FALLBACK_RANGE, lo, hi, support)
+        return RoiOutline(None, d, MaskMethod.FALLBACK_RANGE, lo, hi, support)
     if support < cfg.min_valid_fraction * area:
         # too few pixels measured on the object itself (a dark, shiny near car): its
         # outline would be a guess -- mask the box, moved by the peak disparity
-        return RoiOutline(None, d, FALLBACK_SPARSE, lo, hi, support)
+        return RoiOutline(None, d, MaskMethod.FALLBACK_SPARSE, lo, hi, support)
     if top is not None and cfg.ground_max_fraction < 1.0:
         # the object's own pixels the road would take: a line that does not hold here
         # (a slope, a kerb, a wrong fit) would cut the object -- then leave it alone
@@ -379,8 +372,8 @@ def object_mask_in_roi(
     if road_px is not None and cfg.ground_after_dilate:
         m[road_px] = 0
     if not m.any():
-        return RoiOutline(None, d, FALLBACK_NO_PEAK, lo, hi, support)
-    return RoiOutline(m, d, METHOD_OUTLINE, lo, hi, support)
+        return RoiOutline(None, d, MaskMethod.FALLBACK_NO_PEAK, lo, hi, support)
+    return RoiOutline(m, d, MaskMethod.OUTLINE, lo, hi, support)
 
 
 def outline_objects(
@@ -413,7 +406,7 @@ def outline_objects(
             cover[y0:y1, x0:x1] += 1
     labels = np.zeros((h, w), np.int32)
     disparity = np.zeros(n, np.float32)
-    methods: list[str] = [EMPTY] * n
+    methods: list[MaskMethod] = [MaskMethod.EMPTY] * n
     masks: list[np.ndarray | None] = [None] * n
     ranges: list[tuple[float, float]] = [(0.0, 0.0)] * n
     inputs: list[tuple | None] = [None] * n
@@ -439,7 +432,7 @@ def outline_objects(
             masks[i], disparity[i], methods[i], ranges[i] = r.mask, r.disparity, r.method, (r.lo, r.hi)
     # Paint far to near so nearer objects win overlaps; whole-box fallbacks first.
     order = sorted(
-        (i for i in range(n) if methods[i] != EMPTY),
+        (i for i in range(n) if methods[i] != MaskMethod.EMPTY),
         key=lambda i: (masks[i] is not None, float(disparity[i])),
     )
     for i in order:
@@ -500,9 +493,10 @@ def _resolve_claims(
 def _small_outlines_to_boxes(rois: np.ndarray, results: list, fraction: float) -> None:
     """Outlines covering less than ``fraction`` of the part of their box that no nearer
     object takes (its outline, or its whole box for a fallback) become box fallbacks
-    (``FALLBACK_SMALL``), in place: a detected box is mostly its object, so a much smaller
-    outline is the disparity failing (an object cut by the image border, a near one with
-    little texture) rather than a thin object.  A loop over the handful of boxes."""
+    (``MaskMethod.FALLBACK_SMALL``), in place: a detected box is mostly its object, so a
+    much smaller outline is the disparity failing (an object cut by the image border, a
+    near one with little texture) rather than a thin object.  A loop over the handful of
+    boxes."""
     n = len(results)
     small = []
     for i in range(n):
@@ -529,7 +523,7 @@ def _small_outlines_to_boxes(rois: np.ndarray, results: list, fraction: float) -
             small.append(i)
     for i in small:  # decided on the outlines as they were: no order dependence
         ri = results[i]
-        results[i] = RoiOutline(None, ri.disparity, FALLBACK_SMALL, ri.lo, ri.hi, ri.support)
+        results[i] = RoiOutline(None, ri.disparity, MaskMethod.FALLBACK_SMALL, ri.lo, ri.hi, ri.support)
 
 
 def band_for_boxes(rois: np.ndarray, shape: tuple[int, int], margin: int = 0) -> tuple[int, int, int, int] | None:

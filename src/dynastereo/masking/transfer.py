@@ -112,7 +112,8 @@ def transfer_labels(
     order = sorted(range(n), key=lambda i: float(disparities[i]))
     label_disp = np.concatenate([[0.0], np.asarray(disparities, np.float64)]) if occluded else None
     for i in order:
-        x0, y0, x1, y1 = (int(v) for v in rois[i])
+        roi = tuple(int(v) for v in rois[i])
+        x0, y0, x1, y1 = roi
         if x1 <= x0 or y1 <= y0:
             continue
         lab = left_labels[y0:y1, x0:x1]
@@ -129,58 +130,86 @@ def transfer_labels(
             if hidden.any():
                 m = own | hidden
         if d <= 0:
-            dmin, dmax = int(np.floor(max(sweep[0], 0.0))), int(np.ceil(sweep[1]))
-            k = dmax - dmin + 1
-            wide = _sweep_rows(m, k)  # canvas column j <-> left column x0 - (k - 1) + j
-            rx0 = x0 - (k - 1) - dmin
-            rects[i] = _paint(right, wide, rx0, y0, i + 1)
-            models[i] = (0.0, 0.0, 0.0)
+            rects[i], models[i] = _paint_swept(right, m, x0, y0, sweep, i + 1), (0.0, 0.0, 0.0)
             continue
         model = None
         if mode == "affine" and disp is not None:
-            droi = roi_disparity(disp, origin, (x0, y0, x1, y1))
-            sel = own & (droi > 0)
-            if ranges is not None:
-                lo, hi = ranges[i]
-                sel &= (droi >= lo) & (droi <= hi)
-            fit = fit_affine_disparity(droi, sel, x0, y0)
-            if fit is not None:
-                a, b, c, _ = fit
-                if abs(b) <= max_slope and abs(c) <= max_slope:
-                    model = (a, b, c)
+            model = _affine_model(disp, origin, roi, own, None if ranges is None else ranges[i], max_slope)
         if model is None:
-            s = int(round(d))
-            rects[i] = _paint(right, m, x0 - s, y0, i + 1)
-            models[i] = (float(s), 0.0, 0.0)
-            if x1 >= w - BORDER_TOUCH:
-                rects[i] = _extend_to_border(right, own[:, -1], y0, np.full(y1 - y0, x1 - s), i + 1, rects[i])
-            continue
-        a, b, c = model
-        models[i] = model
-        # right x-extent: disparity model at the ROI corners
-        corners_x = np.array([x0, x1 - 1, x0, x1 - 1], np.float64)
-        corners_y = np.array([y0, y0, y1 - 1, y1 - 1], np.float64)
-        dc = a + b * corners_x + c * corners_y
-        xr = corners_x - dc
-        rx0 = int(np.floor(xr.min())) - 1
-        rx1 = int(np.ceil(xr.max())) + 2
-        xs_r = np.arange(rx0, rx1, dtype=np.float64)
-        ys = np.arange(y0, y1, dtype=np.float64)
-        xl = np.rint((xs_r[None, :] + a + c * ys[:, None]) / (1.0 - b)).astype(np.int64) - x0
-        inside = (xl >= 0) & (xl < x1 - x0)
-        rows = np.arange(y1 - y0)[:, None]
-        vals = np.zeros(xl.shape, bool)
-        vals[inside] = m[np.broadcast_to(rows, xl.shape)[inside], xl[inside]]
-        rects[i] = _paint(right, vals, rx0, y0, i + 1)
-        if x1 >= w - BORDER_TOUCH:
-            start = np.rint((x1 - 1) - (a + b * (x1 - 1) + c * ys)).astype(np.int64) + 1
-            rects[i] = _extend_to_border(right, own[:, -1], y0, start, i + 1, rects[i])
+            rects[i], models[i] = _paint_rigid(right, m, own, roi, d, i + 1)
+        else:
+            rects[i], models[i] = _paint_affine(right, m, own, roi, model, i + 1), model
     pixels = np.zeros(n, np.int64)
     for i, (rx0, ry0, rx1, ry1) in enumerate(rects):
         if rx1 > rx0:
             pixels[i] = int(np.count_nonzero(right[ry0:ry1, rx0:rx1] == i + 1))
     return TransferResult(right, pixels, models)
 
+
+def _paint_swept(right: np.ndarray, m: np.ndarray, x0: int, y0: int, sweep: tuple[float, float],
+                 value: int) -> tuple[int, int, int, int]:
+    """Unknown disparity: ``m`` (ROI at x0, y0) swept over the whole range ``sweep``."""
+    dmin, dmax = int(np.floor(max(sweep[0], 0.0))), int(np.ceil(sweep[1]))
+    k = dmax - dmin + 1
+    wide = _sweep_rows(m, k)  # canvas column j <-> left column x0 - (k - 1) + j
+    return _paint(right, wide, x0 - (k - 1) - dmin, y0, value)
+
+
+def _affine_model(disp: np.ndarray, origin: tuple[int, int], roi: tuple[int, int, int, int], own: np.ndarray,
+                  rng: tuple[float, float] | None, max_slope: float) -> tuple[float, float, float] | None:
+    """``(a, b, c)`` of ``d = a + b x + c y`` fitted to the object's valid disparities
+    (within its peak range ``rng``); None for a poor fit (few pixels, a slope beyond
+    ``max_slope``)."""
+    x0, y0, x1, y1 = roi
+    droi = roi_disparity(disp, origin, roi)
+    sel = own & (droi > 0)
+    if rng is not None:
+        lo, hi = rng
+        sel &= (droi >= lo) & (droi <= hi)
+    fit = fit_affine_disparity(droi, sel, x0, y0)
+    if fit is None:
+        return None
+    a, b, c, _ = fit
+    return (a, b, c) if abs(b) <= max_slope and abs(c) <= max_slope else None
+
+
+def _paint_rigid(right: np.ndarray, m: np.ndarray, own: np.ndarray, roi: tuple[int, int, int, int], d: float,
+                 value: int) -> tuple[tuple[int, int, int, int], tuple[float, float, float]]:
+    """``m`` shifted by the whole-pixel disparity; (painted rect, model)."""
+    x0, y0, x1, y1 = roi
+    w = right.shape[1]
+    s = int(round(d))
+    rect = _paint(right, m, x0 - s, y0, value)
+    if x1 >= w - BORDER_TOUCH:
+        rect = _extend_to_border(right, own[:, -1], y0, np.full(y1 - y0, x1 - s), value, rect)
+    return rect, (float(s), 0.0, 0.0)
+
+
+def _paint_affine(right: np.ndarray, m: np.ndarray, own: np.ndarray, roi: tuple[int, int, int, int],
+                  model: tuple[float, float, float], value: int) -> tuple[int, int, int, int]:
+    """``m`` moved by the affine disparity model, sampled backwards from the right image."""
+    x0, y0, x1, y1 = roi
+    w = right.shape[1]
+    a, b, c = model
+    # right x-extent: disparity model at the ROI corners
+    corners_x = np.array([x0, x1 - 1, x0, x1 - 1], np.float64)
+    corners_y = np.array([y0, y0, y1 - 1, y1 - 1], np.float64)
+    dc = a + b * corners_x + c * corners_y
+    xr = corners_x - dc
+    rx0 = int(np.floor(xr.min())) - 1
+    rx1 = int(np.ceil(xr.max())) + 2
+    xs_r = np.arange(rx0, rx1, dtype=np.float64)
+    ys = np.arange(y0, y1, dtype=np.float64)
+    xl = np.rint((xs_r[None, :] + a + c * ys[:, None]) / (1.0 - b)).astype(np.int64) - x0
+    inside = (xl >= 0) & (xl < x1 - x0)
+    rows = np.arange(y1 - y0)[:, None]
+    vals = np.zeros(xl.shape, bool)
+    vals[inside] = m[np.broadcast_to(rows, xl.shape)[inside], xl[inside]]
+    rect = _paint(right, vals, rx0, y0, value)
+    if x1 >= w - BORDER_TOUCH:
+        start = np.rint((x1 - 1) - (a + b * (x1 - 1) + c * ys)).astype(np.int64) + 1
+        rect = _extend_to_border(right, own[:, -1], y0, start, value, rect)
+    return rect
 
 def _extend_to_border(
     labels: np.ndarray, rows: np.ndarray, y0: int, start: np.ndarray, value: int,

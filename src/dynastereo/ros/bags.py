@@ -588,26 +588,8 @@ def export_bag(
     frames = list(range(len(sequence))) if frames is None else list(frames)
     if not frames:
         raise InputError("no frames to export")
-    exact = getattr(sequence, "timestamps_ns", None)  # EuRoC keeps exact nanoseconds
-    if exact is not None and len(exact) == len(sequence):
-        stamps_ns = np.asarray(exact, np.int64) + int(round(float(time_offset_s) * 1e9))
-    else:
-        stamps = np.asarray(sequence.timestamps(), dtype=np.float64) + float(time_offset_s)
-        stamps_ns = np.round(stamps * 1e9).astype(np.int64)
-    if np.any(stamps_ns < 0):
-        raise InputError("timestamps must be >= 0 s (use a time offset)")
-    rect = getattr(sequence, "rectifier", None)
-    if raw:
-        if rect is None:
-            raise InputError("--raw: this sequence is rectified already (no raw calibration to export)",
-                             getattr(sequence, "path", None))
-        rc = rect.raw
-        infos = (camera_info_fields(P=rect.P1, K=rc.K1, D=rc.D1, R=rect.R1, width=rc.width, height=rc.height),
-                 camera_info_fields(P=rect.P2, K=rc.K2, D=rc.D2, R=rect.R2, width=rc.width, height=rc.height))
-    else:
-        Pl, Pr = _exact_projections(sequence)
-        infos = (camera_info_fields(sequence.calibration, "left", P=Pl),
-                 camera_info_fields(sequence.calibration, "right", P=Pr))
+    stamps_ns = _export_stamps_ns(sequence, time_offset_s)
+    infos = _export_camera_infos(sequence, raw)
     compressed = encoding in ("png", "jpeg")
     lt = left_topic + ("/compressed" if compressed else "")
     rt = right_topic + ("/compressed" if compressed else "")
@@ -628,15 +610,48 @@ def export_bag(
                 left, right = f.left, f.right
             ns = int(stamps_ns[idx])
             for topic, img, frame_id in ((lt, left, DEFAULT_LEFT_FRAME), (rt, right, DEFAULT_RIGHT_FRAME)):
-                if compressed:
-                    msg = b.compressed(img, ns, frame_id, encoding, seq=k)
-                else:
-                    conv, enc = _convert_for_export(img, encoding)
-                    msg = b.image(conv, ns, frame_id, enc, seq=k)
-                w.write(topic, ns, msg)
+                w.write(topic, ns, _image_message(b, img, ns, frame_id, encoding, k))
             w.write(left_info, ns, b.camera_info(infos[0], ns, DEFAULT_LEFT_FRAME, seq=k))
             w.write(right_info, ns, b.camera_info(infos[1], ns, DEFAULT_RIGHT_FRAME, seq=k))
             if progress is not None:
                 progress(k + 1, len(frames))
         counts = dict(w.counts)
     return ExportResult(out, fmt, len(frames), counts)
+
+
+def _export_stamps_ns(sequence: Any, time_offset_s: float) -> np.ndarray:
+    """Every frame's stamp in nanoseconds, shifted by ``time_offset_s`` (exact nanoseconds
+    where the sequence keeps them, as EuRoC does); InputError for negative stamps."""
+    exact = getattr(sequence, "timestamps_ns", None)
+    if exact is not None and len(exact) == len(sequence):
+        stamps_ns = np.asarray(exact, np.int64) + int(round(float(time_offset_s) * 1e9))
+    else:
+        stamps = np.asarray(sequence.timestamps(), dtype=np.float64) + float(time_offset_s)
+        stamps_ns = np.round(stamps * 1e9).astype(np.int64)
+    if np.any(stamps_ns < 0):
+        raise InputError("timestamps must be >= 0 s (use a time offset)")
+    return stamps_ns
+
+
+def _export_camera_infos(sequence: Any, raw: bool) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Left and right CameraInfo fields: the rectified cameras, or with ``raw`` the raw
+    ones (K, D, R, P) of a sequence that rectifies on read."""
+    rect = getattr(sequence, "rectifier", None)
+    if raw:
+        if rect is None:
+            raise InputError("--raw: this sequence is rectified already (no raw calibration to export)",
+                             getattr(sequence, "path", None))
+        rc = rect.raw
+        return (camera_info_fields(P=rect.P1, K=rc.K1, D=rc.D1, R=rect.R1, width=rc.width, height=rc.height),
+                camera_info_fields(P=rect.P2, K=rc.K2, D=rc.D2, R=rect.R2, width=rc.width, height=rc.height))
+    Pl, Pr = _exact_projections(sequence)
+    return (camera_info_fields(sequence.calibration, "left", P=Pl),
+            camera_info_fields(sequence.calibration, "right", P=Pr))
+
+
+def _image_message(b: Any, img: np.ndarray, ns: int, frame_id: str, encoding: str, seq: int) -> Any:
+    """One image as ``sensor_msgs/CompressedImage`` (png, jpeg) or ``sensor_msgs/Image``."""
+    if encoding in ("png", "jpeg"):
+        return b.compressed(img, ns, frame_id, encoding, seq=seq)
+    conv, enc = _convert_for_export(img, encoding)
+    return b.image(conv, ns, frame_id, enc, seq=seq)

@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from ..config import Config, load_config, to_dict
-from ..errors import DynastereoError
+from ..errors import DynastereoError, RosUnavailable
 from .convert import CameraInfoData, ImageDecoder, calibration_from_camera_info, masked_image, stamp_split
 from .core import LIVE_SECTIONS, NodeResult, StereoInput, StereoNodeCore, flatten_live
 from .messages import (
@@ -66,10 +66,6 @@ log = logging.getLogger("dynastereo.ros")
 ROS1_PACKAGES = ("python3-rospy", "python3-rosmaster", "python3-roslaunch", "rosout", "python3-message-filters",
                  "python3-sensor-msgs", "python3-nav-msgs", "python3-stereo-msgs", "python3-tf2-msgs",
                  "python3-std-srvs", "python3-rostopic", "python3-rosbag")
-
-
-class RosUnavailable(DynastereoError):
-    pass
 
 
 def import_rospy():

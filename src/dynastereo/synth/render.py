@@ -55,6 +55,51 @@ class Lighting:
     exposure: float = 1.15
 
 
+@dataclass(frozen=True)
+class _Rays:
+    """One view's camera: map position, heading (cos, sin), the texture-filtering
+    origin, the per-column ray directions and the map -> camera rotation."""
+
+    cam_x: float
+    cam_z: float
+    cth: float
+    sth: float
+    lx: float
+    lz: float
+    dx: np.ndarray  # (W,) horizontal ray direction, map frame
+    dz: np.ndarray
+    cam: np.ndarray  # (3,) map position
+    Rc: np.ndarray  # (3, 3) map -> camera rotation (rows)
+
+
+@dataclass(frozen=True)
+class _Facades:
+    """The ``kk`` nearest facade candidates per column, nearest first, each (kk, W)."""
+
+    kk: int
+    uk: np.ndarray  # position along the segment
+    segk: np.ndarray  # global segment index
+    valid: np.ndarray  # a hit at all
+    Uk: np.ndarray  # position along the street's facade line
+    bld: np.ndarray  # building index
+    topk: np.ndarray  # y of the roof (y down); inf without a hit
+    tk_f: np.ndarray  # depth; 1e9 without a hit
+
+
+@dataclass(frozen=True)
+class _Hits:
+    """Winning (primitive, pixel) pairs in float64: entry depth ``t``, the constraint
+    entered through ``wc``, the rays ``Dw`` / origins ``ow`` in the primitive frames (3
+    arrays each) and the primitives' quadric coefficients and centres."""
+
+    t: np.ndarray
+    wc: np.ndarray
+    Dw: list
+    ow: list
+    qk2: np.ndarray
+    qc: np.ndarray
+
+
 class Renderer:
     """Renders views of ``world`` with a pinhole camera (fx, fy, cx, cy) of size width x height."""
 
@@ -107,18 +152,62 @@ class Renderer:
         Texture filtering (mip levels) is computed as seen from ``lod_origin`` (default:
         this camera); the stereo writer passes the rig centre, so both views filter every
         surface point identically and differ only by geometry.
-        """
-        w = self.world
-        p = w.params
-        H, W, K = self.H, self.W, self.K
-        lx, lz = (cam_x, cam_z) if lod_origin is None else lod_origin
-        h = p.cam_height
-        cth, sth = np.cos(heading), np.sin(heading)
-        dx = self.uc * cth + sth  # (W,) horizontal ray direction, map frame
-        dz = -self.uc * sth + cth
 
-        # ---- facades, per column: K nearest front-facing hits
-        rel = w.seg_p0 - np.array([cam_x, cam_z])  # (S, 2)
+        The steps: the facade candidates per column, the surface each pixel sees (a
+        candidate, the ground or the sky) and its shading; then the objects that survive
+        culling: their soft contact shadows on the ground, then the objects themselves.
+        """
+        H, W = self.H, self.W
+        ray = self._rays(cam_x, cam_z, heading, lod_origin)
+        fac = self._facade_candidates(ray)
+        sel = self._surfaces(fac)
+        flat = sel.ravel()
+        img = np.empty(H * W, np.float32)
+        depth = np.empty(H * W, np.float32)
+        ids = np.zeros((H, W), np.uint8)
+        idx = np.flatnonzero(flat < fac.kk)
+        if idx.size:
+            self._shade_facades(ray, fac, idx, flat[idx], img, depth)
+        idx = np.flatnonzero(flat == fac.kk)
+        ground_xz = self._shade_ground(ray, idx, img, depth) if idx.size else None
+        idx = np.flatnonzero(flat == fac.kk + 1)
+        if idx.size:
+            self._shade_sky(ray, idx, img, depth)
+        img = img.reshape(H, W)
+        depth = depth.reshape(H, W)
+        img *= np.float32(255.0 * self.light.exposure)
+
+        shown = self._shown_objects(objects, ray, depth)
+        if ground_xz is not None and shown:
+            gmask = sel == fac.kk
+            gx2 = ground_xz[0].reshape(H, W)
+            gz2 = ground_xz[1].reshape(H, W)
+            for ob in shown:
+                self._shadow(ob, img, gmask, gx2, gz2, ray.Rc, ray.cam)
+        if shown:
+            self._objects(shown, img, depth, ids, ray.Rc, ray.cam, np.array([ray.lx, 0.0, ray.lz]))
+        return View(img, depth, ids)
+
+    def _rays(self, cam_x: float, cam_z: float, heading: float, lod_origin: tuple[float, float] | None) -> _Rays:
+        lx, lz = (cam_x, cam_z) if lod_origin is None else lod_origin
+        cth, sth = np.cos(heading), np.sin(heading)
+        fwd3 = np.array([sth, 0.0, cth])
+        rgt3 = np.array([cth, 0.0, -sth])
+        down3 = np.array([0.0, 1.0, 0.0])
+        return _Rays(
+            cam_x, cam_z, cth, sth, lx, lz,
+            dx=self.uc * cth + sth,  # (W,) horizontal ray direction, map frame
+            dz=-self.uc * sth + cth,
+            cam=np.array([cam_x, 0.0, cam_z]),
+            Rc=np.stack([rgt3, down3, fwd3]),  # map -> camera rotation (rows)
+        )
+
+    def _facade_candidates(self, ray: _Rays) -> _Facades:
+        """Per column, the K nearest front-facing facade hits, nearest first."""
+        w = self.world
+        W, K = self.W, self.K
+        dx, dz = ray.dx, ray.dz
+        rel = w.seg_p0 - np.array([ray.cam_x, ray.cam_z])  # (S, 2)
         num = (w.seg_n * rel).sum(1)
         front = np.flatnonzero(num < -1e-6)
         n = w.seg_n[front]
@@ -143,102 +232,104 @@ class Renderer:
         valid = np.isfinite(tk)
         Uk = w.seg_off[segk] + uk
         bld = w.building_at(Uk)
-        topk = np.where(valid, h - w.bld_height[bld], np.inf)  # y of the roof (y down)
+        topk = np.where(valid, w.params.cam_height - w.bld_height[bld], np.inf)  # y of the roof (y down)
         tk_f = np.where(valid, tk, 1e9)
+        return _Facades(kk, uk, segk, valid, Uk, bld, topk, tk_f)
 
-        # ---- per pixel: first candidate whose vertical extent contains the ray
-        vc = self.vc
-        sel = np.full((H, W), kk + 1, np.int8)  # kk+1 = sky
+    def _surfaces(self, fac: _Facades) -> np.ndarray:
+        """Per pixel the first candidate ``k`` whose vertical extent contains the ray, else
+        ``kk`` = ground (below the horizon) or ``kk + 1`` = sky; int8 (H, W)."""
+        vc, h, kk = self.vc, self.world.params.cam_height, fac.kk
+        sel = np.full((self.H, self.W), kk + 1, np.int8)  # kk+1 = sky
         sel[vc > 0, :] = kk  # kk = ground
         for k in range(kk - 1, -1, -1):
-            y = vc[:, None] * tk_f[k][None, :]
-            hit = (y >= topk[k][None, :]) & (y <= h)
+            y = vc[:, None] * fac.tk_f[k][None, :]
+            hit = (y >= fac.topk[k][None, :]) & (y <= h)
             sel[hit] = k
-        self_flat = sel.ravel()
-        img = np.empty(H * W, np.float32)
-        depth = np.empty(H * W, np.float32)
-        ids = np.zeros((H, W), np.uint8)
+        return sel
 
-        # ---- facade shading
-        idx = np.flatnonzero(self_flat < kk)
-        if idx.size:
-            r = idx // W
-            c = idx - r * W
-            kc = self_flat[idx].astype(np.int64) * W + c
-            nk = w.seg_n[segk]  # (kk, W, 2)
-            er = np.array([cth, -sth])
-            # footprint along the facade of a pixel looking at the hit point from lod_origin
-            hx = cam_x + tk_f * dx[None, :] - lx
-            hz = cam_z + tk_f * dz[None, :] - lz
-            zc = hx * sth + hz * cth  # depth of the hit point seen from lod_origin
-            with np.errstate(divide="ignore", invalid="ignore"):
-                cdx = hx / zc
-                cdz = hz / zc
-                nd = nk[..., 0] * cdx + nk[..., 1] * cdz
-                ne = nk[..., 0] * er[0] + nk[..., 1] * er[1]
-                ratio = np.where(valid, ne / nd, 0.0)
-            fpx = np.where(valid, zc, 1e9) / self.fx * np.hypot(er[0] - cdx * ratio, er[1] - cdz * ratio)
-            fp = np.maximum(fpx, _ANISO * tk_f / self.fy)
-            lod = np.log2(np.maximum(fp, 1e-6) / p.facade_texel).astype(np.float32)
-            dlod = (lod + np.float32(np.log2(p.facade_texel / p.facade_detail_texel))).astype(np.float32)
-            shade = (self.light.ambient + self.light.diffuse * np.maximum(0.0, nk[..., 0] * self.L[0] + nk[..., 1] * self.L[2])).astype(np.float32)
-            ax = (w.seg_xt[segk] + uk / p.facade_texel).astype(np.float32)
-            ay0 = (w.seg_band_y[segk] + w.facade_height / p.facade_texel).astype(np.float32)
-            tpix = tk_f.ravel()[kc].astype(np.float32)
-            hgt = np.float32(h) - self.vc32[r] * tpix
-            col = w.facade.sample(ax.ravel()[kc], ay0.ravel()[kc] - hgt / np.float32(p.facade_texel), lod.ravel()[kc])
-            ud = (Uk.ravel()[kc] / p.facade_detail_texel).astype(np.float32)
-            det = w.facade_detail.sample(ud, hgt / np.float32(p.facade_detail_texel), dlod.ravel()[kc])
-            strength = w.bld_detail[bld].ravel()[kc]
-            img[idx] = col * (1.0 + strength * (det - 0.5) * 2.0) * shade.ravel()[kc]
-            depth[idx] = tpix
+    def _shade_facades(self, ray: _Rays, fac: _Facades, idx: np.ndarray, cand: np.ndarray,
+                       img: np.ndarray, depth: np.ndarray) -> None:
+        """Facade pixels ``idx`` (flat), which see candidate ``cand``: texture, detail, shade."""
+        w = self.world
+        p = w.params
+        W, h = self.W, p.cam_height
+        dx, dz, cth, sth = ray.dx, ray.dz, ray.cth, ray.sth
+        segk, valid, uk, tk_f, bld, Uk = fac.segk, fac.valid, fac.uk, fac.tk_f, fac.bld, fac.Uk
+        r = idx // W
+        c = idx - r * W
+        kc = cand.astype(np.int64) * W + c
+        nk = w.seg_n[segk]  # (kk, W, 2)
+        er = np.array([cth, -sth])
+        # footprint along the facade of a pixel looking at the hit point from lod_origin
+        hx = ray.cam_x + tk_f * dx[None, :] - ray.lx
+        hz = ray.cam_z + tk_f * dz[None, :] - ray.lz
+        zc = hx * sth + hz * cth  # depth of the hit point seen from lod_origin
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cdx = hx / zc
+            cdz = hz / zc
+            nd = nk[..., 0] * cdx + nk[..., 1] * cdz
+            ne = nk[..., 0] * er[0] + nk[..., 1] * er[1]
+            ratio = np.where(valid, ne / nd, 0.0)
+        fpx = np.where(valid, zc, 1e9) / self.fx * np.hypot(er[0] - cdx * ratio, er[1] - cdz * ratio)
+        fp = np.maximum(fpx, _ANISO * tk_f / self.fy)
+        lod = np.log2(np.maximum(fp, 1e-6) / p.facade_texel).astype(np.float32)
+        dlod = (lod + np.float32(np.log2(p.facade_texel / p.facade_detail_texel))).astype(np.float32)
+        shade = (self.light.ambient + self.light.diffuse * np.maximum(0.0, nk[..., 0] * self.L[0] + nk[..., 1] * self.L[2])).astype(np.float32)
+        ax = (w.seg_xt[segk] + uk / p.facade_texel).astype(np.float32)
+        ay0 = (w.seg_band_y[segk] + w.facade_height / p.facade_texel).astype(np.float32)
+        tpix = tk_f.ravel()[kc].astype(np.float32)
+        hgt = np.float32(h) - self.vc32[r] * tpix
+        col = w.facade.sample(ax.ravel()[kc], ay0.ravel()[kc] - hgt / np.float32(p.facade_texel), lod.ravel()[kc])
+        ud = (Uk.ravel()[kc] / p.facade_detail_texel).astype(np.float32)
+        det = w.facade_detail.sample(ud, hgt / np.float32(p.facade_detail_texel), dlod.ravel()[kc])
+        strength = w.bld_detail[bld].ravel()[kc]
+        img[idx] = col * (1.0 + strength * (det - 0.5) * 2.0) * shade.ravel()[kc]
+        depth[idx] = tpix
 
-        # ---- ground
-        idx = np.flatnonzero(self_flat == kk)
-        if idx.size:
-            r = idx // W
-            c = idx - r * W
-            tg = self.t_ground[r]
-            gx = cam_x + tg * dx[c]
-            gz = cam_z + tg * dz[c]
-            ox, oz = w.ground_origin
-            gt = p.ground_texel
-            col = w.ground.sample(((gx - ox) / gt).astype(np.float32), ((gz - oz) / gt).astype(np.float32), self.ground_lod[r])
-            dt = p.ground_detail_texel
-            det = w.ground_detail.sample((gx / dt).astype(np.float32), (gz / dt).astype(np.float32), self.ground_dlod[r])
-            g_shade = np.float32(self.light.ambient + self.light.diffuse * max(0.0, -self.L[1]))
-            img[idx] = col * (1.0 + (det - 0.5) * 1.3) * g_shade
-            depth[idx] = tg.astype(np.float32)
-            gxf = np.zeros(H * W, np.float64)
-            gzf = np.zeros(H * W, np.float64)
-            gxf[idx] = gx
-            gzf[idx] = gz
-        else:
-            gxf = gzf = None
+    def _shade_ground(self, ray: _Rays, idx: np.ndarray, img: np.ndarray,
+                      depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ground pixels ``idx`` (flat); returns the map x, z of every ground pixel (flat,
+        0 elsewhere) for the contact shadows."""
+        w = self.world
+        p = w.params
+        r = idx // self.W
+        c = idx - r * self.W
+        tg = self.t_ground[r]
+        gx = ray.cam_x + tg * ray.dx[c]
+        gz = ray.cam_z + tg * ray.dz[c]
+        ox, oz = w.ground_origin
+        gt = p.ground_texel
+        col = w.ground.sample(((gx - ox) / gt).astype(np.float32), ((gz - oz) / gt).astype(np.float32), self.ground_lod[r])
+        dt = p.ground_detail_texel
+        det = w.ground_detail.sample((gx / dt).astype(np.float32), (gz / dt).astype(np.float32), self.ground_dlod[r])
+        g_shade = np.float32(self.light.ambient + self.light.diffuse * max(0.0, -self.L[1]))
+        img[idx] = col * (1.0 + (det - 0.5) * 1.3) * g_shade
+        depth[idx] = tg.astype(np.float32)
+        gxf = np.zeros(self.H * self.W, np.float64)
+        gzf = np.zeros(self.H * self.W, np.float64)
+        gxf[idx] = gx
+        gzf[idx] = gz
+        return gxf, gzf
 
-        # ---- sky (a function of the ray direction only: identical in both views)
-        idx = np.flatnonzero(self_flat == kk + 1)
-        if idx.size:
-            r = idx // W
-            c = idx - r * W
-            az = np.arctan2(dx, dz)
-            hn = np.hypot(dx, dz)
-            su = ((az / (2 * np.pi)) % 1.0 * w.sky.width).astype(np.float32)[c]
-            tan_el = (-self.vc[r] / hn[c])
-            sv = np.clip(tan_el / 0.5 * (w.sky.height - 1), 0, w.sky.height - 2).astype(np.float32)
-            img[idx] = w.sky.sample(su, sv, self.sky_lod)
-            depth[idx] = np.inf
+    def _shade_sky(self, ray: _Rays, idx: np.ndarray, img: np.ndarray, depth: np.ndarray) -> None:
+        """Sky pixels ``idx`` (flat): a function of the ray direction only, identical in both views."""
+        sky = self.world.sky
+        r = idx // self.W
+        c = idx - r * self.W
+        az = np.arctan2(ray.dx, ray.dz)
+        hn = np.hypot(ray.dx, ray.dz)
+        su = ((az / (2 * np.pi)) % 1.0 * sky.width).astype(np.float32)[c]
+        tan_el = (-self.vc[r] / hn[c])
+        sv = np.clip(tan_el / 0.5 * (sky.height - 1), 0, sky.height - 2).astype(np.float32)
+        img[idx] = sky.sample(su, sv, self.sky_lod)
+        depth[idx] = np.inf
 
-        img = img.reshape(H, W)
-        depth = depth.reshape(H, W)
-        img *= np.float32(255.0 * self.light.exposure)
-
-        # ---- objects: soft contact shadows on the ground, then the objects themselves
-        fwd3 = np.array([sth, 0.0, cth])
-        rgt3 = np.array([cth, 0.0, -sth])
-        down3 = np.array([0.0, 1.0, 0.0])
-        cam = np.array([cam_x, 0.0, cam_z])
-        Rc = np.stack([rgt3, down3, fwd3])  # map -> camera rotation (rows)
+    def _shown_objects(self, objects: list[PosedObject], ray: _Rays, depth: np.ndarray) -> list[PosedObject]:
+        """The objects in the view frustum (within 250 m) and not hidden by the static
+        scene: objects behind the facades of other streets (most of them) cost one box
+        projection."""
+        W, Rc, cam = self.W, ray.Rc, ray.cam
         visible = []
         for ob in objects:
             wdt, hgt_o, lng = ob.shape.size
@@ -250,8 +341,6 @@ class Renderer:
             if pc[2] > rad and abs(pc[0]) - rad > pc[2] * (W / 2 + 2) / self.fx:
                 continue
             visible.append(ob)
-        # occlusion culling against the static depth: objects behind the facades of other
-        # streets (most of them) cost one box projection
         shown = []
         for ob in visible:
             wdt, hgt_o, lng = ob.shape.size
@@ -265,15 +354,7 @@ class Renderer:
             if zmin > 0 and float(depth[r0:r1, c0:c1].max()) < zmin:
                 continue
             shown.append(ob)
-        if gxf is not None and shown:
-            gmask = sel == kk
-            gx2 = gxf.reshape(H, W)
-            gz2 = gzf.reshape(H, W)
-            for ob in shown:
-                self._shadow(ob, img, gmask, gx2, gz2, Rc, cam)
-        if shown:
-            self._objects(shown, img, depth, ids, Rc, cam, np.array([lx, 0.0, lz]))
-        return View(img, depth, ids)
+        return shown
 
     # -----------------------------------------------------------------------------------------
     def _rect(self, corners_map: np.ndarray, Rc: np.ndarray, cam: np.ndarray, margin: int = 2):
@@ -410,6 +491,40 @@ class Renderer:
             self._cast(rest, prm, img, depth, ids)
 
     def _cast(self, sel: np.ndarray, prm: dict, img, depth, ids) -> None:
+        """Intersect primitives ``sel`` with the rays of their projected boxes: all
+        (primitive, pixel) pairs in float32, the z-buffer keeps one nearest winner per
+        pixel, the winners are intersected again in float64 and shaded."""
+        pairs = self._pairs(sel, prm, depth)
+        if pairs is None:
+            return
+        row, col, pix, counts, rep = pairs
+        tin, tout = self._intersect_pairs(sel, prm, row, col, rep)
+        dflat = depth.reshape(-1)
+        won = self._z_winners(tin, tout, pix, dflat)
+        if won is None:
+            return
+        h_idx, ph = won
+        # winners in float64: exact depth and the constraint the ray enters through
+        P = len(sel)
+        if P == 1:
+            pw = np.zeros(len(h_idx), np.int64)
+        else:  # sorted: winners grouped by primitive
+            pw = np.searchsorted(np.cumsum(counts), h_idx, side="right")
+        wcount = np.bincount(pw, minlength=P)
+
+        def repw(a: np.ndarray) -> np.ndarray:  # per-primitive value -> per winner
+            return np.repeat(a, wcount, axis=0)
+
+        hits = self._entry_hits(sel, prm, repw, self.uc[col[h_idx]], self.vc[row[h_idx]])
+        dflat[ph] = hits.t.astype(np.float32)
+        g = sel[pw]
+        img.reshape(-1)[ph] = self._shade_hits(sel, prm, repw, hits, g)
+        ids.reshape(-1)[ph] = prm["oid"][g]
+
+    def _pairs(self, sel: np.ndarray, prm: dict, depth: np.ndarray):
+        """The (primitive, pixel) pairs of the boxes of ``sel``: row, col, flat pixel,
+        pairs per primitive and ``rep`` (per-primitive value -> per pair); None when a
+        single primitive's pixels are all nearer than it already (early z)."""
         W = self.W
         f32 = np.float32
         rect = prm["rect"][sel]
@@ -417,30 +532,36 @@ class Renderer:
         ww = rect[:, 3] - rect[:, 2]
         counts = hh * ww
         N = int(counts.sum())
-        P = len(sel)
 
         def rep(a: np.ndarray) -> np.ndarray:  # per-primitive value -> per pair
             return np.repeat(a, counts)
 
-        # (primitive, pixel) pairs: float32 here; the winners are redone in float64 below
+        # float32 here; the winners are redone in float64
         local = (np.arange(N) - rep(np.cumsum(counts) - counts)).astype(f32)
         wf = rep(ww.astype(f32))
         rl = np.floor((local + f32(0.5)) / wf)
         row = (rep(rect[:, 0].astype(f32)) + rl).astype(np.int64)
         col = (rep(rect[:, 2].astype(f32)) + local - rl * wf).astype(np.int64)
         pix = row * W + col
-        if P == 1:
+        if len(sel) == 1:
             # a single (big) primitive: its parameters are scalars, and pixels already
             # nearer than its nearest point (early z) need no intersection at all
             idx = np.flatnonzero(depth.reshape(-1)[pix] > prm["zmin"][sel[0]])
             if idx.size == 0:
-                return
+                return None
             row, col, pix = row[idx], col[idx], pix[idx]
-            N = idx.size
 
             def rep(a: np.ndarray) -> np.ndarray:  # noqa: F811 - scalar broadcast
                 return a[0]
 
+        return row, col, pix, counts, rep
+
+    def _intersect_pairs(self, sel: np.ndarray, prm: dict, row: np.ndarray, col: np.ndarray,
+                         rep) -> tuple[np.ndarray, np.ndarray]:
+        """Entry and exit ray parameters (float32) of every pair: the primitive is the
+        intersection of up to three slabs and two quadrics."""
+        f32 = np.float32
+        N = len(row)
         M = prm["M"][sel].astype(f32)
         o = prm["o"][sel].astype(f32)
         slo = prm["slo"][sel].astype(f32)
@@ -476,12 +597,18 @@ class Renderer:
                 sq = np.sqrt(np.maximum(qb * qb - qa * qcc, f32(0.0)))
                 np.maximum(tin, (-qb - sq) / qa, out=tin)
                 np.minimum(tout, (-qb + sq) / qa, out=tout)
-        dflat = depth.reshape(-1)
+        return tin, tout
+
+    @staticmethod
+    def _z_winners(tin: np.ndarray, tout: np.ndarray, pix: np.ndarray,
+                   dflat: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """The pairs that hit nearer than the z-buffer ``dflat`` (updated in place), one
+        winner per pixel (exact ties: one of them); (pair index, pixel) or None."""
         hit = (tin > _NEAR) & (tin < tout)
         hit &= tin < dflat[pix]
         h_idx = np.flatnonzero(hit)
         if h_idx.size == 0:
-            return
+            return None
         th = tin[h_idx]
         ph = pix[h_idx]
         np.minimum.at(dflat, ph, th)
@@ -491,30 +618,24 @@ class Renderer:
         claim = np.full(dflat.size, -1, np.int64)  # exact ties: one winner per pixel
         claim[ph] = np.arange(len(ph))
         keep = np.flatnonzero(claim[ph] == np.arange(len(ph)))
-        h_idx = h_idx[keep]
-        ph = ph[keep]
-        # winners in float64: exact depth and the constraint the ray enters through
-        if P == 1:
-            pw = np.zeros(len(h_idx), np.int64)
-        else:  # sorted: winners grouped by primitive
-            pw = np.searchsorted(np.cumsum(counts), h_idx, side="right")
-        wcount = np.bincount(pw, minlength=P)
+        return h_idx[keep], ph[keep]
 
-        def repw(a: np.ndarray) -> np.ndarray:  # per-primitive value -> per winner
-            return np.repeat(a, wcount, axis=0)
-
-        g = sel[pw]
-        uu = self.uc[col[h_idx]]
-        vv = self.vc[row[h_idx]]
+    @staticmethod
+    def _entry_hits(sel: np.ndarray, prm: dict, repw, uu: np.ndarray, vv: np.ndarray) -> _Hits:
+        """The winners' rays again in float64: entry depth and the constraint entered
+        through (0..2: slab axis, 3..4: quadric)."""
         Ms = prm["M"][sel]
         Dw = [repw(Ms[:, i, 0]) * uu + repw(Ms[:, i, 1]) * vv + repw(Ms[:, i, 2]) for i in range(3)]
         os_ = prm["o"][sel]
         ow = [repw(os_[:, i]) for i in range(3)]
-        n = len(h_idx)
+        n = len(uu)
         t = np.full(n, -np.inf)
         wc = np.zeros(n, np.int8)
         slo_g = repw(prm["slo"][sel])
         shi_g = repw(prm["shi"][sel])
+        qv_g = repw(prm["qv"][sel])
+        qk2_g = repw(prm["qk2"][sel])
+        qc_g = repw(prm["qc"][sel])
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             for i in range(3):
                 lo_i = slo_g[:, i]
@@ -525,9 +646,6 @@ class Renderer:
                 upd = (tn > t) & (lo_i > -_BIG_SLAB)
                 t = np.where(upd, tn, t)
                 wc = np.where(upd, i, wc)
-            qv_g = repw(prm["qv"][sel])
-            qk2_g = repw(prm["qk2"][sel])
-            qc_g = repw(prm["qc"][sel])
             for q in range(2):
                 if not qv_g[:, q].any():
                     continue
@@ -540,8 +658,13 @@ class Renderer:
                 upd = (tn > t) & qv_g[:, q]
                 t = np.where(upd, tn, t)
                 wc = np.where(upd, 3 + q, wc)
-        dflat[ph] = t.astype(np.float32)
-        # shading: normal of the entering constraint, texture by the dominant normal axis
+        return _Hits(t, wc, Dw, ow, qk2_g, qc_g)
+
+    def _shade_hits(self, sel: np.ndarray, prm: dict, repw, hits: _Hits, g: np.ndarray) -> np.ndarray:
+        """Grey levels of the winners (primitives ``g``): normal of the entering
+        constraint, texture by the dominant normal axis, mip level from lod_origin."""
+        t, wc, Dw, ow, qk2_g, qc_g = hits.t, hits.wc, hits.Dw, hits.ow, hits.qk2, hits.qc
+        n = len(t)
         Pp = [ow[i] + t * Dw[i] for i in range(3)]
         nrm = [np.zeros(n) for _ in range(3)]
         for i in range(3):
@@ -570,5 +693,4 @@ class Renderer:
         Lp = repw(self.L @ prm["Rw"][sel])  # light direction in each primitive frame
         ndl = Lp[:, 0] * nrm[0] + Lp[:, 1] * nrm[1] + Lp[:, 2] * nrm[2]
         shade = self.light.ambient + self.light.diffuse * np.maximum(0.0, ndl)
-        img.reshape(-1)[ph] = (alb * prm["gain"][g] * shade * (255.0 * self.light.exposure)).astype(np.float32)
-        ids.reshape(-1)[ph] = prm["oid"][g]
+        return (alb * prm["gain"][g] * shade * (255.0 * self.light.exposure)).astype(np.float32)

@@ -351,84 +351,7 @@ def _facade_atlas(rng: np.random.Generator, p: WorldParams, segs: list[Segment],
         if c1 <= c0:
             continue
         ub = ((np.arange(c0, c1) - s.x_texel) * tx + s.offset - b.u0).astype(np.float32)  # metres in building
-        bw = b.u1 - b.u0
-        hg = hts_all[:, None]
-        tone = rng.uniform(0.35, 0.8)
-        img = tone + 0.06 * noise[y0 : y0 + rows, c0:c1]
-        # floors and windows
-        fh = rng.uniform(2.9, 3.6)
-        gf = rng.uniform(3.6, 4.6)  # ground floor height
-        sp = rng.uniform(2.4, 3.6)
-        ww = rng.uniform(0.9, min(1.6, sp - 0.6))
-        wh = rng.uniform(1.2, min(1.9, fh - 1.0))
-        n_cols = max(1, int((bw - 1.0) // sp))
-        m0 = (bw - n_cols * sp) / 2
-        fxw = (ub - m0) / sp
-        kx = np.floor(fxw)
-        dxw = np.abs(fxw - kx - 0.5) * sp
-        col_in = (kx >= 0) & (kx < n_cols)
-        fz = (hg - gf) / fh
-        fi = np.floor(fz)
-        z = (fz - fi) * fh
-        row_ok = (fi >= 0) & (hg < b.height - 1.0)
-        win_r = row_ok & (z > 0.9) & (z < 0.9 + wh)
-        frm_r = row_ok & (z > 0.82) & (z < 0.98 + wh)
-        win = win_r & (col_in & (dxw < ww / 2))[None, :]
-        frm = frm_r & (col_in & (dxw < ww / 2 + 0.09))[None, :]
-        frame_tone = float(np.clip(tone + rng.choice([-0.3, 0.25]), 0.05, 0.95))
-        img = np.where(frm, frame_tone, img)
-        gtab = rng.uniform(0.05, 0.35, 4096).astype(np.float32)
-        gid = ((kx.astype(np.int64)[None, :] * 37 + fi.astype(np.int64) * 101) % 4096).astype(np.int64)
-        glass = gtab[gid] + 0.1 * np.clip(1.0 - (z - 0.9) / wh, 0, 1)
-        # curtains in some windows
-        curtain = (gtab[(gid + 7) % 4096] > 0.25) & ((fxw - kx) < 0.5)
-        glass = np.where(curtain, glass + 0.35, glass)
-        img = np.where(win, glass, img)
-        # mullion
-        mull = win & (np.abs(fxw - kx - 0.5) * sp < 0.04)[None, :]
-        img = np.where(mull, frame_tone, img)
-        # string courses between floors
-        if rng.random() < 0.6:
-            sc = row_ok & (np.abs(z - 0.0) < 0.12)
-            img = np.where(sc, tone * 0.75, img)
-        # ground floor: shop windows / doors / signs
-        shop_sp = rng.uniform(3.0, 4.5)
-        fx2 = ub / shop_sp
-        k2 = np.floor(fx2)
-        d2 = np.abs(fx2 - k2 - 0.5) * shop_sp
-        shop_w = rng.uniform(1.8, shop_sp - 0.6)
-        is_door = (((k2.astype(np.int64) * 13 + int(b.u0)) % 5) == 0)[None, :]
-        shop = (hg > 0.45) & (hg < gf - 1.0) & (d2 < shop_w / 2)[None, :]
-        door = (hg > 0.0) & (hg < 2.3) & (d2 < 0.6)[None, :] & is_door
-        # shop windows with goods on display: a random block pattern (per 15 cm cell)
-        cell_x = np.floor(ub / 0.15).astype(np.int64)
-        cell_y = np.floor(hg / 0.15).astype(np.int64)
-        goods_tab = rng.uniform(0.05, 0.75, 4093).astype(np.float32)
-        goods = goods_tab[(cell_x[None, :] * 31 + cell_y * 17 + int(b.u0 * 7)) % 4093]
-        goods = np.where(goods_tab[(cell_x[None, :] * 7 + cell_y * 3 + 11) % 4093] > 0.45, goods, 0.12)
-        img = np.where(shop & ~is_door, goods + 0.06 * noise[y0 : y0 + rows, c0:c1], img)
-        img = np.where(door, 0.18, img)
-        # shop signs with "lettering"
-        sign_tone = rng.uniform(0.0, 1.0)
-        sign = (hg > gf - 0.85) & (hg < gf - 0.25) & (d2 < shop_w / 2)[None, :]
-        letter_tab = rng.random(4093) < 0.5
-        letters = letter_tab[(np.floor(ub / 0.12).astype(np.int64)[None, :] * 13 + np.floor(hg / 0.2).astype(np.int64) * 5) % 4093]
-        letters &= (hg > gf - 0.72) & (hg < gf - 0.38)
-        img = np.where(sign, np.where(letters, 1.0 - sign_tone, sign_tone), img)
-        # posters and graffiti on the ground floor between the shops
-        for _ in range(int(rng.integers(0, 4))):
-            px0 = rng.uniform(0, max(bw - 1.0, 0.1))
-            pw_, ph_ = rng.uniform(0.4, 1.2), rng.uniform(0.5, 1.2)
-            py0 = rng.uniform(0.4, max(gf - 1.2 - ph_, 0.5))
-            poster = (hg > py0) & (hg < py0 + ph_) & ((ub > px0) & (ub < px0 + pw_))[None, :] & ~shop
-            ptab = rng.uniform(0, 1, 4093).astype(np.float32)
-            pat = ptab[(np.floor(ub / 0.1).astype(np.int64)[None, :] * 19 + np.floor(hg / 0.1).astype(np.int64) * 23) % 4093]
-            img = np.where(poster, pat, img)
-        # plinth and cornice; above the roof: cornice colour (never seen, avoids mip bleeding)
-        img = np.where(hg < 0.35, tone * 0.6, img)
-        corn = hg > b.height - 0.6
-        img = np.where(corn, tone * 0.8, img)
-        img = np.where(np.abs(hg - (b.height - 0.6)) < 0.1, tone * 0.5, img)
+        img = _building_facade(rng, b, ub, hts_all[:, None], noise[y0 : y0 + rows, c0:c1])
         atlas[y0 : y0 + rows, c0:c1] = img
         # below ground (only reached by bilinear taps): replicate the plinth
         atlas[y0 + rows : y0 + band_rows, c0:c1] = img[-1:, :]
@@ -444,6 +367,110 @@ def _facade_atlas(rng: np.random.Generator, p: WorldParams, segs: list[Segment],
     atlas = cv2.GaussianBlur(atlas, (0, 0), 0.5)
     return np.clip(atlas, 0.02, 0.98), H_m, band_rows
 
+
+def _building_facade(rng: np.random.Generator, b: Building, ub: np.ndarray, hg: np.ndarray,
+                     noise: np.ndarray) -> np.ndarray:
+    """One building's facade texels: ``ub`` metres along the building (columns), ``hg``
+    height above ground (rows, a column vector), ``noise`` the atlas noise there.  The
+    steps draw from ``rng`` in a fixed order (the world is a function of the seed)."""
+    bw = b.u1 - b.u0
+    tone = rng.uniform(0.35, 0.8)
+    img = tone + 0.06 * noise
+    img, gf = _upper_floors(rng, img, tone, b, bw, ub, hg)
+    img, shop = _shop_fronts(rng, img, b, gf, ub, hg, noise)
+    img = _posters(rng, img, bw, gf, shop, ub, hg)
+    # plinth and cornice; above the roof: cornice colour (never seen, avoids mip bleeding)
+    img = np.where(hg < 0.35, tone * 0.6, img)
+    corn = hg > b.height - 0.6
+    img = np.where(corn, tone * 0.8, img)
+    img = np.where(np.abs(hg - (b.height - 0.6)) < 0.1, tone * 0.5, img)
+    return img
+
+
+def _upper_floors(rng: np.random.Generator, img: np.ndarray, tone: float, b: Building, bw: float,
+                  ub: np.ndarray, hg: np.ndarray) -> tuple[np.ndarray, float]:
+    """Floors and windows (frames, glass, curtains, mullions, string courses); returns
+    the texels and the ground floor's height."""
+    fh = rng.uniform(2.9, 3.6)
+    gf = rng.uniform(3.6, 4.6)  # ground floor height
+    sp = rng.uniform(2.4, 3.6)
+    ww = rng.uniform(0.9, min(1.6, sp - 0.6))
+    wh = rng.uniform(1.2, min(1.9, fh - 1.0))
+    n_cols = max(1, int((bw - 1.0) // sp))
+    m0 = (bw - n_cols * sp) / 2
+    fxw = (ub - m0) / sp
+    kx = np.floor(fxw)
+    dxw = np.abs(fxw - kx - 0.5) * sp
+    col_in = (kx >= 0) & (kx < n_cols)
+    fz = (hg - gf) / fh
+    fi = np.floor(fz)
+    z = (fz - fi) * fh
+    row_ok = (fi >= 0) & (hg < b.height - 1.0)
+    win_r = row_ok & (z > 0.9) & (z < 0.9 + wh)
+    frm_r = row_ok & (z > 0.82) & (z < 0.98 + wh)
+    win = win_r & (col_in & (dxw < ww / 2))[None, :]
+    frm = frm_r & (col_in & (dxw < ww / 2 + 0.09))[None, :]
+    frame_tone = float(np.clip(tone + rng.choice([-0.3, 0.25]), 0.05, 0.95))
+    img = np.where(frm, frame_tone, img)
+    gtab = rng.uniform(0.05, 0.35, 4096).astype(np.float32)
+    gid = ((kx.astype(np.int64)[None, :] * 37 + fi.astype(np.int64) * 101) % 4096).astype(np.int64)
+    glass = gtab[gid] + 0.1 * np.clip(1.0 - (z - 0.9) / wh, 0, 1)
+    # curtains in some windows
+    curtain = (gtab[(gid + 7) % 4096] > 0.25) & ((fxw - kx) < 0.5)
+    glass = np.where(curtain, glass + 0.35, glass)
+    img = np.where(win, glass, img)
+    # mullion
+    mull = win & (np.abs(fxw - kx - 0.5) * sp < 0.04)[None, :]
+    img = np.where(mull, frame_tone, img)
+    # string courses between floors
+    if rng.random() < 0.6:
+        sc = row_ok & (np.abs(z - 0.0) < 0.12)
+        img = np.where(sc, tone * 0.75, img)
+    return img, gf
+
+
+def _shop_fronts(rng: np.random.Generator, img: np.ndarray, b: Building, gf: float, ub: np.ndarray,
+                 hg: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The ground floor: shop windows with goods, doors, signs with lettering; returns
+    the texels and where the shop windows are."""
+    shop_sp = rng.uniform(3.0, 4.5)
+    fx2 = ub / shop_sp
+    k2 = np.floor(fx2)
+    d2 = np.abs(fx2 - k2 - 0.5) * shop_sp
+    shop_w = rng.uniform(1.8, shop_sp - 0.6)
+    is_door = (((k2.astype(np.int64) * 13 + int(b.u0)) % 5) == 0)[None, :]
+    shop = (hg > 0.45) & (hg < gf - 1.0) & (d2 < shop_w / 2)[None, :]
+    door = (hg > 0.0) & (hg < 2.3) & (d2 < 0.6)[None, :] & is_door
+    # shop windows with goods on display: a random block pattern (per 15 cm cell)
+    cell_x = np.floor(ub / 0.15).astype(np.int64)
+    cell_y = np.floor(hg / 0.15).astype(np.int64)
+    goods_tab = rng.uniform(0.05, 0.75, 4093).astype(np.float32)
+    goods = goods_tab[(cell_x[None, :] * 31 + cell_y * 17 + int(b.u0 * 7)) % 4093]
+    goods = np.where(goods_tab[(cell_x[None, :] * 7 + cell_y * 3 + 11) % 4093] > 0.45, goods, 0.12)
+    img = np.where(shop & ~is_door, goods + 0.06 * noise, img)
+    img = np.where(door, 0.18, img)
+    # shop signs with "lettering"
+    sign_tone = rng.uniform(0.0, 1.0)
+    sign = (hg > gf - 0.85) & (hg < gf - 0.25) & (d2 < shop_w / 2)[None, :]
+    letter_tab = rng.random(4093) < 0.5
+    letters = letter_tab[(np.floor(ub / 0.12).astype(np.int64)[None, :] * 13 + np.floor(hg / 0.2).astype(np.int64) * 5) % 4093]
+    letters &= (hg > gf - 0.72) & (hg < gf - 0.38)
+    img = np.where(sign, np.where(letters, 1.0 - sign_tone, sign_tone), img)
+    return img, shop
+
+
+def _posters(rng: np.random.Generator, img: np.ndarray, bw: float, gf: float, shop: np.ndarray,
+             ub: np.ndarray, hg: np.ndarray) -> np.ndarray:
+    """Posters and graffiti on the ground floor between the shops."""
+    for _ in range(int(rng.integers(0, 4))):
+        px0 = rng.uniform(0, max(bw - 1.0, 0.1))
+        pw_, ph_ = rng.uniform(0.4, 1.2), rng.uniform(0.5, 1.2)
+        py0 = rng.uniform(0.4, max(gf - 1.2 - ph_, 0.5))
+        poster = (hg > py0) & (hg < py0 + ph_) & ((ub > px0) & (ub < px0 + pw_))[None, :] & ~shop
+        ptab = rng.uniform(0, 1, 4093).astype(np.float32)
+        pat = ptab[(np.floor(ub / 0.1).astype(np.int64)[None, :] * 19 + np.floor(hg / 0.1).astype(np.int64) * 23) % 4093]
+        img = np.where(poster, pat, img)
+    return img
 
 def _poly(points_xz: np.ndarray, origin: tuple[float, float], texel: float, shift: int = 2) -> np.ndarray:
     scale = (1 << shift) / texel
@@ -461,7 +488,6 @@ def _ground_atlas(rng: np.random.Generator, p: WorldParams, ring: RingRoad, inte
     SH = 2
     road = np.zeros((H, W), np.uint8)
     marks = np.zeros((H, W), np.uint8)
-    dark = np.zeros((H, W), np.uint8)
 
     def contour_pts(d: float, step: float = 0.25) -> np.ndarray:
         L = ring.length(d)
@@ -520,6 +546,15 @@ def _ground_atlas(rng: np.random.Generator, p: WorldParams, ring: RingRoad, inte
                 d1 = min(d0 + 0.5, p.d_outer_curb - 0.2)
                 corners = [ring.side_point(side, zc + a, d) for a, d in ((-1.5, d0), (1.5, d0), (1.5, d1), (-1.5, d1))]
                 cv2.fillPoly(marks, [_poly(np.array(corners, float), origin, tx, SH)], 255, cv2.LINE_AA, SH)
+    dark, spots = _ground_wear(rng, W, H, tx)
+    img = _ground_shading(rng, road, marks, dark, spots, tx)
+    return np.clip(img, 0.02, 0.98).astype(np.float32), origin
+
+
+def _ground_wear(rng: np.random.Generator, W: int, H: int, tx: float) -> tuple[np.ndarray, np.ndarray]:
+    """Wear of the ground atlas (H, W texels of ``tx`` m): ``dark`` (uint8: patches,
+    manholes, cracks) and ``spots`` (float32: small dark and light stains and gravel)."""
+    dark = np.zeros((H, W), np.uint8)
     # patches, manholes, cracks, stains
     n_patch = int(W * H * tx * tx / 60.0)
     for _ in range(n_patch):
@@ -542,7 +577,14 @@ def _ground_atlas(rng: np.random.Generator, p: WorldParams, ring: RingRoad, inte
     sy = rng.integers(0, H, n_spot)
     spots[sy, sx] = rng.choice(np.array([-1.0, 1.0], np.float32), n_spot) * rng.uniform(0.4, 1.0, n_spot).astype(np.float32)
     spots = cv2.GaussianBlur(spots, (0, 0), 1.0) * 2 * np.pi  # unit peak for an isolated spot
+    return dark, spots
 
+
+def _ground_shading(rng: np.random.Generator, road: np.ndarray, marks: np.ndarray, dark: np.ndarray,
+                    spots: np.ndarray, tx: float) -> np.ndarray:
+    """Grey levels of the ground atlas: asphalt on the ``road``, paving tiles elsewhere,
+    curbs at the road's edge, worn ``marks`` painted on top."""
+    H, W = road.shape
     roadf = road.astype(np.float32) / 255.0
     # worn paint: markings lose patches of paint
     wear = cv2.resize(rng.uniform(0, 1, (H // 3 + 2, W // 3 + 2)).astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR)
@@ -566,7 +608,7 @@ def _ground_atlas(rng: np.random.Generator, p: WorldParams, ring: RingRoad, inte
     edge_in = roadf - cv2.erode(road, np.ones((3, 3), np.uint8)).astype(np.float32) / 255.0
     img = img + 0.3 * np.clip(edge_out, 0, 1) - 0.12 * np.clip(edge_in, 0, 1)
     img = img * (1 - marksf) + 0.88 * marksf
-    return np.clip(img, 0.02, 0.98).astype(np.float32), origin
+    return img
 
 
 def _sky(rng: np.random.Generator) -> np.ndarray:

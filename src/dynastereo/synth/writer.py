@@ -141,11 +141,7 @@ def generate(
     if out.exists() and not out.is_dir():
         raise InputError("output exists and is not a folder", out)
     seq = out / "sequences" / "00"
-    dirs = [seq / "image_0", seq / "image_1", seq / "gt" / "disparity", seq / "gt" / "masks" / "left", seq / "gt" / "masks" / "right", out / "poses"]
-    for d in dirs:
-        d.mkdir(parents=True, exist_ok=True)
-        for old in d.glob("*.png"):  # a previous, longer run must not leave frames behind
-            old.unlink()
+    _clean_dirs(out, seq)
 
     world = build_world(seed, WorldParams())
     plan = make_plan(world, scenario, frames, seed)
@@ -157,119 +153,175 @@ def generate(
     T0inv = None
     poses: list[np.ndarray] = []
     frame_records: list[dict[str, Any]] = []
-    png = [cv2.IMWRITE_PNG_COMPRESSION, 1]
-    pool = ThreadPoolExecutor(max_workers=max(1, threads)) if threads > 1 else None
-    pending: list[Future] = []
-
-    def write(path: Path, arr: np.ndarray) -> None:
-        if not cv2.imwrite(str(path), arr, png):
-            raise InputError("cannot write image", path)
-
-    def submit(path: Path, arr: np.ndarray) -> None:
-        if pool is None:
-            write(path, arr)
-        else:
-            pending.append(pool.submit(write, path, arr))
-
-    try:
+    with _PngWriter(threads) as writer:
         for i in range(n):
             x, z, th = plan.camera(i)
             t = i * plan.dt
             objs = _posed(plan, t, world.params.cam_height)
-            rx, rz = math.cos(th), -math.sin(th)
-            mid = (x + 0.5 * BASELINE * rx, z + 0.5 * BASELINE * rz)  # texture filtering seen from the rig centre
-            if pool is not None:
-                fl = pool.submit(renderer.render, x, z, th, objs, mid)
-                right = renderer.render(x + BASELINE * rx, z + BASELINE * rz, th, objs, mid)
-                left = fl.result()
-            else:
-                left = renderer.render(x, z, th, objs, mid)
-                right = renderer.render(x + BASELINE * rx, z + BASELINE * rz, th, objs, mid)
+            left, right = _render_stereo(renderer, writer.pool, x, z, th, objs)
             nrng = np.random.default_rng([seed, 3, i]) if noise > 0 else None
             name = f"{i:06d}.png"
-            submit(seq / "image_0" / name, _to_uint8(left, noise, nrng))
-            submit(seq / "image_1" / name, _to_uint8(right, noise, nrng))
-            submit(seq / "gt" / "disparity" / name, _disparity_png(left, fx * BASELINE))
-            submit(seq / "gt" / "masks" / "left" / name, left.ids)
-            submit(seq / "gt" / "masks" / "right" / name, right.ids)
+            writer.submit(seq / "image_0" / name, _to_uint8(left, noise, nrng))
+            writer.submit(seq / "image_1" / name, _to_uint8(right, noise, nrng))
+            writer.submit(seq / "gt" / "disparity" / name, _disparity_png(left, fx * BASELINE))
+            writer.submit(seq / "gt" / "masks" / "left" / name, left.ids)
+            writer.submit(seq / "gt" / "masks" / "right" / name, right.ids)
 
             Tw = _pose_matrix(x, z, th)
             if T0inv is None:
                 T0inv = np.linalg.inv(Tw)
-            Tc = T0inv @ Tw
-            poses.append(Tc[:3, :4])
-            Tcam_inv = np.linalg.inv(Tw)
-            bl, cl = _boxes(left.ids)
-            br, cr = _boxes(right.ids)
-            recs = []
-            for ob, po in zip(plan.objects, objs):
-                k = ob.id
-                if cl[k] == 0 and cr[k] == 0:
-                    continue
-                wdt, hgt, lng = ob.shape.size
-                To = np.eye(4)
-                To[:3, :3] = po.R
-                To[:3, 3] = po.origin + po.R @ np.array([0.0, -hgt / 2, 0.0])  # centre of the box
-                Tw_o = T0inv @ To
-                pc = (Tcam_inv @ To)[:3, 3]
-                speed = ob.motion.speed(t)
-                moving = speed > MOVING_SPEED
-                yaw = math.atan2(Tw_o[0, 2], Tw_o[2, 2])
-                recs.append(
-                    {
-                        "id": k,
-                        "label": ob.label,
-                        "moving": bool(moving),
-                        "speed": _r(speed, 3),
-                        "box_left": list(bl[k]) if bl[k] else None,
-                        "box_right": list(br[k]) if br[k] else None,
-                        "pixels_left": int(cl[k]),
-                        "pixels_right": int(cr[k]),
-                        "position": [_r(v) for v in Tw_o[:3, 3]],
-                        "yaw": _r(yaw, 5),
-                        "pose": [_r(v, 6) for v in Tw_o[:3, :4].ravel()],
-                        "position_cam": [_r(v) for v in pc],
-                        "distance": _r(float(np.linalg.norm(pc)), 3),
-                    }
-                )
+            poses.append((T0inv @ Tw)[:3, :4])
+            recs = _object_records(plan, objs, t, left.ids, right.ids, T0inv, np.linalg.inv(Tw))
             frame_records.append({"index": i, "timestamp": _r(t, 6), "objects": recs})
-            if len(pending) > 64:
-                for f in pending[:-32]:
-                    f.result()
-                pending = pending[-32:]
+            writer.throttle()
             if progress is not None:
                 progress(i + 1, n)
-        for f in pending:
-            f.result()
-    finally:
-        if pool is not None:
-            pool.shutdown(wait=True)
 
-    # ---- text files
+    _write_text_files(out, seq, poses, n, plan.dt, (fx, fy, cx, cy))
+    meta = _objects_meta(scenario, seed, n, (W, H), noise, plan, (fx, fy, cx, cy), world.params.cam_height)
+    meta["frames_gt"] = frame_records
+    with open(seq / "gt" / "objects.json", "w") as fh:
+        json.dump(meta, fh, separators=(",", ":"))
+    return seq
+
+
+def _clean_dirs(out: Path, seq: Path) -> None:
+    """Create the layout's folders; a previous, longer run must not leave frames behind."""
+    dirs = [seq / "image_0", seq / "image_1", seq / "gt" / "disparity", seq / "gt" / "masks" / "left", seq / "gt" / "masks" / "right", out / "poses"]
+    for d in dirs:
+        d.mkdir(parents=True, exist_ok=True)
+        for old in d.glob("*.png"):
+            old.unlink()
+
+
+class _PngWriter:
+    """PNG writes, in worker threads when ``threads`` > 1 (at most ~64 pending); a
+    context manager that waits for them all (and raises the first failure)."""
+
+    def __init__(self, threads: int) -> None:
+        self.pool = ThreadPoolExecutor(max_workers=max(1, threads)) if threads > 1 else None
+        self.pending: list[Future] = []
+        self.params = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+
+    def write(self, path: Path, arr: np.ndarray) -> None:
+        if not cv2.imwrite(str(path), arr, self.params):
+            raise InputError("cannot write image", path)
+
+    def submit(self, path: Path, arr: np.ndarray) -> None:
+        if self.pool is None:
+            self.write(path, arr)
+        else:
+            self.pending.append(self.pool.submit(self.write, path, arr))
+
+    def throttle(self) -> None:
+        if len(self.pending) > 64:
+            for f in self.pending[:-32]:
+                f.result()
+            self.pending = self.pending[-32:]
+
+    def __enter__(self) -> "_PngWriter":
+        return self
+
+    def __exit__(self, exc_type, *exc: object) -> None:
+        try:
+            if exc_type is None:
+                for f in self.pending:
+                    f.result()
+        finally:
+            if self.pool is not None:
+                self.pool.shutdown(wait=True)
+
+
+def _render_stereo(renderer: Renderer, pool: ThreadPoolExecutor | None, x: float, z: float, th: float,
+                   objs: list[PosedObject]) -> tuple[View, View]:
+    """Left and right views of the rig whose left camera is at (x, z) with heading
+    ``th``; texture filtering seen from the rig centre.  With a pool the left view
+    renders in a worker while this thread renders the right one."""
+    rx, rz = math.cos(th), -math.sin(th)
+    mid = (x + 0.5 * BASELINE * rx, z + 0.5 * BASELINE * rz)  # texture filtering seen from the rig centre
+    if pool is not None:
+        fl = pool.submit(renderer.render, x, z, th, objs, mid)
+        right = renderer.render(x + BASELINE * rx, z + BASELINE * rz, th, objs, mid)
+        return fl.result(), right
+    left = renderer.render(x, z, th, objs, mid)
+    right = renderer.render(x + BASELINE * rx, z + BASELINE * rz, th, objs, mid)
+    return left, right
+
+
+def _object_records(plan: Plan, objs: list[PosedObject], t: float, ids_left: np.ndarray, ids_right: np.ndarray,
+                    T0inv: np.ndarray, Tcam_inv: np.ndarray) -> list[dict[str, Any]]:
+    """``objects.json`` records of the objects visible in one frame (module doc)."""
+    bl, cl = _boxes(ids_left)
+    br, cr = _boxes(ids_right)
+    recs = []
+    for ob, po in zip(plan.objects, objs):
+        k = ob.id
+        if cl[k] == 0 and cr[k] == 0:
+            continue
+        wdt, hgt, lng = ob.shape.size
+        To = np.eye(4)
+        To[:3, :3] = po.R
+        To[:3, 3] = po.origin + po.R @ np.array([0.0, -hgt / 2, 0.0])  # centre of the box
+        Tw_o = T0inv @ To
+        pc = (Tcam_inv @ To)[:3, 3]
+        speed = ob.motion.speed(t)
+        moving = speed > MOVING_SPEED
+        yaw = math.atan2(Tw_o[0, 2], Tw_o[2, 2])
+        recs.append(
+            {
+                "id": k,
+                "label": ob.label,
+                "moving": bool(moving),
+                "speed": _r(speed, 3),
+                "box_left": list(bl[k]) if bl[k] else None,
+                "box_right": list(br[k]) if br[k] else None,
+                "pixels_left": int(cl[k]),
+                "pixels_right": int(cr[k]),
+                "position": [_r(v) for v in Tw_o[:3, 3]],
+                "yaw": _r(yaw, 5),
+                "pose": [_r(v, 6) for v in Tw_o[:3, :4].ravel()],
+                "position_cam": [_r(v) for v in pc],
+                "distance": _r(float(np.linalg.norm(pc)), 3),
+            }
+        )
+    return recs
+
+
+def _write_text_files(out: Path, seq: Path, poses: list[np.ndarray], n: int, dt: float,
+                      K: tuple[float, float, float, float]) -> None:
+    """``poses/00.txt``, ``times.txt`` and ``calib.txt`` (KITTI formats)."""
+    fx, fy, cx, cy = K
     with open(out / "poses" / "00.txt", "w") as fh:
         for P in poses:
             fh.write(" ".join(f"{v:.9e}" for v in P.ravel()) + "\n")
     with open(seq / "times.txt", "w") as fh:
         for i in range(n):
-            fh.write(f"{i * plan.dt:.6e}\n")
+            fh.write(f"{i * dt:.6e}\n")
     P0 = np.array([[fx, 0, cx, 0], [0, fy, cy, 0], [0, 0, 1, 0]], float)
     P1 = P0.copy()
     P1[0, 3] = -fx * BASELINE
     with open(seq / "calib.txt", "w") as fh:
         for name, P in (("P0", P0), ("P1", P1), ("P2", P0), ("P3", P1)):
             fh.write(f"{name}: " + " ".join(f"{v:.12e}" for v in P.ravel()) + "\n")
-    meta = {
+
+
+def _objects_meta(scenario: str, seed: int, n: int, size: tuple[int, int], noise: float, plan: Plan,
+                  K: tuple[float, float, float, float], cam_height: float) -> dict[str, Any]:
+    """The header of ``objects.json``: the run, the calibration, the conventions and the
+    objects (``frames_gt`` is added by the caller)."""
+    fx, fy, cx, cy = K
+    return {
         "version": OBJECTS_VERSION,
         "generator": "dynastereo.synth",
         "scenario": scenario,
         "description": SCENARIOS[scenario].description,
         "seed": int(seed),
         "frames": n,
-        "size": [W, H],
+        "size": list(size),
         "noise": float(noise),
         "fps": 1.0 / plan.dt,
         "calibration": {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "baseline": BASELINE},
-        "camera_height": world.params.cam_height,
+        "camera_height": cam_height,
         "conventions": {
             "frame": "KITTI camera: x right, y down, z forward; world = first left camera",
             "box": "x1, y1, x2, y2 in pixels, x2/y2 exclusive; visible pixels of the instance mask",
@@ -289,8 +341,4 @@ def generate(
             }
             for ob in plan.objects
         ],
-        "frames_gt": frame_records,
     }
-    with open(seq / "gt" / "objects.json", "w") as fh:
-        json.dump(meta, fh, separators=(",", ":"))
-    return seq

@@ -9,8 +9,9 @@ group and is stopped (SIGINT, then SIGKILL) on the way out, also on errors and t
 file (``dynastereo node --launch``), and a client node in *this* process that plays a
 sequence (:class:`~dynastereo.ros.player.StereoPlayer`) and records what the node
 publishes.  ``rospy`` can join only one master per process, so a scenario runs in its own
-process: ``python -m dynastereo.ros.harness check|latency ... --json OUT`` (the tests and
-``benchmarks/bench_ros_latency.py`` call it that way and read the JSON).
+process: ``python tests/ros_harness.py check|latency ... --json OUT`` (the tests and
+``benchmarks/bench_ros_latency.py`` call it that way and read the JSON).  Test code: it
+lives in ``tests/``, not in the package.
 """
 
 from __future__ import annotations
@@ -223,7 +224,7 @@ class LiveSession:
         return json.loads(msg)
 
     def player(self, sequence: Any, frames: list[int]):
-        from .player import StereoPlayer
+        from dynastereo.ros.player import StereoPlayer
 
         pl = StereoPlayer(sequence, frames)
         self.wait_for(lambda: pl.wait_for_subscribers(0.1), 30.0, "the node's subscriptions")
@@ -257,7 +258,7 @@ def _settled(s: LiveSession, quiet_s: float = 1.0):
 
 
 def _frames(spec: str, n: int) -> list[int]:
-    from ..io.frames import parse_frame_spec
+    from dynastereo.io.frames import parse_frame_spec
 
     return parse_frame_spec(spec, n)
 
@@ -266,7 +267,7 @@ def scenario_check(a: argparse.Namespace) -> dict[str, Any]:
     """The CI check: 10 Hz play with a roomy queue (poses must equal the offline run);
     live parameters (a bad value refused and set back, a good one applied); a burst
     with queue_size 1 (drops counted); save service; SIGINT -> final save."""
-    from ..io import open_sequence
+    from dynastereo.io import open_sequence
 
     seq = open_sequence(a.sequence)
     first = _frames(a.frames, len(seq))
@@ -331,7 +332,7 @@ def scenario_check(a: argparse.Namespace) -> dict[str, Any]:
 def scenario_latency(a: argparse.Namespace) -> dict[str, Any]:
     """Play at ``--rate`` with the node's defaults (queue_size 1); per frame latency =
     odometry receipt time - image stamp (the wall clock at publication)."""
-    from ..io import open_sequence
+    from dynastereo.io import open_sequence
 
     seq = open_sequence(a.sequence)
     frames = _frames(a.frames, len(seq))
@@ -354,7 +355,7 @@ def scenario_latency(a: argparse.Namespace) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m dynastereo.ros.harness", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python tests/ros_harness.py", description=__doc__.split("\n\n")[0])
     ap.add_argument("scenario", choices=("check", "latency"))
     ap.add_argument("--sequence", required=True)
     ap.add_argument("--frames", default="25")
