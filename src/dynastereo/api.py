@@ -14,6 +14,8 @@ from .config import Config
 from .io import open_sequence
 from .io.base import Sequence
 from .io.frames import parse_frame_spec
+from .io.outputs import check_output_file, prepare_output_dir
+from .io.stereo_check import check_sequence
 from .pipeline import MaskJobResult, SlamJobResult, run_mask_job, run_slam_job
 
 
@@ -40,10 +42,16 @@ def build_masker(cfg: Config, sequence: Sequence, models_dir: str | Path | None 
     return masker
 
 
-def _prepare(sequence, cfg: Config, frames, calib, models_dir):
-    """(sequence, frame indices, masker) for a job."""
+def _prepare(sequence, cfg: Config, frames, calib, models_dir, *, out, overwrite: bool, stereo_check: bool):
+    """(sequence, frame indices, masker) for a job, after the checks made before its first
+    frame: the output folder (``io.outputs.prepare_output_dir``), the frames, and the
+    stereo pair (``io.stereo_check``)."""
+    prepare_output_dir(out, overwrite=overwrite)
     seq = load_sequence(sequence, calib)
-    return seq, parse_frame_spec(frames, len(seq)), build_masker(cfg, seq, models_dir)
+    indices = parse_frame_spec(frames, len(seq))
+    if stereo_check:
+        check_sequence(seq, indices)
+    return seq, indices, build_masker(cfg, seq, models_dir)
 
 
 def mask_sequence(
@@ -57,12 +65,20 @@ def mask_sequence(
     save_disparity: bool = False,
     overlays: bool = False,
     progress: Callable[[int, int, dict], None] | None = None,
+    overwrite: bool = True,
+    stereo_check: bool = True,
 ) -> MaskJobResult:
-    """Mask the dynamic objects of ``sequence`` in both images; see ``pipeline.run_mask_job``."""
+    """Mask the dynamic objects of ``sequence`` in both images; see ``pipeline.run_mask_job``.
+
+    ``overwrite``: the outputs of an earlier run in ``out`` are deleted first (False: an
+    :class:`~dynastereo.errors.OutputError`, as the CLI without ``--overwrite``);
+    ``stereo_check``: refuse pairs that are identical, swapped or not rectified
+    (:class:`~dynastereo.errors.StereoCheckError`; ``io.stereo_check``)."""
     cfg = cfg or Config()
     if save_disparity and cfg.stereo.region != "full":
         cfg = cfg.with_overrides({"stereo.region": "full"})
-    seq, indices, masker = _prepare(sequence, cfg, frames, calib, models_dir)
+    seq, indices, masker = _prepare(sequence, cfg, frames, calib, models_dir, out=out, overwrite=overwrite,
+                                    stereo_check=stereo_check)
     return run_mask_job(seq, masker, out, indices, save_disparity=save_disparity, overlays=overlays, progress=progress)
 
 
@@ -79,13 +95,16 @@ def run_sequence(
     save_map: str | Path | None = None,
     load_map: str | Path | None = None,
     localize_only: bool = False,
+    overwrite: bool = True,
+    stereo_check: bool = True,
 ) -> SlamJobResult:
     """Mask and track ``sequence`` with the stereo SLAM; see ``pipeline.run_slam_job``.
 
     ``frames`` may revisit (``"0-98,40-60"``): frames are fed in the order given.
     ``load_map``: start from a map file (``save_map`` of an earlier run); with
     ``localize_only`` the map is only localised in (no new keyframes).  ``save_map``:
-    write the final map there.
+    write the final map there (its path is checked before the first frame).
+    ``overwrite`` / ``stereo_check``: as for :func:`mask_sequence`.
     """
     from .config import to_dict
     from .errors import ConfigError
@@ -94,7 +113,10 @@ def run_sequence(
     if localize_only and load_map is None:
         raise ConfigError("localisation only needs a map: give load_map (--load-map FILE)")
     cfg = cfg or Config()
-    seq, indices, masker = _prepare(sequence, cfg, frames, calib, models_dir)
+    if save_map is not None:
+        check_output_file(save_map, what="map file")
+    seq, indices, masker = _prepare(sequence, cfg, frames, calib, models_dir, out=out, overwrite=overwrite,
+                                    stereo_check=stereo_check)
     system = System(cfg, seq.calibration)
     info = {}
     if load_map is not None:
@@ -129,14 +151,18 @@ def run_bag(
     save_masks: bool = False,
     outputs: str | None = None,
     progress: Callable[[int, int, dict], None] | None = None,
+    overwrite: bool = True,
+    stereo_check: bool = True,
 ):
     """Mask and track a stereo bag (ROS 1 .bag, ROS 2 .db3, .mcap); results as for
     :func:`run_sequence` plus ``out/output.<fmt>`` and ``out/bag.json``.  Calibration:
     ``calib`` (YAML) > the bag's CameraInfo > ``config_path`` when it is an ORB-SLAM2
-    settings file.  See :func:`dynastereo.ros.bagrun.run_bag`."""
+    settings file.  ``overwrite`` / ``stereo_check``: as for :func:`mask_sequence`.
+    See :func:`dynastereo.ros.bagrun.run_bag`."""
     from .ros.bagrun import run_bag as _run_bag
     from .ros.messages import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC
 
+    prepare_output_dir(out, overwrite=overwrite)
     fallback = None
     if config_path is not None:
         from .io.calib import is_orbslam2_settings, read_yaml_file
@@ -146,7 +172,8 @@ def run_bag(
     return _run_bag(bag, out, cfg, left_topic=left_topic or DEFAULT_LEFT_TOPIC,
                     right_topic=right_topic or DEFAULT_RIGHT_TOPIC, left_info=left_info, right_info=right_info,
                     calib=calib, fallback_calib=fallback, tolerance_s=tolerance_s, rectify=rectify, frames=frames,
-                    models_dir=models_dir, save_masks=save_masks, outputs=outputs, progress=progress)
+                    models_dir=models_dir, save_masks=save_masks, outputs=outputs, progress=progress,
+                    stereo_check=stereo_check)
 
 
 def export_bag(

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import errno
 import os
+import secrets
 import shutil
 import tempfile
 from pathlib import Path
@@ -29,6 +30,27 @@ RUN_OUTPUTS = (
 )
 # What `dynastereo synth` writes under its output root.
 SYNTH_OUTPUTS = ("sequences/00", "poses/00.txt")
+
+
+def atomic_write_text(path: str | Path, text: str, *, fsync: bool = True) -> Path:
+    """Write ``text`` to a temporary file beside ``path`` and rename it over ``path``.  The
+    file is created with mode 0666 minus the umask (0644 usually), as ``open(path, "w")``
+    would make it -- not ``mkstemp``'s 0600."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            if fsync:
+                os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
 
 
 def _reason(e: OSError) -> str:

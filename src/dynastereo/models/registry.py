@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from ..errors import ModelError
+from ..io.outputs import atomic_write_text
 
 ENV_MODELS = "DYNASTEREO_MODELS"
 ENV_MIRROR = "DYNASTEREO_MODEL_MIRROR"
@@ -277,12 +278,7 @@ def cached_sha256(path: Path) -> str:
     digest = sha256_file(path)
     cache[key] = {"stat": stamp, "sha256": digest}
     try:
-        cache_file.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{HASH_CACHE}.", dir=cache_file.parent)
-        with os.fdopen(fd, "w") as f:
-            json.dump(cache, f, indent=0)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, cache_file)
+        atomic_write_text(cache_file, json.dumps(cache, indent=0), fsync=False)
     except OSError as e:
         log.debug("checksum cache %s not written: %s", cache_file, e)
     return digest

@@ -148,11 +148,14 @@ def run_bag(
     save_masks: bool = False,
     outputs: str | tuple[str, ...] | None = None,
     progress: Callable[[int, int, dict], None] | None = None,
+    stereo_check: bool = True,
 ) -> BagRunResult:
     """Run masking + SLAM on a stereo bag (module doc); see :class:`BagStereoSequence` for
     the topic, calibration and pairing arguments (``fallback_calib``: used only when the bag
-    has no CameraInfo, e.g. the ORB-SLAM2 settings file given as ``--config``)."""
+    has no CameraInfo, e.g. the ORB-SLAM2 settings file given as ``--config``); ``stereo_check``:
+    refuse identical / swapped / unrectified pairs (``io.stereo_check``)."""
     from ..io.frames import parse_frame_spec
+    from ..io.stereo_check import check_sequence
     from ..pipeline import run_slam_job
     from ..slam import System
 
@@ -163,6 +166,8 @@ def run_bag(
                             fallback_calib=fallback_calib)
     try:
         indices = parse_frame_spec(frames, len(seq))
+        if stereo_check:
+            check_sequence(seq, indices)
         masker = build_masker(cfg, Path(models_dir) if models_dir else None)[0]  # as the node builds it
         system = System(cfg, seq.calibration)
         out.mkdir(parents=True, exist_ok=True)
