@@ -66,7 +66,7 @@ class Interrupted(BaseException):
 
         self.signum = int(signum)
         self.name = signal.Signals(self.signum).name
-        super().__init__(f"interrupted by {self.name}")
+        super().__init__(f"{self.name} received")
 
     @property
     def exit_code(self) -> int:

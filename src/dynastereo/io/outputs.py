@@ -70,7 +70,7 @@ def _make_dir(folder: Path, target: Path) -> None:
     for parent in (folder, *folder.parents):
         if parent.exists():
             if not parent.is_dir():
-                what = "a file" if parent == target else f"{parent} on its path is a file"
+                what = "exists as a file" if parent == target else f"{parent} (on the path) is a file"
                 raise OutputError(f"{what}, not a folder", target)
             break
     try:
