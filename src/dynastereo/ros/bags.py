@@ -124,7 +124,7 @@ def _open_reader(path: Path):
         r = AnyReader([path], default_typestore=rosbags_typestore(False))
         r.open()
     except Exception as e:  # rosbags raises its own error classes
-        raise InputError(f"cannot open bag: {type(e).__name__}: {e}", path) from None
+        raise InputError(f"cannot open bag (damaged or truncated?): {e}", path) from None
     return r
 
 
