@@ -44,14 +44,16 @@ def build_masker(cfg: Config, sequence: Sequence, models_dir: str | Path | None 
 
 def _prepare(sequence, cfg: Config, frames, calib, models_dir, *, out, overwrite: bool, stereo_check: bool):
     """(sequence, frame indices, masker) for a job, after the checks made before its first
-    frame: the output folder (``io.outputs.prepare_output_dir``), the frames, and the
-    stereo pair (``io.stereo_check``)."""
-    prepare_output_dir(out, overwrite=overwrite)
+    frame: the frames, the stereo pair (``io.stereo_check``), the model, and last the
+    output folder (``io.outputs.prepare_output_dir``: an earlier run there is cleared only
+    once the inputs proved good)."""
     seq = load_sequence(sequence, calib)
     indices = parse_frame_spec(frames, len(seq))
     if stereo_check:
         check_sequence(seq, indices)
-    return seq, indices, build_masker(cfg, seq, models_dir)
+    masker = build_masker(cfg, seq, models_dir)
+    prepare_output_dir(out, overwrite=overwrite)
+    return seq, indices, masker
 
 
 def mask_sequence(
@@ -162,7 +164,6 @@ def run_bag(
     from .ros.bagrun import run_bag as _run_bag
     from .ros.messages import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC
 
-    prepare_output_dir(out, overwrite=overwrite)
     fallback = None
     if config_path is not None:
         from .io.calib import is_orbslam2_settings, read_yaml_file
@@ -173,7 +174,7 @@ def run_bag(
                     right_topic=right_topic or DEFAULT_RIGHT_TOPIC, left_info=left_info, right_info=right_info,
                     calib=calib, fallback_calib=fallback, tolerance_s=tolerance_s, rectify=rectify, frames=frames,
                     models_dir=models_dir, save_masks=save_masks, outputs=outputs, progress=progress,
-                    stereo_check=stereo_check)
+                    overwrite=overwrite, stereo_check=stereo_check)
 
 
 def export_bag(

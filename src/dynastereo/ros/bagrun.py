@@ -148,13 +148,16 @@ def run_bag(
     save_masks: bool = False,
     outputs: str | tuple[str, ...] | None = None,
     progress: Callable[[int, int, dict], None] | None = None,
+    overwrite: bool = True,
     stereo_check: bool = True,
 ) -> BagRunResult:
     """Run masking + SLAM on a stereo bag (module doc); see :class:`BagStereoSequence` for
     the topic, calibration and pairing arguments (``fallback_calib``: used only when the bag
     has no CameraInfo, e.g. the ORB-SLAM2 settings file given as ``--config``); ``stereo_check``:
-    refuse identical / swapped / unrectified pairs (``io.stereo_check``)."""
+    refuse identical / swapped / unrectified pairs (``io.stereo_check``); ``overwrite``: clear
+    an earlier run in ``out`` (False: refuse it; ``io.outputs.prepare_output_dir``)."""
     from ..io.frames import parse_frame_spec
+    from ..io.outputs import prepare_output_dir
     from ..io.stereo_check import check_sequence
     from ..pipeline import run_slam_job
     from ..slam import System
@@ -169,8 +172,8 @@ def run_bag(
         if stereo_check:
             check_sequence(seq, indices)
         masker = build_masker(cfg, Path(models_dir) if models_dir else None)[0]  # as the node builds it
+        prepare_output_dir(out, overwrite=overwrite)
         system = System(cfg, seq.calibration)
-        out.mkdir(parents=True, exist_ok=True)
         out_bag = out / ("output" + BAG_SUFFIX[seq.format])
         writer = BagOutput(out_bag, seq.format, cfg, seq.calibration, seq.frame_id, outs)
         try:
