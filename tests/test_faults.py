@@ -436,3 +436,41 @@ def test_mask_interrupted(kitti06: Path, models_dir: Path, tmp_path: Path) -> No
     n = timing["frames_done"]
     assert "SIGTERM" in timing["error"]
     assert len(list((out / "masks" / "left").iterdir())) == n == len((out / "objects.jsonl").read_text().splitlines())
+
+
+# --------------------------------------------------------------------------- the check itself, and the live node
+
+
+def test_stereo_check_verdicts_on_real_pairs(kitti06: Path) -> None:
+    from dynastereo.io import KittiSequence
+    from dynastereo.io.stereo_check import StereoFault, check_frames
+    from dynastereo.types import StereoFrame
+
+    seq = KittiSequence(kitti06)
+    frames = [seq.frame(0), seq.frame(1)]
+    good = check_frames(frames)
+    assert good.fault is StereoFault.OK and good.matches > 200
+    assert good.row_share > 0.8 and good.zero_share < 0.05 and good.negative_share < 0.1
+    swapped = check_frames([StereoFrame(index=f.index, timestamp=0.0, left=f.right, right=f.left) for f in frames])
+    assert swapped.fault is StereoFault.SWAPPED and swapped.negative_share > 0.9
+    blank = np.zeros_like(frames[0].left)
+    assert check_frames([StereoFrame(index=0, timestamp=0.0, left=blank, right=blank)]).fault is StereoFault.INCONCLUSIVE
+
+
+def test_live_node_warns_on_identical_images(kitti06: Path, caplog) -> None:
+    from dynastereo.config import Config
+    from dynastereo.io import KittiSequence
+    from dynastereo.ros.core import StereoInput, StereoNodeCore
+
+    seq = KittiSequence(kitti06)
+    core = StereoNodeCore(Config().with_overrides({"masker.kind": "none"}), calibration=seq.calibration)
+    try:
+        with caplog.at_level("WARNING"):
+            for i in range(3):
+                left = seq.frame(i).left
+                core.process(StereoInput(left, left.copy(), int(i * 100_000_000)))
+    finally:
+        core.shutdown()
+    warnings = [r for r in caplog.records if "stereo check failed" in r.getMessage()]
+    assert len(warnings) == 1 and "identical" in warnings[0].getMessage()
+    assert core.status()["stereo_check"]["fault"] == "identical"
