@@ -297,6 +297,7 @@ def node(
         os.execv(exe, [exe, "dynastereo", "dynastereo.launch", *ctx.args])
     from ..ros.ros1 import main as node_main
 
+    STOP.uninstall()  # the node handles its signals itself (rospy)
     raise typer.Exit(node_main(["dynastereo_node", *ctx.args]))
 
 
