@@ -2,8 +2,9 @@
 
 Reads pickled ``LocalBAProblem`` messages from stdin (8-byte little-endian length +
 payload), writes pickled ``LocalBAResult`` messages to stdout the same way, exits at
-end of input (or when the parent stops reading).  It ignores SIGINT and SIGTERM, which
-reach it with its parent's process group: the parent shuts it down.  Started with
+end of input (or when the parent stops reading).  It runs in its own process group and
+ignores SIGINT and SIGTERM: Ctrl-C is the parent's to handle, and the parent shuts it down
+(closing the pipe) -- the worker never dies first or prints a traceback.  Started with
 ``subprocess`` rather than ``multiprocessing`` so that no user ``__main__`` module is
 re-imported (scripts need no ``if __name__ == '__main__'`` guard) and the parent's
 threads are never forked.
@@ -19,8 +20,7 @@ from .ipc import read_msg, write_msg
 
 
 def main() -> int:
-    # Ctrl-C / SIGTERM to the process group: the parent stops cleanly and closes the pipe,
-    # which ends this loop; the worker itself must neither die first nor print a traceback.
+    # a signal is the parent's to handle: it stops cleanly and closes the pipe, ending this loop
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
