@@ -86,3 +86,12 @@ def track_offline(sequence: Path, models_dir: Path, n_frames: int):
         poses.append(system.track(f, masker.mask(f)).pose)
     system.shutdown()
     return np.array(poses), system
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _private_checksum_cache(tmp_path_factory):
+    """Model checksums verified at load are cached in a temp dir, not the user's ~/.cache."""
+    mp = pytest.MonkeyPatch()
+    mp.setenv("DYNASTEREO_CACHE_DIR", str(tmp_path_factory.mktemp("dynastereo-cache")))
+    yield
+    mp.undo()

@@ -49,3 +49,31 @@ class MapFileError(InputError):
 class RosUnavailable(DynastereoError):
     """ROS 1 (``rospy`` and the message packages) is not importable; the message names the
     Debian packages to install."""
+
+
+class StereoCheckError(InputError):
+    """A stereo pair that is not a rectified left/right pair: identical images, left and
+    right swapped, or rows that do not line up (``--no-stereo-check`` overrides)."""
+
+
+class OutputError(InputError):
+    """An output path that cannot be used: a file where a folder is wanted, not writable,
+    or a folder holding an earlier run (``--overwrite``)."""
+
+
+class Interrupted(BaseException):
+    """SIGINT / SIGTERM received: the job stopped at a frame boundary, its results so far
+    written.  A BaseException (like KeyboardInterrupt) so that ``except Exception`` blocks
+    never swallow it."""
+
+    def __init__(self, signum: int):
+        import signal
+
+        self.signum = int(signum)
+        self.name = signal.Signals(self.signum).name
+        super().__init__(f"{self.name} received")
+
+    @property
+    def exit_code(self) -> int:
+        """128 + the signal number (130 SIGINT, 143 SIGTERM), as a shell reports it."""
+        return 128 + self.signum

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
@@ -12,7 +13,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from ..errors import DynastereoError
+from ..errors import DynastereoError, Interrupted
+from .signals import STOP
 
 app = typer.Typer(
     add_completion=False,
@@ -30,6 +32,37 @@ app.add_typer(models_app, name="models")
 def _fail(e: Exception) -> None:
     console.print(f"[bold red]error:[/] {e}", soft_wrap=True, highlight=False, markup=True)
     raise typer.Exit(2)
+
+
+class _Job:
+    """Frames done so far of the running job, for the message when a signal stops it."""
+
+    def __init__(self, kept: str) -> None:
+        self.kept = kept
+        self.done = 0
+        self.total: int | None = None
+
+    def tick(self, done: int, total: int | None) -> None:
+        """Call after each frame: records it, and stops the job there if a signal came."""
+        self.done, self.total = done, total
+        STOP.check()
+
+
+@contextmanager
+def _job(kept: str):
+    """A job run from the CLI: bad input -> one line, exit 2; SIGINT / SIGTERM -> the job
+    stops after the frame in progress, one line saying what is kept, exit 130 / 143."""
+    job = _Job(kept)
+    try:
+        with STOP.job():
+            yield job
+    except DynastereoError as e:
+        _fail(e)
+    except Interrupted as e:
+        of = f" of {job.total}" if job.total else ""
+        console.print(f"[bold yellow]interrupted[/] by {e.name} after {job.done}{of} frames; {job.kept}",
+                      soft_wrap=True, highlight=False)
+        raise typer.Exit(e.exit_code)
 
 
 def _progress():
@@ -82,11 +115,13 @@ def mask(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML configuration."),
     calib: Optional[Path] = typer.Option(None, "--calib", help="YAML calibration for a generic folder pair."),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an earlier run in DIR (its outputs are deleted first)."),
+    no_stereo_check: bool = typer.Option(False, "--no-stereo-check", help="Skip the check that the pair is rectified left/right (not identical, swapped or unrectified)."),
 ) -> None:
     """Mask the dynamic objects of a stereo sequence in BOTH images."""
     from ..api import mask_sequence
 
-    try:
+    with _job(f"the masks of the frames done and timing.json (with the signal) are in {out}") as job:
         overrides = {"detector.name": detector, "stereo.algorithm": stereo, "stereo.wls": wls, "masker.kind": masker,
                      "detector.canvas": canvas, "detector.schedule": schedule}
         if save_disparity:
@@ -99,11 +134,11 @@ def mask(
                 ms = rec["ms"]
                 prog.update(task, completed=done, total=total,
                             info=f"detect {ms.get('detect', 0):.0f} ms  mask {ms.get('mask', 0):.0f} ms")
+                job.tick(done, total)
 
             result = mask_sequence(sequence, out, cfg, frames=frames, calib=calib, models_dir=models_dir,
-                                   save_disparity=save_disparity, overlays=overlays, progress=on_frame)
-    except DynastereoError as e:
-        _fail(e)
+                                   save_disparity=save_disparity, overlays=overlays, progress=on_frame,
+                                   overwrite=overwrite, stereo_check=not no_stereo_check)
     out_console.print(timing_table(result.summary))
     out_console.print(f"{len(result.frames_done)} frames -> {out}  ({result.wall_s:.1f} s)")
 
@@ -135,6 +170,8 @@ def run(
     localize_only: bool = typer.Option(False, "--localize-only", help="With --load-map: localise in the map, add no keyframes."),
     no_loop_closing: bool = typer.Option(False, "--no-loop-closing", help="Turn loop closing off (slam.loop_closing: false)."),
     vocabulary: Optional[Path] = typer.Option(None, "--vocabulary", help="ORB vocabulary file from `dynastereo vocab` (default: the built-in one)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an earlier run in DIR (its outputs are deleted first)."),
+    no_stereo_check: bool = typer.Option(False, "--no-stereo-check", help="Skip the check that the pair is rectified left/right (not identical, swapped or unrectified)."),
 ) -> None:
     """Mask and track a stereo sequence (a folder or a ROS bag): trajectory, timing and run summary out."""
     from ..api import run_bag, run_sequence
@@ -146,7 +183,8 @@ def run(
     if localize_only and load_map is None:
         _fail(DynastereoError("--localize-only needs --load-map FILE"))
     report = None
-    try:
+    kept = f"run.json, timing.json (with the signal) and the trajectory of the frames done are in {out}"
+    with _job(kept + (f"; the map of those frames in {save_map}" if save_map else "")) as job:
         overrides = {"detector.name": detector, "stereo.algorithm": stereo, "masker.kind": masker,
                      "detector.canvas": canvas, "detector.schedule": schedule,
                      "slam.loop_closing": False if no_loop_closing else None,
@@ -157,6 +195,7 @@ def run(
 
             def on_frame(done: int, total: int, rec: dict) -> None:
                 prog.update(task, completed=done, total=total, info=f"{rec['fps']:.1f} FPS  {rec['status']}")
+                job.tick(done, total)
 
             if bag is not None:
                 info = {"auto": "auto", "none": None}
@@ -164,14 +203,14 @@ def run(
                              left_info=info.get(left_info.lower(), left_info),
                              right_info=info.get(right_info.lower(), right_info), calib=calib, config_path=config,
                              tolerance_s=sync_tolerance / 1000.0, rectify=rectify, frames=frames,
-                             models_dir=models_dir, save_masks=save_masks, outputs=bag_outputs, progress=on_frame)
+                             models_dir=models_dir, save_masks=save_masks, outputs=bag_outputs, progress=on_frame,
+                             overwrite=overwrite, stereo_check=not no_stereo_check)
                 result, report = br.slam, br.report
             else:
                 result = run_sequence(sequence, out, cfg, frames=frames, calib=calib, models_dir=models_dir,
                                       save_masks=save_masks, progress=on_frame, save_map=save_map,
-                                      load_map=load_map, localize_only=localize_only)
-    except DynastereoError as e:
-        _fail(e)
+                                      load_map=load_map, localize_only=localize_only, overwrite=overwrite,
+                                      stereo_check=not no_stereo_check)
     out_console.print(timing_table(result.summary, "timing (ms per frame)"))
     st = result.stats
     out_console.print(
@@ -203,13 +242,14 @@ def export_bag_cmd(
     raw: bool = typer.Option(False, "--raw", help="Raw images + raw CameraInfo (K, D, R, P) for sequences rectified on read (EuRoC)."),
     calib: Optional[Path] = typer.Option(None, "--calib", help="YAML calibration for a generic folder pair."),
     time_offset: float = typer.Option(0.0, "--time-offset", help="Seconds added to every stamp."),
-    force: bool = typer.Option(False, "--force", help="Overwrite OUT."),
+    force: bool = typer.Option(False, "--overwrite", "--force", help="Replace OUT if it exists."),
 ) -> None:
     """Write a stereo sequence as a ROS bag: /camera/{left,right}/image_raw + camera_info, stamps from times.txt."""
     from ..api import export_bag
+    from ..io.outputs import check_output_file
     from ..ros.bags import BAG_SUFFIX, check_format
 
-    try:
+    with _job(f"{out} holds the frames written so far (closed, readable)") as job:
         if fmt is None:
             suffix = out.suffix.lower()
             fmt = next((k for k, v in BAG_SUFFIX.items() if v == suffix), None)
@@ -218,13 +258,16 @@ def export_bag_cmd(
         fmt = check_format(fmt)
         if out.suffix.lower() != BAG_SUFFIX[fmt]:
             raise DynastereoError(f"a {fmt} bag must be named *{BAG_SUFFIX[fmt]}, got {out.name!r}")
+        check_output_file(out, what="output bag", overwrite=force)
         with _progress() as prog:
             task = prog.add_task(f"export {fmt}", total=None, info="")
+
+            def on_frame(i: int, n: int) -> None:
+                prog.update(task, completed=i, total=n)
+                job.tick(i, n)
+
             r = export_bag(sequence, out, fmt, frames=frames, calib=calib, color=color, encoding=encoding, raw=raw,
-                           time_offset_s=time_offset, overwrite=force,
-                           progress=lambda i, n: prog.update(task, completed=i, total=n))
-    except DynastereoError as e:
-        _fail(e)
+                           time_offset_s=time_offset, overwrite=force, progress=on_frame)
     out_console.print(f"wrote {r.path} ({r.format}, {r.frames} frames): "
                       + ", ".join(f"{t} {n}" for t, n in r.topics.items()), highlight=False)
 
@@ -254,6 +297,7 @@ def node(
         os.execv(exe, [exe, "dynastereo", "dynastereo.launch", *ctx.args])
     from ..ros.ros1 import main as node_main
 
+    STOP.uninstall()  # the node handles its signals itself (rospy)
     raise typer.Exit(node_main(["dynastereo_node", *ctx.args]))
 
 
@@ -325,8 +369,10 @@ def synth(
     frames: Optional[int] = typer.Option(None, help="Number of frames (default: the scenario's)."),
     seed: int = typer.Option(0, help="Random seed."),
     size: str = typer.Option("640x192", help="Image size WxH."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a sequence generated earlier in OUT."),
 ) -> None:
     """Generate a synthetic dynamic stereo street sequence with exact ground truth."""
+    from ..io.outputs import SYNTH_OUTPUTS, prepare_output_dir
     from ..synth import SCENARIOS, generate
 
     if scenario == "list":
@@ -337,13 +383,16 @@ def synth(
         w, h = (int(v) for v in size.lower().split("x"))
     except ValueError:
         _fail(DynastereoError(f"--size must be WxH, got {size!r}"))
-    try:
+    with _job(f"{out} holds the frames rendered so far (an incomplete sequence)") as job:
+        prepare_output_dir(out, overwrite=overwrite, names=SYNTH_OUTPUTS)
         with _progress() as prog:
             task = prog.add_task(f"synth {scenario}", total=None, info="")
-            seq = generate(out, scenario, frames=frames, seed=seed, size=(w, h),
-                           progress=lambda i, n: prog.update(task, completed=i, total=n))
-    except DynastereoError as e:
-        _fail(e)
+
+            def on_frame(i: int, n: int) -> None:
+                prog.update(task, completed=i, total=n)
+                job.tick(i, n)
+
+            seq = generate(out, scenario, frames=frames, seed=seed, size=(w, h), progress=on_frame)
     out_console.print(f"wrote {seq}")
 
 
@@ -392,10 +441,13 @@ def eval_cmd(
     import json
 
     from ..eval import evaluate_files, format_table, plot_trajectories, to_json_dict
+    from ..io.outputs import check_output_file
 
     try:
-        r = evaluate_files(estimate, ground_truth, align=not no_align, rpe_delta=rpe_delta)
         png = plot or estimate.with_name(estimate.name.split(".")[0] + "_vs_gt.png")
+        if plot is not None or estimate.is_file():
+            check_output_file(png, what="plot file")
+        r = evaluate_files(estimate, ground_truth, align=not no_align, rpe_delta=rpe_delta)
         plot_trajectories(r.estimate, r.ground_truth, png, title=f"{estimate.name} vs {ground_truth.name}")
     except DynastereoError as e:
         _fail(e)
@@ -422,7 +474,10 @@ def vocab_cmd(
 
     from ..slam.vocabulary import collect_images, train_from_images
 
+    from ..io.outputs import check_output_file
+
     try:
+        check_output_file(out, what="vocabulary file")
         paths = collect_images(images)
         t0 = time.perf_counter()
         with _progress() as prog:
@@ -445,13 +500,26 @@ def vocab_cmd(
 
 
 def main() -> None:
+    """The ``dynastereo`` entry point.  Whatever a command leaves uncaught ends in one line:
+    a :class:`DynastereoError` (bad input) or an OS error (a file system failure no
+    check foresaw) exits 2, SIGINT / SIGTERM exit 130 / 143 (module ``signals``)."""
     logging.basicConfig(level=os.environ.get("DYNASTEREO_LOG", "WARNING").upper(),
                         format="%(levelname)s %(name)s: %(message)s")
+    STOP.install()
     try:
         app()
-    except DynastereoError as e:  # pragma: no cover - commands catch their own
-        console.print(f"[bold red]error:[/] {e}")
+    except Interrupted as e:
+        console.print(f"[bold yellow]interrupted[/] by {e.name}", highlight=False)
+        sys.exit(e.exit_code)
+    except DynastereoError as e:
+        console.print(f"[bold red]error:[/] {e}", soft_wrap=True, highlight=False)
         sys.exit(2)
+    except OSError as e:
+        where = f"{e.filename}: " if e.filename else ""
+        console.print(f"[bold red]error:[/] {where}{e.strerror or e}", soft_wrap=True, highlight=False)
+        sys.exit(2)
+    finally:
+        STOP.uninstall()
 
 
 if __name__ == "__main__":

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import itertools
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
@@ -34,6 +33,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import InputError
+from ..io.outputs import atomic_write_text
 
 KITTI_COLUMNS = 12
 TUM_COLUMNS = 8
@@ -225,20 +225,7 @@ def tum_rows(poses: np.ndarray, timestamps: np.ndarray) -> str:
     return "".join(f"{t:.9f} " + " ".join(f"{v:.9f}" for v in row) + "\n" for t, row in zip(ts, rows))
 
 
-def _atomic_write(path: str | Path, text: str) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+_atomic_write = atomic_write_text  # (ros.core imports this name)
 
 
 def write_kitti(path: str | Path, poses: np.ndarray) -> Path:

@@ -27,6 +27,7 @@ from ..errors import SequenceError
 from .calib import load_stereo_yaml
 from .images import image_size, list_images
 from .sequence import ImagePairSequence
+from .times import read_times
 
 PAIR_DIR_NAMES: tuple[tuple[str, str], ...] = (("left", "right"), ("cam0", "cam1"))
 CALIB_NAMES: tuple[str, ...] = ("calib.yaml", "calib.yml", "calibration.yaml", "calibration.yml")
@@ -99,10 +100,7 @@ class FolderSequence(ImagePairSequence):
             ts = times
         else:
             tp = Path(times)
-            try:
-                ts = np.array([float(v) for v in tp.read_text().split()], dtype=np.float64)
-            except (OSError, ValueError) as e:
-                raise SequenceError(f"cannot read timestamps (one number per line): {e}", tp) from None
+            ts = read_times(tp)
             if len(ts) != n:
                 raise SequenceError(f"{len(ts)} timestamps for {n} image pairs", tp)
         super().__init__(

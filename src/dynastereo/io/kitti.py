@@ -21,6 +21,7 @@ from ..errors import SequenceError
 from .calib import load_kitti_calib, load_stereo_yaml
 from .images import image_size
 from .sequence import ImagePairSequence, list_image_pairs
+from .times import read_times
 
 KITTI_FRAME_INTERVAL = 0.1  # s: KITTI's cameras run at about 10 Hz
 
@@ -104,11 +105,7 @@ def _frame_numbers(paths: list[Path]) -> np.ndarray:
 def _kitti_times(times_path: Path | None, numbers: np.ndarray) -> np.ndarray:
     if times_path is None:
         return numbers.astype(np.float64) * KITTI_FRAME_INTERVAL
-    try:
-        raw = times_path.read_text().split()
-        t = np.array([float(v) for v in raw], dtype=np.float64)
-    except ValueError as e:
-        raise SequenceError(f"times.txt must hold one number per line: {e}", times_path) from None
+    t = read_times(times_path)
     if len(t) <= int(numbers.max()):
         raise SequenceError(
             f"{len(t)} timestamps, but the images go up to frame {int(numbers.max())} "

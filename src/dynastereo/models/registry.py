@@ -24,6 +24,8 @@ baselines (``baseline_only``), have no official download, and are never a defaul
 from __future__ import annotations
 
 import hashlib
+import json
+import logging
 import os
 import tempfile
 import urllib.error
@@ -33,9 +35,14 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from ..errors import ModelError
+from ..io.outputs import atomic_write_text
 
 ENV_MODELS = "DYNASTEREO_MODELS"
 ENV_MIRROR = "DYNASTEREO_MODEL_MIRROR"
+ENV_CACHE = "DYNASTEREO_CACHE_DIR"  # where verified checksums are cached (tests: a temp dir)
+HASH_CACHE = "model-hashes.json"
+
+log = logging.getLogger(__name__)
 
 _DARKNET_RAW = "https://raw.githubusercontent.com/pjreddie/darknet/master"
 _COCO_NAMES_SHA = "634a1132eb33f8091d60f2c346ababe8b905ae08387037aed883953b7329af84"
@@ -212,6 +219,12 @@ def get_spec(name: str) -> ModelSpec:
         raise ModelError(f"unknown model '{name}'; known models: {', '.join(KNOWN_MODELS)}") from None
 
 
+def user_cache_dir() -> Path:
+    """``($XDG_CACHE_HOME or ~/.cache)/dynastereo``."""
+    cache = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(cache).expanduser() / "dynastereo"
+
+
 def resolve_models_dir(explicit: str | Path | None = None) -> Path:
     """``explicit`` > ``$DYNASTEREO_MODELS`` > ``($XDG_CACHE_HOME or ~/.cache)/dynastereo/models``."""
     if explicit is not None and str(explicit) != "":
@@ -219,8 +232,7 @@ def resolve_models_dir(explicit: str | Path | None = None) -> Path:
     env = os.environ.get(ENV_MODELS)
     if env:
         return Path(env).expanduser()
-    cache = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(cache).expanduser() / "dynastereo" / "models"
+    return user_cache_dir() / "models"
 
 
 def model_path(name: str, models_dir: str | Path | None = None) -> Path:
@@ -237,6 +249,66 @@ def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+def hash_cache_path() -> Path:
+    """``$DYNASTEREO_CACHE_DIR/model-hashes.json``, else in :func:`user_cache_dir`."""
+    env = os.environ.get(ENV_CACHE)
+    return (Path(env).expanduser() if env else user_cache_dir()) / HASH_CACHE
+
+
+def _read_hash_cache(path: Path) -> dict[str, Any]:
+    try:
+        d = json.loads(path.read_text())
+        return d if isinstance(d, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
+def cached_sha256(path: Path) -> str:
+    """``sha256_file(path)``, remembered by absolute path, size and mtime in
+    :func:`hash_cache_path` so that the next load of an unchanged file costs one ``stat``
+    (a cache that cannot be read or written is ignored: the file is hashed again)."""
+    path = Path(path).resolve()
+    st = path.stat()
+    key, stamp = str(path), [st.st_size, st.st_mtime_ns]
+    cache_file = hash_cache_path()
+    cache = _read_hash_cache(cache_file)
+    hit = cache.get(key)
+    if isinstance(hit, dict) and hit.get("stat") == stamp and isinstance(hit.get("sha256"), str):
+        return hit["sha256"]
+    digest = sha256_file(path)
+    cache[key] = {"stat": stamp, "sha256": digest}
+    try:
+        atomic_write_text(cache_file, json.dumps(cache, indent=0), fsync=False)
+    except OSError as e:
+        log.debug("checksum cache %s not written: %s", cache_file, e)
+    return digest
+
+
+def verify_at_load(spec: ModelSpec, folder: Path) -> None:
+    """Check the present files of ``spec`` in ``folder`` against the registry before a
+    detector is built from them (checksums cached: :func:`cached_sha256`); a mismatch is a
+    :class:`ModelError` naming the file."""
+    for f in spec.files:
+        p = folder / f.filename
+        if p.is_file() and (problem := check_file(p, f, sha=cached_sha256)) is not None:
+            raise ModelError(f"model '{spec.name}' fails verification: {problem.split(': ', 1)[-1]} -- damaged or "
+                             f"replaced? `dynastereo models download {spec.name}` fetches it again", p)
+
+
+def registered_file(path: Path) -> tuple[str, ModelFile] | None:
+    """``(model name, file)`` of the registry entry whose sha256 ``path`` has, or None."""
+    digest = cached_sha256(path)
+    return next(((spec.name, f) for spec in KNOWN_MODELS.values() for f in spec.files if f.sha256 == digest), None)
+
+
+def note_unregistered(*paths: Path) -> None:
+    """Log a warning for each of ``paths`` (model files given by path) that matches no
+    registry checksum: it is loaded, but nothing vouches for it."""
+    for p in paths:
+        if Path(p).is_file() and registered_file(Path(p)) is None:
+            log.warning("%s: not in the model registry (no known checksum to verify it against); loading it anyway", p)
+
+
 def _check_darknet_cfg(path: Path) -> str | None:
     try:
         text = path.read_text(encoding="utf-8", errors="replace")
@@ -247,15 +319,16 @@ def _check_darknet_cfg(path: Path) -> str | None:
     return None
 
 
-def check_file(path: Path, f: ModelFile) -> str | None:
-    """None if ``path`` matches ``f`` (sha256, else size + structure), else the problem."""
+def check_file(path: Path, f: ModelFile, sha: Any = sha256_file) -> str | None:
+    """None if ``path`` matches ``f`` (sha256, else size + structure), else the problem;
+    ``sha``: the hash function (:func:`cached_sha256` at load)."""
     if not path.is_file():
         return f"{path}: missing"
     size = path.stat().st_size
     if f.size is not None and size != f.size:
         return f"{path}: size {size} bytes, expected {f.size}"
     if f.sha256 is not None:
-        actual = sha256_file(path)
+        actual = sha(path)
         if actual != f.sha256:
             return f"{path}: sha256 mismatch: expected {f.sha256}, actual {actual}"
     elif f.filename.endswith(".cfg"):

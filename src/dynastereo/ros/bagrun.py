@@ -134,10 +134,14 @@ def run_bag(
     save_masks: bool = False,
     outputs: str | tuple[str, ...] | None = None,
     progress: Callable[[int, int, dict], None] | None = None,
+    overwrite: bool = True,
+    stereo_check: bool = True,
 ) -> BagRunResult:
     """Run masking + SLAM on a stereo bag (module doc); see :class:`BagStereoSequence` for
     the topic, calibration and pairing arguments (``fallback_calib``: used only when the bag
-    has no CameraInfo, e.g. the ORB-SLAM2 settings file given as ``--config``)."""
+    has no CameraInfo, e.g. the ORB-SLAM2 settings file given as ``--config``); ``stereo_check``:
+    refuse identical / swapped / unrectified pairs (``io.stereo_check``); ``overwrite``: clear
+    an earlier run in ``out`` (False: refuse it; ``io.outputs.prepare_output_dir``)."""
     from ..api import slam_job
     from ..io.frames import parse_frame_spec
 
@@ -148,14 +152,21 @@ def run_bag(
                             fallback_calib=fallback_calib)
     try:
         indices = parse_frame_spec(frames, len(seq))
-        out.mkdir(parents=True, exist_ok=True)
         out_bag = out / ("output" + BAG_SUFFIX[seq.format])
-        writer = BagOutput(out_bag, seq.format, cfg, seq.calibration, seq.frame_id, outs, stamps_ns=seq.stamps_ns)
+        writers: list[BagOutput] = []
+
+        def open_writer() -> tuple[BagOutput]:  # once the output folder is checked and ready
+            writers.append(BagOutput(out_bag, seq.format, cfg, seq.calibration, seq.frame_id, outs,
+                                     stamps_ns=seq.stamps_ns))
+            return (writers[0],)
+
         try:  # a bag has no synthetic ground truth: detector 'oracle' is refused by the masker factory
-            res = slam_job(seq, out, cfg, frames=frames, models_dir=models_dir, sinks=(writer,),
-                           save_masks=save_masks, progress=progress)
+            res = slam_job(seq, out, cfg, frames=frames, models_dir=models_dir, open_sinks=open_writer,
+                           save_masks=save_masks, progress=progress, overwrite=overwrite, stereo_check=stereo_check)
         finally:
-            writer.close()
+            for w in writers:
+                w.close()
+        writer = writers[0]
         report = {"bag": str(Path(bag)), "format": seq.format, **seq.report.to_dict(),
                   "frames_requested": len(indices), "output_bag": str(out_bag), "output_topics": writer.writer.counts}
         (out / "bag.json").write_text(json.dumps(report, indent=1))

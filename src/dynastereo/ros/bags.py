@@ -92,14 +92,39 @@ def check_format(fmt: str) -> str:
     return f
 
 
+# The first bytes of each bag file format (a ROS 2 bag folder's storage file included).
+BAG_MAGIC = {"ros1": (b"#ROSBAG V2.0\n", "a ROS 1 bag (no '#ROSBAG V2.0' header)"),
+             "ros2": (b"SQLite format 3\x00", "a ROS 2 sqlite3 bag (not an SQLite database)"),
+             "mcap": (b"\x89MCAP0\r\n", "an MCAP file (no MCAP magic)")}
+
+
+def check_bag_magic(path: Path) -> None:
+    """InputError unless the bag file (or each storage file of a bag folder) starts with
+    its format's magic bytes: a damaged or foreign file gets a plain message instead of
+    the reader's decoding error."""
+    fmt = bag_format(path)
+    files = sorted(p for p in path.iterdir() if p.suffix in (".db3", ".mcap")) if path.is_dir() else [path]
+    magic, what = BAG_MAGIC[fmt]
+    for f in files:
+        try:
+            with open(f, "rb") as fh:
+                head = fh.read(len(magic))
+        except OSError as e:
+            raise InputError(f"cannot read bag: {e.strerror or e}", f) from None
+        if head != magic:
+            raise InputError(f"not {what}: the file is damaged, truncated or of another kind "
+                             f"(it starts with {head[:8]!r})", f)
+
+
 def _open_reader(path: Path):
     from rosbags.highlevel import AnyReader
 
+    check_bag_magic(path)
     try:
         r = AnyReader([path], default_typestore=rosbags_typestore(False))
         r.open()
     except Exception as e:  # rosbags raises its own error classes
-        raise InputError(f"cannot open bag: {type(e).__name__}: {e}", path) from None
+        raise InputError(f"cannot open bag (damaged or truncated?): {e}", path) from None
     return r
 
 
@@ -188,7 +213,8 @@ class BagWriter:
         self.path = Path(path)
         if self.path.exists():
             if not overwrite:
-                raise InputError("output bag exists already (remove it or choose another name)", self.path)
+                raise InputError("output bag exists already (--overwrite replaces it, or choose another name)",
+                                 self.path)
             if self.path.is_dir():
                 shutil.rmtree(self.path)
             else:

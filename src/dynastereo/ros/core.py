@@ -53,6 +53,7 @@ from ..config import Config, to_dict
 from ..errors import ConfigError
 from ..io.calib import RawStereoCalibration
 from ..io.rectify import Rectifier
+from ..io.stereo_check import StereoWatch
 from ..masking.maskers import MASK_STAGES
 from ..timing import StageTimer
 from ..types import StereoCalibration, StereoFrame, StereoMasks
@@ -299,6 +300,7 @@ class StereoNodeCore:
         self._running = False
         self._idle = threading.Condition()
         self._in_flight = 0
+        self.stereo_watch = StereoWatch("stereo input")  # warns once if the pairs look wrong
         if calibration is not None:
             self.set_calibration(calibration)
 
@@ -531,6 +533,8 @@ class StereoNodeCore:
             raise ValueError(f"images are {left.shape[1]}x{left.shape[0]} / {right.shape[1]}x{right.shape[0]}, "
                              f"the calibration is for {c.width}x{c.height}")
         frame = StereoFrame(index=-1, timestamp=inp.stamp_ns * 1e-9, left=left, right=right)
+        if not self.stereo_watch.done:
+            self.stereo_watch.observe(frame)
         masks = self._masker.mask(frame, t) if self._masker is not None else None
         ms = t.end_frame()["ms"]
         return inp, frame, masks, ms
@@ -597,6 +601,8 @@ class StereoNodeCore:
         d = self.stats.summary()
         d.update(queue_size=self.queue_size, queue_high_water=self._inq.high_water, ready=self.ready,
                  pipelined=self.pipelined, config=to_dict(self.cfg))
+        if self.stereo_watch.verdict is not None:
+            d["stereo_check"] = self.stereo_watch.verdict.to_dict()
         if self.calibration is not None:
             c = self.calibration
             d["calibration"] = {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "baseline": c.baseline,

@@ -2,20 +2,27 @@
 
 Reads pickled ``LocalBAProblem`` messages from stdin (8-byte little-endian length +
 payload), writes pickled ``LocalBAResult`` messages to stdout the same way, exits at
-end of input.  Started with ``subprocess`` rather than ``multiprocessing`` so that no
-user ``__main__`` module is re-imported (scripts need no ``if __name__ ==
-'__main__'`` guard) and the parent's threads are never forked.
+end of input (or when the parent stops reading).  It runs in its own process group and
+ignores SIGINT and SIGTERM: Ctrl-C is the parent's to handle, and the parent shuts it down
+(closing the pipe) -- the worker never dies first or prints a traceback.  Started with
+``subprocess`` rather than ``multiprocessing`` so that no user ``__main__`` module is
+re-imported (scripts need no ``if __name__ == '__main__'`` guard) and the parent's
+threads are never forked.
 """
 
 from __future__ import annotations
 
 import os
+import signal
 import sys
 
 from .ipc import read_msg, write_msg
 
 
 def main() -> int:
+    # a signal is the parent's to handle: it stops cleanly and closes the pipe, ending this loop
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import gtsam  # noqa: F401 -- import before the first job
 
@@ -30,13 +37,16 @@ def main() -> int:
         if msg is None:
             return 0
         if msg == "ping":
-            write_msg(out, "pong")
-            continue
+            res = "pong"
+        else:
+            try:
+                res = run_ba(msg)  # type: ignore[arg-type]
+            except Exception as e:  # noqa: BLE001 -- report, keep serving
+                res = e
         try:
-            res = run_ba(msg)  # type: ignore[arg-type]
-        except Exception as e:  # noqa: BLE001 -- report, keep serving
-            res = e
-        write_msg(out, res)
+            write_msg(out, res)
+        except OSError:  # the parent is gone (killed, or stopped without reading): end quietly
+            return 0
 
 
 if __name__ == "__main__":

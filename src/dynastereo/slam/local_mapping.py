@@ -89,6 +89,7 @@ class BARunner:
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             env=env,
+            process_group=0,  # its own group: Ctrl-C / a group SIGTERM stop the parent, which stops it
         )
         try:
             write_msg(self._proc.stdin, "ping")

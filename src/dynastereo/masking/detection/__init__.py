@@ -14,7 +14,7 @@ from pathlib import Path
 
 from ...config import DetectorConfig
 from ...errors import ModelError
-from ...models.registry import KNOWN_MODELS, ModelSpec, resolve_models_dir
+from ...models.registry import KNOWN_MODELS, ModelSpec, note_unregistered, resolve_models_dir, verify_at_load
 from ..base import Detector
 from .classes import COCO_CLASSES, canonical_name, dynamic_class_mask
 from .common import BoxTransform, RawOutput, YoloDetectorBase, letterbox, to_bgr
@@ -68,6 +68,7 @@ def _installed_files(spec: ModelSpec, models_dir: Path | str | None) -> Path:
                 else f"{spec.licence}: no official download; place the file there (or `dynastereo models download {spec.name} --mirror URL`)"
             )
             raise ModelError(f"model '{spec.name}' file missing (models dir {root}); {hint}", p)
+    verify_at_load(spec, d)
     return d
 
 
@@ -105,7 +106,9 @@ def create_detector(cfg: DetectorConfig | None = None, models_dir: Path | str | 
             weights = p.with_suffix(".weights")
             if not weights.is_file():
                 raise ModelError(f"Darknet weights not found beside the cfg (expected {weights.name})", weights)
+            note_unregistered(p, weights)
             return DarknetDetector(p, weights, None, cfg, name=p.stem)
+        note_unregistered(p)
         return _onnx_detector(p, cfg, p.stem)
     raise ModelError(f"unknown detector '{name}'; known models: {_known_list()}, or a path to a .cfg or .onnx file")
 
@@ -130,6 +133,7 @@ def create_seg_model(
     if p.suffix.lower() == ".onnx":
         if not p.is_file():
             raise ModelError("segmentation model file not found", p)
+        note_unregistered(p)
         return _onnx_detector(p, cfg, p.stem, "ultralytics-seg")  # type: ignore[return-value]
     seg = [s.name for s in KNOWN_MODELS.values() if s.kind == "seg"]
     raise ModelError(f"unknown segmentation model '{name}'; known: {', '.join(seg)}, or a path to an .onnx file")

@@ -1,0 +1,61 @@
+"""SIGINT / SIGTERM for the CLI: stop at the next frame boundary, results written.
+
+While :class:`StopOnSignal` is installed, the first SIGINT or SIGTERM only records the
+signal: the job's progress callback calls :meth:`StopOnSignal.check` after every frame,
+which raises :class:`~dynastereo.errors.Interrupted` there -- between two frames, so the
+job's clean-up writes a consistent ``run.json`` / ``timing.json`` / trajectory (rows =
+frames done).  A second signal raises at once (for a job stuck in one long step).
+Outside a job (``deferred`` not set) the first signal raises at once.
+"""
+
+from __future__ import annotations
+
+import signal
+from contextlib import contextmanager
+from typing import Any, Iterator
+
+from ..errors import Interrupted
+
+SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class StopOnSignal:
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self.deferred = False
+        self._old: dict[int, Any] = {}
+
+    def install(self) -> "StopOnSignal":
+        for s in SIGNALS:
+            self._old[s] = signal.signal(s, self._handle)
+        return self
+
+    def uninstall(self) -> None:
+        for s, h in self._old.items():
+            signal.signal(s, h)
+        self._old.clear()
+
+    def _handle(self, signum: int, _frame: Any) -> None:
+        first = self.received is None
+        self.received = signum
+        if not (first and self.deferred):
+            raise Interrupted(signum)
+
+    def check(self) -> None:
+        """Raise :class:`Interrupted` if a signal came (call between frames)."""
+        if self.received is not None:
+            raise Interrupted(self.received)
+
+    @contextmanager
+    def job(self) -> Iterator["StopOnSignal"]:
+        """Signals wait for the next :meth:`check` inside the block; any signal still
+        unchecked at the end of the block is raised there."""
+        self.deferred = True
+        try:
+            yield self
+        finally:
+            self.deferred = False
+        self.check()
+
+
+STOP = StopOnSignal()

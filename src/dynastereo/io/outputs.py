@@ -1,0 +1,130 @@
+"""Output paths checked before the first frame: writable, of the right kind, and not
+holding an earlier run unless asked to replace it.
+
+``prepare_output_dir(out, overwrite=...)`` creates ``out`` (parents too) and proves it
+writable by writing a probe file; a folder that holds an earlier run's outputs (any of
+``RUN_OUTPUTS``: masks, trajectories, timing.json, ...) is refused with an
+:class:`OutputError` naming ``--overwrite``, or -- with ``overwrite`` -- those outputs
+(and only those) are deleted first, so that no stale mask or plot of the earlier run is
+left beside the new ones.  ``check_output_file(path)`` does the same for a single file
+(a plot, a map, a bag): not a folder, its folder creatable and writable.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import secrets
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Iterable
+
+from ..errors import OutputError
+
+# Everything `dynastereo mask` / `run` (folder or bag) write into their output folder.
+RUN_OUTPUTS = (
+    "masks", "disparity", "overlays", "objects.jsonl", "timing.json", "run.json", "bag.json",
+    "trajectory.kitti.txt", "trajectory.tum.txt", "trajectory.frames.txt",
+    "output.bag", "output.db3", "output.mcap",
+)
+# What `dynastereo synth` writes under its output root.
+SYNTH_OUTPUTS = ("sequences/00", "poses/00.txt")
+
+
+def atomic_write_text(path: str | Path, text: str, *, fsync: bool = True) -> Path:
+    """Write ``text`` to a temporary file beside ``path`` and rename it over ``path``.  The
+    file is created with mode 0666 minus the umask (0644 usually), as ``open(path, "w")``
+    would make it -- not ``mkstemp``'s 0600."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            if fsync:
+                os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _reason(e: OSError) -> str:
+    return e.strerror or type(e).__name__
+
+
+def _probe_writable(folder: Path, target: Path, what: str = "output folder") -> None:
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".dynastereo-probe-", dir=folder)
+    except OSError as e:
+        raise OutputError(f"{what} is not writable ({_reason(e)})", target) from None
+    os.close(fd)
+    os.unlink(tmp)
+
+
+def _make_dir(folder: Path, target: Path) -> None:
+    for parent in (folder, *folder.parents):
+        if parent.exists():
+            if not parent.is_dir():
+                what = "exists as a file" if parent == target else f"{parent} (on the path) is a file"
+                raise OutputError(f"{what}, not a folder", target)
+            break
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"cannot create the output folder ({_reason(e)})", target) from None
+
+
+def earlier_outputs(out: str | Path, names: Iterable[str] = RUN_OUTPUTS) -> list[Path]:
+    """The outputs of an earlier run present in ``out``."""
+    out = Path(out)
+    return [out / n for n in names if (out / n).exists() or (out / n).is_symlink()]
+
+
+def clear_outputs(paths: Iterable[Path]) -> None:
+    """Delete ``paths`` (files, or folders with everything in them)."""
+    for p in paths:
+        try:
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
+        except OSError as e:
+            raise OutputError(f"cannot remove the earlier run's output ({_reason(e)})", p) from None
+
+
+def prepare_output_dir(out: str | Path, *, overwrite: bool = False, names: Iterable[str] = RUN_OUTPUTS,
+                       flag: str = "--overwrite") -> Path:
+    """Create and check the output folder ``out`` (module doc); returns it as a Path."""
+    out = Path(out)
+    _make_dir(out, out)
+    _probe_writable(out, out)
+    earlier = earlier_outputs(out, names)
+    if earlier:
+        if not overwrite:
+            shown = ", ".join(p.relative_to(out).as_posix() for p in earlier[:4]) + (", ..." if len(earlier) > 4 else "")
+            raise OutputError(f"output folder holds an earlier run ({shown}); {flag} replaces it, "
+                              "or choose another folder", out)
+        clear_outputs(earlier)
+    return out
+
+
+def check_output_file(path: str | Path, *, what: str = "output file", overwrite: bool = True,
+                      flag: str = "--overwrite") -> Path:
+    """Check that ``path`` can be written as a file (module doc); with ``overwrite=False``
+    an existing file is refused naming ``flag``."""
+    path = Path(path)
+    if path.is_dir():
+        raise OutputError(f"{what} is a folder, not a file", path)
+    if path.exists() and not overwrite:
+        raise OutputError(f"{what} exists already; {flag} replaces it", path)
+    folder = path.parent if str(path.parent) else Path(".")
+    _make_dir(folder, path)
+    _probe_writable(folder, path, f"the {what}'s folder {folder}")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise OutputError(f"{what} is not writable ({os.strerror(errno.EACCES)})", path)
+    return path
