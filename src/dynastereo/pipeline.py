@@ -29,6 +29,7 @@ from .io.base import Sequence
 from .io.images import write_disparity_png
 from .masking.base import Masker
 from .masking.maskers import MASK_STAGES
+from .observers import FrameEvent, FrameObserver, notify
 from .timing import StageTimer
 from .types import StereoFrame, StereoMasks
 
@@ -87,6 +88,18 @@ def draw_overlay(frame: StereoFrame, masks: StereoMasks) -> np.ndarray:
     return np.vstack([top, np.hstack([view, cv2.cvtColor(masks.left, cv2.COLOR_GRAY2BGR)])])
 
 
+def objects_record(idx: int, masks: StereoMasks, ground=None) -> dict:
+    """The ``objects.jsonl`` line of a frame: what was masked and how."""
+    record = {
+        "frame": idx,
+        "objects": [o.to_dict() for o in masks.objects],
+        "fallbacks": sum(o.method.startswith("box-fallback") for o in masks.objects),
+    }
+    if ground is not None:  # the road line the outlines left out (ok=False: not removed)
+        record["road"] = ground.to_dict()
+    return record
+
+
 def _write_png(path: Path, img: np.ndarray) -> None:
     if not cv2.imwrite(str(path), img):
         from .errors import InputError
@@ -103,6 +116,7 @@ def run_mask_job(
     save_disparity: bool = False,
     overlays: bool = False,
     progress: Callable[[int, int, dict], None] | None = None,
+    observers: tuple[FrameObserver, ...] = (),
 ) -> MaskJobResult:
     """Mask ``frames`` of ``sequence`` with ``masker`` and write the results under ``out``.
 
@@ -141,17 +155,11 @@ def run_mask_job(
                     write_disparity_png(dirs["disparity"] / name, masks.disparity)
                 if overlays:
                     _write_png(dirs["overlays"] / name, draw_overlay(frame, masks))
-                record = {
-                    "frame": idx,
-                    "objects": [o.to_dict() for o in masks.objects],
-                    "fallbacks": sum(o.method.startswith("box-fallback") for o in masks.objects),
-                }
-                ground = getattr(masker, "last_ground", None)
-                if ground is not None:  # the road line the outlines left out (ok=False: not removed)
-                    record["road"] = ground.to_dict()
+                record = objects_record(idx, masks, getattr(masker, "last_ground", None))
                 objects_log.write(json.dumps(record) + "\n")
                 objects_log.flush()
                 result.frames_done.append(idx)
+                notify(observers, FrameEvent(k, frame, masks, rec["ms"], calibration=sequence.calibration))
                 if progress is not None:
                     progress(k + 1, len(frames), rec)
     except BaseException as e:
@@ -220,6 +228,7 @@ def run_slam_job(
     progress: Callable[[int, int, dict], None] | None = None,
     save_map: str | Path | None = None,
     map_info: dict | None = None,
+    observers: tuple[FrameObserver, ...] = (),
 ) -> SlamJobResult:
     """Feed ``frames`` of ``sequence`` (masked by ``masker``, None = unmasked) to the SLAM
     ``system`` and write, under ``out``:
@@ -227,6 +236,7 @@ def run_slam_job(
     * ``trajectory.kitti.txt`` / ``trajectory.tum.txt`` / ``trajectory.frames.txt``: one
       row per frame fed, in order; appended live (a crash keeps every row written), then
       rewritten at the end with the final, bundle-adjusted poses;
+    * ``objects.jsonl`` (masked runs): one line per frame, as from ``run_mask_job``;
     * ``timing.json``: per frame ms for ``masking`` (= ``detect`` + ``mask``), ``features``,
       ``stereo``, ``track``; ``local_mapping`` separately; ``summary.fps`` end to end;
     * ``run.json``: configuration, versions, frames tracked / lost, keyframes, map points,
@@ -236,7 +246,7 @@ def run_slam_job(
       (the map of the frames done).
 
     Masking of frame k+1 runs on a prefetch thread while frame k is tracked (OpenCV and
-    onnxruntime release the GIL).
+    onnxruntime release the GIL).  ``observers`` get a :class:`FrameEvent` per frame.
     """
     from concurrent.futures import ThreadPoolExecutor
 
@@ -262,6 +272,7 @@ def run_slam_job(
             return _masking_step(sequence, masker, frames[k])
         return pool.submit(_masking_step, sequence, masker, frames[k])
 
+    objects_log = open(out / "objects.jsonl", "w") if masker is not None else None
     try:
         with TrajectoryWriter(out) as writer:
             pending = submit(0)
@@ -279,6 +290,11 @@ def run_slam_job(
                 if save_masks and masks is not None:
                     _write_png(out / "masks" / "left" / frame_name(idx), masks.left)
                     _write_png(out / "masks" / "right" / frame_name(idx), masks.right)
+                if objects_log is not None:
+                    objects_log.write(json.dumps(objects_record(idx, masks)) + "\n")
+                    objects_log.flush()
+                notify(observers, FrameEvent(k, frame, masks, rec["ms"], pose, state.status, system,
+                                             sequence.calibration))
                 n_done = k + 1
                 if progress is not None:
                     progress(k + 1, len(frames), dict(rec, fps=n_done / (time.perf_counter() - t0)))
@@ -286,6 +302,8 @@ def run_slam_job(
         error = f"{type(e).__name__}: {e}"
         raise
     finally:
+        if objects_log is not None:
+            objects_log.close()
         system.shutdown()  # finishes the pending local BA; also stops the worker on an error
         map_out = dict(map_info or {})
         if save_map is not None and n_done:
