@@ -7,13 +7,15 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 from .config import Config
 from .io import open_sequence
 from .io.base import Sequence
 from .io.frames import parse_frame_spec
+from .observers import FrameObserver
 from .pipeline import MaskJobResult, SlamJobResult, run_mask_job, run_slam_job
 
 
@@ -40,6 +42,43 @@ def build_masker(cfg: Config, sequence: Sequence, models_dir: str | Path | None 
     return masker
 
 
+def make_report(run_dir: str | Path, gt: str | Path | None = None, out: str | Path | None = None, *,
+                overlays: int = 6, auto_gt: bool = True) -> Path:
+    """Write the self-contained HTML page of a run folder (default ``RUN_DIR/report.html``)
+    and return its path; see :func:`dynastereo.eval.html_report.build_report`."""
+    from .eval.html_report import build_report
+
+    return build_report(run_dir, gt, out, overlays=overlays, auto_gt=auto_gt)
+
+
+def resolve_ground_truth(gt: str | Path | None, sequence) -> Path | None:
+    """``gt``, else the KITTI layout's ``poses/NN.txt`` beside the sequence when it exists."""
+    from .eval.html_report import default_ground_truth
+
+    if gt is not None:
+        return Path(gt)
+    path = getattr(sequence, "path", sequence)
+    return default_ground_truth(path) if isinstance(path, (str, Path)) else None
+
+
+@contextmanager
+def viewers(observers: tuple[FrameObserver, ...] = (), *, viewer: bool = False, rrd: str | Path | None = None,
+            gt: str | Path | None = None, name: str = "dynastereo") -> Iterator[tuple[FrameObserver, ...]]:
+    """``observers`` plus, with ``viewer`` (spawn the rerun viewer) or ``rrd`` (record to a
+    file), a :class:`dynastereo.viz.rerun.RerunObserver` (needs ``pip install
+    dynastereo[viz]``), flushed and closed on exit.  Neither: rerun is not imported."""
+    if not viewer and rrd is None:
+        yield tuple(observers)
+        return
+    from .viz.rerun import RerunObserver
+
+    rec = RerunObserver(spawn=viewer, rrd=rrd, gt=gt, name=name)
+    try:
+        yield (*observers, rec)
+    finally:
+        rec.close()
+
+
 def _prepare(sequence, cfg: Config, frames, calib, models_dir):
     """(sequence, frame indices, masker) for a job."""
     seq = load_sequence(sequence, calib)
@@ -57,13 +96,19 @@ def mask_sequence(
     save_disparity: bool = False,
     overlays: bool = False,
     progress: Callable[[int, int, dict], None] | None = None,
+    observers: tuple[FrameObserver, ...] = (),
+    viewer: bool = False,
+    rrd: str | Path | None = None,
 ) -> MaskJobResult:
-    """Mask the dynamic objects of ``sequence`` in both images; see ``pipeline.run_mask_job``."""
+    """Mask the dynamic objects of ``sequence`` in both images; see ``pipeline.run_mask_job``.
+    ``viewer`` / ``rrd``: show the frames in the rerun viewer / record them (see :func:`viewers`)."""
     cfg = cfg or Config()
     if save_disparity and cfg.stereo.region != "full":
         cfg = cfg.with_overrides({"stereo.region": "full"})
     seq, indices, masker = _prepare(sequence, cfg, frames, calib, models_dir)
-    return run_mask_job(seq, masker, out, indices, save_disparity=save_disparity, overlays=overlays, progress=progress)
+    with viewers(observers, viewer=viewer, rrd=rrd, name="dynastereo mask") as obs:
+        return run_mask_job(seq, masker, out, indices, save_disparity=save_disparity, overlays=overlays,
+                            progress=progress, observers=obs)
 
 
 def run_sequence(
@@ -79,13 +124,21 @@ def run_sequence(
     save_map: str | Path | None = None,
     load_map: str | Path | None = None,
     localize_only: bool = False,
+    report: bool = False,
+    gt: str | Path | None = None,
+    observers: tuple[FrameObserver, ...] = (),
+    viewer: bool = False,
+    rrd: str | Path | None = None,
 ) -> SlamJobResult:
     """Mask and track ``sequence`` with the stereo SLAM; see ``pipeline.run_slam_job``.
 
     ``frames`` may revisit (``"0-98,40-60"``): frames are fed in the order given.
     ``load_map``: start from a map file (``save_map`` of an earlier run); with
     ``localize_only`` the map is only localised in (no new keyframes).  ``save_map``:
-    write the final map there.
+    write the final map there.  ``report``: also write ``out/report.html``
+    (:func:`make_report`; its path in ``result.report``).  ``viewer`` / ``rrd``: show the
+    run in the rerun viewer / record it to an ``.rrd`` file (:func:`viewers`).  ``gt``:
+    ground truth for both (default: ``poses/NN.txt`` of a KITTI layout, when present).
     """
     from .config import to_dict
     from .errors import ConfigError
@@ -104,8 +157,13 @@ def run_sequence(
             system.shutdown()
             raise
         info = {"loaded": str(load_map), "localize_only": bool(localize_only)}
-    return run_slam_job(seq, masker, system, out, indices, config_dict=to_dict(cfg),
-                        save_masks=save_masks, progress=progress, save_map=save_map, map_info=info)
+    gt = resolve_ground_truth(gt, seq)
+    with viewers(observers, viewer=viewer, rrd=rrd, gt=gt, name="dynastereo run") as obs:
+        res = run_slam_job(seq, masker, system, out, indices, config_dict=to_dict(cfg), save_masks=save_masks,
+                           progress=progress, save_map=save_map, map_info=info, observers=obs)
+    if report:
+        res.report = make_report(out, gt)
+    return res
 
 
 # --------------------------------------------------------------------------- ROS bags
@@ -129,11 +187,17 @@ def run_bag(
     save_masks: bool = False,
     outputs: str | None = None,
     progress: Callable[[int, int, dict], None] | None = None,
+    report: bool = False,
+    gt: str | Path | None = None,
+    observers: tuple[FrameObserver, ...] = (),
+    viewer: bool = False,
+    rrd: str | Path | None = None,
 ):
     """Mask and track a stereo bag (ROS 1 .bag, ROS 2 .db3, .mcap); results as for
     :func:`run_sequence` plus ``out/output.<fmt>`` and ``out/bag.json``.  Calibration:
     ``calib`` (YAML) > the bag's CameraInfo > ``config_path`` when it is an ORB-SLAM2
-    settings file.  See :func:`dynastereo.ros.bagrun.run_bag`."""
+    settings file.  ``report`` / ``viewer`` / ``rrd`` / ``gt`` as for :func:`run_sequence`.
+    See :func:`dynastereo.ros.bagrun.run_bag`."""
     from .ros.bagrun import run_bag as _run_bag
     from .ros.messages import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC
 
@@ -143,10 +207,15 @@ def run_bag(
 
         if is_orbslam2_settings(read_yaml_file(config_path)):
             fallback = config_path
-    return _run_bag(bag, out, cfg, left_topic=left_topic or DEFAULT_LEFT_TOPIC,
-                    right_topic=right_topic or DEFAULT_RIGHT_TOPIC, left_info=left_info, right_info=right_info,
-                    calib=calib, fallback_calib=fallback, tolerance_s=tolerance_s, rectify=rectify, frames=frames,
-                    models_dir=models_dir, save_masks=save_masks, outputs=outputs, progress=progress)
+    with viewers(observers, viewer=viewer, rrd=rrd, gt=gt, name="dynastereo run --bag") as obs:
+        res = _run_bag(bag, out, cfg, left_topic=left_topic or DEFAULT_LEFT_TOPIC,
+                       right_topic=right_topic or DEFAULT_RIGHT_TOPIC, left_info=left_info, right_info=right_info,
+                       calib=calib, fallback_calib=fallback, tolerance_s=tolerance_s, rectify=rectify,
+                       frames=frames, models_dir=models_dir, save_masks=save_masks, outputs=outputs,
+                       progress=progress, observers=obs)
+    if report:
+        res.slam.report = make_report(out, gt)
+    return res
 
 
 def export_bag(

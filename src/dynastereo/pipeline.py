@@ -187,6 +187,7 @@ class SlamJobResult:
     wall_s: float
     fps: float
     lost: list[int] = field(default_factory=list)  # positions (in the order fed) of lost frames
+    report: Path | None = None  # the HTML report, when one was asked for (api.run_sequence(report=True))
 
     @property
     def summary(self) -> dict[str, dict[str, float]]:

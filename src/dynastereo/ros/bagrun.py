@@ -148,6 +148,7 @@ def run_bag(
     save_masks: bool = False,
     outputs: str | tuple[str, ...] | None = None,
     progress: Callable[[int, int, dict], None] | None = None,
+    observers: tuple = (),
 ) -> BagRunResult:
     """Run masking + SLAM on a stereo bag (module doc); see :class:`BagStereoSequence` for
     the topic, calibration and pairing arguments (``fallback_calib``: used only when the bag
@@ -170,7 +171,8 @@ def run_bag(
         writer = BagOutput(out_bag, seq.format, cfg, seq.calibration, seq.frame_id, outs)
         try:
             res = run_slam_job(seq, masker, _PublishingSystem(system, writer, seq.stamps_ns), out, indices,
-                               config_dict=to_dict(cfg), save_masks=save_masks, progress=progress)
+                               config_dict=to_dict(cfg), save_masks=save_masks, progress=progress,
+                               observers=observers)
         finally:
             writer.close()
         report = {"bag": str(Path(bag)), "format": seq.format, **seq.report.to_dict(),
