@@ -4,7 +4,9 @@ The bag is read as a :class:`~dynastereo.ros.bags.BagStereoSequence` and fed to 
 job as a sequence folder (:func:`~dynastereo.pipeline.run_slam_job`: trajectory files,
 ``timing.json``, ``run.json``), with the SLAM system wrapped so that every tracked frame
 is also written to ``DIR/output.{bag,db3,mcap}`` (the input's format): odometry, TF, the
-masked images, the masks and the disparity (topics in :mod:`dynastereo.ros.messages`).
+masked images, the masks, the disparity, the path so far and (every ``MAP_EVERY``-th frame
+and once more after the final bundle adjustment) the map points (topics in
+:mod:`dynastereo.ros.messages`).
 ``DIR/bag.json`` records the pairing (pairs, unpaired left/right messages, tolerance),
 the calibration source and what was written.
 """
@@ -24,13 +26,15 @@ from ..types import StereoFrame, StereoMasks
 from .bags import BAG_SUFFIX, BagStereoSequence, BagWriter
 from .convert import masked_image, twist_between
 from .core import build_masker, disparity_data
-from .messages import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC, ODOM_FRAME, OUTPUT_TOPICS, OUTPUT_TYPES, OdometryData
+from .messages import (DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC, MAP_EVERY, ODOM_FRAME, OUTPUT_TOPICS, OUTPUT_TYPES,
+                       OdometryData)
 
-ALL_OUTPUTS = ("odometry", "tf", "masked", "masks", "disparity")
+ALL_OUTPUTS = ("odometry", "tf", "masked", "masks", "disparity", "path", "map_points")
 
 
 def parse_outputs(spec: str | list[str] | tuple[str, ...] | None) -> tuple[str, ...]:
-    """``"all"`` / None -> every output; else a comma list of odometry, tf, masked, masks, disparity."""
+    """``"all"`` / None -> every output; else a comma list of odometry, tf, masked, masks, disparity,
+    path, map_points."""
     if spec is None:
         return ALL_OUTPUTS
     items = [s.strip() for s in (spec.split(",") if isinstance(spec, str) else spec) if s.strip()]
@@ -55,6 +59,7 @@ class BagOutput:
         self.outputs = outputs
         self._matcher = None
         self._prev: tuple[np.ndarray, int] | None = None
+        self._path: tuple[list[np.ndarray], list[int]] = ([], [])
         keys = [k for k in OUTPUT_TOPICS if self._key_on(k)]
         for k in keys:
             self.writer.add(OUTPUT_TOPICS[k], OUTPUT_TYPES[k])
@@ -64,9 +69,17 @@ class BagOutput:
         return group.get(key, key) in self.outputs
 
     def write(self, seq_pos: int, frame: StereoFrame, masks: StereoMasks | None, pose: np.ndarray,
-              stamp_ns: int) -> None:
+              stamp_ns: int, map_points: Callable[[], np.ndarray] | None = None) -> None:
+        """One frame's messages; ``map_points`` (``System.map_points``) gives the cloud
+        on every ``MAP_EVERY``-th frame."""
         w, b, cf = self.writer, self.b, self.camera_frame
         T = np.vstack([np.asarray(pose, np.float64)[:3], [0.0, 0.0, 0.0, 1.0]])
+        self._path[0].append(T)
+        self._path[1].append(int(stamp_ns))
+        if "path" in self.outputs:
+            w.write(OUTPUT_TOPICS["path"], stamp_ns, b.path(*self._path, ODOM_FRAME, seq=seq_pos))
+        if map_points is not None and seq_pos % MAP_EVERY == 0:
+            self.write_map(map_points(), stamp_ns, seq_pos)
         prev = self._prev
         lin, ang = twist_between(prev[0] if prev else None, T, (stamp_ns - prev[1]) * 1e-9 if prev else 0.0)
         self._prev = (T, stamp_ns)
@@ -99,6 +112,11 @@ class BagOutput:
             w.write(OUTPUT_TOPICS["disparity"], stamp_ns,
                     b.disparity(disparity_data(d, self.calibration, self.cfg), stamp_ns, cf, seq=seq_pos))
 
+    def write_map(self, points: np.ndarray, stamp_ns: int, seq_pos: int = 0) -> None:
+        if "map_points" in self.outputs:
+            self.writer.write(OUTPUT_TOPICS["map_points"], stamp_ns, self.b.point_cloud(points, stamp_ns, ODOM_FRAME,
+                                                                                        seq=seq_pos))
+
     def close(self) -> None:
         self.writer.close()
 
@@ -111,12 +129,20 @@ class _PublishingSystem:
         self._out = out
         self._stamps = stamps_ns
         self._n = 0
+        self._last_stamp = 0
 
     def track(self, frame: StereoFrame, masks: StereoMasks | None = None, timer: Any = None) -> np.ndarray:
         pose = self._system.track(frame, masks, timer)
-        self._out.write(self._n, frame, masks, pose, int(self._stamps[frame.index]))
+        self._last_stamp = int(self._stamps[frame.index])
+        self._out.write(self._n, frame, masks, pose, self._last_stamp, self._system.map_points)
         self._n += 1
         return pose
+
+    def shutdown(self) -> None:
+        """The SLAM's shutdown (pending BA applied), then the final map into the bag."""
+        self._system.shutdown()
+        if self._n:
+            self._out.write_map(self._system.map_points(), self._last_stamp, self._n)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._system, name)
