@@ -364,3 +364,40 @@ def test_cli_export_bag_and_run_bag(kitti06: Path, models_dir: Path, tmp_path: P
     assert r.exit_code == 2 and "'/cam0' not in the bag" in r.output
     r = runner.invoke(app, ["run", "--bag", str(bag), "--out", str(out), "--bag-outputs", "odometry,video"])
     assert r.exit_code == 2 and "unknown bag output(s) video" in r.output
+
+
+@pytest.mark.parametrize("fmt,name", [("ros1", "s.bag"), ("mcap", "s.mcap")])
+def test_rviz_topics_path_and_map_points_read_back(tmp_path: Path, fmt: str, name: str) -> None:
+    """``/dynastereo/path`` (nav_msgs/Path) grows by one pose per frame and equals the
+    odometry; ``/dynastereo/map_points`` (sensor_msgs/PointCloud2, x y z float32) every
+    MAP_EVERY-th frame and once more after the final BA, that one the run's map."""
+    from dynastereo.ros.messages import MAP_EVERY
+    from dynastereo.synth import generate
+
+    n = 12
+    seq = generate(tmp_path / "synth", "static", frames=n, seed=0, size=(480, 144))
+    src = export_bag(KittiSequence(seq), tmp_path / name, fmt)
+    res = run_bag(src.path, tmp_path / "out", Config().with_overrides({"masker.kind": "none"}),
+                  outputs="odometry,path,map_points")
+    out_bag = res.output_bag
+    topics = bag_topics(out_bag)
+    assert topics["/dynastereo/path"] == ("nav_msgs/msg/Path", n)
+    n_maps = len(range(0, n, MAP_EVERY)) + 1
+    assert topics["/dynastereo/map_points"] == ("sensor_msgs/msg/PointCloud2", n_maps)
+    stamps, T = read_odometry(out_bag)
+    paths = [m for _, _, m in read_messages(out_bag, ["/dynastereo/path"])]
+    assert [len(p.poses) for p in paths] == list(range(1, n + 1))
+    last = paths[-1]
+    assert last.header.frame_id == "odom" and header_ns(last) == stamps[-1]
+    pos = np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in last.poses])
+    assert np.abs(pos - T[:, :3, 3]).max() < 1e-9 and [header_ns(p) for p in last.poses] == stamps.tolist()
+    assert np.linalg.norm(pos[-1]) > 1.0  # the rig drove
+    clouds = [m for _, _, m in read_messages(out_bag, ["/dynastereo/map_points"])]
+    for c in clouds:
+        assert c.header.frame_id == "odom" and c.height == 1 and c.point_step == 12 and not c.is_bigendian
+        assert [(f.name, f.offset, f.datatype) for f in c.fields] == [("x", 0, 7), ("y", 4, 7), ("z", 8, 7)]
+        assert len(c.data) == 12 * c.width == c.row_step
+    xyz = np.frombuffer(bytes(clouds[-1].data), "<f4").reshape(-1, 3)
+    run = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert len(xyz) == run["map_points"] > 200 and np.isfinite(xyz).all()
+    assert np.median(xyz[:, 2]) > 2.0  # in front of the camera (odom = the first left camera, z forward)

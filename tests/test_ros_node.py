@@ -195,11 +195,12 @@ def test_ros1_bags_read_with_rospy_and_rosbag(kitti06: Path, tmp_path: Path) -> 
     seq = KittiSequence(kitti06)
     out = BagOutput(tmp_path / "o.bag", "ros1", Config(), seq.calibration, "camera_left")
     f = seq.frame(0)
-    out.write(0, f, StereoMasks.empty(f.shape), np.eye(4)[:3], 5)
+    out.write(0, f, StereoMasks.empty(f.shape), np.eye(4)[:3], 5, map_points=lambda: np.ones((3, 3)))
     out.close()
     want = {"sensor_msgs/msg/Image": sensor_msgs.msg.Image, "sensor_msgs/msg/CameraInfo": sensor_msgs.msg.CameraInfo,
             "nav_msgs/msg/Odometry": nav_msgs.msg.Odometry, "tf2_msgs/msg/TFMessage": tf2_msgs.msg.TFMessage,
-            "stereo_msgs/msg/DisparityImage": stereo_msgs.msg.DisparityImage}
+            "stereo_msgs/msg/DisparityImage": stereo_msgs.msg.DisparityImage,
+            "nav_msgs/msg/Path": nav_msgs.msg.Path, "sensor_msgs/msg/PointCloud2": sensor_msgs.msg.PointCloud2}
     seen = set()
     for p in (bag, tmp_path / "o.bag"):
         with AnyReader([p]) as r:
@@ -228,7 +229,8 @@ def test_ros1_bags_read_with_rospy_and_rosbag(kitti06: Path, tmp_path: Path) -> 
     assert counts == {"/camera/left/image_raw": 1, "/camera/right/image_raw": 1, "/camera/left/camera_info": 1,
                       "/camera/right/camera_info": 1, "/dynastereo/odometry": 1, "/tf": 1,
                       "/dynastereo/left/masked": 1, "/dynastereo/right/masked": 1, "/dynastereo/left/mask": 1,
-                      "/dynastereo/right/mask": 1, "/dynastereo/disparity": 1}
+                      "/dynastereo/right/mask": 1, "/dynastereo/disparity": 1, "/dynastereo/path": 1,
+                      "/dynastereo/map_points": 1}
     assert read_odometry(tmp_path / "o.bag")[0].tolist() == [5]
 
 

@@ -69,3 +69,8 @@ def test_demo_runs_offline_with_the_oracle(tmp_path: Path) -> None:
     assert (tmp_path / "demo/trajectories.png").read_bytes()[:4] == b"\x89PNG"
     d = json.loads((tmp_path / "demo/demo.json").read_text())
     assert d["detector"] == "oracle" and len(d["rows"]) == 2
+    # an HTML report per run, its path printed
+    for label in ("none", "outline"):
+        report = tmp_path / f"demo/run_{label}/report.html"
+        assert d["reports"][label] == str(report) and f"report ({label}): {report}" in text
+        assert '<td data-key="ape.rmse">' in report.read_text()

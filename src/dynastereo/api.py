@@ -3,12 +3,17 @@
 >>> from dynastereo.api import mask_sequence
 >>> result = mask_sequence("KITTI/sequences/06", "out/", frames="0-9")
 >>> result.summary["mask"]["median"]
+
+Every job is assembled in one place each: :func:`mask_sequence` and :func:`slam_job`
+(``run``, ``run --bag``) check their inputs with :func:`_checked_inputs` and build the
+masker with :func:`dynastereo.masking.build_masker`; the live node uses the same factory.
 """
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 from .config import Config
 from .io import open_sequence
@@ -16,6 +21,7 @@ from .io.base import Sequence
 from .io.frames import parse_frame_spec
 from .io.outputs import check_output_file, prepare_output_dir
 from .io.stereo_check import check_sequence
+from .observers import FrameObserver
 from .pipeline import MaskJobResult, SlamJobResult, run_mask_job, run_slam_job
 
 
@@ -42,6 +48,43 @@ def _checked_inputs(seq: Sequence, cfg: Config, frames, models_dir, ground_truth
     return indices, masker
 
 
+def make_report(run_dir: str | Path, gt: str | Path | None = None, out: str | Path | None = None, *,
+                overlays: int = 6, auto_gt: bool = True) -> Path:
+    """Write the self-contained HTML page of a run folder (default ``RUN_DIR/report.html``)
+    and return its path; see :func:`dynastereo.eval.html_report.build_report`."""
+    from .eval.html_report import build_report
+
+    return build_report(run_dir, gt, out, overlays=overlays, auto_gt=auto_gt)
+
+
+def resolve_ground_truth(gt: str | Path | None, sequence) -> Path | None:
+    """``gt``, else the KITTI layout's ``poses/NN.txt`` beside the sequence when it exists."""
+    from .eval.html_report import default_ground_truth
+
+    if gt is not None:
+        return Path(gt)
+    path = getattr(sequence, "path", sequence)
+    return default_ground_truth(path) if isinstance(path, (str, Path)) else None
+
+
+@contextmanager
+def viewers(observers: tuple[FrameObserver, ...] = (), *, viewer: bool = False, rrd: str | Path | None = None,
+            gt: str | Path | None = None, name: str = "dynastereo") -> Iterator[tuple[FrameObserver, ...]]:
+    """``observers`` plus, with ``viewer`` (spawn the rerun viewer) or ``rrd`` (record to a
+    file), a :class:`dynastereo.viz.rerun.RerunObserver` (needs ``pip install
+    dynastereo[viz]``), flushed and closed on exit.  Neither: rerun is not imported."""
+    if not viewer and rrd is None:
+        yield tuple(observers)
+        return
+    from .viz.rerun import RerunObserver
+
+    rec = RerunObserver(spawn=viewer, rrd=rrd, gt=gt, name=name)
+    try:
+        yield (*observers, rec)
+    finally:
+        rec.close()
+
+
 def mask_sequence(
     sequence: str | Path | Sequence,
     out: str | Path,
@@ -55,20 +98,26 @@ def mask_sequence(
     progress: Callable[[int, int, dict], None] | None = None,
     overwrite: bool = True,
     stereo_check: bool = True,
+    observers: tuple[FrameObserver, ...] = (),
+    viewer: bool = False,
+    rrd: str | Path | None = None,
 ) -> MaskJobResult:
     """Mask the dynamic objects of ``sequence`` in both images; see ``pipeline.run_mask_job``.
 
     ``overwrite``: the outputs of an earlier run in ``out`` are deleted first (False: an
     :class:`~dynastereo.errors.OutputError`, as the CLI without ``--overwrite``);
     ``stereo_check``: refuse pairs that are identical, swapped or not rectified
-    (:class:`~dynastereo.errors.StereoCheckError`; ``io.stereo_check``)."""
+    (:class:`~dynastereo.errors.StereoCheckError`; ``io.stereo_check``).  ``viewer`` /
+    ``rrd``: show the frames in the rerun viewer / record them (see :func:`viewers`)."""
     cfg = cfg or Config()
     if save_disparity and cfg.stereo.region != "full":
         cfg = cfg.with_overrides({"stereo.region": "full"})
     seq = load_sequence(sequence, calib)
     indices, masker = _checked_inputs(seq, cfg, frames, models_dir, getattr(seq, "path", None), out=out,
                                       overwrite=overwrite, stereo_check=stereo_check)
-    return run_mask_job(seq, masker, out, indices, save_disparity=save_disparity, overlays=overlays, progress=progress)
+    with viewers(observers, viewer=viewer, rrd=rrd, name="dynastereo mask") as obs:
+        return run_mask_job(seq, masker, out, indices, save_disparity=save_disparity, overlays=overlays,
+                            progress=progress, observers=obs)
 
 
 def run_sequence(
@@ -86,6 +135,11 @@ def run_sequence(
     localize_only: bool = False,
     overwrite: bool = True,
     stereo_check: bool = True,
+    report: bool = False,
+    gt: str | Path | None = None,
+    observers: tuple[FrameObserver, ...] = (),
+    viewer: bool = False,
+    rrd: str | Path | None = None,
 ) -> SlamJobResult:
     """Mask and track ``sequence`` with the stereo SLAM; see ``pipeline.run_slam_job``.
 
@@ -93,13 +147,22 @@ def run_sequence(
     ``load_map``: start from a map file (``save_map`` of an earlier run); with
     ``localize_only`` the map is only localised in (no new keyframes).  ``save_map``:
     write the final map there (its path is checked before the first frame).
-    ``overwrite`` / ``stereo_check``: as for :func:`mask_sequence`.
+    ``overwrite`` / ``stereo_check``: as for :func:`mask_sequence`.  ``report``: also write
+    ``out/report.html`` (:func:`make_report`; its path in ``result.report``).  ``viewer`` /
+    ``rrd``: show the run in the rerun viewer / record it to an ``.rrd`` file
+    (:func:`viewers`).  ``gt``: ground truth for both (default: ``poses/NN.txt`` of a KITTI
+    layout, when present).
     """
     cfg = cfg or Config()
     seq = load_sequence(sequence, calib)
-    return slam_job(seq, out, cfg, frames=frames, models_dir=models_dir, ground_truth=getattr(seq, "path", None),
-                    save_masks=save_masks, progress=progress, save_map=save_map, load_map=load_map,
-                    localize_only=localize_only, overwrite=overwrite, stereo_check=stereo_check)
+    gt = resolve_ground_truth(gt, seq)
+    with viewers(observers, viewer=viewer, rrd=rrd, gt=gt, name="dynastereo run") as obs:
+        res = slam_job(seq, out, cfg, frames=frames, models_dir=models_dir, ground_truth=getattr(seq, "path", None),
+                       observers=obs, save_masks=save_masks, progress=progress, save_map=save_map,
+                       load_map=load_map, localize_only=localize_only, overwrite=overwrite, stereo_check=stereo_check)
+    if report:
+        res.report = make_report(out, gt)
+    return res
 
 
 def slam_job(
@@ -110,7 +173,8 @@ def slam_job(
     frames: str | int | None = None,
     models_dir: str | Path | None = None,
     ground_truth: str | Path | None = None,
-    open_sinks: Callable[[], tuple] | None = None,
+    observers: tuple[FrameObserver, ...] = (),
+    open_observers: Callable[[], tuple[FrameObserver, ...]] | None = None,
     save_masks: bool = False,
     progress: Callable[[int, int, dict], None] | None = None,
     save_map: str | Path | None = None,
@@ -124,8 +188,8 @@ def slam_job(
     (:func:`_checked_inputs`: frames, stereo pair, model, then the output folder), the
     masker from :func:`dynastereo.masking.build_masker` (the sequence's calibration), the
     SLAM system (optionally from ``load_map``), then :func:`~dynastereo.pipeline.run_slam_job`
-    with the per-frame writers ``open_sinks()`` returns (a bag's; opened once the output
-    folder is ready; :class:`~dynastereo.pipeline.FrameSink`)."""
+    with ``observers`` and those ``open_observers()`` returns once the output folder is
+    ready (a bag's writer)."""
     from .config import to_dict
     from .errors import ConfigError
     from .slam import System
@@ -136,7 +200,8 @@ def slam_job(
         check_output_file(save_map, what="map file")
     indices, masker = _checked_inputs(seq, cfg, frames, models_dir, ground_truth, out=out, overwrite=overwrite,
                                       stereo_check=stereo_check)
-    sinks = open_sinks() if open_sinks is not None else ()
+    if open_observers is not None:
+        observers = (*observers, *open_observers())
     system = System(cfg, seq.calibration)
     info = {}
     if load_map is not None:
@@ -146,8 +211,8 @@ def slam_job(
             system.shutdown()
             raise
         info = {"loaded": str(load_map), "localize_only": bool(localize_only)}
-    return run_slam_job(seq, masker, system, out, indices, config_dict=to_dict(cfg), sinks=sinks,
-                        save_masks=save_masks, progress=progress, save_map=save_map, map_info=info)
+    return run_slam_job(seq, masker, system, out, indices, config_dict=to_dict(cfg), save_masks=save_masks,
+                        progress=progress, save_map=save_map, map_info=info, observers=observers)
 
 
 # --------------------------------------------------------------------------- ROS bags
@@ -173,12 +238,17 @@ def run_bag(
     progress: Callable[[int, int, dict], None] | None = None,
     overwrite: bool = True,
     stereo_check: bool = True,
+    report: bool = False,
+    gt: str | Path | None = None,
+    observers: tuple[FrameObserver, ...] = (),
+    viewer: bool = False,
+    rrd: str | Path | None = None,
 ):
     """Mask and track a stereo bag (ROS 1 .bag, ROS 2 .db3, .mcap); results as for
     :func:`run_sequence` plus ``out/output.<fmt>`` and ``out/bag.json``.  Calibration:
     ``calib`` (YAML) > the bag's CameraInfo > ``config_path`` when it is an ORB-SLAM2
-    settings file.  ``overwrite`` / ``stereo_check``: as for :func:`mask_sequence`.
-    See :func:`dynastereo.ros.bagrun.run_bag`."""
+    settings file.  ``overwrite`` / ``stereo_check`` / ``report`` / ``viewer`` / ``rrd`` /
+    ``gt`` as for :func:`run_sequence`.  See :func:`dynastereo.ros.bagrun.run_bag`."""
     from .ros.bagrun import run_bag as _run_bag
     from .ros.messages import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC
 
@@ -188,11 +258,15 @@ def run_bag(
 
         if is_orbslam2_settings(read_yaml_file(config_path)):
             fallback = config_path
-    return _run_bag(bag, out, cfg, left_topic=left_topic or DEFAULT_LEFT_TOPIC,
-                    right_topic=right_topic or DEFAULT_RIGHT_TOPIC, left_info=left_info, right_info=right_info,
-                    calib=calib, fallback_calib=fallback, tolerance_s=tolerance_s, rectify=rectify, frames=frames,
-                    models_dir=models_dir, save_masks=save_masks, outputs=outputs, progress=progress,
-                    overwrite=overwrite, stereo_check=stereo_check)
+    with viewers(observers, viewer=viewer, rrd=rrd, gt=gt, name="dynastereo run --bag") as obs:
+        res = _run_bag(bag, out, cfg, left_topic=left_topic or DEFAULT_LEFT_TOPIC,
+                       right_topic=right_topic or DEFAULT_RIGHT_TOPIC, left_info=left_info, right_info=right_info,
+                       calib=calib, fallback_calib=fallback, tolerance_s=tolerance_s, rectify=rectify,
+                       frames=frames, models_dir=models_dir, save_masks=save_masks, outputs=outputs,
+                       progress=progress, overwrite=overwrite, stereo_check=stereo_check, observers=obs)
+    if report:
+        res.slam.report = make_report(out, gt)
+    return res
 
 
 def export_bag(

@@ -5,7 +5,11 @@
    masking) with exact ground truth;
 2. run the stereo SLAM on it unmasked, with ``box`` masks and with ``outline`` masks;
 3. evaluate each trajectory against the ground truth (ATE RMSE, drift), score the masks
-   against the ground-truth instance masks (IoU), report FPS, and plot the trajectories.
+   against the ground-truth instance masks (IoU), report FPS, and plot the trajectories;
+4. write an HTML report of each run (``run_<masker>/report.html``) and print their paths.
+
+``viewer`` / ``rrd``: the ``outline`` run (the last masked one) goes to the rerun viewer /
+into an ``.rrd`` recording.
 
 The detector is YOLOX-nano when its weights are found (``--models-dir``,
 ``$DYNASTEREO_MODELS`` or the cache); otherwise the ground-truth **oracle** boxes, and
@@ -64,6 +68,8 @@ def run_demo(
     maskers: tuple[str, ...] = ("none", "box", "outline"),
     console: Console | None = None,
     progress: Callable | None = None,
+    viewer: bool = False,
+    rrd: str | Path | None = None,
 ) -> list[DemoRow]:
     from .api import run_sequence
     from .eval import evaluate_files, plot_trajectories
@@ -109,20 +115,25 @@ def run_demo(
     runs = [(kind, detector) for kind in maskers]
     if real is not None and "outline" in maskers:
         runs.append(("outline", real))
+    shown = next((r for r in reversed(runs) if r[0] != "none" and r[1] == detector), runs[-1])
+    reports = []
     for kind, det in runs:
         label = kind if det == detector else f"{kind} ({det})"
         run_dir = root / f"run_{kind}" if det == detector else root / f"run_{kind}_{det}"
         shutil.rmtree(run_dir, ignore_errors=True)
         c = cfg.with_overrides({"masker.kind": kind, "detector.name": det})
+        view = dict(viewer=viewer, rrd=rrd) if (kind, det) == shown else {}
         prog = bar()
         if prog is not None:
             with prog:
                 task = prog.add_task(f"SLAM, masker {label}", total=frames, info="")
-                res = run_sequence(seq, run_dir, c, models_dir=models_dir, save_masks=kind != "none",
-                                   progress=lambda k, n, rec: prog.update(
-                                       task, completed=k, total=n, info=f"{rec['fps']:.1f} FPS"))
+                res = run_sequence(seq, run_dir, c, models_dir=models_dir, save_masks=kind != "none", report=True,
+                                   gt=gt, progress=lambda k, n, rec: prog.update(
+                                       task, completed=k, total=n, info=f"{rec['fps']:.1f} FPS"), **view)
         else:
-            res = run_sequence(seq, run_dir, c, models_dir=models_dir, save_masks=kind != "none")
+            res = run_sequence(seq, run_dir, c, models_dir=models_dir, save_masks=kind != "none", report=True,
+                               gt=gt, **view)
+        reports.append((label, res.report))
         ev = evaluate_files(run_dir / "trajectory.kitti.txt", gt)
         iou_l = iou_r = None
         if kind != "none":
@@ -145,7 +156,10 @@ def run_demo(
                       "-" if r.iou_right is None else f"{r.iou_right:.3f}", f"{r.fps:.1f}", str(r.lost))
     console.print(table)
     console.print(f"plot: {plot}")
+    for label, path in reports:
+        console.print(f"report ({label}): {path}", highlight=False)
     (root / "demo.json").write_text(json.dumps(
         {"scenario": scenario, "frames": frames, "size": list(size), "detector": detector,
-         "rows": [r.__dict__ for r in rows], "plot": str(plot)}, indent=1))
+         "rows": [r.__dict__ for r in rows], "plot": str(plot),
+         "reports": {label: str(path) for label, path in reports}}, indent=1))
     return rows

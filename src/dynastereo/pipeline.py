@@ -20,7 +20,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Protocol
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -29,6 +29,7 @@ from .io.base import Sequence
 from .io.images import write_disparity_png
 from .masking.base import Masker
 from .masking.maskers import MASK_STAGES
+from .observers import FrameEvent, FrameObserver, notify
 from .timing import StageTimer
 from .types import StereoFrame, StereoMasks
 
@@ -87,6 +88,18 @@ def draw_overlay(frame: StereoFrame, masks: StereoMasks) -> np.ndarray:
     return np.vstack([top, np.hstack([view, cv2.cvtColor(masks.left, cv2.COLOR_GRAY2BGR)])])
 
 
+def objects_record(idx: int, masks: StereoMasks) -> dict:
+    """The ``objects.jsonl`` line of a frame: what was masked and how."""
+    record = {
+        "frame": idx,
+        "objects": [o.to_dict() for o in masks.objects],
+        "fallbacks": sum(o.method.is_fallback for o in masks.objects),
+    }
+    if masks.ground is not None:  # the road line the outlines left out (ok=False: not removed)
+        record["road"] = masks.ground.to_dict()
+    return record
+
+
 def _write_png(path: Path, img: np.ndarray) -> None:
     if not cv2.imwrite(str(path), img):
         from .errors import InputError
@@ -103,6 +116,7 @@ def run_mask_job(
     save_disparity: bool = False,
     overlays: bool = False,
     progress: Callable[[int, int, dict], None] | None = None,
+    observers: tuple[FrameObserver, ...] = (),
 ) -> MaskJobResult:
     """Mask ``frames`` of ``sequence`` with ``masker`` and write the results under ``out``.
 
@@ -141,16 +155,11 @@ def run_mask_job(
                     write_disparity_png(dirs["disparity"] / name, masks.disparity)
                 if overlays:
                     _write_png(dirs["overlays"] / name, draw_overlay(frame, masks))
-                record = {
-                    "frame": idx,
-                    "objects": [o.to_dict() for o in masks.objects],
-                    "fallbacks": sum(o.method.startswith("box-fallback") for o in masks.objects),
-                }
-                if masks.ground is not None:  # the road line the outlines left out (ok=False: not removed)
-                    record["road"] = masks.ground.to_dict()
+                record = objects_record(idx, masks)
                 objects_log.write(json.dumps(record) + "\n")
                 objects_log.flush()
                 result.frames_done.append(idx)
+                notify(observers, FrameEvent(k, frame, masks, rec["ms"], calibration=sequence.calibration))
                 if progress is not None:
                     progress(k + 1, len(frames), rec)
     except BaseException as e:
@@ -178,17 +187,11 @@ class SlamJobResult:
     wall_s: float
     fps: float
     lost: list[int] = field(default_factory=list)  # positions (in the order fed) of lost frames
+    report: Path | None = None  # the HTML report, when one was asked for (api.run_sequence(report=True))
 
     @property
     def summary(self) -> dict[str, dict[str, float]]:
         return self.timer.summary()
-
-
-class FrameSink(Protocol):
-    """Something that takes every tracked frame as it is done (a bag writer, a viewer)."""
-
-    def on_frame(self, position: int, frame: StereoFrame, masks: StereoMasks | None, pose: np.ndarray) -> None:
-        """``position``: in the order fed; ``pose``: camera-to-world 3x4 as tracked."""
 
 
 def _versions() -> dict[str, str]:
@@ -221,12 +224,12 @@ def run_slam_job(
     frames: list[int],
     *,
     config_dict: dict | None = None,
-    sinks: Iterable[FrameSink] = (),
     save_masks: bool = False,
     prefetch: bool = True,
     progress: Callable[[int, int, dict], None] | None = None,
     save_map: str | Path | None = None,
     map_info: dict | None = None,
+    observers: tuple[FrameObserver, ...] = (),
 ) -> SlamJobResult:
     """Feed ``frames`` of ``sequence`` (masked by ``masker``, None = unmasked) to the SLAM
     ``system`` and write, under ``out``:
@@ -234,6 +237,7 @@ def run_slam_job(
     * ``trajectory.kitti.txt`` / ``trajectory.tum.txt`` / ``trajectory.frames.txt``: one
       row per frame fed, in order; appended live (a crash keeps every row written), then
       rewritten at the end with the final, bundle-adjusted poses;
+    * ``objects.jsonl`` (masked runs): one line per frame, as from ``run_mask_job``;
     * ``timing.json``: per frame ms for ``masking`` (= ``detect`` + ``mask``), ``features``,
       ``stereo``, ``track``; ``local_mapping`` separately; ``summary.fps`` end to end;
     * ``run.json``: configuration, versions, frames tracked / lost, keyframes, map points,
@@ -241,7 +245,8 @@ def run_slam_job(
       ``map`` (the map file loaded / saved);
     * ``save_map``: the final map (``System.save_map``), also after an error mid-sequence
       (the map of the frames done);
-    * and whatever the ``sinks`` write: each gets every frame once it is tracked.
+    * and whatever the ``observers`` write (a bag's writer, a viewer): each gets a
+      :class:`~dynastereo.observers.FrameEvent` per frame once it is tracked.
 
     Masking of frame k+1 runs on a prefetch thread while frame k is tracked (OpenCV and
     onnxruntime release the GIL).
@@ -260,7 +265,6 @@ def run_slam_job(
     stamps = np.asarray(sequence.timestamps(), dtype=np.float64)
     pool = ThreadPoolExecutor(max_workers=1) if prefetch else None
     error: str | None = None
-    sinks = tuple(sinks)
     t0 = time.perf_counter()
     n_done = 0
 
@@ -271,6 +275,7 @@ def run_slam_job(
             return _masking_step(sequence, masker, frames[k])
         return pool.submit(_masking_step, sequence, masker, frames[k])
 
+    objects_log = open(out / "objects.jsonl", "w") if masker is not None else None
     try:
         with TrajectoryWriter(out) as writer:
             pending = submit(0)
@@ -285,11 +290,14 @@ def run_slam_job(
                 pose = tracked.pose
                 rec = timer.end_frame(status=tracked.status)
                 writer.append(pose, frame_index=idx, timestamp=float(stamps[idx]))
-                for sink in sinks:
-                    sink.on_frame(k, frame, masks, pose)
                 if save_masks and masks is not None:
                     _write_png(out / "masks" / "left" / frame_name(idx), masks.left)
                     _write_png(out / "masks" / "right" / frame_name(idx), masks.right)
+                if objects_log is not None:
+                    objects_log.write(json.dumps(objects_record(idx, masks)) + "\n")
+                    objects_log.flush()
+                notify(observers, FrameEvent(k, frame, masks, rec["ms"], pose, tracked.status, system,
+                                             sequence.calibration))
                 n_done = k + 1
                 if progress is not None:
                     progress(k + 1, len(frames), dict(rec, fps=n_done / (time.perf_counter() - t0)))
@@ -297,6 +305,8 @@ def run_slam_job(
         error = f"{type(e).__name__}: {e}"
         raise
     finally:
+        if objects_log is not None:
+            objects_log.close()
         system.shutdown()  # finishes the pending local BA; also stops the worker on an error
         map_out = dict(map_info or {})
         if save_map is not None and n_done:

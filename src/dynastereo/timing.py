@@ -2,7 +2,8 @@
 
 ``timer = StageTimer(); timer.start_frame(i); with timer.stage("detect"): ...;
 timer.end_frame()``; ``timer.summary()`` gives median / p90 / mean per stage, and
-``timer.to_json()`` the ``timing.json`` contract: ``{"frames": [...], "summary": {...}}``.
+``timer.to_json()`` the ``timing.json`` contract: ``{"frames": [...], "summary": {...},
+"derived": {stage: [parts]}}``.
 Derived stages (``mask`` = everything in masking but the detector) are declared with
 ``add_derived``.
 """
@@ -88,7 +89,8 @@ class StageTimer:
     def to_json(self, summary_extra: dict[str, Any] | None = None, **extra: Any) -> dict[str, Any]:
         summary: dict[str, Any] = self.summary()
         summary.update(summary_extra or {})
-        d: dict[str, Any] = {"unit": "ms", "frames": self.frames, "summary": summary}
+        d: dict[str, Any] = {"unit": "ms", "frames": self.frames, "summary": summary,
+                             "derived": {k: list(v) for k, v in self._derived.items()}}
         d.update(extra)
         return d
 

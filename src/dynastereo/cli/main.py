@@ -117,6 +117,8 @@ def mask(
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an earlier run in DIR (its outputs are deleted first)."),
     no_stereo_check: bool = typer.Option(False, "--no-stereo-check", help="Skip the check that the pair is rectified left/right (not identical, swapped or unrectified)."),
+    viewer: bool = typer.Option(False, "--viewer", help="Show the frames live in the rerun viewer (spawns it; needs `pip install dynastereo[viz]`)."),
+    rrd: Optional[Path] = typer.Option(None, "--rrd", help="Record the frames for the rerun viewer into FILE.rrd (headless; `rerun FILE.rrd` opens it)."),
 ) -> None:
     """Mask the dynamic objects of a stereo sequence in BOTH images."""
     from ..api import mask_sequence
@@ -138,7 +140,7 @@ def mask(
 
             result = mask_sequence(sequence, out, cfg, frames=frames, calib=calib, models_dir=models_dir,
                                    save_disparity=save_disparity, overlays=overlays, progress=on_frame,
-                                   overwrite=overwrite, stereo_check=not no_stereo_check)
+                                   overwrite=overwrite, stereo_check=not no_stereo_check, viewer=viewer, rrd=rrd)
     out_console.print(timing_table(result.summary))
     out_console.print(f"{len(result.frames_done)} frames -> {out}  ({result.wall_s:.1f} s)")
 
@@ -164,7 +166,7 @@ def run(
     right_info: str = typer.Option("auto", "--right-info", help="[--bag] Right CameraInfo topic (auto / none / a topic)."),
     sync_tolerance: float = typer.Option(5.0, "--sync-tolerance", help="[--bag] Largest left/right stamp difference of a pair, ms."),
     rectify: str = typer.Option("auto", "--rectify", help="[--bag] Rectify with CameraInfo: auto (unless already rectified) | yes | no."),
-    bag_outputs: str = typer.Option("all", "--bag-outputs", help="[--bag] Output bag content: all, or a comma list of odometry,tf,masked,masks,disparity."),
+    bag_outputs: str = typer.Option("all", "--bag-outputs", help="[--bag] Output bag content: all, or a comma list of odometry,tf,masked,masks,disparity,path,map_points."),
     save_map: Optional[Path] = typer.Option(None, "--save-map", help="Write the final map to FILE (docs/map_format.md)."),
     load_map: Optional[Path] = typer.Option(None, "--load-map", help="Start from the map in FILE (from --save-map)."),
     localize_only: bool = typer.Option(False, "--localize-only", help="With --load-map: localise in the map, add no keyframes."),
@@ -172,6 +174,10 @@ def run(
     vocabulary: Optional[Path] = typer.Option(None, "--vocabulary", help="ORB vocabulary file from `dynastereo vocab` (default: the built-in one)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an earlier run in DIR (its outputs are deleted first)."),
     no_stereo_check: bool = typer.Option(False, "--no-stereo-check", help="Skip the check that the pair is rectified left/right (not identical, swapped or unrectified)."),
+    report: bool = typer.Option(False, "--report", help="Also write DIR/report.html (as `dynastereo report DIR`)."),
+    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth trajectory (KITTI or TUM) for --report and the viewer (default: poses/NN.txt of a KITTI layout, when present)."),
+    viewer: bool = typer.Option(False, "--viewer", help="Show the frames live in the rerun viewer (spawns it; needs `pip install dynastereo[viz]`)."),
+    rrd: Optional[Path] = typer.Option(None, "--rrd", help="Record the frames for the rerun viewer into FILE.rrd (headless; `rerun FILE.rrd` opens it)."),
 ) -> None:
     """Mask and track a stereo sequence (a folder or a ROS bag): trajectory, timing and run summary out."""
     from ..api import run_bag, run_sequence
@@ -182,7 +188,7 @@ def run(
         _fail(DynastereoError("--save-map / --load-map work on sequence folders, not with --bag"))
     if localize_only and load_map is None:
         _fail(DynastereoError("--localize-only needs --load-map FILE"))
-    report = None
+    bag_report = None
     kept = f"run.json, timing.json (with the signal) and the trajectory of the frames done are in {out}"
     with _job(kept + (f"; the map of those frames in {save_map}" if save_map else "")) as job:
         overrides = {"detector.name": detector, "stereo.algorithm": stereo, "masker.kind": masker,
@@ -204,13 +210,14 @@ def run(
                              right_info=info.get(right_info.lower(), right_info), calib=calib, config_path=config,
                              tolerance_s=sync_tolerance / 1000.0, rectify=rectify, frames=frames,
                              models_dir=models_dir, save_masks=save_masks, outputs=bag_outputs, progress=on_frame,
-                             overwrite=overwrite, stereo_check=not no_stereo_check)
-                result, report = br.slam, br.report
+                             overwrite=overwrite, stereo_check=not no_stereo_check, report=report, gt=gt,
+                             viewer=viewer, rrd=rrd)
+                result, bag_report = br.slam, br.report
             else:
                 result = run_sequence(sequence, out, cfg, frames=frames, calib=calib, models_dir=models_dir,
                                       save_masks=save_masks, progress=on_frame, save_map=save_map,
                                       load_map=load_map, localize_only=localize_only, overwrite=overwrite,
-                                      stereo_check=not no_stereo_check)
+                                      stereo_check=not no_stereo_check, report=report, gt=gt, viewer=viewer, rrd=rrd)
     out_console.print(timing_table(result.summary, "timing (ms per frame)"))
     st = result.stats
     out_console.print(
@@ -222,13 +229,36 @@ def run(
                           f"{st.get('recoveries', 0)} (details in run.json)")
     if save_map:
         out_console.print(f"map saved to {save_map}")
-    if report is not None:
+    if bag_report is not None:
+        r = bag_report
         out_console.print(
-            f"bag: {report['pairs']} stereo pairs from {report['left_topic']} + {report['right_topic']} "
-            f"(unpaired: {report['unpaired_left']} left, {report['unpaired_right']} right, "
-            f"tolerance {report['tolerance_s'] * 1000:g} ms); calibration: {report['calibration_source']}"
-            f"{', rectified on read' if report['rectified_on_read'] else ''}; output bag {report['output_bag']}",
+            f"bag: {r['pairs']} stereo pairs from {r['left_topic']} + {r['right_topic']} "
+            f"(unpaired: {r['unpaired_left']} left, {r['unpaired_right']} right, "
+            f"tolerance {r['tolerance_s'] * 1000:g} ms); calibration: {r['calibration_source']}"
+            f"{', rectified on read' if r['rectified_on_read'] else ''}; output bag {r['output_bag']}",
             highlight=False)
+    if result.report is not None:
+        out_console.print(f"report: {result.report}", highlight=False)
+    if rrd is not None:
+        out_console.print(f"recording: {rrd} (open it with `rerun {rrd}`)", highlight=False)
+
+
+@app.command("report")
+def report_cmd(
+    run_dir: Path = typer.Argument(..., help="Output folder of `dynastereo run` (or `mask`)."),
+    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth trajectory, KITTI or TUM (default: poses/NN.txt beside a KITTI-layout sequence, when present)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="HTML file to write (default: RUN_DIR/report.html)."),
+    overlays: int = typer.Option(6, "--overlays", help="Mask overlays at most (first, worst, evenly spaced; needs --save-masks in the run)."),
+    no_auto_gt: bool = typer.Option(False, "--no-auto-gt", help="Do not look for the ground truth beside the sequence."),
+) -> None:
+    """One self-contained HTML page of a run: summary, trajectory vs ground truth, APE/RPE/drift, timing, masks, objects."""
+    from ..api import make_report
+
+    try:
+        path = make_report(run_dir, gt, out, overlays=overlays, auto_gt=not no_auto_gt)
+    except DynastereoError as e:
+        _fail(e)
+    out_console.print(f"report: {path}", highlight=False)
 
 
 @app.command("export-bag")
@@ -403,13 +433,15 @@ def demo(
     frames: int = typer.Option(60, help="Frames to generate."),
     detector: Optional[str] = typer.Option(None, help="Detector (default: yolox-nano if its weights are present, else the oracle)."),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
+    viewer: bool = typer.Option(False, "--viewer", help="Show the outline-masked run live in the rerun viewer (needs `pip install dynastereo[viz]`)."),
+    rrd: Optional[Path] = typer.Option(None, "--rrd", help="Record the outline-masked run into FILE.rrd for the rerun viewer."),
 ) -> None:
-    """Embedded default, offline: synthetic dynamic scene -> SLAM unmasked vs masked, evaluated against GT."""
+    """Embedded default, offline: synthetic dynamic scene -> SLAM unmasked vs masked, evaluated against GT; an HTML report per run."""
     from ..demo import run_demo
 
     try:
         run_demo(out, scenario=scenario, frames=frames, detector=detector, models_dir=models_dir,
-                 console=out_console, progress=_progress)
+                 console=out_console, progress=_progress, viewer=viewer, rrd=rrd)
     except DynastereoError as e:
         _fail(e)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -35,36 +36,55 @@ def _new_figure(size: tuple[float, float]) -> Figure:
     return fig
 
 
-def _save(fig: Figure, path_png: str | Path) -> Path:
+def _save(fig: Figure, path_png: str | Path | BinaryIO) -> Path | BinaryIO:
+    """Write the PNG to a path (its folder made) or to a binary file object (returned as is)."""
+    if hasattr(path_png, "write"):
+        fig.savefig(path_png, format="png")
+        return path_png
     path = Path(path_png)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, format="png")
     return path
 
 
+def side_view_plane(ref: Trajectory) -> str:
+    """The side view: the axis of the top view (:func:`top_view_plane`) along which
+    ``ref`` travels furthest, against the axis the top view drops (the height)."""
+    top = top_view_plane(ref)
+    spread = np.ptp(ref.positions, axis=0)
+    along = max(top, key=lambda c: spread[_AXES[c]])
+    return along + next(c for c in "xyz" if c not in top)
+
+
 def plot_trajectories(
     est: Trajectory | dict[str, Trajectory],
-    gt: Trajectory,
-    path_png: str | Path,
+    gt: Trajectory | None,
+    path_png: str | Path | BinaryIO,
     title: str | None = None,
     *,
     plane: str = "auto",
-) -> Path:
+) -> Path | BinaryIO:
     """Top view of ``est`` (pass the aligned one, ``EvalResult.estimate``) over ``gt``.
 
-    ``est`` may be a dict ``{label: trajectory}`` to compare several estimates.
+    ``est`` may be a dict ``{label: trajectory}`` to compare several estimates; ``gt``
+    may be None (the estimate alone).
 
-    ``plane``: ``"auto"`` (see :func:`top_view_plane`), or two of x/y/z, e.g. ``"xz"``.
-    Equal aspect, circle = start, square = end.  Returns the PNG path.
+    ``plane``: ``"auto"`` (see :func:`top_view_plane`), ``"side"`` (see
+    :func:`side_view_plane`), or two of x/y/z, e.g. ``"xz"``.  Equal aspect, circle =
+    start, square = end.  Returns the PNG path (or the file object written to).
     """
-    plane = top_view_plane(gt) if plane == "auto" else plane
+    ests = est if isinstance(est, dict) else {"estimate": est}
+    ref = gt if gt is not None else next(iter(ests.values()))
+    if plane == "auto":
+        plane = top_view_plane(ref)
+    elif plane == "side":
+        plane = side_view_plane(ref)
     if len(plane) != 2 or any(c not in _AXES for c in plane):
         raise ValueError(f"plane must be two of x, y, z (e.g. 'xz'), got {plane!r}")
     i, j = _AXES[plane[0]], _AXES[plane[1]]
     fig = _new_figure((7.0, 6.0))
     ax = fig.add_subplot()
-    ests = est if isinstance(est, dict) else {"estimate": est}
-    curves = [(gt, "ground truth", dict(color="0.2", ls="--"))]
+    curves = [] if gt is None else [(gt, "ground truth", dict(color="0.2", ls="--"))]
     curves += [(t, label, dict(color=f"C{k}")) for k, (label, t) in enumerate(ests.items())]
     for traj, label, style in curves:
         p = traj.positions
@@ -82,7 +102,7 @@ def plot_trajectories(
     return _save(fig, path_png)
 
 
-def plot_ape_over_time(result: EvalResult, path_png: str | Path, title: str | None = None) -> Path:
+def plot_ape_over_time(result: EvalResult, path_png: str | Path | BinaryIO, title: str | None = None) -> Path | BinaryIO:
     """APE translation error per frame (against time when the estimate has timestamps)."""
     ts = result.estimate.timestamps
     x = ts - ts[0] if ts is not None else np.arange(result.n_frames)

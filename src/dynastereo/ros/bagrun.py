@@ -2,9 +2,11 @@
 
 The bag is read as a :class:`~dynastereo.ros.bags.BagStereoSequence` and fed to the same
 job as a sequence folder (:func:`dynastereo.api.slam_job`: trajectory files,
-``timing.json``, ``run.json``), with a :class:`BagOutput` sink that writes every tracked
-frame to ``DIR/output.{bag,db3,mcap}`` (the input's format): odometry, TF, the
-masked images, the masks and the disparity (topics in :mod:`dynastereo.ros.messages`).
+``timing.json``, ``run.json``), with a :class:`BagOutput` observer that writes every
+tracked frame to ``DIR/output.{bag,db3,mcap}`` (the input's format): odometry, TF, the
+masked images, the masks, the disparity, the path so far and (every ``MAP_EVERY``-th frame
+and once more after the final bundle adjustment) the map points (topics in
+:mod:`dynastereo.ros.messages`).
 ``DIR/bag.json`` records the pairing (pairs, unpaired left/right messages, tolerance),
 the calibration source and what was written.
 """
@@ -20,17 +22,20 @@ import numpy as np
 
 from ..config import Config
 from ..errors import InputError
+from ..observers import FrameEvent
 from ..types import StereoFrame, StereoMasks
 from .bags import BAG_SUFFIX, BagStereoSequence, BagWriter
 from .convert import masked_image, twist_between
 from .core import disparity_data
-from .messages import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC, ODOM_FRAME, OUTPUT_TOPICS, OUTPUT_TYPES, OdometryData
+from .messages import (DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC, MAP_EVERY, ODOM_FRAME, OUTPUT_TOPICS, OUTPUT_TYPES,
+                       OdometryData)
 
-ALL_OUTPUTS = ("odometry", "tf", "masked", "masks", "disparity")
+ALL_OUTPUTS = ("odometry", "tf", "masked", "masks", "disparity", "path", "map_points")
 
 
 def parse_outputs(spec: str | list[str] | tuple[str, ...] | None) -> tuple[str, ...]:
-    """``"all"`` / None -> every output; else a comma list of odometry, tf, masked, masks, disparity."""
+    """``"all"`` / None -> every output; else a comma list of odometry, tf, masked, masks, disparity,
+    path, map_points."""
     if spec is None:
         return ALL_OUTPUTS
     items = [s.strip() for s in (spec.split(",") if isinstance(spec, str) else spec) if s.strip()]
@@ -56,6 +61,9 @@ class BagOutput:
         self.outputs = outputs
         self._matcher = None
         self._prev: tuple[np.ndarray, int] | None = None
+        self._path: tuple[list[np.ndarray], list[int]] = ([], [])
+        self._system: Any = None  # the SLAM system of the frames written (for the final map)
+        self._last: tuple[int, int] = (0, 0)  # stamp and count of the frames written
         keys = [k for k in OUTPUT_TOPICS if self._key_on(k)]
         for k in keys:
             self.writer.add(OUTPUT_TOPICS[k], OUTPUT_TYPES[k])
@@ -64,14 +72,26 @@ class BagOutput:
         group = {"left_masked": "masked", "right_masked": "masked", "left_mask": "masks", "right_mask": "masks"}
         return group.get(key, key) in self.outputs
 
-    def on_frame(self, position: int, frame: StereoFrame, masks: StereoMasks | None, pose: np.ndarray) -> None:
-        """:class:`~dynastereo.pipeline.FrameSink`: the tracked frame into the bag, at its stamp."""
-        self.write(position, frame, masks, pose, int(self.stamps_ns[frame.index]))
+    def on_frame(self, event: FrameEvent) -> None:
+        """:class:`~dynastereo.observers.FrameObserver`: the tracked frame into the bag, at its
+        stamp (the map points from ``event.system``)."""
+        stamp = int(self.stamps_ns[event.frame.index])
+        self._system, self._last = event.system, (stamp, event.position + 1)
+        self.write(event.position, event.frame, event.masks, event.pose, stamp,
+                   event.system.map_points if event.system is not None else None)
 
     def write(self, seq_pos: int, frame: StereoFrame, masks: StereoMasks | None, pose: np.ndarray,
-              stamp_ns: int) -> None:
+              stamp_ns: int, map_points: Callable[[], np.ndarray] | None = None) -> None:
+        """One frame's messages; ``map_points`` (``System.map_points``) gives the cloud
+        on every ``MAP_EVERY``-th frame."""
         w, b, cf = self.writer, self.b, self.camera_frame
         T = np.vstack([np.asarray(pose, np.float64)[:3], [0.0, 0.0, 0.0, 1.0]])
+        self._path[0].append(T)
+        self._path[1].append(int(stamp_ns))
+        if "path" in self.outputs:
+            w.write(OUTPUT_TOPICS["path"], stamp_ns, b.path(*self._path, ODOM_FRAME, seq=seq_pos))
+        if map_points is not None and seq_pos % MAP_EVERY == 0:
+            self.write_map(map_points(), stamp_ns, seq_pos)
         prev = self._prev
         lin, ang = twist_between(prev[0] if prev else None, T, (stamp_ns - prev[1]) * 1e-9 if prev else 0.0)
         self._prev = (T, stamp_ns)
@@ -104,7 +124,15 @@ class BagOutput:
             w.write(OUTPUT_TOPICS["disparity"], stamp_ns,
                     b.disparity(disparity_data(d, self.calibration, self.cfg), stamp_ns, cf, seq=seq_pos))
 
+    def write_map(self, points: np.ndarray, stamp_ns: int, seq_pos: int = 0) -> None:
+        if "map_points" in self.outputs:
+            self.writer.write(OUTPUT_TOPICS["map_points"], stamp_ns, self.b.point_cloud(points, stamp_ns, ODOM_FRAME,
+                                                                                        seq=seq_pos))
+
     def close(self) -> None:
+        """The final map (after the run's last bundle adjustment), then the bag closed."""
+        if self._system is not None and self._last[1]:
+            self.write_map(self._system.map_points(), *self._last)
         self.writer.close()
 
 
@@ -136,6 +164,7 @@ def run_bag(
     progress: Callable[[int, int, dict], None] | None = None,
     overwrite: bool = True,
     stereo_check: bool = True,
+    observers: tuple = (),
 ) -> BagRunResult:
     """Run masking + SLAM on a stereo bag (module doc); see :class:`BagStereoSequence` for
     the topic, calibration and pairing arguments (``fallback_calib``: used only when the bag
@@ -161,8 +190,9 @@ def run_bag(
             return (writers[0],)
 
         try:  # a bag has no synthetic ground truth: detector 'oracle' is refused by the masker factory
-            res = slam_job(seq, out, cfg, frames=frames, models_dir=models_dir, open_sinks=open_writer,
-                           save_masks=save_masks, progress=progress, overwrite=overwrite, stereo_check=stereo_check)
+            res = slam_job(seq, out, cfg, frames=frames, models_dir=models_dir, observers=observers,
+                           open_observers=open_writer, save_masks=save_masks, progress=progress,
+                           overwrite=overwrite, stereo_check=stereo_check)
         finally:
             for w in writers:
                 w.close()

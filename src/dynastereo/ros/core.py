@@ -576,6 +576,11 @@ class StereoNodeCore:
             self.sink.publish_images(res, disp)
         return res
 
+    def map_points(self) -> np.ndarray:
+        """(M, 3) positions of the map points, in ``odom`` (empty before the calibration)."""
+        with self._slam_lock:
+            return self._system.map_points() if self._system is not None else np.zeros((0, 3))
+
     def compute_disparity(self, frame: StereoFrame, masks: StereoMasks | None) -> DisparityData:
         """The full-frame disparity to publish (the masker's when it made one)."""
         cfg = self._masker_cfg

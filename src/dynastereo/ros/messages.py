@@ -22,7 +22,14 @@ topic                          type                       content
 ``/dynastereo/left/mask``      sensor_msgs/Image mono8    255 = dynamic
 ``/dynastereo/right/mask``     sensor_msgs/Image mono8    255 = dynamic
 ``/dynastereo/disparity``      stereo_msgs/DisparityImage 32FC1 pixels, -1 = invalid
+``/dynastereo/path``           nav_msgs/Path              the trajectory so far, in ``odom``
+``/dynastereo/map_points``     sensor_msgs/PointCloud2    the map points (x, y, z float32)
+                                                          in ``odom``, every ``MAP_EVERY``-th
+                                                          frame and (bags) after the final BA
 =============================  =========================  ==============================
+
+In rviz: Fixed Frame ``odom``; add *Path* on ``/dynastereo/path``, *PointCloud2* on
+``/dynastereo/map_points``, *Odometry*, *TF*, *Image* on the masked images.
 
 ``odom`` is the first frame's (rectified) left camera: the KITTI convention, camera axes
 x right, y down, z forward.  The odometry of frame k is the pose tracking returned for
@@ -55,6 +62,8 @@ OUTPUT_TOPICS: dict[str, str] = {
     "left_mask": "/dynastereo/left/mask",
     "right_mask": "/dynastereo/right/mask",
     "disparity": "/dynastereo/disparity",
+    "path": "/dynastereo/path",
+    "map_points": "/dynastereo/map_points",
 }
 OUTPUT_TYPES: dict[str, str] = {
     "odometry": "nav_msgs/Odometry",
@@ -64,7 +73,10 @@ OUTPUT_TYPES: dict[str, str] = {
     "left_mask": "sensor_msgs/Image",
     "right_mask": "sensor_msgs/Image",
     "disparity": "stereo_msgs/DisparityImage",
+    "path": "nav_msgs/Path",
+    "map_points": "sensor_msgs/PointCloud2",
 }
+MAP_EVERY = 10  # frames between two map point clouds (the whole map each time)
 
 INVALID_DISPARITY = -1.0
 
@@ -118,7 +130,7 @@ class MessageBuilder:
         """A uint8[] field value."""
         raise NotImplementedError
 
-    def make(self, name: str, **kw: Any) -> Any:
+    def make(self, name: str, /, **kw: Any) -> Any:
         """``name`` built from ``kw``; a key the type lacks is matched case-insensitively
         (``D`` -> ``d``) or dropped (``seq`` in ROS 2)."""
         c = self.cls(name)
@@ -185,6 +197,27 @@ class MessageBuilder:
 
     def tf(self, o: OdometryData) -> Any:
         return self.make("tf2_msgs/TFMessage", transforms=[self.transform(o)])
+
+    def pose_stamped(self, pose: np.ndarray, stamp_ns: int, frame_id: str, seq: int = 0) -> Any:
+        p, q = pose_quaternion(pose)
+        return self.make("geometry_msgs/PoseStamped", header=self.header(stamp_ns, frame_id, seq),
+                         pose=self.make("geometry_msgs/Pose", position=self._vec3("geometry_msgs/Point", p),
+                                        orientation=self._quat(q)))
+
+    def path(self, poses: list[np.ndarray], stamps_ns: list[int], frame_id: str, seq: int = 0) -> Any:
+        """``nav_msgs/Path`` of camera-to-world ``poses`` (the trajectory so far), stamped
+        with the last stamp."""
+        return self.make("nav_msgs/Path", header=self.header(stamps_ns[-1] if stamps_ns else 0, frame_id, seq),
+                         poses=[self.pose_stamped(T, t, frame_id, k) for k, (T, t) in enumerate(zip(poses, stamps_ns))])
+
+    def point_cloud(self, points: np.ndarray, stamp_ns: int, frame_id: str, seq: int = 0) -> Any:
+        """``sensor_msgs/PointCloud2``: an unordered cloud of float32 x, y, z (little endian)."""
+        xyz = np.ascontiguousarray(np.asarray(points, dtype="<f4").reshape(-1, 3))
+        fields = [self.make("sensor_msgs/PointField", name=n, offset=4 * i, datatype=7, count=1)  # 7 = FLOAT32
+                  for i, n in enumerate("xyz")]
+        return self.make("sensor_msgs/PointCloud2", header=self.header(stamp_ns, frame_id, seq), height=1,
+                         width=len(xyz), fields=fields, is_bigendian=False, point_step=12, row_step=12 * len(xyz),
+                         data=self.blob(xyz.view(np.uint8).reshape(-1)), is_dense=True)
 
     def disparity(self, d: DisparityData, stamp_ns: int, frame_id: str, seq: int = 0) -> Any:
         img = d.ros_image()

@@ -15,9 +15,10 @@ Subscribes (message_filters, approximate-time synchronised; ``~exact_sync`` for 
 Publishes
     ``~odometry`` nav_msgs/Odometry, ``/tf`` (``~odom_frame`` -> camera frame), ``~left/masked``,
     ``~right/masked``, ``~left/mask``, ``~right/mask`` (sensor_msgs/Image), ``~disparity``
-    (stereo_msgs/DisparityImage), ``~ready`` (std_msgs/Bool, latched: true once the SLAM
-    has its calibration).  Images and disparity are computed and sent only while someone
-    subscribes.
+    (stereo_msgs/DisparityImage), ``~path`` (nav_msgs/Path, the trajectory so far, latched),
+    ``~map_points`` (sensor_msgs/PointCloud2, the map every ``MAP_EVERY``-th frame, latched),
+    ``~ready`` (std_msgs/Bool, latched: true once the SLAM has its calibration).  Images,
+    disparity, path and map are computed and sent only while someone subscribes.
 
 Services (std_srvs/Trigger)
     ``~save_trajectory`` -- trajectory (KITTI, TUM), timing.json, node.json into ``~save_dir``;
@@ -56,6 +57,7 @@ from .messages import (
     DEFAULT_LEFT_TOPIC,
     DEFAULT_RIGHT_INFO,
     DEFAULT_RIGHT_TOPIC,
+    MAP_EVERY,
     ODOM_FRAME,
     DisparityData,
     MessageBuilder,
@@ -149,8 +151,8 @@ class Ros1Node:
     def __init__(self) -> None:
         rospy = import_rospy()
         import message_filters
-        from nav_msgs.msg import Odometry
-        from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+        from nav_msgs.msg import Odometry, Path as PathMsg
+        from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
         from std_msgs.msg import Bool
         from std_srvs.srv import Trigger, TriggerResponse
         from stereo_msgs.msg import DisparityImage
@@ -194,6 +196,9 @@ class Ros1Node:
         self.pub_img = {k: rospy.Publisher("~" + k, Image, queue_size=2)
                         for k in ("left/masked", "right/masked", "left/mask", "right/mask")}
         self.pub_disp = rospy.Publisher("~disparity", DisparityImage, queue_size=2)
+        self.pub_path = rospy.Publisher("~path", PathMsg, queue_size=1, latch=True)
+        self.pub_map = rospy.Publisher("~map_points", PointCloud2, queue_size=1, latch=True)
+        self._path: tuple[list[np.ndarray], list[int]] = ([], [])
         self.pub_ready = rospy.Publisher("~ready", Bool, queue_size=1, latch=True)
         self._Bool = Bool
         self.pub_ready.publish(Bool(False))
@@ -319,6 +324,13 @@ class Ros1Node:
                 pub.publish(self.b.image(img(), r.stamp_ns, fid, enc, seq=r.position))
         if disparity is not None:
             self.pub_disp.publish(self.b.disparity(disparity, r.stamp_ns, fid, seq=r.position))
+        odom = r.odometry.frame_id
+        self._path[0].append(r.odometry.pose)
+        self._path[1].append(r.stamp_ns)
+        if self.pub_path.get_num_connections() > 0:
+            self.pub_path.publish(self.b.path(*self._path, odom, seq=r.position))
+        if r.position % MAP_EVERY == 0 and self.pub_map.get_num_connections() > 0:
+            self.pub_map.publish(self.b.point_cloud(self.core.map_points(), r.stamp_ns, odom, seq=r.position))
 
     # ------------------------------------------------------------------ services, params
     def status(self) -> dict[str, Any]:

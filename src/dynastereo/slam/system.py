@@ -109,6 +109,16 @@ class SystemStats:
         return dataclasses.asdict(self)
 
 
+@dataclass
+class FrameView:
+    """What the last tracked frame looks like to a viewer (``System.frame_view()``)."""
+
+    uv: np.ndarray  # (N, 2) left keypoints, pixels
+    inlier: np.ndarray  # (N,) bool: matched to a map point and kept by the pose optimisation
+    outlier: np.ndarray  # (N,) bool: matched, rejected as an outlier
+    local_points: np.ndarray  # (M, 3) world positions of the local map's points
+
+
 def _median(v: list[float]) -> float:
     return float(np.median(v)) if v else 0.0
 
@@ -217,6 +227,22 @@ class System:
     def trajectory(self) -> np.ndarray:
         """(N, 3, 4) camera-to-world poses of the left camera, one per frame fed."""
         return self.tracker.trajectory.poses(self.map)
+
+    def frame_view(self) -> FrameView | None:
+        """Keypoints (inliers / outliers) of the last frame tracked and the local map's
+        points (copies; None before the first frame)."""
+        f = self.tracker.last
+        if f is None:
+            return None
+        matched = f.point_ids >= 0
+        local = [k for k in self.tracker.local_kfs if k in self.map.keyframes]
+        pts = self.map.points_of(local) if local else np.zeros(0, np.int64)
+        return FrameView(f.uv.copy(), matched & ~f.outlier, matched & f.outlier, self.map.pos[pts].copy())
+
+    def map_points(self) -> np.ndarray:
+        """(M, 3) world positions of all good map points (a copy)."""
+        n = self.map.n
+        return self.map.pos[:n][~self.map.bad[:n]].copy()
 
     def results(self) -> list[TrackResult]:
         """Every frame fed, as tracked."""

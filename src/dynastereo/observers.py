@@ -1,0 +1,40 @@
+"""Per-frame hook of the jobs: what leaves the pipeline after each frame.
+
+``run_mask_job`` and ``run_slam_job`` (``pipeline.py``) call ``observer.on_frame(event)``
+for every observer they are given, once per frame, after the frame's results are
+written.  Viewers and recorders (``dynastereo.viz.rerun``) are observers; the
+pipeline itself knows nothing about them, and with no observer nothing is imported.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Iterable, Protocol, runtime_checkable
+
+import numpy as np
+
+from .types import StereoFrame, StereoMasks
+
+
+@dataclass
+class FrameEvent:
+    """One frame done by a job."""
+
+    position: int  # in the order fed (0, 1, ...)
+    frame: StereoFrame
+    masks: StereoMasks | None  # None: unmasked run
+    ms: dict[str, float] = field(default_factory=dict)  # stage -> milliseconds of this frame
+    pose: np.ndarray | None = None  # 3x4 camera-to-world (SLAM jobs), else None
+    status: str = ""  # SLAM: "init" / "tracked" / "lost"
+    system: Any = None  # the SLAM System (``System.frame_view()`` gives features and local map)
+    calibration: Any = None  # the sequence's rectified Calibration
+
+
+@runtime_checkable
+class FrameObserver(Protocol):
+    def on_frame(self, event: FrameEvent) -> None: ...
+
+
+def notify(observers: Iterable[FrameObserver], event: FrameEvent) -> None:
+    for ob in observers:
+        ob.on_frame(event)
