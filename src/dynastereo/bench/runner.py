@@ -29,7 +29,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable
 
-from ..errors import ConfigError
+from ..errors import ConfigError, DynastereoError
 from .discover import BenchSequence, discover, select
 from .jobs import BenchJob, JobState, finished_record, job_config, store_result, write_json_atomic
 
@@ -67,9 +67,14 @@ def parse_maskers(spec: str | list[str] | tuple[str, ...]) -> list[str]:
 
 
 def _frame_count(seq: BenchSequence, frames: str | None) -> int:
+    """Frames a job of ``seq`` will feed; 0 when the sequence cannot be opened (its jobs then
+    fail with the reader's error, reported like any other failure)."""
     from ..io import open_sequence, parse_frame_spec
 
-    return len(parse_frame_spec(frames, len(open_sequence(seq.path))))
+    try:
+        return len(parse_frame_spec(frames, len(open_sequence(seq.path))))
+    except DynastereoError:
+        return 0
 
 
 def plan_jobs(sequences: list[BenchSequence], maskers: list[str], repeats: int, out: Path,

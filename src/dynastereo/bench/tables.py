@@ -17,7 +17,10 @@ import numpy as np
 
 from .discover import BenchSequence
 
-STAGE_ORDER = ("read", "detect", "masking", "features", "stereo", "track", "total")
+from ..masking.maskers import MASK_STAGES
+
+# columns of the timing table: masking's parts, masking (= detect + parts), then the SLAM
+STAGE_ORDER = ("read", "detect", *MASK_STAGES, "masking", "features", "stereo", "track", "local_mapping", "total")
 
 
 def fmt(v: float | None, digits: int = 4) -> str:

@@ -429,13 +429,13 @@ def bench_cmd(
     from ..api import bench
 
     bar = _progress()
-    task = bar.add_task("bench", total=None, info="")
+    task = bar.add_task("bench frames", total=None, info="")
 
     def on_progress(p: dict) -> None:
         running = ", ".join(p["running"][:3]) + (" ..." if len(p["running"]) > 3 else "")
         failed = f", {p['jobs_failed']} failed" if p["jobs_failed"] else ""
         bar.update(task, completed=p["frames_done"], total=p["frames_total"] or None,
-                   info=f"jobs {p['jobs_done']}/{p['jobs_total']}{failed}  frames  {running}")
+                   info=f"jobs {p['jobs_done']}/{p['jobs_total']}{failed}" + (f", running {running}" if running else ""))
         ev = p.get("event")
         if ev and ev[0] == "failed":
             bar.console.print(f"[yellow]job {ev[1]} failed[/] (retried once; errors in results.json)", highlight=False)
