@@ -26,6 +26,7 @@ import multiprocessing as mp
 import os
 import signal
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from typing import Any
@@ -66,6 +67,21 @@ class _Throttle:
             self.send(done)
 
 
+@contextmanager
+def _environment(values: dict[str, str]):
+    """``os.environ`` with ``values`` set, restored afterwards (for child processes to inherit)."""
+    before = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
 # --------------------------------------------------------------------------- local
 
 
@@ -87,17 +103,9 @@ def _local_worker(conn: Connection) -> None:
 class _Worker:
     def __init__(self, ctx) -> None:
         self.conn, child = ctx.Pipe(duplex=True)
-        env_before = {k: os.environ.get(k) for k in THREAD_ENV}
-        os.environ.update(THREAD_ENV)  # inherited by the spawned interpreter before any import
-        try:
+        with _environment(THREAD_ENV):  # inherited by the spawned interpreter before any import
             self.proc = ctx.Process(target=_local_worker, args=(child,), daemon=True, name="dynastereo-bench")
             self.proc.start()
-        finally:
-            for k, v in env_before.items():
-                if v is None:
-                    os.environ.pop(k, None)
-                else:
-                    os.environ[k] = v
         child.close()
         self.job: BenchJob | None = None
 
@@ -189,16 +197,19 @@ class RayEngine:
         except ImportError:
             raise DynastereoError("--engine ray needs Ray: pip install 'dynastereo[bench]' (or pip install ray)") from None
         self._ray = ray
-        env = {"env_vars": dict(THREAD_ENV)}
         if address:
-            ray.init(address=address, runtime_env=env, log_to_driver=False, logging_level="WARNING")
+            # a cluster's workers get the single-thread environment through the runtime env
+            ray.init(address=address, runtime_env={"env_vars": dict(THREAD_ENV)}, log_to_driver=False,
+                     logging_level="WARNING")
             cpus = int(ray.cluster_resources().get("CPU", 1))
             self.description = f"Ray cluster at {address}, {cpus} CPUs"
         else:
             if workers < 1:
                 raise DynastereoError(f"--workers must be >= 1, got {workers}")
-            ray.init(num_cpus=workers, include_dashboard=False, runtime_env=env, log_to_driver=False,
-                     logging_level="WARNING")
+            # a local instance's workers inherit the driver's environment: set, start, restore
+            # (no runtime_env, so the workers Ray starts with the instance take the first jobs)
+            with _environment(THREAD_ENV):
+                ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False, logging_level="WARNING")
             cpus = workers
             self.description = f"local Ray instance, {workers} CPUs"
         self.capacity = max(1, cpus)

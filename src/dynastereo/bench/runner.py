@@ -22,6 +22,7 @@ KeyboardInterrupt is raised again.
 from __future__ import annotations
 
 import os
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -180,7 +181,6 @@ def run_bench(
     models_dir: str | Path | None = None,
     plots: bool = True,
     progress: ProgressFn | None = None,
-    on_engine: Callable[[str], None] | None = None,
 ) -> BenchResult:
     """Run the sweep (see module doc) and return its records and output paths.
 
@@ -211,11 +211,10 @@ def run_bench(
     driver.write_results(finished=False)
     driver.report()
     interrupted = False
+    closer = None
     if todo:
         eng = make_engine(engine, workers, address)
         driver.meta["engine_description"] = eng.description
-        if on_engine is not None:
-            on_engine(eng.description)
         try:
             driver.run(eng, todo)
         except KeyboardInterrupt:
@@ -224,13 +223,17 @@ def run_bench(
                 if s.status == "running":
                     s.status = "interrupted"
         finally:
-            eng.close()
-    wall = time.perf_counter() - t0
-    driver.meta["wall_s"] = round(wall, 3)
+            # stopping the workers / Ray (a second or so) overlaps the tables and plots
+            closer = threading.Thread(target=eng.close, name="bench-engine-close")
+            closer.start()
     runs = driver.runs()
+    driver.meta["jobs_s"] = round(time.perf_counter() - t0, 3)
     results_path = driver.write_results(finished=not interrupted)
     tables_path = write_tables(runs, out / TABLES_NAME, meta=driver.meta)
     plot_paths = write_plots(runs, chosen, out / "plots") if plots else []
+    if closer is not None:
+        closer.join()
+    wall = time.perf_counter() - t0
     result = BenchResult(out, runs, results_path, tables_path, plot_paths, wall, interrupted)
     if interrupted:
         raise KeyboardInterrupt
