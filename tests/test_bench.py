@@ -161,3 +161,26 @@ def test_cli_bench_prints_the_tables(local_run, synth_root):
     assert "ATE RMSE" in r.output and "4 of 4 runs done (4 reused), 0 failed" in r.output
     bad = CliRunner().invoke(app, ["bench", str(synth_root), "--out", str(out), "--maskers", "none,orb"])
     assert bad.exit_code == 2 and "--maskers: unknown orb" in bad.output
+
+
+def test_euroc_ground_truth_becomes_rectified_left_camera_poses(euroc_dir, tmp_path):
+    import numpy as np
+
+    from dynastereo.bench.discover import euroc_ground_truth_tum
+    from dynastereo.eval import read_trajectory
+    from dynastereo.io import open_sequence
+    from dynastereo.io.calib import read_yaml_file
+
+    seq = open_sequence(euroc_dir)
+    ns = seq.timestamps_ns[:3]
+    rows = np.zeros((3, 17))
+    rows[:, 0] = ns
+    rows[:, 1:4] = [[0, 0, 0], [1, 0, 0], [1, 2, 0]]
+    rows[:, 4] = 1.0  # identity body rotation (q = w, x, y, z)
+    csv = tmp_path / "data.csv"
+    np.savetxt(csv, rows, delimiter=",", header="timestamp,p_x,p_y,p_z,q_w,q_x,q_y,q_z,...")
+    traj = read_trajectory(euroc_ground_truth_tum(csv, seq, tmp_path / "gt.tum.txt"))
+    T_BS = np.asarray(read_yaml_file(euroc_dir / "mav0" / "cam0" / "sensor.yaml")["T_BS"]["data"]).reshape(4, 4)
+    np.testing.assert_allclose(traj.timestamps, ns * 1e-9, atol=1e-9)
+    np.testing.assert_allclose(traj.positions, rows[:, 1:4] + T_BS[:3, 3], atol=1e-6)
+    np.testing.assert_allclose(traj.poses[0][:3, :3], T_BS[:3, :3] @ seq.rectifier.R1.T, atol=1e-6)
