@@ -213,8 +213,11 @@ def run_bench(
     interrupted = False
     closer = None
     if todo:
+        t_engine = time.perf_counter()
         eng = make_engine(engine, workers, address)
         driver.meta["engine_description"] = eng.description
+        driver.meta["engine_start_s"] = round(time.perf_counter() - t_engine, 3)
+        driver.meta["jobs_started_at_s"] = round(time.perf_counter() - t0, 3)
         try:
             driver.run(eng, todo)
         except KeyboardInterrupt:
@@ -227,7 +230,7 @@ def run_bench(
             closer = threading.Thread(target=eng.close, name="bench-engine-close")
             closer.start()
     runs = driver.runs()
-    driver.meta["jobs_s"] = round(time.perf_counter() - t0, 3)
+    driver.meta["jobs_done_at_s"] = round(time.perf_counter() - t0, 3)  # seconds since run_bench began
     results_path = driver.write_results(finished=not interrupted)
     tables_path = write_tables(runs, out / TABLES_NAME, meta=driver.meta)
     plot_paths = write_plots(runs, chosen, out / "plots") if plots else []
