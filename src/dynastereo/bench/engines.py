@@ -209,7 +209,9 @@ class RayEngine:
             # a local instance's workers inherit the driver's environment: set, start, restore
             # (no runtime_env, so the workers Ray starts with the instance take the first jobs)
             with _environment(THREAD_ENV):
-                ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False, logging_level="WARNING")
+                # address="local": a new instance even when RAY_ADDRESS or a `ray start` cluster exists
+                ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False,
+                         logging_level="WARNING")
             cpus = workers
             self.description = f"local Ray instance, {workers} CPUs"
         self.capacity = max(1, cpus)
