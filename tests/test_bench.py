@@ -46,8 +46,9 @@ def local_run(synth_root, tmp_path_factory):
     out = tmp_path_factory.mktemp("bench_local")
     mp = pytest.MonkeyPatch()
     mp.setenv("DYNASTEREO_BENCH_FAULT", "convoy/00/box/r0")  # its first attempt SIGKILLs its worker
+    seen: list[dict] = []
     try:
-        return out, _bench(synth_root, out, "local")
+        return out, _bench(synth_root, out, "local", progress=seen.append), seen
     finally:
         mp.undo()
 
@@ -76,7 +77,7 @@ def test_discovery_of_real_layouts(data_dir):
 
 
 def test_killed_job_is_retried_and_failures_do_not_stop_the_others(local_run):
-    out, res = local_run
+    out, res, _ = local_run
     runs = {r["key"]: r for r in res.runs}
     assert len(runs) == 6
     killed = runs["convoy/00/box/r0"]
@@ -95,12 +96,22 @@ def test_killed_job_is_retried_and_failures_do_not_stop_the_others(local_run):
     assert (out / "plots" / "ate.png").is_file() and (out / "plots" / "trajectories_convoy_00.png").is_file()
 
 
+def test_progress_counts_frames_and_jobs(local_run):
+    _, _, seen = local_run
+    last = seen[-1]
+    assert last["jobs_done"] == last["jobs_total"] == 6 and last["jobs_failed"] == 2
+    assert last["frames_total"] == 4 * FRAMES  # the zbad sequence cannot be opened: 0 frames
+    assert last["frames_done"] == last["frames_total"] and not last["running"]
+    assert any(0 < p["frames_done"] < last["frames_total"] and p["running"] for p in seen)  # frames as they go
+    assert ("failed", "convoy/00/box/r0") in [p["event"] for p in seen]
+
+
 def test_job_numbers_are_those_of_run_and_eval(local_run, synth_root):
     from dynastereo.api import run_sequence
     from dynastereo.config import Config
     from dynastereo.eval import evaluate_files, to_json_dict
 
-    out, res = local_run
+    out, res, _ = local_run
     rec = next(r for r in res.runs if r["key"] == "oncoming/00/box/r0")
     single = out / "single"
     cfg = Config().with_overrides({"detector.name": "oracle", "masker.kind": "box"})
@@ -111,7 +122,7 @@ def test_job_numbers_are_those_of_run_and_eval(local_run, synth_root):
 
 
 def test_tables_hold_the_numbers_of_results(local_run):
-    out, res = local_run
+    out, res, _ = local_run
     tables = (out / "tables.md").read_text()
     for r in res.runs:
         if r["status"] != "done":
@@ -125,7 +136,7 @@ def test_tables_hold_the_numbers_of_results(local_run):
 
 
 def test_second_invocation_skips_finished_jobs(local_run, synth_root):
-    out, first = local_run
+    out, first, _ = local_run
     stamp = (out / "runs" / "oncoming" / "00" / "none" / "r0" / "result.json").stat().st_mtime_ns
     again = _bench(synth_root, out, "local", sequences="convoy/*,oncoming/*")
     assert len(again.runs) == 4 and all(r.get("reused") for r in again.runs)
@@ -145,7 +156,7 @@ def test_ray_gives_the_numbers_of_the_process_pool(local_run, synth_root, tmp_pa
     runs = {r["key"]: r for r in res.runs}
     assert all(r["status"] == "done" for r in runs.values())
     assert runs["oncoming/00/none/r0"]["attempts"] == 2 and "WorkerDied" in runs["oncoming/00/none/r0"]["errors"][0]
-    _, local = local_run
+    _, local, _ = local_run
     assert _metrics(res) == {k: v for k, v in _metrics(local).items() if k.startswith("oncoming")}
 
 
@@ -154,7 +165,7 @@ def test_cli_bench_prints_the_tables(local_run, synth_root):
 
     from dynastereo.cli.main import app
 
-    out, _ = local_run
+    out, _, _ = local_run
     r = CliRunner().invoke(app, ["bench", str(synth_root), "--out", str(out), "--maskers", "none,box",
                                  "--repeats", "1", "--detector", "oracle", "--no-plots", "--sequences", "c*,o*"])
     assert r.exit_code == 0, r.output
