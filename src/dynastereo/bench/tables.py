@@ -9,6 +9,7 @@ results.json.  ``std`` is the sample standard deviation (n - 1), shown when n > 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from typing import Any
@@ -164,7 +165,7 @@ def plot_sequence_trajectories(runs: list[dict[str, Any]], seq: BenchSequence, p
         if r["masker"] in ests or not r.get("ground_truth"):
             continue
         res = evaluate_files(Path(r["dir"]) / r["metrics"].get("estimate", "trajectory.kitti.txt"), r["ground_truth"])
-        ests[r["masker"]] = res.estimate
+        ests[r["masker"]] = dataclasses.replace(res.estimate, name=r["masker"])  # legend: the masker alone
         if gt is None or len(res.ground_truth) > len(gt):
             gt = res.ground_truth
     if gt is None:
