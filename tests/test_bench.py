@@ -140,6 +140,8 @@ def test_second_invocation_skips_finished_jobs(local_run, synth_root):
     stamp = (out / "runs" / "oncoming" / "00" / "none" / "r0" / "result.json").stat().st_mtime_ns
     again = _bench(synth_root, out, "local", sequences="convoy/*,oncoming/*")
     assert len(again.runs) == 4 and all(r.get("reused") for r in again.runs)
+    killed = next(r for r in again.runs if r["key"] == "convoy/00/box/r0")
+    assert killed["attempts"] == 2 and "WorkerDied" in killed["errors"][0]  # the record keeps its history
     assert _metrics(again) == {k: v for k, v in _metrics(first).items() if not k.startswith("zbad")}
     assert (out / "runs" / "oncoming" / "00" / "none" / "r0" / "result.json").stat().st_mtime_ns == stamp
 

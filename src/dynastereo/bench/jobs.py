@@ -65,8 +65,9 @@ class BenchJob:
     @property
     def config_hash(self) -> str:
         """What decides whether a finished result can be reused."""
-        blob = json.dumps({"config": self.config, "frames": self.frames, "sequence": str(self.sequence.path),
-                           "ground_truth": str(self.sequence.ground_truth)}, sort_keys=True)
+        gt = self.sequence.ground_truth
+        blob = json.dumps({"config": self.config, "frames": self.frames, "sequence": str(self.sequence.path.resolve()),
+                           "ground_truth": str(gt.resolve()) if gt else None}, sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -228,14 +229,8 @@ class JobState:
     frames_done: int = 0
 
     def to_record(self) -> dict[str, Any]:
-        if self.record is not None:
-            rec = dict(self.record)
-            rec["attempts"] = self.attempts
-            if self.errors:
-                rec["errors"] = self.errors
-            if self.status == "reused":
-                rec["reused"] = True
-            return rec
+        if self.record is not None:  # attempts and errors are in the record (store_result)
+            return dict(self.record, reused=True) if self.status == "reused" else dict(self.record)
         return {"key": self.job.key, "sequence": self.job.sequence.name, "masker": self.job.masker,
                 "repeat": self.job.repeat, "status": self.status, "attempts": self.attempts,
                 "error": self.errors[-1].splitlines()[0] if self.errors else None, "errors": self.errors,

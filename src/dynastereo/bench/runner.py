@@ -150,8 +150,10 @@ class _Driver:
                     continue
                 inflight -= 1
                 if ev.kind == "done":
+                    ev.value["attempts"] = s.attempts
+                    if s.errors:
+                        ev.value["errors"] = list(s.errors)
                     s.status, s.record = "done", store_result(s.job, ev.value)
-                    s.record["attempts"] = s.attempts
                 else:
                     s.errors.append(str(ev.value))
                     if s.attempts <= self.retries:
