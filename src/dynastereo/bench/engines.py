@@ -122,11 +122,18 @@ class LocalEngine:
         self.description = f"local process pool, {workers} workers"
 
     def submit(self, job: BenchJob) -> None:
-        w = next((w for w in self._workers if w.job is None), None)
-        if w is None:
+        i = next((i for i, w in enumerate(self._workers) if w.job is None), None)
+        if i is None:
             raise RuntimeError("no idle worker (the driver keeps at most `capacity` jobs in flight)")
+        if not self._workers[i].proc.is_alive():  # died while idle (e.g. the OOM killer): replace it
+            self._workers[i].conn.close()
+            self._workers[i] = _Worker(self._ctx)
+        w = self._workers[i]
         w.job = job
-        w.conn.send(job)
+        try:
+            w.conn.send(job)
+        except OSError:
+            pass  # it died just now: poll() reports the job failed and replaces the worker
 
     def poll(self, timeout: float) -> list[Event]:
         busy = [w for w in self._workers if w.job is not None]
