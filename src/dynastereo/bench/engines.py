@@ -215,7 +215,9 @@ class RayEngine:
                 raise DynastereoError(f"--workers must be >= 1, got {workers}")
             # a local instance's workers inherit the driver's environment: set, start, restore
             # (no runtime_env, so the workers Ray starts with the instance take the first jobs)
-            with _environment(THREAD_ENV):
+            # usage statistics off unless asked for: a benchmark (and CI) makes no calls home
+            env = {**THREAD_ENV, "RAY_USAGE_STATS_ENABLED": os.environ.get("RAY_USAGE_STATS_ENABLED", "0")}
+            with _environment(env):
                 # address="local": a new instance even when RAY_ADDRESS or a `ray start` cluster exists
                 ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False,
                          logging_level="WARNING")
