@@ -188,7 +188,8 @@ def main() -> None:
               f"identical to run+eval: {m['identical_to_run_eval']}")
     if targets:
         print(f"  targets: ratio <= 0.75 {'met' if targets['ray_ratio_met'] else 'NOT met'}; overhead <= 2 s "
-              f"{'met' if targets['overhead_met'] else 'NOT met'}; identical {'yes' if targets['identical_met'] else 'NO'}")
+              f"{'met' if targets['overhead_met'] else 'NOT met'}; "
+              f"identical {'yes' if targets['identical_met'] else 'NO'}")
     import dynastereo
 
     result = {

@@ -202,7 +202,8 @@ class RayEngine:
             import ray
             from ray.util.queue import Queue
         except ImportError:
-            raise DynastereoError("--engine ray needs Ray: pip install 'dynastereo[bench]' (or pip install ray)") from None
+            raise DynastereoError("--engine ray needs Ray: pip install 'dynastereo[bench]' (or: pip install ray)") \
+                from None
         self._ray = ray
         if address:
             # a cluster's workers get the single-thread environment through the runtime env
