@@ -116,6 +116,58 @@ def road_samples(
     return (row0 + v * s).astype(np.float32), val
 
 
+def _hough_vote(v: np.ndarray, d: np.ndarray, a: np.ndarray, hi: float, height: int, tol: float,
+                below_weight: float, weight_by_disparity: bool) -> tuple[int, float, float]:
+    """The best cell of the Hough vote (see :func:`fit_ground_line`): (slope index, the
+    offset at the centre of its 2-bin window, its support: the window's votes)."""
+    c = d[None, :] - a[:, None] * v[None, :]  # (K, N) offsets
+    # offsets c = -a * horizon of a road seen in this image: horizon row within -H .. H
+    c_min, c_max = -hi * float(height), hi * float(height)
+    cb = np.floor((c - c_min) / tol).astype(np.int64)
+    nb = int(np.floor((c_max - c_min) / tol)) + 2
+    ok = (cb >= 0) & (cb < nb)
+    k_idx = np.broadcast_to(np.arange(a.size)[:, None], cb.shape)
+    wts = None
+    if weight_by_disparity:
+        wts = np.broadcast_to(d[None, :], cb.shape)[ok]
+    votes = np.bincount((k_idx[ok] * nb + cb[ok]), weights=wts, minlength=a.size * nb).reshape(a.size, nb)
+    votes = votes.astype(np.float64, copy=False)
+    sm = votes.copy()
+    sm[:, 1:] += votes[:, :-1]  # two adjacent bins = a window 2 tolerances wide
+    if below_weight > 0:
+        # votes more than 2 tolerances below the line of cell b: offset bins < b - 2
+        cum = np.zeros((a.size, nb + 1))
+        np.cumsum(votes, axis=1, out=cum[:, 1:])
+        below = np.zeros_like(sm)
+        below[:, 2:] = cum[:, :nb - 2]
+        score = sm - below_weight * below
+    else:
+        score = sm
+    k, b = np.unravel_index(int(np.argmax(score)), sm.shape)
+    return int(k), c_min + float(b) * tol, float(sm[k, b])  # the window: bins b-1 and b
+
+
+def _least_squares(v: np.ndarray, d: np.ndarray, a0: float, c0: float, tol: float, lo: float,
+                   hi: float) -> tuple[float, float, np.ndarray, bool]:
+    """Twice: least squares on the line's inliers (within ``tol``); a slope outside
+    ``[lo, hi]`` keeps the Hough one (flagged).  ``(slope, offset, inliers, out of range)``."""
+    sel = np.abs(d - (a0 * v + c0)) <= tol
+    out_of_range = False
+    for _ in range(2):
+        if np.count_nonzero(sel) < 3:
+            break
+        vs, ds = v[sel].astype(np.float64), d[sel].astype(np.float64)
+        A = np.stack([vs, np.ones_like(vs)], axis=1)
+        (a1, c1), *_ = np.linalg.lstsq(A, ds, rcond=None)
+        out_of_range = not (lo <= a1 <= hi)
+        if out_of_range:  # the points want another slope: keep the Hough one (flagged below)
+            a1 = a0
+            c1 = float(np.median(ds - a0 * vs))
+        a0, c0 = float(a1), float(c1)
+        sel = np.abs(d - (a0 * v + c0)) <= tol
+    return a0, c0, sel, out_of_range
+
+
 def fit_ground_line(
     rows: np.ndarray,
     values: np.ndarray,
@@ -156,48 +208,10 @@ def fit_ground_line(
         return GroundLine(ok=False, reason="few-points", points=n)
     tol = float(tolerance)
     a = np.linspace(lo, hi, int(n_slopes), dtype=np.float32)
-    c = d[None, :] - a[:, None] * v[None, :]  # (K, N) offsets
-    # offsets c = -a * horizon of a road seen in this image: horizon row within -H .. H
-    c_min, c_max = -hi * float(height), hi * float(height)
-    cb = np.floor((c - c_min) / tol).astype(np.int64)
-    nb = int(np.floor((c_max - c_min) / tol)) + 2
-    ok = (cb >= 0) & (cb < nb)
-    k_idx = np.broadcast_to(np.arange(a.size)[:, None], cb.shape)
-    wts = None
-    if weight_by_disparity:
-        wts = np.broadcast_to(d[None, :], cb.shape)[ok]
-    votes = np.bincount((k_idx[ok] * nb + cb[ok]), weights=wts, minlength=a.size * nb).reshape(a.size, nb)
-    votes = votes.astype(np.float64, copy=False)
-    sm = votes.copy()
-    sm[:, 1:] += votes[:, :-1]  # two adjacent bins = a window 2 tolerances wide
-    if below_weight > 0:
-        # votes more than 2 tolerances below the line of cell b: offset bins < b - 2
-        cum = np.zeros((a.size, nb + 1))
-        np.cumsum(votes, axis=1, out=cum[:, 1:])
-        below = np.zeros_like(sm)
-        below[:, 2:] = cum[:, :nb - 2]
-        score = sm - below_weight * below
-    else:
-        score = sm
-    k, b = np.unravel_index(int(np.argmax(score)), sm.shape)
-    if sm[k, b] <= 0:
+    k, c0, support = _hough_vote(v, d, a, hi, height, tol, below_weight, weight_by_disparity)
+    if support <= 0:
         return GroundLine(ok=False, reason="no-support", points=n)
-    a0 = float(a[k])
-    c0 = c_min + float(b) * tol  # centre of the 2-bin window (bins b-1 and b)
-    sel = np.abs(d - (a0 * v + c0)) <= tol
-    out_of_range = False
-    for _ in range(2):
-        if np.count_nonzero(sel) < 3:
-            break
-        vs, ds = v[sel].astype(np.float64), d[sel].astype(np.float64)
-        A = np.stack([vs, np.ones_like(vs)], axis=1)
-        (a1, c1), *_ = np.linalg.lstsq(A, ds, rcond=None)
-        out_of_range = not (lo <= a1 <= hi)
-        if out_of_range:  # the points want another slope: keep the Hough one (flagged below)
-            a1 = a0
-            c1 = float(np.median(ds - a0 * vs))
-        a0, c0 = float(a1), float(c1)
-        sel = np.abs(d - (a0 * v + c0)) <= tol
+    a0, c0, sel, out_of_range = _least_squares(v, d, float(a[k]), c0, tol, lo, hi)
     n_in = int(np.count_nonzero(sel))
     n_rows = int(np.unique((v[sel] // 4).astype(np.int64)).size) if n_in else 0
     line = GroundLine(slope=a0, offset=c0, ok=False, reason="ok", inliers=n_in, points=n, rows=n_rows)
