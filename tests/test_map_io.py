@@ -50,8 +50,8 @@ from dynastereo.types import StereoCalibration
 SIZE = (480, 144)
 N_FRAMES = 12
 POINT_ARRAYS = ("pos", "desc", "normal", "min_dist", "max_dist", "nobs", "visible", "found", "first_kf", "ref_kf",
-                "bad", "replaced", "head")
-OBS_ARRAYS = ("obs_kf", "obs_kp", "obs_pt", "obs_alive", "next_row")
+                "bad", "replaced")
+OBS_ARRAYS = ("kf", "kp", "pt", "alive", "next_row")
 KP_ARRAYS = ("uv", "octave", "angle", "desc", "u_right", "depth", "point_ids", "obs_row")
 
 pytestmark = pytest.mark.usefixtures("quiet_slam")
@@ -109,14 +109,17 @@ def _relocalise(tr: Tracker, mp: Map, f: Frame) -> tuple[bool, int]:
 
 
 def _assert_same_map(a: Map, b: Map) -> None:
-    assert (a.n, a.m, a.next_kf_id) == (b.n, b.m, b.next_kf_id)
+    assert (a.points.n, a.obs.n, a.next_kf_id) == (b.points.n, b.obs.n, b.next_kf_id)
     np.testing.assert_array_equal(a.scales, b.scales)
     for name in POINT_ARRAYS:
-        x, y = getattr(a, name)[: a.n], getattr(b, name)[: b.n]
+        x, y = getattr(a.points, name)[: a.points.n], getattr(b.points, name)[: b.points.n]
         assert x.dtype == y.dtype, name
         np.testing.assert_array_equal(x, y, err_msg=name)
+    x, y = a.obs.head[: a.points.n], b.obs.head[: b.points.n]
+    assert x.dtype == y.dtype
+    np.testing.assert_array_equal(x, y, err_msg="head")
     for name in OBS_ARRAYS:
-        x, y = getattr(a, name)[: a.m], getattr(b, name)[: b.m]
+        x, y = getattr(a.obs, name)[: a.obs.n], getattr(b.obs, name)[: b.obs.n]
         assert x.dtype == y.dtype, name
         np.testing.assert_array_equal(x, y, err_msg=name)
     assert list(a.keyframes) == list(b.keyframes)
@@ -142,7 +145,7 @@ def test_the_run_made_a_real_map(built):
     st = built.sysm.stats()
     assert st.lost == 0 and len(built.mp.keyframes) >= 3 and st.map_points > 500
     # fused / culled points and dead observation rows are part of what is stored
-    assert built.mp.bad[: built.mp.n].any() and not built.mp.obs_alive[: built.mp.m].all()
+    assert built.mp.points.bad[: built.mp.points.n].any() and not built.mp.obs.alive[: built.mp.obs.n].all()
     assert any(kf.covis for kf in built.mp.keyframes.values())
 
 
@@ -167,12 +170,12 @@ def test_round_trip_is_exact(built):
 def test_header_and_arrays_are_readable_without_dynastereo(built):
     h = read_header(built.path)
     assert h["format"] == FORMAT and h["version"] == VERSION == 1
-    assert h["counts"]["points"] == built.mp.n and h["counts"]["keyframes"] == len(built.mp.keyframes)
+    assert h["counts"]["points"] == built.mp.points.n and h["counts"]["keyframes"] == len(built.mp.keyframes)
     with zipfile.ZipFile(built.path) as zf:
         assert zf.namelist()[0] == "header.json"
         assert json.loads(zf.read("header.json"))["calibration"]["width"] == SIZE[0]
     with np.load(built.path, allow_pickle=False) as z:  # a plain .npz to numpy
-        np.testing.assert_array_equal(z["points/pos"], built.mp.pos[: built.mp.n])
+        np.testing.assert_array_equal(z["points/pos"], built.mp.points.pos[: built.mp.points.n])
         assert z["keyframes/offsets"][-1] == sum(len(kf.uv) for kf in built.mp.keyframes.values())
 
 
@@ -496,7 +499,7 @@ def test_a_failing_save_leaves_no_partial_file(built, tmp_path, monkeypatch):
     assert sorted(os.listdir(tmp_path)) == ["map.dsmap"] and target.read_bytes() == b"previous map"
     monkeypatch.undo()
     save_map(target, built.mf)  # and a save that succeeds replaces the old file
-    assert sorted(os.listdir(tmp_path)) == ["map.dsmap"] and load_map(target).map.n == built.mp.n
+    assert sorted(os.listdir(tmp_path)) == ["map.dsmap"] and load_map(target).map.points.n == built.mp.points.n
 
 
 def test_save_into_a_missing_or_unwritable_place(built, tmp_path):
