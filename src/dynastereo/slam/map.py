@@ -1,11 +1,14 @@
-"""The map: keyframes and map points, map points stored array-wise.
+"""The map: keyframes, covisibility and culled keyframes over two tables.
 
-Map points are rows of growable numpy arrays (position, descriptor, viewing normal,
-scale-invariance distance range, observation count, visible/found counters, ...);
-a point's id is its row and is never reused.  Observations are rows of a table
-``(keyframe id, keypoint index, point id)`` with an alive flag; each keyframe keeps,
-per keypoint, its point id and its observation row.  Everything that touches many
-points (projection, normals, descriptors, culling) works on these arrays at once.
+``Map.points`` (:class:`~.map_points.MapPoints`): one row per point id (position,
+descriptor, viewing normal, scale-invariance distance range, observation count,
+visible/found counters, ...), never reused.  ``Map.obs``
+(:class:`~.observations.Observations`): one row per ``(keyframe id, keypoint index,
+point id)`` with an alive flag and per-point lists; each keyframe keeps, per keypoint,
+its point id and its observation row.  The map keeps what links keyframes and points
+(adding / erasing observations, culling, fusing, normals and descriptors, frustum
+tests) and works on the tables' arrays at once.  ``to_arrays()`` / ``from_arrays()``
+are the map-file entries (``docs/map_format.md``; ``map_io`` writes the container).
 """
 
 from __future__ import annotations

@@ -13,13 +13,16 @@ covisibility graph is an edge list.  No pickle anywhere: every entry is read wit
 ``allow_pickle=False``.  The layout, dtypes, units, frames and the versioning policy
 are documented in ``docs/map_format.md``.
 
-A loaded map is a fully working :class:`~dynastereo.slam.map.Map`: point and
-observation arrays, per-point observation lists, keyframes with their per-keypoint
-arrays, calibration and covisibility, culled keyframes, the next keyframe id.  Every
-entry's dtype and shape and the cross references between the tables (observation
-rows, point ids, keyframe ids) are checked on load, so a corrupt or inconsistent file
-is a :class:`~dynastereo.errors.MapFileError` naming the file and the problem, never
-an ``IndexError`` later in tracking.
+This module is the container only: the header (format, version, counts, calibration,
+ORB settings, disparity offset, vocabulary / bag-of-words descriptors, meta), the zip
+archive (atomic save, per-entry compression, no pickle) and the checks that need the
+header (counts, version, ORB levels, another camera).  The arrays are the map's own:
+``Map.to_arrays()`` / ``Map.from_arrays()``, which take the point and observation
+tables' (``MapPoints``, ``Observations``) and pack the keyframes; a stored vocabulary
+is ``Vocabulary.to_arrays()`` / ``from_arrays()``.  Every entry's dtype and shape and
+the cross references between the tables are checked on load, so a corrupt or
+inconsistent file is a :class:`~dynastereo.errors.MapFileError` naming the file and
+the problem, never an ``IndexError`` later in tracking.
 """
 
 from __future__ import annotations
