@@ -182,7 +182,7 @@ def test_header_and_arrays_are_readable_without_dynastereo(built):
 def test_the_loaded_map_works(built):
     mp0, mp1 = built.mp, load_map(built.path).map
     c = built.seq.calibration
-    good = np.flatnonzero(~mp0.bad[: mp0.n])
+    good = np.flatnonzero(~mp0.points.bad[: mp0.points.n])
     for kf in list(mp0.keyframes.values())[:3]:
         fa = mp0.in_frustum(good, kf.T_cw, kf.center, c)
         fb = mp1.in_frustum(good, mp1.keyframes[kf.id].T_cw, mp1.keyframes[kf.id].center, c)
@@ -191,10 +191,10 @@ def test_the_loaded_map_works(built):
         np.testing.assert_array_equal(fa.u, fb.u)
         has = kf.point_ids[kf.point_ids >= 0]
         assert mp0.covisible_counts(has, exclude=kf.id) == mp1.covisible_counts(has, exclude=kf.id)
-        np.testing.assert_array_equal(mp0.rows_of(has), mp1.rows_of(has))
-    every = np.arange(mp0.n)
-    np.testing.assert_array_equal(mp0.resolve(every), mp1.resolve(every))
-    assert (mp0.resolve(every) != every).any()  # fused / bad points are followed
+        np.testing.assert_array_equal(mp0.obs.rows_of(has), mp1.obs.rows_of(has))
+    every = np.arange(mp0.points.n)
+    np.testing.assert_array_equal(mp0.points.resolve(every), mp1.points.resolve(every))
+    assert (mp0.points.resolve(every) != every).any()  # fused / bad points are followed
     np.testing.assert_array_equal(mp0.predict_level(good, np.full(len(good), 7.0)),
                                   mp1.predict_level(good, np.full(len(good), 7.0)))
     assert mp0.stats() == mp1.stats()
@@ -211,8 +211,8 @@ def test_the_loaded_map_works(built):
     assert len(free) == 50
     ids = mp1.new_points(kf.unproject(free), kf.desc[free], kf.id)
     keep = mp1.add_observations(kf, free, ids)
-    assert keep.all() and mp1.n == mp0.n + 50 and mp1.m == mp0.m + 50
-    np.testing.assert_array_equal(mp1.rows_of(ids), np.arange(mp0.m, mp0.m + 50))
+    assert keep.all() and mp1.points.n == mp0.points.n + 50 and mp1.obs.n == mp0.obs.n + 50
+    np.testing.assert_array_equal(mp1.obs.rows_of(ids), np.arange(mp0.obs.n, mp0.obs.n + 50))
 
 
 def test_a_frame_relocalises_in_the_loaded_map_as_in_the_original(built):

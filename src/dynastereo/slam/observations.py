@@ -24,11 +24,6 @@ class Observations(Table):
         "alive": Column("obs/alive", _B, fill=False),
         "next_row": Column("obs/next_row", _I8, fill=-1),
     }
-    kf: np.ndarray
-    kp: np.ndarray
-    pt: np.ndarray
-    alive: np.ndarray
-    next_row: np.ndarray
 
     def __init__(self, capacity: int = 0, point_capacity: int = 0) -> None:
         super().__init__(capacity)
