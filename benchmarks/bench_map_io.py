@@ -55,16 +55,16 @@ def synthetic_map(n_kf: int = 100, n_kp: int = 2000, new_per_kf: int = 500, seed
         )
         mp.add_keyframe(kf)
         # observe points of the last keyframes (~1000), then make new ones from free stereo keypoints
-        if mp.n:
-            lo = max(0, mp.n - 3 * new_per_kf)
-            old = rng.choice(np.arange(lo, mp.n), size=min(1000, mp.n - lo), replace=False)
+        if mp.points.n:
+            lo = max(0, mp.points.n - 3 * new_per_kf)
+            old = rng.choice(np.arange(lo, mp.points.n), size=min(1000, mp.points.n - lo), replace=False)
             kp = rng.choice(n_kp, size=len(old), replace=False)
             mp.add_observations(kf, kp, old)
         free = np.flatnonzero((kf.point_ids < 0) & stereo)[:new_per_kf]
         ids = mp.new_points(kf.unproject(free), kf.desc[free], kf.id)
         mp.add_observations(kf, free, ids)
-    mp.update_points(np.arange(mp.n))
-    mp.set_bad(rng.choice(mp.n, mp.n // 10, replace=False))  # culled points: dead observation rows
+    mp.update_points(np.arange(mp.points.n))
+    mp.set_bad(rng.choice(mp.points.n, mp.points.n // 10, replace=False))  # culled points: dead observation rows
     for kf in mp.keyframes.values():
         mp.update_connections(kf)
     for kid in (10, 30, 50, 70, 90):  # culled keyframes, as local mapping culls them
@@ -106,7 +106,7 @@ def bench(name: str, mf: MapFile, repeats: int, tmp: Path) -> dict:
         t = time.perf_counter()
         back = load_map(path)
         load_ms.append(1e3 * (time.perf_counter() - t))
-    assert back.map.n == mp.n and list(back.map.keyframes) == list(mp.keyframes)
+    assert back.map.points.n == mp.points.n and list(back.map.keyframes) == list(mp.keyframes)
     # the same arrays with np.savez_compressed (deflate 6 everywhere), for comparison
     _, arrays = map_io._collect(mf)
     ref = tmp / f"{name}.npz"
@@ -120,8 +120,8 @@ def bench(name: str, mf: MapFile, repeats: int, tmp: Path) -> dict:
         "map": name,
         "keyframes": len(mp.keyframes),
         "keypoints": int(sum(len(kf.uv) for kf in mp.keyframes.values())),
-        "points": int(mp.n),
-        "observations": int(mp.m),
+        "points": int(mp.points.n),
+        "observations": int(mp.obs.n),
         "raw_mb": round(raw / 1e6, 2),
         "file_mb": round(path.stat().st_size / 1e6, 2),
         "save_ms": round(float(np.median(save_ms)), 1),

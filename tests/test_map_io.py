@@ -50,8 +50,8 @@ from dynastereo.types import StereoCalibration
 SIZE = (480, 144)
 N_FRAMES = 12
 POINT_ARRAYS = ("pos", "desc", "normal", "min_dist", "max_dist", "nobs", "visible", "found", "first_kf", "ref_kf",
-                "bad", "replaced", "head")
-OBS_ARRAYS = ("obs_kf", "obs_kp", "obs_pt", "obs_alive", "next_row")
+                "bad", "replaced")
+OBS_ARRAYS = ("kf", "kp", "pt", "alive", "next_row")
 KP_ARRAYS = ("uv", "octave", "angle", "desc", "u_right", "depth", "point_ids", "obs_row")
 
 pytestmark = pytest.mark.usefixtures("quiet_slam")
@@ -109,14 +109,17 @@ def _relocalise(tr: Tracker, mp: Map, f: Frame) -> tuple[bool, int]:
 
 
 def _assert_same_map(a: Map, b: Map) -> None:
-    assert (a.n, a.m, a.next_kf_id) == (b.n, b.m, b.next_kf_id)
+    assert (a.points.n, a.obs.n, a.next_kf_id) == (b.points.n, b.obs.n, b.next_kf_id)
     np.testing.assert_array_equal(a.scales, b.scales)
     for name in POINT_ARRAYS:
-        x, y = getattr(a, name)[: a.n], getattr(b, name)[: b.n]
+        x, y = getattr(a.points, name)[: a.points.n], getattr(b.points, name)[: b.points.n]
         assert x.dtype == y.dtype, name
         np.testing.assert_array_equal(x, y, err_msg=name)
+    x, y = a.obs.head[: a.points.n], b.obs.head[: b.points.n]
+    assert x.dtype == y.dtype
+    np.testing.assert_array_equal(x, y, err_msg="head")
     for name in OBS_ARRAYS:
-        x, y = getattr(a, name)[: a.m], getattr(b, name)[: b.m]
+        x, y = getattr(a.obs, name)[: a.obs.n], getattr(b.obs, name)[: b.obs.n]
         assert x.dtype == y.dtype, name
         np.testing.assert_array_equal(x, y, err_msg=name)
     assert list(a.keyframes) == list(b.keyframes)
@@ -142,7 +145,7 @@ def test_the_run_made_a_real_map(built):
     st = built.sysm.stats()
     assert st.lost == 0 and len(built.mp.keyframes) >= 3 and st.map_points > 500
     # fused / culled points and dead observation rows are part of what is stored
-    assert built.mp.bad[: built.mp.n].any() and not built.mp.obs_alive[: built.mp.m].all()
+    assert built.mp.points.bad[: built.mp.points.n].any() and not built.mp.obs.alive[: built.mp.obs.n].all()
     assert any(kf.covis for kf in built.mp.keyframes.values())
 
 
@@ -167,19 +170,19 @@ def test_round_trip_is_exact(built):
 def test_header_and_arrays_are_readable_without_dynastereo(built):
     h = read_header(built.path)
     assert h["format"] == FORMAT and h["version"] == VERSION == 1
-    assert h["counts"]["points"] == built.mp.n and h["counts"]["keyframes"] == len(built.mp.keyframes)
+    assert h["counts"]["points"] == built.mp.points.n and h["counts"]["keyframes"] == len(built.mp.keyframes)
     with zipfile.ZipFile(built.path) as zf:
         assert zf.namelist()[0] == "header.json"
         assert json.loads(zf.read("header.json"))["calibration"]["width"] == SIZE[0]
     with np.load(built.path, allow_pickle=False) as z:  # a plain .npz to numpy
-        np.testing.assert_array_equal(z["points/pos"], built.mp.pos[: built.mp.n])
+        np.testing.assert_array_equal(z["points/pos"], built.mp.points.pos[: built.mp.points.n])
         assert z["keyframes/offsets"][-1] == sum(len(kf.uv) for kf in built.mp.keyframes.values())
 
 
 def test_the_loaded_map_works(built):
     mp0, mp1 = built.mp, load_map(built.path).map
     c = built.seq.calibration
-    good = np.flatnonzero(~mp0.bad[: mp0.n])
+    good = np.flatnonzero(~mp0.points.bad[: mp0.points.n])
     for kf in list(mp0.keyframes.values())[:3]:
         fa = mp0.in_frustum(good, kf.T_cw, kf.center, c)
         fb = mp1.in_frustum(good, mp1.keyframes[kf.id].T_cw, mp1.keyframes[kf.id].center, c)
@@ -188,10 +191,10 @@ def test_the_loaded_map_works(built):
         np.testing.assert_array_equal(fa.u, fb.u)
         has = kf.point_ids[kf.point_ids >= 0]
         assert mp0.covisible_counts(has, exclude=kf.id) == mp1.covisible_counts(has, exclude=kf.id)
-        np.testing.assert_array_equal(mp0.rows_of(has), mp1.rows_of(has))
-    every = np.arange(mp0.n)
-    np.testing.assert_array_equal(mp0.resolve(every), mp1.resolve(every))
-    assert (mp0.resolve(every) != every).any()  # fused / bad points are followed
+        np.testing.assert_array_equal(mp0.obs.rows_of(has), mp1.obs.rows_of(has))
+    every = np.arange(mp0.points.n)
+    np.testing.assert_array_equal(mp0.points.resolve(every), mp1.points.resolve(every))
+    assert (mp0.points.resolve(every) != every).any()  # fused / bad points are followed
     np.testing.assert_array_equal(mp0.predict_level(good, np.full(len(good), 7.0)),
                                   mp1.predict_level(good, np.full(len(good), 7.0)))
     assert mp0.stats() == mp1.stats()
@@ -208,8 +211,8 @@ def test_the_loaded_map_works(built):
     assert len(free) == 50
     ids = mp1.new_points(kf.unproject(free), kf.desc[free], kf.id)
     keep = mp1.add_observations(kf, free, ids)
-    assert keep.all() and mp1.n == mp0.n + 50 and mp1.m == mp0.m + 50
-    np.testing.assert_array_equal(mp1.rows_of(ids), np.arange(mp0.m, mp0.m + 50))
+    assert keep.all() and mp1.points.n == mp0.points.n + 50 and mp1.obs.n == mp0.obs.n + 50
+    np.testing.assert_array_equal(mp1.obs.rows_of(ids), np.arange(mp0.obs.n, mp0.obs.n + 50))
 
 
 def test_a_frame_relocalises_in_the_loaded_map_as_in_the_original(built):
@@ -496,7 +499,7 @@ def test_a_failing_save_leaves_no_partial_file(built, tmp_path, monkeypatch):
     assert sorted(os.listdir(tmp_path)) == ["map.dsmap"] and target.read_bytes() == b"previous map"
     monkeypatch.undo()
     save_map(target, built.mf)  # and a save that succeeds replaces the old file
-    assert sorted(os.listdir(tmp_path)) == ["map.dsmap"] and load_map(target).map.n == built.mp.n
+    assert sorted(os.listdir(tmp_path)) == ["map.dsmap"] and load_map(target).map.points.n == built.mp.points.n
 
 
 def test_save_into_a_missing_or_unwritable_place(built, tmp_path):

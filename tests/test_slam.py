@@ -422,22 +422,22 @@ def test_known_motion_is_recovered():
 def test_map_invariants_after_a_run():
     frames, _ = _sequence()
     mp = _run(frames[:20], _cfg()).map
-    alive = np.flatnonzero(mp.obs_alive[: mp.m])
+    alive = np.flatnonzero(mp.obs.alive[: mp.obs.n])
     for kf in mp.keyframes.values():
         has = np.flatnonzero(kf.point_ids >= 0)
         rows = kf.obs_row[has]
-        assert mp.obs_alive[rows].all()
-        np.testing.assert_array_equal(mp.obs_pt[rows], kf.point_ids[has])
-        np.testing.assert_array_equal(mp.obs_kf[rows], kf.id)
-        assert not mp.bad[kf.point_ids[has]].any()
+        assert mp.obs.alive[rows].all()
+        np.testing.assert_array_equal(mp.obs.pt[rows], kf.point_ids[has])
+        np.testing.assert_array_equal(mp.obs.kf[rows], kf.id)
+        assert not mp.points.bad[kf.point_ids[has]].any()
         assert len(np.unique(kf.point_ids[has])) == len(has)  # a point once per keyframe
     # the observation count of every good point matches its rows (stereo counts twice)
-    cnt = np.zeros(mp.n, np.int64)
+    cnt = np.zeros(mp.points.n, np.int64)
     for kf in mp.keyframes.values():
         has = np.flatnonzero(kf.point_ids >= 0)
         np.add.at(cnt, kf.point_ids[has], 1 + (kf.u_right[has] >= 0))
-    good = ~mp.bad[: mp.n]
-    np.testing.assert_array_equal(cnt[good], mp.nobs[: mp.n][good])
+    good = ~mp.points.bad[: mp.points.n]
+    np.testing.assert_array_equal(cnt[good], mp.points.nobs[: mp.points.n][good])
     assert len(alive) == sum(int((kf.point_ids >= 0).sum()) for kf in mp.keyframes.values())
 
 

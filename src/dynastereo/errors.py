@@ -46,6 +46,10 @@ class MapFileError(InputError):
     newer version, inconsistent, or built for another camera / ORB setting."""
 
 
+class VocabularyError(InputError):
+    """A vocabulary file that is missing, corrupt, of another format or version."""
+
+
 class RosUnavailable(DynastereoError):
     """ROS 1 (``rospy`` and the message packages) is not importable; the message names the
     Debian packages to install."""

@@ -197,10 +197,10 @@ class LocalMapper:
     def cull_points(self, kf: KeyFrame) -> None:
         mp = self.mp
         r = self.recent
-        r = r[~mp.bad[r]]
-        ratio = mp.found[r] / np.maximum(mp.visible[r], 1)
-        age = kf.id - mp.first_kf[r]
-        bad = (ratio < 0.25) | ((age >= 2) & (mp.nobs[r] <= 3))
+        r = r[~mp.points.bad[r]]
+        ratio = mp.points.found_ratio(r)
+        age = kf.id - mp.points.first_kf[r]
+        bad = (ratio < 0.25) | ((age >= 2) & (mp.points.nobs[r] <= 3))
         if bad.any():
             mp.set_bad(r[bad])
             self.stats.points_culled += int(bad.sum())
@@ -337,7 +337,7 @@ class LocalMapper:
     def _fuse_into(self, target: KeyFrame, pts: np.ndarray) -> int:
         """Project ``pts`` into ``target``; merge with / attach to the matched keypoints."""
         mp = self.mp
-        pts = pts[mp.good(pts)]
+        pts = pts[mp.points.good(pts)]
         pts = pts[~np.isin(pts, target.point_ids)]
         if len(pts) == 0:
             return 0
@@ -356,7 +356,7 @@ class LocalMapper:
             u[sel],
             v[sel],
             r,
-            desc_u64(mp.desc[pts[sel]]),
+            desc_u64(mp.points.desc[pts[sel]]),
             min_level=lev - 1,
             max_level=lev,
             u_right=ur[sel],
@@ -371,7 +371,7 @@ class LocalMapper:
         has = existing >= 0
         # existing point: the one with more observations survives
         e, s_ = existing[has], src[has]
-        keep_src = mp.nobs[s_] > mp.nobs[e]
+        keep_src = mp.points.nobs[s_] > mp.points.nobs[e]
         mp.replace(np.where(keep_src, e, s_), np.where(keep_src, s_, e))
         mp.add_observations(target, kp[~has], src[~has])
         return len(kp)
@@ -411,8 +411,8 @@ class LocalMapper:
         pts = mp.points_of(local)
         if len(pts) == 0:
             return None
-        rows = mp.rows_of(pts)
-        okf = mp.obs_kf[rows]
+        rows = mp.obs.rows_of(pts)
+        okf = mp.obs.kf[rows]
         is_local = np.isin(okf, local)
         others, counts = np.unique(okf[~is_local], return_counts=True)
         order = np.lexsort((others, -counts))
@@ -441,12 +441,12 @@ class LocalMapper:
             return None
         # the offset shows in points seen from several keyframes: the most observed
         # ones, at most selfcal.MAX_POINTS (the three solves stay cheap)
-        rows = mp.rows_of(pts)
-        n_kf = np.bincount(np.searchsorted(pts, mp.obs_pt[rows]), minlength=len(pts))
+        rows = mp.obs.rows_of(pts)
+        n_kf = np.bincount(np.searchsorted(pts, mp.obs.pt[rows]), minlength=len(pts))
         order = np.lexsort((pts, -n_kf))
         keep = np.sort(order[: MAX_POINTS][n_kf[order[:MAX_POINTS]] >= 2])
         pts = pts[keep]
-        prob = self._problem(kf, ids[1:], ids[:1], pts, mp.rows_of(pts))
+        prob = self._problem(kf, ids[1:], ids[:1], pts, mp.obs.rows_of(pts))
         if prob is not None:
             self.selfcal.prepare(prob)
             prob.iterations = max(prob.iterations, 5)
@@ -460,18 +460,18 @@ class LocalMapper:
         if len(ids) < 3:
             return None
         pts = mp.points_of(ids)
-        return self._problem(kf, ids[1:], ids[:1], pts, mp.rows_of(pts)) if len(pts) else None
+        return self._problem(kf, ids[1:], ids[:1], pts, mp.obs.rows_of(pts)) if len(pts) else None
 
     def _problem(
         self, kf: KeyFrame, local: list[int], fixed_ids: list[int], pts: np.ndarray, rows: np.ndarray
     ) -> LocalBAProblem | None:
         mp = self.mp
-        okf = mp.obs_kf[rows]
+        okf = mp.obs.kf[rows]
         all_kf = np.array(local + fixed_ids, np.int64)
         rows = rows[np.isin(okf, all_kf)]
-        okf = mp.obs_kf[rows]
-        okp = mp.obs_kp[rows]
-        opt = mp.obs_pt[rows]
+        okf = mp.obs.kf[rows]
+        okp = mp.obs.kp[rows]
+        opt = mp.obs.pt[rows]
         sorted_ids = np.sort(all_kf)
         pos_sorted = np.argsort(all_kf)
         obs_kf = pos_sorted[np.searchsorted(sorted_ids, okf)]
@@ -502,7 +502,7 @@ class LocalMapper:
             T_wc=T_wc,
             fixed=fixed,
             pt_ids=pts,
-            X=mp.pos[pts].copy(),
+            X=mp.points.pos[pts].copy(),
             obs_kf=obs_kf,
             obs_pt=obs_pt,
             uv=uv,
@@ -592,13 +592,13 @@ class LocalMapper:
             kf = mp.keyframes.get(int(k))
             if kf is not None:
                 kf.T_cw = orthonormalize(inv_T(orthonormalize(res.T_wc[i])))
-        ok = mp.good(res.pt_ids)
-        mp.pos[res.pt_ids[ok]] = res.X[ok]
+        ok = mp.points.good(res.pt_ids)
+        mp.points.pos[res.pt_ids[ok]] = res.X[ok]
         # outlier observations: chi2 above the 95% bound or behind the camera
         pts = res.pt_ids[ok]
-        rows = mp.rows_of(pts)
-        okf = mp.obs_kf[rows]
-        okp = mp.obs_kp[rows]
+        rows = mp.obs.rows_of(pts)
+        okf = mp.obs.kf[rows]
+        okp = mp.obs.kp[rows]
         bad_rows: list[tuple[KeyFrame, np.ndarray]] = []
         for k in np.unique(okf):
             kf = mp.keyframes.get(int(k))
@@ -606,9 +606,9 @@ class LocalMapper:
                 continue
             s = okf == k
             kp = okp[s]
-            ptk = mp.obs_pt[rows[s]]
+            ptk = mp.obs.pt[rows[s]]
             chi2, front = reprojection_chi2(
-                kf.T_cw, mp.pos[ptk], kf.uv[kp], kf.u_right[kp], self.orb.inv_sigma2[kf.octave[kp]], kf.calib.K, kf.calib.bf
+                kf.T_cw, mp.points.pos[ptk], kf.uv[kp], kf.u_right[kp], self.orb.inv_sigma2[kf.octave[kp]], kf.calib.K, kf.calib.bf
             )
             th = np.where(kf.u_right[kp] >= 0, CHI2_STEREO, CHI2_MONO)
             out = (chi2 > th) | ~front
@@ -634,12 +634,12 @@ class LocalMapper:
             if n_mps == 0:
                 continue
             pts = kf2.point_ids[idx]
-            strong = mp.nobs[pts] > th_obs
+            strong = mp.points.nobs[pts] > th_obs
             idx, pts = idx[strong], pts[strong]
             if len(pts) <= 0.9 * n_mps:
                 continue
-            rows = mp.rows_of(pts)
-            okf = mp.obs_kf[rows]
+            rows = mp.obs.rows_of(pts)
+            okf = mp.obs.kf[rows]
             rows = rows[okf != k]
             okf = okf[okf != k]
             lev_other = np.zeros(len(rows), np.int64)
@@ -648,12 +648,12 @@ class LocalMapper:
                 if kf3 is None:
                     continue
                 s = okf == k3
-                lev_other[s] = kf3.octave[mp.obs_kp[rows[s]]]
-            lev_here = np.zeros(mp.n, np.int64)
+                lev_other[s] = kf3.octave[mp.obs.kp[rows[s]]]
+            lev_here = np.zeros(mp.points.n, np.int64)
             lev_here[pts] = kf2.octave[idx]
-            ptr = mp.obs_pt[rows]
+            ptr = mp.obs.pt[rows]
             good = lev_other <= lev_here[ptr] + 1
-            cnt = np.bincount(ptr[good], minlength=mp.n)[pts]
+            cnt = np.bincount(ptr[good], minlength=mp.points.n)[pts]
             n_red = int(np.count_nonzero(cnt >= th_obs))
             if n_red > 0.9 * n_mps:
                 self._cull_keyframe(kf2)

@@ -180,10 +180,10 @@ class LoopCloser:
         if n_desc < self.cfg.loop_min_matches:
             return None
         calib = kf.calib
-        T, _ = pnp_ransac(mp.pos[pts], kf.uv[ki], calib.K, self.seed, 300, self.cfg.loop_min_matches // 2)
+        T, _ = pnp_ransac(mp.points.pos[pts], kf.uv[ki], calib.K, self.seed, 300, self.cfg.loop_min_matches // 2)
         if T is None:
             return None
-        T, ok = self._optimize(T, ki, mp.pos[pts], kf)
+        T, ok = self._optimize(T, ki, mp.points.pos[pts], kf)
         ki, pts = ki[ok], pts[ok]
         if len(ki) < self.cfg.loop_min_matches:
             return None
@@ -200,12 +200,12 @@ class LoopCloser:
                 free[ki] = False
                 m = search_by_projection(
                     kf.grid, kf.octave, kf.desc64, kf.u_right, free,
-                    f.u[sel], f.v[sel], 10.0 * self.scales[lev], desc_u64(mp.desc[cand_pts[sel]]),
+                    f.u[sel], f.v[sel], 10.0 * self.scales[lev], desc_u64(mp.points.desc[cand_pts[sel]]),
                     min_level=lev - 1, max_level=lev + 1, u_right=f.ur[sel], th_dist=TH_HIGH, ratio=None,
                 )
                 ki = np.concatenate([ki, m.kp])
                 pts = np.concatenate([pts, cand_pts[sel[m.query]]])
-        T, ok = self._optimize(T, ki, mp.pos[pts], kf)
+        T, ok = self._optimize(T, ki, mp.points.pos[pts], kf)
         ki, pts = ki[ok], pts[ok]
         n_close = int(np.count_nonzero((kf.depth[ki] > 0) & (kf.depth[ki] < self.close_depth_m)))
         if len(ki) < self.cfg.loop_min_inliers or n_close < self.cfg.loop_min_close_inliers:
@@ -276,9 +276,7 @@ class LoopCloser:
         for k in connected:
             mp.keyframes[k].T_cw = orthonormalize(mp.keyframes[k].T_cw @ D)
         pts = mp.points_of(connected)
-        Dinv = inv_T(D)
-        mp.pos[pts] = mp.pos[pts] @ Dinv[:3, :3].T + Dinv[:3, 3]
-        mp.normal[pts] = mp.normal[pts] @ Dinv[:3, :3].T
+        mp.points.transform(pts, inv_T(D))
         # 2. fusion: the verified matches, then the loop side's points in every connected keyframe
         cur = kf.point_ids[ki]
         has = cur >= 0
@@ -393,16 +391,12 @@ class LoopCloser:
         whose reference is unknown stay)."""
         mp = self.mp
         if pts is None:
-            pts = np.flatnonzero(~mp.bad[: mp.n])
-        ref = mp.ref_kf[pts]
+            pts = mp.points.good_ids()
+        ref = mp.points.ref_kf[pts]
         sorted_ids = np.asarray(ids, np.int64)
         loc = np.searchsorted(sorted_ids, ref)
         ok = (loc < len(sorted_ids)) & (sorted_ids[np.minimum(loc, len(sorted_ids) - 1)] == ref)
-        pts, loc = pts[ok], loc[ok]
-        R = M[loc, :3, :3]
-        t = M[loc, :3, 3]
-        mp.pos[pts] = np.einsum("nij,nj->ni", R, mp.pos[pts]) + t
-        mp.normal[pts] = np.einsum("nij,nj->ni", R, mp.normal[pts])
+        mp.points.transform(pts[ok], M[loc[ok]])
 
     # ----------------------------------------------------------------- full BA
     def _submit_full_ba(self, kf: KeyFrame, frame_pos: int) -> None:
@@ -456,12 +450,12 @@ class LoopCloser:
             D = inv_T(T_in[j]) @ inv_T(res.T_wc[in_res[j]])
             kfo.T_cw = orthonormalize(kfo.T_cw @ D)
         # points of the result take its positions; the others follow their reference keyframe
-        ok = mp.good(res.pt_ids)
+        ok = mp.points.good(res.pt_ids)
         M = np.stack([inv_T(mp.keyframes[k].T_cw) @ T_before[k] for k in ids])
-        in_prob = np.zeros(mp.n, bool)
+        in_prob = np.zeros(mp.points.n, bool)
         in_prob[res.pt_ids[ok]] = True
-        self._move_points(ids, M, np.flatnonzero(~mp.bad[: mp.n] & ~in_prob))
-        mp.pos[res.pt_ids[ok]] = res.X[ok]
+        self._move_points(ids, M, np.flatnonzero(~mp.points.bad[: mp.points.n] & ~in_prob))
+        mp.points.pos[res.pt_ids[ok]] = res.X[ok]
 
     def shutdown(self) -> None:
         if self._ba_job is not None:

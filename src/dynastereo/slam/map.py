@@ -1,11 +1,14 @@
-"""The map: keyframes and map points, map points stored array-wise.
+"""The map: keyframes, covisibility and culled keyframes over two tables.
 
-Map points are rows of growable numpy arrays (position, descriptor, viewing normal,
-scale-invariance distance range, observation count, visible/found counters, ...);
-a point's id is its row and is never reused.  Observations are rows of a table
-``(keyframe id, keypoint index, point id)`` with an alive flag; each keyframe keeps,
-per keypoint, its point id and its observation row.  Everything that touches many
-points (projection, normals, descriptors, culling) works on these arrays at once.
+``Map.points`` (:class:`~.map_points.MapPoints`): one row per point id (position,
+descriptor, viewing normal, scale-invariance distance range, observation count,
+visible/found counters, ...), never reused.  ``Map.obs``
+(:class:`~.observations.Observations`): one row per ``(keyframe id, keypoint index,
+point id)`` with an alive flag and per-point lists; each keyframe keeps, per keypoint,
+its point id and its observation row.  The map keeps what links keyframes and points
+(adding / erasing observations, culling, fusing, normals and descriptors, frustum
+tests) and works on the tables' arrays at once.  ``to_arrays()`` / ``from_arrays()``
+are the map-file entries (``docs/map_format.md``; ``map_io`` writes the container).
 """
 
 from __future__ import annotations
@@ -14,8 +17,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import MapFileError
 from .geometry import desc_u64
 from .keyframe import KeyFrame
+from .map_points import MapPoints
+from .observations import Observations
+from .table import check_entry
 
 
 @dataclass
@@ -34,103 +41,27 @@ class Frustum:
 COVIS_MIN_WEIGHT = 15  # ORB-SLAM2: covisibility edge when >= 15 shared points
 
 
-def _grow(a: np.ndarray, n: int, fill=0) -> np.ndarray:
-    cap = len(a)
-    if n <= cap:
-        return a
-    new_cap = max(n, 2 * cap)
-    out = np.full((new_cap,) + a.shape[1:], fill, dtype=a.dtype)
-    out[:cap] = a
-    return out
-
-
 class Map:
+    """Keyframes, their covisibility graph and culled keyframes, over two tables: the
+    map points (``points``, :class:`~.map_points.MapPoints`) and the observations that
+    link keyframe keypoints to them (``obs``, :class:`~.observations.Observations`)."""
+
     def __init__(self, scales: np.ndarray, capacity: int = 4096) -> None:
         self.scales = np.asarray(scales, np.float64)
         self.n_levels = len(self.scales)
         self.log_scale = float(np.log(self.scales[1])) if self.n_levels > 1 else 1.0
-        c = capacity
-        self.n = 0
-        self.pos = np.zeros((c, 3))
-        self.desc = np.zeros((c, 32), np.uint8)
-        self.normal = np.zeros((c, 3))
-        self.min_dist = np.zeros(c)
-        self.max_dist = np.zeros(c)
-        self.nobs = np.zeros(c, np.int32)  # ORB-SLAM2 count: stereo observation = 2
-        self.visible = np.zeros(c, np.int32)
-        self.found = np.zeros(c, np.int32)
-        self.first_kf = np.zeros(c, np.int64)
-        self.ref_kf = np.zeros(c, np.int64)
-        self.bad = np.zeros(c, bool)
-        self.replaced = np.full(c, -1, np.int64)
-        # observation table
-        self.m = 0
-        self.obs_kf = np.zeros(c * 4, np.int64)
-        self.obs_kp = np.zeros(c * 4, np.int64)
-        self.obs_pt = np.zeros(c * 4, np.int64)
-        self.obs_alive = np.zeros(c * 4, bool)
-        # per-point linked lists of observation rows (newest first): head[pt], next_row[row]
-        self.head = np.full(c, -1, np.int64)
-        self.next_row = np.full(c * 4, -1, np.int64)
+        self.points = MapPoints(capacity)
+        self.obs = Observations(capacity * 4, capacity)
         self.keyframes: dict[int, KeyFrame] = {}
         # culled keyframes: id -> (parent id, T_c_parent), to keep frame poses that refer to them
         self.culled: dict[int, tuple[int, np.ndarray]] = {}
         self.next_kf_id = 0
 
     # ------------------------------------------------------------------ points
-    @property
-    def desc64(self) -> np.ndarray:
-        return desc_u64(self.desc[: self.n])
-
-    def good(self, ids: np.ndarray) -> np.ndarray:
-        ids = np.asarray(ids, np.int64)
-        return (ids >= 0) & ~self.bad[np.maximum(ids, 0)]
-
-    def resolve(self, ids: np.ndarray) -> np.ndarray:
-        """Follow ``replaced`` links (fused points); -1 for bad points."""
-        ids = np.asarray(ids, np.int64).copy()
-        for _ in range(8):
-            ok = ids >= 0
-            r = np.where(ok, self.replaced[np.maximum(ids, 0)], -1)
-            mv = ok & (r >= 0)
-            if not mv.any():
-                break
-            ids[mv] = r[mv]
-        ok = ids >= 0
-        ids[ok & self.bad[np.maximum(ids, 0)]] = -1
-        return ids
-
     def new_points(self, pos: np.ndarray, desc: np.ndarray, kf_id: int) -> np.ndarray:
-        k = len(pos)
-        n0, n1 = self.n, self.n + k
-        for name, fill in (
-            ("pos", 0),
-            ("desc", 0),
-            ("normal", 0),
-            ("min_dist", 0),
-            ("max_dist", 0),
-            ("nobs", 0),
-            ("visible", 0),
-            ("found", 0),
-            ("first_kf", 0),
-            ("ref_kf", 0),
-            ("bad", False),
-            ("replaced", -1),
-            ("head", -1),
-        ):
-            setattr(self, name, _grow(getattr(self, name), n1, fill))
-        self.pos[n0:n1] = pos
-        self.desc[n0:n1] = desc
-        self.nobs[n0:n1] = 0
-        self.visible[n0:n1] = 1
-        self.found[n0:n1] = 1
-        self.first_kf[n0:n1] = kf_id
-        self.ref_kf[n0:n1] = kf_id
-        self.bad[n0:n1] = False
-        self.replaced[n0:n1] = -1
-        self.head[n0:n1] = -1
-        self.n = n1
-        return np.arange(n0, n1, dtype=np.int64)
+        ids = self.points.add(pos, desc, kf_id)
+        self.obs.add_points(self.points.n)
+        return ids
 
     # ------------------------------------------------------------ observations
     def add_observations(self, kf: KeyFrame, kp: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -138,7 +69,7 @@ class Map:
         already observed by ``kf``, duplicates and bad points.  Returns the kept mask."""
         kp = np.asarray(kp, np.int64)
         pts = np.asarray(pts, np.int64)
-        keep = (kf.point_ids[kp] < 0) & self.good(pts)
+        keep = (kf.point_ids[kp] < 0) & self.points.good(pts)
         keep &= ~np.isin(pts, kf.point_ids[kf.point_ids >= 0])
         if keep.any():
             # one keypoint per point and one point per keypoint
@@ -150,25 +81,11 @@ class Map:
             keep[:] = False
             keep[idx] = True
         kp_k, pt_k = kp[keep], pts[keep]
-        k = len(kp_k)
-        if k == 0:
+        if len(kp_k) == 0:
             return keep
-        r0, r1 = self.m, self.m + k
-        self.obs_kf = _grow(self.obs_kf, r1)
-        self.obs_kp = _grow(self.obs_kp, r1)
-        self.obs_pt = _grow(self.obs_pt, r1)
-        self.obs_alive = _grow(self.obs_alive, r1, False)
-        self.next_row = _grow(self.next_row, r1, -1)
-        self.next_row[r0:r1] = self.head[pt_k]  # pt_k has no duplicates
-        self.head[pt_k] = np.arange(r0, r1)
-        self.obs_kf[r0:r1] = kf.id
-        self.obs_kp[r0:r1] = kp_k
-        self.obs_pt[r0:r1] = pt_k
-        self.obs_alive[r0:r1] = True
-        self.m = r1
         kf.point_ids[kp_k] = pt_k
-        kf.obs_row[kp_k] = np.arange(r0, r1)
-        np.add.at(self.nobs, pt_k, 1 + (kf.u_right[kp_k] >= 0))
+        kf.obs_row[kp_k] = self.obs.add(kf.id, kp_k, pt_k)  # pt_k has no duplicates
+        np.add.at(self.points.nobs, pt_k, 1 + (kf.u_right[kp_k] >= 0))
         return keep
 
     def erase_observations(self, kf: KeyFrame, kp: np.ndarray, cull: bool = True) -> None:
@@ -177,72 +94,55 @@ class Map:
         kp = kp[kf.point_ids[kp] >= 0]
         if len(kp) == 0:
             return
-        rows = kf.obs_row[kp]
+        P = self.points
         pts = kf.point_ids[kp]
-        self.obs_alive[rows] = False
-        np.add.at(self.nobs, pts, -(1 + (kf.u_right[kp] >= 0)))
+        self.obs.erase(kf.obs_row[kp])
+        np.add.at(P.nobs, pts, -(1 + (kf.u_right[kp] >= 0)))
         kf.point_ids[kp] = -1
         kf.obs_row[kp] = -1
         if cull:
-            weak = np.unique(pts[self.nobs[pts] <= 2])
+            weak = np.unique(pts[P.nobs[pts] <= 2])
             if len(weak):
                 self.set_bad(weak)
             # points whose reference keyframe lost them: pick another observer
-            fix = np.unique(pts[(self.ref_kf[pts] == kf.id) & ~self.bad[pts]])
+            fix = np.unique(pts[(P.ref_kf[pts] == kf.id) & ~P.bad[pts]])
             if len(fix):
                 self._reassign_ref(fix)
 
-    def rows_of(self, pts: np.ndarray) -> np.ndarray:
-        """Alive observation rows of the given points (sorted), walking the per-point
-        lists: cost proportional to those points' observations, not to the map size."""
-        pts = np.asarray(pts, np.int64)
-        cur = self.head[np.unique(pts[pts >= 0])]
-        out = []
-        while len(cur):
-            cur = cur[cur >= 0]
-            if not len(cur):
-                break
-            out.append(cur)
-            cur = self.next_row[cur]
-        if not out:
-            return np.zeros(0, np.int64)
-        r = np.concatenate(out)
-        return np.sort(r[self.obs_alive[r]])
+    def _by_keyframe(self, rows: np.ndarray):
+        """(keyframe, its keypoints) of the observation rows, per keyframe still in the
+        map (a loop over keyframes, not rows)."""
+        kfs = self.obs.kf[rows]
+        kps = self.obs.kp[rows]
+        for kid in np.unique(kfs):
+            kf = self.keyframes.get(int(kid))
+            if kf is not None:
+                yield kf, kps[kfs == kid]
 
     def set_bad(self, pts: np.ndarray) -> None:
+        P = self.points
         pts = np.unique(np.asarray(pts, np.int64))
-        pts = pts[~self.bad[pts]]
+        pts = pts[~P.bad[pts]]
         if len(pts) == 0:
             return
-        rows = self.rows_of(pts)
-        self.bad[pts] = True
-        self.obs_alive[rows] = False
-        self.nobs[pts] = 0
-        kfs = self.obs_kf[rows]
-        kps = self.obs_kp[rows]
-        for kid in np.unique(kfs):  # loop over keyframes, not points
-            kf = self.keyframes.get(int(kid))
-            if kf is None:
-                continue
-            sel = kps[kfs == kid]
+        rows = self.obs.rows_of(pts)
+        P.bad[pts] = True
+        self.obs.erase(rows)
+        P.nobs[pts] = 0
+        for kf, sel in self._by_keyframe(rows):
             kf.point_ids[sel] = -1
             kf.obs_row[sel] = -1
 
     def _reassign_ref(self, pts: np.ndarray) -> None:
-        rows = self.rows_of(pts)
-        # first alive observer of each point
-        order = np.argsort(self.obs_pt[rows], kind="stable")
-        r = rows[order]
-        p = self.obs_pt[r]
-        first = np.ones(len(p), bool)
-        first[1:] = p[1:] != p[:-1]
-        self.ref_kf[p[first]] = self.obs_kf[r[first]]
+        p, kf_ids = self.obs.first_observers(pts)
+        self.points.ref_kf[p] = kf_ids
 
     def replace(self, old: np.ndarray, new: np.ndarray) -> None:
         """Fuse points: observations of ``old[i]`` move to ``new[i]``; ``old`` become bad."""
+        P = self.points
         old = np.asarray(old, np.int64)
         new = np.asarray(new, np.int64)
-        ok = (old != new) & self.good(old) & self.good(new)
+        ok = (old != new) & P.good(old) & P.good(new)
         old, new = old[ok], new[ok]
         if len(old) == 0:
             return
@@ -253,28 +153,22 @@ class Map:
         old, new = old[tgt], new[tgt]
         if len(old) == 0:
             return
-        mapping = np.full(self.n, -1, np.int64)
+        mapping = np.full(P.n, -1, np.int64)
         mapping[old] = new
-        rows = self.rows_of(old)
-        kfs = self.obs_kf[rows]
-        kps = self.obs_kp[rows]
         # erase the old observations (without culling), then add them for the new points
-        self.obs_alive[rows] = False
-        for kid in np.unique(kfs):
-            kf = self.keyframes.get(int(kid))
-            if kf is None:
-                continue
-            sel = kps[kfs == kid]
+        rows = self.obs.rows_of(old)
+        self.obs.erase(rows)
+        for kf, sel in self._by_keyframe(rows):
             pts_old = kf.point_ids[sel]
-            np.add.at(self.nobs, pts_old, -(1 + (kf.u_right[sel] >= 0)))
+            np.add.at(P.nobs, pts_old, -(1 + (kf.u_right[sel] >= 0)))
             kf.point_ids[sel] = -1
             kf.obs_row[sel] = -1
             self.add_observations(kf, sel, mapping[pts_old])
-        self.visible[new] += self.visible[old]
-        self.found[new] += self.found[old]
-        self.bad[old] = True
-        self.nobs[old] = 0
-        self.replaced[old] = new
+        P.visible[new] += P.visible[old]
+        P.found[new] += P.found[old]
+        P.bad[old] = True
+        P.nobs[old] = 0
+        P.replaced[old] = new
 
     # --------------------------------------------------------------- keyframes
     def add_keyframe(self, kf: KeyFrame) -> None:
@@ -303,7 +197,7 @@ class Map:
     def points_of(self, kf_ids) -> np.ndarray:
         """The good map points observed by the keyframes ``kf_ids`` (sorted, unique)."""
         pts = np.unique(np.concatenate([self.keyframes[k].point_ids for k in kf_ids]))
-        return pts[self.good(pts)]
+        return pts[self.points.good(pts)]
 
     def best_covisibles(self, kf_id: int, n: int = 10) -> list[int]:
         """The ``n`` strongest covisible keyframes of keyframe ``kf_id`` still in the map
@@ -313,8 +207,8 @@ class Map:
 
     def covisible_counts(self, pts: np.ndarray, exclude: int | None = None) -> dict[int, int]:
         """Number of the given points each keyframe observes."""
-        rows = self.rows_of(pts)
-        kfs = self.obs_kf[rows]
+        rows = self.obs.rows_of(pts)
+        kfs = self.obs.kf[rows]
         if exclude is not None:
             kfs = kfs[kfs != exclude]
         if len(kfs) == 0:
@@ -357,15 +251,15 @@ class Map:
         """Viewing normal, scale-invariance distances and distinctive descriptor of points
         (``MapPoint::UpdateNormalAndDepth`` / ``ComputeDistinctiveDescriptors``), at once."""
         pts = np.unique(np.asarray(pts, np.int64))
-        pts = pts[(pts >= 0) & ~self.bad[pts]]
+        pts = pts[(pts >= 0) & ~self.points.bad[pts]]
         if len(pts) == 0:
             return
-        rows = self.rows_of(pts)
+        rows = self.obs.rows_of(pts)
         if len(rows) == 0:
             return
-        kf_ids = self.obs_kf[rows]
-        kps = self.obs_kp[rows]
-        ptr = self.obs_pt[rows]
+        kf_ids = self.obs.kf[rows]
+        kps = self.obs.kp[rows]
+        ptr = self.obs.pt[rows]
         # gather per-row camera centres, levels and descriptors (loop over keyframes)
         centers = np.zeros((len(rows), 3))
         levels = np.zeros(len(rows), np.int64)
@@ -377,7 +271,7 @@ class Map:
             levels[sel] = kf.octave[kps[sel]]
             descs[sel] = kf.desc[kps[sel]]
         # normals
-        v = self.pos[ptr] - centers
+        v = self.points.pos[ptr] - centers
         nv = np.linalg.norm(v, axis=1, keepdims=True)
         v /= np.maximum(nv, 1e-12)
         loc = np.searchsorted(pts, ptr)
@@ -387,18 +281,18 @@ class Map:
         acc /= np.maximum(cnt, 1)[:, None]
         nrm = np.linalg.norm(acc, axis=1, keepdims=True)
         has = cnt > 0
-        self.normal[pts[has]] = acc[has] / np.maximum(nrm[has], 1e-12)
+        self.points.normal[pts[has]] = acc[has] / np.maximum(nrm[has], 1e-12)
         # depth range from the reference keyframe's observation
-        is_ref = self.ref_kf[ptr] == kf_ids
+        is_ref = self.points.ref_kf[ptr] == kf_ids
         missing = np.setdiff1d(pts, ptr[is_ref])
         if len(missing):
             self._reassign_ref(missing)
-            is_ref = self.ref_kf[ptr] == kf_ids
+            is_ref = self.points.ref_kf[ptr] == kf_ids
         r_idx = np.flatnonzero(is_ref)
         dist = nv[r_idx, 0]
         max_d = dist * self.scales[levels[r_idx]]
-        self.max_dist[ptr[r_idx]] = max_d
-        self.min_dist[ptr[r_idx]] = max_d / self.scales[-1]
+        self.points.max_dist[ptr[r_idx]] = max_d
+        self.points.min_dist[ptr[r_idx]] = max_d / self.scales[-1]
         # distinctive descriptor: the observation with least median distance to the others
         order = np.lexsort((-rows, loc))  # newest observations first within each point
         loc_s = loc[order]
@@ -429,7 +323,7 @@ class Map:
         bi = src[np.arange(P), best]
         okp = bi >= 0
         sel_desc[okp] = descs[bi[okp]]
-        self.desc[pts[okp]] = sel_desc[okp]
+        self.points.desc[pts[okp]] = sel_desc[okp]
 
     def in_frustum(self, pts: np.ndarray, T_cw: np.ndarray, center: np.ndarray, calib) -> "Frustum":
         """ORB-SLAM2's ``isInFrustum`` for points ``pts`` seen from a camera at ``T_cw``
@@ -438,20 +332,20 @@ class Map:
         from .optimizer import project
 
         K = calib.K
-        Xw = self.pos[pts]
+        Xw = self.points.pos[pts]
         Xc, u, v, ur = project(T_cw, Xw, K[0, 0], K[1, 1], K[0, 2], K[1, 2], calib.bf)
         PO = Xw - center
         dist = np.linalg.norm(PO, axis=1)
         with np.errstate(invalid="ignore", divide="ignore"):
-            cosv = (PO * self.normal[pts]).sum(axis=1) / np.maximum(dist, 1e-12)
+            cosv = (PO * self.points.normal[pts]).sum(axis=1) / np.maximum(dist, 1e-12)
         vis = (
             (Xc[:, 2] > 0)
             & (u >= 0)
             & (u < calib.width)
             & (v >= 0)
             & (v < calib.height)
-            & (dist >= 0.8 * self.min_dist[pts])
-            & (dist <= 1.2 * self.max_dist[pts])
+            & (dist >= 0.8 * self.points.min_dist[pts])
+            & (dist <= 1.2 * self.points.max_dist[pts])
             & (cosv >= 0.5)
         )
         return Frustum(np.flatnonzero(vis), Xw, u, v, ur, dist, cosv)
@@ -459,13 +353,211 @@ class Map:
     def predict_level(self, pts: np.ndarray, dist: np.ndarray) -> np.ndarray:
         """Pyramid level at which a point at ``dist`` should be seen (``PredictScale``)."""
         with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = self.max_dist[pts] / np.maximum(dist, 1e-9)
+            ratio = self.points.max_dist[pts] / np.maximum(dist, 1e-9)
             lev = np.ceil(np.log(np.maximum(ratio, 1e-9)) / self.log_scale)
         return np.clip(np.nan_to_num(lev, nan=0.0), 0, self.n_levels - 1).astype(np.int64)
 
     def stats(self) -> dict[str, int]:
         return {
             "keyframes": len(self.keyframes),
-            "map_points": int((~self.bad[: self.n]).sum()),
-            "observations": int(self.obs_alive[: self.m].sum()),
+            "map_points": len(self.points.good_ids()),
+            "observations": self.obs.n_alive(),
         }
+
+    # --------------------------------------------------------------- map files
+    @staticmethod
+    def entries() -> dict[str, tuple[np.dtype, tuple]]:
+        """Map-file entry -> (dtype, shape with the header's count names), in file order
+        (``docs/map_format.md``)."""
+        return {"map/scales": _OWN_ENTRIES["map/scales"], **MapPoints.entries(), **Observations.entries(),
+                **_OWN_ENTRIES}
+
+    @staticmethod
+    def counts_of(arrays: dict[str, np.ndarray]) -> dict[str, int]:
+        """The header's counts (``COUNTS``) of the arrays of :meth:`to_arrays`."""
+        found: dict[str, int] = {}
+        for name, (_dt, shape) in Map.entries().items():
+            found.setdefault(shape[0], len(arrays[name]))
+        return {c: found[c] for c in COUNTS}
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The map as named plain arrays (the entries of a map file): the two tables,
+        keyframes packed into concatenated per-keypoint arrays with offsets, the
+        covisibility graph as an edge list, the culled keyframes.  ``ValueError`` for a
+        map that disagrees with itself."""
+        arrays: dict[str, np.ndarray] = {"map/scales": self.scales, **self.points.to_arrays(), **self.obs.to_arrays()}
+        # keyframes (a loop over keyframes, the per-keypoint data is concatenated at once)
+        kfs = list(self.keyframes.values())
+        for key, kf in self.keyframes.items():
+            if kf.id != key:
+                raise ValueError(f"keyframe stored under id {key} has id {kf.id}")
+        counts = np.array([len(kf.uv) for kf in kfs], np.int64)
+        offsets = np.zeros(len(kfs) + 1, np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        arrays["keyframes/id"] = np.array([kf.id for kf in kfs], np.int64)
+        arrays["keyframes/frame_index"] = np.array([kf.frame_index for kf in kfs], np.int64)
+        arrays["keyframes/T_cw"] = np.array([kf.T_cw for kf in kfs], np.float64).reshape(len(kfs), 4, 4)
+        arrays["keyframes/bad"] = np.array([kf.bad for kf in kfs], bool)
+        arrays["keyframes/offsets"] = offsets
+        for name in KEYPOINT_FIELDS:
+            dt, shape = _OWN_ENTRIES[f"keypoints/{name}"]
+            parts = [getattr(kf, name) for kf in kfs]
+            for kf, p, c in zip(kfs, parts, counts):
+                if len(p) != c:
+                    raise ValueError(f"keyframe {kf.id}: {name} has {len(p)} rows, uv has {c}")
+            arrays[f"keypoints/{name}"] = (
+                np.concatenate(parts, axis=0, dtype=dt, casting="same_kind") if parts
+                else np.zeros((0,) + shape[1:], dt)
+            )
+        src: list[int] = []
+        dst: list[int] = []
+        wts: list[int] = []
+        for kf in kfs:
+            src.extend([kf.id] * len(kf.covis))
+            dst.extend(kf.covis.keys())
+            wts.extend(kf.covis.values())
+        arrays["covis/src"] = np.array(src, np.int64)
+        arrays["covis/dst"] = np.array(dst, np.int64)
+        arrays["covis/weight"] = np.array(wts, np.int64)
+        arrays["culled/id"] = np.array(list(self.culled.keys()), np.int64)
+        arrays["culled/parent"] = np.array([p for p, _ in self.culled.values()], np.int64)
+        arrays["culled/T_c_parent"] = np.array([T for _, T in self.culled.values()], np.float64).reshape(-1, 4, 4)
+        return {name: _as(arrays[name], dt, name) for name, (dt, _shape) in self.entries().items()}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], calib, next_kf_id: int,
+                    counts: dict[str, int] | None = None) -> "Map":
+        """The working map of :meth:`to_arrays`' arrays; every keyframe gets ``calib``.
+        ``counts``: the header's counts the arrays must match (default: theirs).  Every
+        entry's dtype and shape and the cross references between the tables are checked
+        first: :class:`MapFileError` naming the entry or the problem."""
+        counts = dict(counts) if counts is not None else cls.counts_of(arrays)
+        points = MapPoints.from_arrays(arrays, counts)
+        obs = Observations.from_arrays(arrays, counts)
+        a = {**points.to_arrays(), **obs.to_arrays()}
+        for name, (dt, shape) in _OWN_ENTRIES.items():
+            if name not in arrays:
+                raise MapFileError(f"corrupt or incomplete map file: entry '{name}' is missing")
+            a[name] = check_entry(name, np.asarray(arrays[name]), dt, shape, counts)
+        _check_arrays(a, counts, next_kf_id)
+        mp = cls(a["map/scales"], capacity=0)
+        mp.points, mp.obs = points, obs
+        off = a["keyframes/offsets"].tolist()
+        kp = {name: a[f"keypoints/{name}"] for name in KEYPOINT_FIELDS}
+        fidx = a["keyframes/frame_index"].tolist()
+        kbad = a["keyframes/bad"].tolist()
+        T = a["keyframes/T_cw"]
+        for i, kid in enumerate(a["keyframes/id"].tolist()):
+            s = slice(off[i], off[i + 1])
+            # each keyframe owns its arrays (as in a live map), no views into one buffer
+            mp.keyframes[kid] = KeyFrame(
+                id=kid, frame_index=fidx[i], calib=calib, T_cw=T[i].copy(), bad=kbad[i],
+                **{name: arr[s].copy() for name, arr in kp.items()},
+            )
+        kfs = mp.keyframes
+        for s_, d_, w_ in zip(a["covis/src"].tolist(), a["covis/dst"].tolist(), a["covis/weight"].tolist()):
+            kfs[s_].covis[d_] = w_
+        for cid, par, Tc in zip(a["culled/id"].tolist(), a["culled/parent"].tolist(), a["culled/T_c_parent"]):
+            mp.culled[cid] = (par, Tc.copy())
+        mp.next_kf_id = int(next_kf_id)
+        return mp
+
+
+# ---------------------------------------------------------------- map files
+_F8, _F4, _I8, _I4, _U1, _B = (np.dtype(t) for t in ("<f8", "<f4", "<i8", "<i4", "u1", "?"))
+COUNTS = ("points", "observations", "keyframes", "keypoints", "covis_edges", "culled", "levels")
+KEYPOINT_FIELDS = ("uv", "octave", "angle", "desc", "u_right", "depth", "point_ids", "obs_row")
+# the entries of the map itself (the tables have theirs)
+_OWN_ENTRIES: dict[str, tuple[np.dtype, tuple]] = {
+    "map/scales": (_F8, ("levels",)),
+    "keyframes/id": (_I8, ("keyframes",)),
+    "keyframes/frame_index": (_I8, ("keyframes",)),
+    "keyframes/T_cw": (_F8, ("keyframes", 4, 4)),
+    "keyframes/bad": (_B, ("keyframes",)),
+    "keyframes/offsets": (_I8, ("keyframes+1",)),
+    # keypoints of all keyframes, concatenated in keyframe order
+    "keypoints/uv": (_F8, ("keypoints", 2)),
+    "keypoints/octave": (_I4, ("keypoints",)),
+    "keypoints/angle": (_F4, ("keypoints",)),
+    "keypoints/desc": (_U1, ("keypoints", 32)),
+    "keypoints/u_right": (_F8, ("keypoints",)),
+    "keypoints/depth": (_F8, ("keypoints",)),
+    "keypoints/point_ids": (_I8, ("keypoints",)),
+    "keypoints/obs_row": (_I8, ("keypoints",)),
+    # covisibility graph, one row per (keyframe, neighbour) entry of KeyFrame.covis
+    "covis/src": (_I8, ("covis_edges",)),
+    "covis/dst": (_I8, ("covis_edges",)),
+    "covis/weight": (_I8, ("covis_edges",)),
+    # culled keyframes: id -> (parent id, T_c_parent)
+    "culled/id": (_I8, ("culled",)),
+    "culled/parent": (_I8, ("culled",)),
+    "culled/T_c_parent": (_F8, ("culled", 4, 4)),
+}
+
+
+def _as(a, dtype: np.dtype, what: str) -> np.ndarray:
+    a = np.asarray(a)
+    if a.dtype == dtype:
+        return np.ascontiguousarray(a)
+    if not np.can_cast(a.dtype, dtype, "same_kind"):
+        raise ValueError(f"{what}: dtype {a.dtype} cannot be stored as {dtype}")
+    return np.ascontiguousarray(a.astype(dtype))
+
+
+def _check_arrays(a: dict[str, np.ndarray], c: dict[str, int], next_kf_id: int) -> None:
+    """Cross references between the tables (vectorised): anything that would make the
+    map index out of range, or disagree with itself, is an error naming the problem."""
+    n, m, nk = c["points"], c["observations"], c["keyframes"]
+
+    def bad(msg: str) -> MapFileError:
+        return MapFileError(f"inconsistent map: {msg}")
+
+    sc = a["map/scales"]
+    if len(sc) == 0 or not np.isfinite(sc).all() or sc[0] != 1.0 or (np.diff(sc) <= 0).any():
+        raise bad("map/scales must start at 1 and increase")
+    ids = a["keyframes/id"]
+    if len(np.unique(ids)) != nk or (nk and (ids.min() < 0 or ids.max() >= next_kf_id)):
+        raise bad(f"keyframe ids must be unique and in 0..next_kf_id-1 ({next_kf_id - 1})")
+    off = a["keyframes/offsets"]
+    if off[0] != 0 or off[-1] != c["keypoints"] or (np.diff(off) < 0).any():
+        raise bad("keyframes/offsets must rise from 0 to the number of keypoints")
+    T = a["keyframes/T_cw"]
+    if not np.isfinite(T).all() or not np.allclose(T[:, 3], [0.0, 0.0, 0.0, 1.0]):
+        raise bad("keyframe poses must be finite 4x4 rigid transforms")
+
+    def out_of(x: np.ndarray, lo: int, hi: int) -> int:
+        return int(np.count_nonzero((x < lo) | (x >= hi)))
+
+    for name, lo, hi, what in (
+        ("obs/pt", 0, n, f"the {n} map points"),
+        ("obs/next_row", -1, m, f"the {m} observation rows"),
+        ("points/head", -1, m, f"the {m} observation rows"),
+        ("points/replaced", -1, n, f"the {n} map points"),
+        ("keypoints/point_ids", -1, n, f"the {n} map points"),
+        ("keypoints/obs_row", -1, m, f"the {m} observation rows"),
+    ):
+        k = out_of(a[name], lo, hi)
+        if k:
+            raise bad(f"{k} values of {name} point beyond {what}")
+    if (a["obs/kp"] < 0).any():
+        raise bad("negative keypoint indices in obs/kp")
+    pid, orow = a["keypoints/point_ids"], a["keypoints/obs_row"]
+    has = pid >= 0
+    if not np.array_equal(has, orow >= 0):
+        raise bad("keypoints/point_ids and keypoints/obs_row disagree on which keypoints have a point")
+    rows = orow[has]
+    kp_kf = np.repeat(ids, np.diff(off))
+    kp_idx = np.arange(len(pid)) - np.repeat(off[:-1], np.diff(off))
+    if not (a["obs/alive"][rows].all() and np.array_equal(a["obs/pt"][rows], pid[has])
+            and np.array_equal(a["obs/kf"][rows], kp_kf[has]) and np.array_equal(a["obs/kp"][rows], kp_idx[has])):
+        raise bad("keyframe keypoints and the observation rows they name disagree")
+    if int(np.count_nonzero(a["obs/alive"])) != len(rows) or len(np.unique(rows)) != len(rows):
+        raise bad("alive observation rows are not exactly the rows the keyframes name")
+    for name in ("covis/src", "covis/dst"):
+        if not np.isin(a[name], ids).all():
+            raise bad(f"{name} names keyframes that are not in the map")
+    if (a["covis/weight"] <= 0).any():
+        raise bad("covisibility weights must be positive")
+    cid = a["culled/id"]
+    if len(np.unique(cid)) != len(cid) or np.isin(cid, ids).any() or not np.isfinite(a["culled/T_c_parent"]).all():
+        raise bad("culled keyframes must be unique, not in the map, with finite poses")

@@ -13,13 +13,16 @@ covisibility graph is an edge list.  No pickle anywhere: every entry is read wit
 ``allow_pickle=False``.  The layout, dtypes, units, frames and the versioning policy
 are documented in ``docs/map_format.md``.
 
-A loaded map is a fully working :class:`~dynastereo.slam.map.Map`: point and
-observation arrays, per-point observation lists, keyframes with their per-keypoint
-arrays, calibration and covisibility, culled keyframes, the next keyframe id.  Every
-entry's dtype and shape and the cross references between the tables (observation
-rows, point ids, keyframe ids) are checked on load, so a corrupt or inconsistent file
-is a :class:`~dynastereo.errors.MapFileError` naming the file and the problem, never
-an ``IndexError`` later in tracking.
+This module is the container only: the header (format, version, counts, calibration,
+ORB settings, disparity offset, vocabulary / bag-of-words descriptors, meta), the zip
+archive (atomic save, per-entry compression, no pickle) and the checks that need the
+header (counts, version, ORB levels, another camera).  The arrays are the map's own:
+``Map.to_arrays()`` / ``Map.from_arrays()``, which take the point and observation
+tables' (``MapPoints``, ``Observations``) and pack the keyframes; a stored vocabulary
+is ``Vocabulary.to_arrays()`` / ``from_arrays()``.  Every entry's dtype and shape and
+the cross references between the tables are checked on load, so a corrupt or
+inconsistent file is a :class:`~dynastereo.errors.MapFileError` naming the file and
+the problem, never an ``IndexError`` later in tracking.
 """
 
 from __future__ import annotations
@@ -40,8 +43,8 @@ import numpy as np
 
 from ..errors import MapFileError
 from ..types import StereoCalibration
-from .keyframe import KeyFrame
-from .map import Map
+from .map import COUNTS, Map
+from .table import check_entry
 
 FORMAT = "dynastereo-map"
 VERSION = 1
@@ -83,62 +86,13 @@ class MapFile:
 
 
 # ---------------------------------------------------------------------- layout
-_F8, _F4, _I8, _I4, _U1, _B = (np.dtype(t) for t in ("<f8", "<f4", "<i8", "<i4", "u1", "?"))
-
-# entry -> (dtype, shape); names in shapes are header counts
-ENTRIES: dict[str, tuple[np.dtype, tuple]] = {
-    "map/scales": (_F8, ("levels",)),
-    # map points, one row per point id
-    "points/pos": (_F8, ("points", 3)),
-    "points/desc": (_U1, ("points", 32)),
-    "points/normal": (_F8, ("points", 3)),
-    "points/min_dist": (_F8, ("points",)),
-    "points/max_dist": (_F8, ("points",)),
-    "points/nobs": (_I4, ("points",)),
-    "points/visible": (_I4, ("points",)),
-    "points/found": (_I4, ("points",)),
-    "points/first_kf": (_I8, ("points",)),
-    "points/ref_kf": (_I8, ("points",)),
-    "points/bad": (_B, ("points",)),
-    "points/replaced": (_I8, ("points",)),
-    "points/head": (_I8, ("points",)),
-    # observation table, one row per observation
-    "obs/kf": (_I8, ("observations",)),
-    "obs/kp": (_I8, ("observations",)),
-    "obs/pt": (_I8, ("observations",)),
-    "obs/alive": (_B, ("observations",)),
-    "obs/next_row": (_I8, ("observations",)),
-    # keyframes
-    "keyframes/id": (_I8, ("keyframes",)),
-    "keyframes/frame_index": (_I8, ("keyframes",)),
-    "keyframes/T_cw": (_F8, ("keyframes", 4, 4)),
-    "keyframes/bad": (_B, ("keyframes",)),
-    "keyframes/offsets": (_I8, ("keyframes+1",)),
-    # keypoints of all keyframes, concatenated in keyframe order
-    "keypoints/uv": (_F8, ("keypoints", 2)),
-    "keypoints/octave": (_I4, ("keypoints",)),
-    "keypoints/angle": (_F4, ("keypoints",)),
-    "keypoints/desc": (_U1, ("keypoints", 32)),
-    "keypoints/u_right": (_F8, ("keypoints",)),
-    "keypoints/depth": (_F8, ("keypoints",)),
-    "keypoints/point_ids": (_I8, ("keypoints",)),
-    "keypoints/obs_row": (_I8, ("keypoints",)),
-    # covisibility graph, one row per (keyframe, neighbour) entry of KeyFrame.covis
-    "covis/src": (_I8, ("covis_edges",)),
-    "covis/dst": (_I8, ("covis_edges",)),
-    "covis/weight": (_I8, ("covis_edges",)),
-    # culled keyframes: id -> (parent id, T_c_parent)
-    "culled/id": (_I8, ("culled",)),
-    "culled/parent": (_I8, ("culled",)),
-    "culled/T_c_parent": (_F8, ("culled", 4, 4)),
-}
+# the map's entries (``Map.entries()``: its tables' and its own) and, optionally, these
 BOW_ENTRIES: dict[str, tuple[np.dtype | str, tuple]] = {
-    "bow/kf": (_I8, ("bow_keyframes",)),
-    "bow/offsets": (_I8, ("bow_keyframes+1",)),
+    "bow/kf": (np.dtype("<i8"), ("bow_keyframes",)),
+    "bow/offsets": (np.dtype("<i8"), ("bow_keyframes+1",)),
     "bow/words": ("i", ("bow_entries",)),  # integer kind, dtype as the vocabulary made it
     "bow/weights": ("f", ("bow_entries",)),  # floating kind, likewise
 }
-COUNTS = ("points", "observations", "keyframes", "keypoints", "covis_edges", "culled", "levels")
 # entries that deflate gains < 10 % on (descriptors, point positions / normals / distances,
 # keypoint angles: measured on KITTI maps) are stored; everything else (ids, rows, levels,
 # flags, uv, stereo) is deflated at level 1: 2-10x smaller, fast.  uint8 vocabulary
@@ -197,15 +151,6 @@ def _npy_bytes(a: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def _as(a: Any, dtype: np.dtype, what: str) -> np.ndarray:
-    a = np.asarray(a)
-    if a.dtype == dtype:
-        return np.ascontiguousarray(a)
-    if not np.can_cast(a.dtype, dtype, "same_kind"):
-        raise ValueError(f"{what}: dtype {a.dtype} cannot be stored as {dtype}")
-    return np.ascontiguousarray(a.astype(dtype))
-
-
 # ----------------------------------------------------------------------- save
 def _collect(mf: MapFile) -> tuple[dict, dict[str, np.ndarray]]:
     """(header, arrays) of a map file; raises ValueError / TypeError for a bad MapFile."""
@@ -228,60 +173,11 @@ def _collect(mf: MapFile) -> tuple[dict, dict[str, np.ndarray]]:
             f"MapFile.orb (scale_factor {orb['scale_factor']}, n_levels {orb['n_levels']}) disagrees with the "
             f"map's scale pyramid ({mp.n_levels} levels, factor {mp.scales[1] if mp.n_levels > 1 else 1.0:g})"
         )
-    n, m = int(mp.n), int(mp.m)
-    arrays: dict[str, np.ndarray] = {"map/scales": mp.scales}
-    for name in ("pos", "desc", "normal", "min_dist", "max_dist", "nobs", "visible", "found", "first_kf",
-                 "ref_kf", "bad", "replaced", "head"):
-        arrays[f"points/{name}"] = getattr(mp, name)[:n]
-    arrays["obs/kf"] = mp.obs_kf[:m]
-    arrays["obs/kp"] = mp.obs_kp[:m]
-    arrays["obs/pt"] = mp.obs_pt[:m]
-    arrays["obs/alive"] = mp.obs_alive[:m]
-    arrays["obs/next_row"] = mp.next_row[:m]
-    # keyframes (a loop over keyframes, the per-keypoint data is concatenated at once)
-    kfs = list(mp.keyframes.values())
-    for key, kf in mp.keyframes.items():
-        if kf.id != key:
-            raise ValueError(f"keyframe stored under id {key} has id {kf.id}")
+    for kf in mp.keyframes.values():
         if not _same_calib(kf.calib, calib):
             raise ValueError(f"keyframe {kf.id} has another calibration than MapFile.calibration")
-    counts = np.array([len(kf.uv) for kf in kfs], np.int64)
-    offsets = np.zeros(len(kfs) + 1, np.int64)
-    np.cumsum(counts, out=offsets[1:])
-    arrays["keyframes/id"] = np.array([kf.id for kf in kfs], np.int64)
-    arrays["keyframes/frame_index"] = np.array([kf.frame_index for kf in kfs], np.int64)
-    arrays["keyframes/T_cw"] = np.array([kf.T_cw for kf in kfs], np.float64).reshape(len(kfs), 4, 4)
-    arrays["keyframes/bad"] = np.array([kf.bad for kf in kfs], bool)
-    arrays["keyframes/offsets"] = offsets
-    for name in ("uv", "octave", "angle", "desc", "u_right", "depth", "point_ids", "obs_row"):
-        dt, shape = ENTRIES[f"keypoints/{name}"]
-        parts = [getattr(kf, name) for kf in kfs]
-        for kf, p, c in zip(kfs, parts, counts):
-            if len(p) != c:
-                raise ValueError(f"keyframe {kf.id}: {name} has {len(p)} rows, uv has {c}")
-        arrays[f"keypoints/{name}"] = (
-            np.concatenate(parts, axis=0, dtype=dt, casting="same_kind") if parts
-            else np.zeros((0,) + shape[1:], dt)
-        )
-    src: list[int] = []
-    dst: list[int] = []
-    wts: list[int] = []
-    for kf in kfs:
-        src.extend([kf.id] * len(kf.covis))
-        dst.extend(kf.covis.keys())
-        wts.extend(kf.covis.values())
-    arrays["covis/src"] = np.array(src, np.int64)
-    arrays["covis/dst"] = np.array(dst, np.int64)
-    arrays["covis/weight"] = np.array(wts, np.int64)
-    arrays["culled/id"] = np.array(list(mp.culled.keys()), np.int64)
-    arrays["culled/parent"] = np.array([p for p, _ in mp.culled.values()], np.int64)
-    arrays["culled/T_c_parent"] = np.array([T for _, T in mp.culled.values()], np.float64).reshape(-1, 4, 4)
-    for name, (dt, _shape) in ENTRIES.items():
-        arrays[name] = _as(arrays[name], dt, name)
-    header_counts = {
-        "points": n, "observations": m, "keyframes": len(kfs), "keypoints": int(offsets[-1]),
-        "covis_edges": len(src), "culled": len(mp.culled), "levels": int(mp.n_levels),
-    }
+    arrays = mp.to_arrays()
+    header_counts = Map.counts_of(arrays)
     # optional: bag of words per keyframe
     bow_hdr = None
     if mf.bow is not None:
@@ -438,19 +334,14 @@ class _Reader:
             raise self.err(f"corrupt map file: entry '{name}' is not a valid array ({e})") from None
 
     def checked(self, name: str, dtype: np.dtype | str, shape: tuple, counts: dict[str, int]) -> np.ndarray:
-        a = self.array(name)
-        if isinstance(dtype, str):
-            kind = "integer" if dtype == "i" else "floating-point"
-            if a.dtype.kind not in ("iu" if dtype == "i" else dtype):
-                raise self.err(f"entry '{name}' has dtype {a.dtype}, expected a {kind} array")
-        elif a.dtype != dtype:
-            raise self.err(f"entry '{name}' has dtype {a.dtype}, expected {dtype}")
-        want = tuple(
-            (counts[s[:-2]] + 1 if s.endswith("+1") else counts[s]) if isinstance(s, str) else s for s in shape
-        )
-        if a.shape != want:
-            raise self.err(f"entry '{name}' has shape {a.shape}, the header's counts say {want}")
-        return a
+        try:
+            return check_entry(name, self.array(name), dtype, shape, counts)
+        except MapFileError as e:
+            raise self.named(e) from None
+
+    def named(self, e: MapFileError) -> MapFileError:
+        """``e`` naming this file (the tables' errors name the entry only)."""
+        return e if e.path is not None else self.err(str(e))
 
 
 def read_header(path: str | os.PathLike) -> dict:
@@ -518,71 +409,21 @@ def _calibration(r: _Reader, d: Any) -> StereoCalibration:
     return c
 
 
-def _check_consistency(r: _Reader, h: dict, a: dict[str, np.ndarray]) -> None:
-    """Cross references between the tables (vectorised): anything that would make the
-    map index out of range, or disagree with itself, is an error naming the problem."""
-    c = h["counts"]
-    n, m, nk = c["points"], c["observations"], c["keyframes"]
+def _check_file(r: _Reader, h: dict, a: dict[str, np.ndarray]) -> None:
+    """What the map's own checks (``Map.from_arrays``) cannot see: the header's ORB
+    levels against the scales, the bag of words against the keyframes."""
 
     def bad(msg: str) -> MapFileError:
         return r.err(f"inconsistent map: {msg}")
 
-    sc = a["map/scales"]
-    if len(sc) == 0 or not np.isfinite(sc).all() or sc[0] != 1.0 or (np.diff(sc) <= 0).any():
-        raise bad("map/scales must start at 1 and increase")
-    if int(h["orb"]["n_levels"]) != len(sc):
-        raise bad(f"orb.n_levels {h['orb']['n_levels']} but {len(sc)} scales")
-    ids = a["keyframes/id"]
-    if len(np.unique(ids)) != nk or (nk and (ids.min() < 0 or ids.max() >= h["next_kf_id"])):
-        raise bad(f"keyframe ids must be unique and in 0..next_kf_id-1 ({h['next_kf_id'] - 1})")
-    off = a["keyframes/offsets"]
-    if off[0] != 0 or off[-1] != c["keypoints"] or (np.diff(off) < 0).any():
-        raise bad("keyframes/offsets must rise from 0 to the number of keypoints")
-    T = a["keyframes/T_cw"]
-    if not np.isfinite(T).all() or not np.allclose(T[:, 3], [0.0, 0.0, 0.0, 1.0]):
-        raise bad("keyframe poses must be finite 4x4 rigid transforms")
-
-    def out_of(x: np.ndarray, lo: int, hi: int) -> int:
-        return int(np.count_nonzero((x < lo) | (x >= hi)))
-
-    for name, lo, hi, what in (
-        ("obs/pt", 0, n, f"the {n} map points"),
-        ("obs/next_row", -1, m, f"the {m} observation rows"),
-        ("points/head", -1, m, f"the {m} observation rows"),
-        ("points/replaced", -1, n, f"the {n} map points"),
-        ("keypoints/point_ids", -1, n, f"the {n} map points"),
-        ("keypoints/obs_row", -1, m, f"the {m} observation rows"),
-    ):
-        k = out_of(a[name], lo, hi)
-        if k:
-            raise bad(f"{k} values of {name} point beyond {what}")
-    if (a["obs/kp"] < 0).any():
-        raise bad("negative keypoint indices in obs/kp")
-    pid, orow = a["keypoints/point_ids"], a["keypoints/obs_row"]
-    has = pid >= 0
-    if not np.array_equal(has, orow >= 0):
-        raise bad("keypoints/point_ids and keypoints/obs_row disagree on which keypoints have a point")
-    rows = orow[has]
-    kp_kf = np.repeat(ids, np.diff(off))
-    kp_idx = np.arange(len(pid)) - np.repeat(off[:-1], np.diff(off))
-    if not (a["obs/alive"][rows].all() and np.array_equal(a["obs/pt"][rows], pid[has])
-            and np.array_equal(a["obs/kf"][rows], kp_kf[has]) and np.array_equal(a["obs/kp"][rows], kp_idx[has])):
-        raise bad("keyframe keypoints and the observation rows they name disagree")
-    if int(np.count_nonzero(a["obs/alive"])) != len(rows) or len(np.unique(rows)) != len(rows):
-        raise bad("alive observation rows are not exactly the rows the keyframes name")
-    for name in ("covis/src", "covis/dst"):
-        if not np.isin(a[name], ids).all():
-            raise bad(f"{name} names keyframes that are not in the map")
-    if (a["covis/weight"] <= 0).any():
-        raise bad("covisibility weights must be positive")
-    cid = a["culled/id"]
-    if len(np.unique(cid)) != len(cid) or np.isin(cid, ids).any() or not np.isfinite(a["culled/T_c_parent"]).all():
-        raise bad("culled keyframes must be unique, not in the map, with finite poses")
+    if int(h["orb"]["n_levels"]) != len(a["map/scales"]):
+        raise bad(f"orb.n_levels {h['orb']['n_levels']} but {len(a['map/scales'])} scales")
     if "bow/kf" in a:
+        ids = a["keyframes/id"]
         bk, bo = a["bow/kf"], a["bow/offsets"]
         if not np.isin(bk, ids).all() or len(np.unique(bk)) != len(bk):
             raise bad("bow/kf names keyframes that are not in the map (or twice)")
-        if bo[0] != 0 or bo[-1] != c["bow_entries"] or (np.diff(bo) < 0).any():
+        if bo[0] != 0 or bo[-1] != h["counts"]["bow_entries"] or (np.diff(bo) < 0).any():
             raise bad("bow/offsets must rise from 0 to the number of bow entries")
 
 
@@ -604,7 +445,7 @@ def load_map(path: str | os.PathLike, vocabulary_cls: type | None = None) -> Map
         h = _header(r)
         calib = _calibration(r, h["calibration"])
         counts = dict(h["counts"])
-        a = {name: r.checked(name, dt, shape, counts) for name, (dt, shape) in ENTRIES.items()}
+        a = {name: r.array(name) for name in Map.entries()}
         bow_present = any(name + ".npy" in r.names for name in BOW_ENTRIES) or "bow_keyframes" in counts
         if bow_present:
             for key in ("bow_keyframes", "bow_entries"):
@@ -613,7 +454,11 @@ def load_map(path: str | os.PathLike, vocabulary_cls: type | None = None) -> Map
                     raise r.err(f"corrupt map file: the header's counts.{key} is {x!r}, expected a count")
             for name, (dt, shape) in BOW_ENTRIES.items():
                 a[name] = r.checked(name, dt, shape, counts)
-        _check_consistency(r, h, a)
+        try:
+            mp = Map.from_arrays(a, calib, h["next_kf_id"], counts)
+        except MapFileError as e:
+            raise r.named(e) from None
+        _check_file(r, h, a)
         vocab_arrays = None
         if h.get("vocabulary") is not None:
             vh = h["vocabulary"]
@@ -623,34 +468,6 @@ def load_map(path: str | os.PathLike, vocabulary_cls: type | None = None) -> Map
             vocab_arrays = {e: r.array(f"vocab/{e}") for e in entries}
     finally:
         r.close()
-    # ---------------------------------------------------------------- rebuild
-    mp = Map(a["map/scales"], capacity=0)
-    for name in ("pos", "desc", "normal", "min_dist", "max_dist", "nobs", "visible", "found", "first_kf",
-                 "ref_kf", "bad", "replaced", "head"):
-        setattr(mp, name, a[f"points/{name}"])
-    mp.n = counts["points"]
-    mp.obs_kf, mp.obs_kp, mp.obs_pt = a["obs/kf"], a["obs/kp"], a["obs/pt"]
-    mp.obs_alive, mp.next_row = a["obs/alive"], a["obs/next_row"]
-    mp.m = counts["observations"]
-    off = a["keyframes/offsets"].tolist()
-    kp = {name: a[f"keypoints/{name}"] for name in
-          ("uv", "octave", "angle", "desc", "u_right", "depth", "point_ids", "obs_row")}
-    fidx = a["keyframes/frame_index"].tolist()
-    kbad = a["keyframes/bad"].tolist()
-    T = a["keyframes/T_cw"]
-    for i, kid in enumerate(a["keyframes/id"].tolist()):
-        s = slice(off[i], off[i + 1])
-        # each keyframe owns its arrays (as in a live map), no views into one buffer
-        mp.keyframes[kid] = KeyFrame(
-            id=kid, frame_index=fidx[i], calib=calib, T_cw=T[i].copy(), bad=kbad[i],
-            **{name: arr[s].copy() for name, arr in kp.items()},
-        )
-    kfs = mp.keyframes
-    for s_, d_, w_ in zip(a["covis/src"].tolist(), a["covis/dst"].tolist(), a["covis/weight"].tolist()):
-        kfs[s_].covis[d_] = w_
-    for cid, par, Tc in zip(a["culled/id"].tolist(), a["culled/parent"].tolist(), a["culled/T_c_parent"]):
-        mp.culled[cid] = (par, Tc.copy())
-    mp.next_kf_id = int(h["next_kf_id"])
     bow = None
     if "bow/kf" in a:
         bo = a["bow/offsets"].tolist()

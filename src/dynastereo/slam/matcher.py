@@ -293,12 +293,12 @@ def keyframe_point_matches(mp, kf, target) -> tuple[np.ndarray, np.ndarray]:
     points costs about as much here.  Returns ``(target keypoint idx, point ids)``."""
     z = np.zeros(0, np.int64)
     kp_kf = np.flatnonzero(kf.point_ids >= 0)
-    pts = mp.resolve(kf.point_ids[kp_kf])
+    pts = mp.points.resolve(kf.point_ids[kp_kf])
     ok = pts >= 0
     kp_kf, pts = kp_kf[ok], pts[ok]
     if len(pts) < 10 or len(target) < 10:
         return z, z
-    dnn, inn = cv2.batchDistance(mp.desc[pts], target.desc, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
+    dnn, inn = cv2.batchDistance(mp.points.desc[pts], target.desc, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
     b1, b2, best = dnn[:, 0], dnn[:, 1], inn[:, 0]
     good = (best >= 0) & (b1 <= TH_LOW) & (b1 < 0.7 * b2)
     qi, ki = np.flatnonzero(good), best[good]

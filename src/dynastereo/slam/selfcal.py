@@ -138,6 +138,6 @@ class SelfCalibration:
         for kf in mp.keyframes.values():
             kp = np.flatnonzero((kf.point_ids >= 0) & (kf.u_right >= 0))
             pts = kf.point_ids[kp]
-            one = (mp.ref_kf[pts] == kf.id) & (mp.nobs[pts] <= 2) & ~mp.bad[pts]
+            one = (mp.points.ref_kf[pts] == kf.id) & (mp.points.nobs[pts] <= 2) & ~mp.points.bad[pts]
             if one.any():
-                mp.pos[pts[one]] = kf.unproject(kp[one])
+                mp.points.pos[pts[one]] = kf.unproject(kp[one])

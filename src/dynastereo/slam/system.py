@@ -237,12 +237,12 @@ class System:
         matched = f.point_ids >= 0
         local = [k for k in self.tracker.local_kfs if k in self.map.keyframes]
         pts = self.map.points_of(local) if local else np.zeros(0, np.int64)
-        return FrameView(f.uv.copy(), matched & ~f.outlier, matched & f.outlier, self.map.pos[pts].copy())
+        return FrameView(f.uv.copy(), matched & ~f.outlier, matched & f.outlier, self.map.points.pos[pts].copy())
 
     def map_points(self) -> np.ndarray:
         """(M, 3) world positions of all good map points (a copy)."""
-        n = self.map.n
-        return self.map.pos[:n][~self.map.bad[:n]].copy()
+        P = self.map.points
+        return P.pos[P.good_ids()]
 
     def results(self) -> list[TrackResult]:
         """Every frame fed, as tracked."""
@@ -293,10 +293,6 @@ class System:
         return list(self.tracker.recoveries)
 
     # -------------------------------------------------------------- map files
-    def _orb_settings(self) -> dict[str, Any]:
-        c = self.cfg
-        return {"n_features": c.n_features, "scale_factor": c.scale_factor, "n_levels": c.n_levels}
-
     def save_map(self, path, meta: dict[str, Any] | None = None, optimize: bool = True) -> None:
         """Write the current map (keyframes, map points, covisibility, bag of words, the
         vocabulary and the disparity offset) to ``path`` (``docs/map_format.md``).  The
@@ -304,7 +300,7 @@ class System:
         a final bundle adjustment over the whole map -- self-calibrating, so the disparity
         offset is refined over all keyframes -- makes the map the best it can be for reuse
         (the frame poses, ``trajectory()``, follow it)."""
-        from .map_io import MapFile, save_map
+        from .map_io import map_file_from_system, save_map
 
         active, n = self.active, self.tracker.n
         if not self.localize_only:
@@ -320,18 +316,7 @@ class System:
                 bows[k] = (b.words, b.weights)
         info = {"frames": n, "map_id": active.id, "loops": len(self._loop_events)}
         info.update(meta or {})
-        save_map(
-            path,
-            MapFile(
-                map=self.map,
-                calibration=self.calib,
-                disparity_offset=self.selfcal.offset,
-                orb=self._orb_settings(),
-                vocabulary=self.vocab,
-                bow=bows,
-                meta=info,
-            ),
-        )
+        save_map(path, map_file_from_system(self, meta=info, vocabulary=self.vocab, bow=bows))
         log.info("map saved: %s (%d keyframes, %d points)", path, len(self.map.keyframes), self.map.stats()["map_points"])
 
     def load_map(self, path, localize_only: bool = False) -> None:
@@ -339,12 +324,12 @@ class System:
         frame.  ``localize_only``: track in it without adding keyframes or points (no
         local mapping, no loop closing); the first frame is placed by relocalisation.
         Otherwise mapping (and loop closing) go on in the loaded map."""
-        from .map_io import check_compatible, load_map
+        from .map_io import check_compatible, load_map, orb_settings
 
         if self.tracker.n:
             raise RuntimeError("System.load_map must be called before the first frame")
         mf = load_map(path)
-        check_compatible(mf, self.calib, self._orb_settings(), path)
+        check_compatible(mf, self.calib, orb_settings(self.cfg), path)
         if mf.vocabulary is not None:
             self.vocab = self.tracker.vocab = mf.vocabulary
         self.tracker.localize_only = bool(localize_only)

@@ -444,7 +444,7 @@ class Tracker:
         ids = mp.new_points(kf.unproject(idx), kf.desc[idx], kf.id)
         mp.add_observations(kf, idx, ids)
         f.point_ids[idx] = ids
-        f.match_xyz[idx] = mp.pos[ids]
+        f.match_xyz[idx] = mp.points.pos[ids]
         mp.update_points(ids)
         self.ref_kf = kf
         self.last_kf_frame = f.index
@@ -488,7 +488,7 @@ class Tracker:
             ids = mp.new_points(kf.unproject(cand), kf.desc[cand], kf.id)
             keep = mp.add_observations(kf, cand, ids)
             f.point_ids[cand[keep]] = ids[keep]
-            f.match_xyz[cand[keep]] = mp.pos[ids[keep]]
+            f.match_xyz[cand[keep]] = mp.points.pos[ids[keep]]
             ids = ids[keep]
         self.ref_kf = kf
         self.last_kf_frame = f.index
@@ -519,7 +519,7 @@ class Tracker:
     def _last_frame_points(self, mp: Map, last: Frame):
         """Points to project from the last frame: its map points (current positions)
         plus temporary points from its close stereo keypoints (``UpdateLastFrame``)."""
-        pid = mp.resolve(last.point_ids)
+        pid = mp.points.resolve(last.point_ids)
         has_mp = pid >= 0
         # temporary stereo points: closest first, all closer than th_depth, at least 100
         cand = np.flatnonzero((last.depth > 0) & ~has_mp)
@@ -529,8 +529,8 @@ class Tracker:
         tmp = cand[:n_take]
         idx_mp = np.flatnonzero(has_mp)
         kp_idx = np.concatenate([idx_mp, tmp])
-        X = np.concatenate([mp.pos[pid[idx_mp]], last.unproject(tmp)])
-        d64 = np.concatenate([desc_u64(mp.desc[pid[idx_mp]]), last.desc64[tmp]])
+        X = np.concatenate([mp.points.pos[pid[idx_mp]], last.unproject(tmp)])
+        d64 = np.concatenate([desc_u64(mp.points.desc[pid[idx_mp]]), last.desc64[tmp]])
         pts = np.concatenate([pid[idx_mp], np.full(len(tmp), -1, np.int64)])
         return kp_idx, X, d64, pts
 
@@ -606,7 +606,7 @@ class Tracker:
         ki, pts = keyframe_point_matches(mp, kf, frame)
         if len(ki) < 15:
             return False
-        X = mp.pos[pts]
+        X = mp.points.pos[pts]
         T, _ = self._pnp(X, frame.uv[ki], frame)
         if T is None:
             if T_guess is None:
@@ -626,14 +626,14 @@ class Tracker:
         ORB-SLAM2's bag-of-words keyframe database, cheap on maps of a few dozen keyframes)."""
         if len(frame) < 10 or not mp.keyframes:
             return []
-        pts = np.flatnonzero(~mp.bad[: mp.n] & (mp.nobs[: mp.n] > 0))
+        pts = np.flatnonzero(~mp.points.bad[: mp.points.n] & (mp.points.nobs[: mp.points.n] > 0))
         if len(pts) == 0:
             return []
         if len(pts) > max_points:  # newest points (deterministic)
             pts = pts[-max_points:]
         step = max(1, len(frame) // 400)
         sample = np.arange(0, len(frame), step)
-        dnn, inn = cv2.batchDistance(frame.desc[sample], mp.desc[pts], cv2.CV_32S, normType=cv2.NORM_HAMMING, K=1)
+        dnn, inn = cv2.batchDistance(frame.desc[sample], mp.points.desc[pts], cv2.CV_32S, normType=cv2.NORM_HAMMING, K=1)
         good = (inn[:, 0] >= 0) & (dnn[:, 0] <= TH_LOW)
         matched = np.unique(pts[inn[good, 0]])
         counts = mp.covisible_counts(matched)
@@ -665,7 +665,7 @@ class Tracker:
             ki, pts = keyframe_point_matches(mp, kf, frame)
             if len(ki) < 15:
                 continue
-            X = mp.pos[pts]
+            X = mp.points.pos[pts]
             T, _ = self._pnp(X, frame.uv[ki], frame)
             if T is None:
                 continue
@@ -694,13 +694,13 @@ class Tracker:
         n, kid, frame.T_cw, frame.point_ids, frame.match_xyz, frame.outlier, self.ref_kf, self.local_kfs = best
         self.n_inliers = n
         inl = frame.point_ids[frame.point_ids >= 0]
-        mp.found[inl] += 1
-        mp.visible[inl] += 1
+        mp.points.mark_found(inl)
+        mp.points.mark_visible(inl)
         return True, kid
 
     def update_local_keyframes(self, mp: Map, frame: Frame) -> list[int]:
         pid = frame.point_ids
-        pts = mp.resolve(pid[pid >= 0])
+        pts = mp.points.resolve(pid[pid >= 0])
         counts = mp.covisible_counts(pts[pts >= 0])
         counts = {k: c for k, c in counts.items() if k in mp.keyframes}
         if not counts:
@@ -732,18 +732,18 @@ class Tracker:
         ids = mp.points_of(local)
         # points already matched in this frame: counted visible, not searched again
         has = np.flatnonzero(frame.point_ids >= 0)
-        res = mp.resolve(frame.point_ids[has])
+        res = mp.points.resolve(frame.point_ids[has])
         frame.clear_matches(has[res < 0])
         frame.point_ids[has[res >= 0]] = res[res >= 0]
         already = frame.point_ids[frame.point_ids >= 0]
         if count:
-            mp.visible[already] += 1
+            mp.points.mark_visible(already)
         ids = ids[~np.isin(ids, already)]
         if len(ids):
             f = mp.in_frustum(ids, frame.T_cw, frame.T_wc[:3, 3], frame.calib)
             sel, u, v, ur, dist, cosv, Xw = f.sel, f.u, f.v, f.ur, f.dist, f.cosv, f.Xw
             if count:
-                mp.visible[ids[sel]] += 1
+                mp.points.mark_visible(ids[sel])
             if len(sel):
                 lev = mp.predict_level(ids[sel], dist[sel])
                 r = np.where(cosv[sel] > 0.998, 2.5, 4.0) * self.orb.scales[lev]
@@ -756,7 +756,7 @@ class Tracker:
                     u[sel],
                     v[sel],
                     r,
-                    desc_u64(mp.desc[ids[sel]]),
+                    desc_u64(mp.points.desc[ids[sel]]),
                     min_level=lev - 1,
                     max_level=lev,
                     u_right=ur[sel],
@@ -767,10 +767,10 @@ class Tracker:
                 self._assign(frame, m.kp, ids[q], Xw[q])
         # refresh the positions of all map-point matches (the map may have moved)
         has = frame.point_ids >= 0
-        frame.match_xyz[has] = mp.pos[frame.point_ids[has]]
+        frame.match_xyz[has] = mp.points.pos[frame.point_ids[has]]
         n = self._optimize(mp, frame)
         if count:
-            mp.found[frame.point_ids[frame.point_ids >= 0]] += 1
+            mp.points.mark_found(frame.point_ids[frame.point_ids >= 0])
         self.n_inliers = n
         return n >= self.cfg.min_inliers
 
@@ -781,7 +781,7 @@ class Tracker:
         n_kfs = len(mp.keyframes)
         min_obs = 3 if n_kfs > 2 else 2
         ref_pts = self.ref_kf.point_ids[self.ref_kf.point_ids >= 0]
-        n_ref = int(np.count_nonzero(mp.nobs[ref_pts] >= min_obs))
+        n_ref = int(np.count_nonzero(mp.points.nobs[ref_pts] >= min_obs))
         close = (frame.depth > 0) & (frame.depth < self.th_depth_m)
         tracked = frame.point_ids >= 0
         n_tracked_close = int(np.count_nonzero(close & tracked))

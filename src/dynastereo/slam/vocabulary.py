@@ -29,7 +29,7 @@ File format (``save`` / ``load``): a NumPy ``.npz`` archive (no pickled objects)
 ==================  ============================================================
 
 A missing, corrupt, truncated, wrong-format or wrong-version file raises
-:class:`VocabularyError` (an :class:`~dynastereo.errors.InputError`) naming the file.
+:class:`~dynastereo.errors.VocabularyError` (an :class:`~dynastereo.errors.InputError`) naming the file.
 
 :meth:`Vocabulary.default` loads the vocabulary shipped with the package
 (``slam/data/orb_vocab_synth.npz``), trained on images of dynastereo's own synthetic
@@ -48,17 +48,13 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, VocabularyError
 
 FORMAT_NAME = "dynastereo-orb-vocabulary"
 FORMAT_VERSION = 1
 DEFAULT_VOCABULARY = "orb_vocab_synth.npz"
 _BIG = np.int32(1 << 20)  # distance of an invalid child: never the nearest
 _MAX_SLOTS = 1 << 24  # k**levels limit of the dense layout (16.7M leaf slots)
-
-
-class VocabularyError(InputError):
-    """A vocabulary file that is missing, corrupt, of another format or version."""
 
 
 @dataclass(frozen=True, eq=False)
