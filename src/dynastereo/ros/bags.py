@@ -320,6 +320,8 @@ class BagStereoSequence:
     ``fallback_calib``: a calibration file used only when the bag has no CameraInfo.
     """
 
+    timestamp_source = "bag header stamps (left image)"
+
     def __init__(
         self,
         path: str | Path,
@@ -543,12 +545,16 @@ class BagStereoSequence:
 # --------------------------------------------------------------------------- export
 
 
+EPOCH_1973_NS = 100_000_000 * 1_000_000_000  # 1e8 s: stamps below this are not dates (KITTI's start at 0)
+
+
 @dataclass
 class ExportResult:
     path: Path
     format: str
     frames: int
     topics: dict[str, int]  # topic -> messages written
+    first_stamp_ns: int | None = None  # the first frame's stamp as written
 
 
 def _exact_projections(seq: Any) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -642,7 +648,7 @@ def export_bag(
             if progress is not None:
                 progress(k + 1, len(frames))
         counts = dict(w.counts)
-    return ExportResult(out, fmt, len(frames), counts)
+    return ExportResult(out, fmt, len(frames), counts, int(stamps_ns[frames[0]]))
 
 
 def _export_stamps_ns(sequence: Any, time_offset_s: float) -> np.ndarray:
