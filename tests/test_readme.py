@@ -18,7 +18,6 @@ import re
 import shlex
 from pathlib import Path
 
-import click
 import numpy as np
 import pytest
 import typer
@@ -30,25 +29,29 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 T0_NS = 1_700_000_000_000_000_000  # the generated camera's first stamp (2023-11-14), as its file names
 
 
-def _commands(cmd: click.Command, path: str = "dynastereo"):
+def _commands(cmd, path: str = "dynastereo"):
+    """(``dynastereo sub``, command) for the whole click tree (typer ships its own click:
+    duck-typed, not isinstance against the click package)."""
     yield path, cmd
-    if isinstance(cmd, click.Group):
-        for name, sub in cmd.commands.items():
-            yield from _commands(sub, f"{path} {name}")
+    for name, sub in getattr(cmd, "commands", {}).items():
+        yield from _commands(sub, f"{path} {name}")
+
+
+def help_options() -> dict[str, list[str]]:
+    """Every command's options as ``--help`` shows them (``--help`` itself left out)."""
+    return {path: [opt for p in cmd.params if p.param_type_name == "option" and not p.hidden
+                   for opt in (*p.opts, *p.secondary_opts) if opt != "--help"]
+            for path, cmd in _commands(typer.main.get_command(app))}
 
 
 def test_every_command_and_option_of_help_is_in_the_readme() -> None:
     text = README.read_text()
-    missing = []
-    for path, cmd in _commands(typer.main.get_command(app)):
-        if path != "dynastereo" and path not in text:
-            missing.append(path)
-        for p in cmd.params:
-            if not isinstance(p, click.Option) or p.hidden:
-                continue
-            for opt in (*p.opts, *p.secondary_opts):
-                if opt != "--help" and not re.search(rf"(?<![\w-]){re.escape(opt)}(?![\w-])", text):
-                    missing.append(f"{path} {opt}")
+    options = help_options()
+    assert "--no-align" in options["dynastereo eval"] and "--no-wls" in options["dynastereo mask"]
+    assert {"dynastereo models download", "dynastereo export-bag"} <= set(options)
+    missing = [path for path in options if path != "dynastereo" and path not in text]
+    missing += [f"{path} {opt}" for path, opts in options.items() for opt in opts
+                if not re.search(rf"(?<![\w-]){re.escape(opt)}(?![\w-])", text)]
     assert not missing, f"named in --help but not in README.md: {', '.join(missing)}"
 
 
@@ -127,3 +130,16 @@ def test_your_own_stereo_camera_and_bag_as_written(tmp_path: Path, monkeypatch, 
     bag_run = json.loads((tmp_path / "mycam_bag_run" / "run.json").read_text())
     assert bag_run["frames_done"] == 24 and bag_run["timestamps"].startswith("bag header stamps")
     assert np.loadtxt(tmp_path / "mycam_bag_run" / "trajectory.tum.txt")[0, 0] == pytest.approx(T0_NS * 1e-9)
+
+
+@pytest.mark.parametrize("name, raw", [("calib-rectified", False), ("calib-raw", True)])
+def test_readme_calibration_examples_load(tmp_path: Path, name: str, raw: bool) -> None:
+    from dynastereo.io.calib import RawStereoCalibration, load_stereo_yaml
+
+    m = re.search(rf"<!-- test_readme: {name} -->\s*```yaml\n(.*?)```", README.read_text(), re.S)
+    assert m, f"README.md has no ```yaml block marked <!-- test_readme: {name} -->"
+    (tmp_path / "calib.yaml").write_text(m.group(1))
+    c = load_stereo_yaml(tmp_path / "calib.yaml")
+    assert isinstance(c, RawStereoCalibration) == raw
+    if not raw:
+        assert (c.fx, c.baseline, c.width, c.height) == (700.0, 0.12, 1280, 720)
