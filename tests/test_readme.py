@@ -82,7 +82,7 @@ def run_block(name: str, cwd: Path, monkeypatch) -> list[str]:
     return outputs
 
 
-def make_own_camera(root: Path, frames: int = 24) -> Path:
+def make_own_camera(root: Path, frames: int = 16) -> Path:
     """``root/mycam``: left/ + right/ with nanosecond file names (30 Hz), calib.yaml (rectified
     form), groundtruth.tum.txt -- made from a synthetic ``crossing`` sequence."""
     from dynastereo.eval.trajectory import read_trajectory, write_tum
@@ -115,7 +115,7 @@ def test_your_own_stereo_camera_and_bag_as_written(tmp_path: Path, monkeypatch, 
     cam = make_own_camera(tmp_path)
     outputs = run_block("own-camera", tmp_path, monkeypatch)
     run = json.loads((tmp_path / "mycam_run" / "run.json").read_text())
-    assert run["timestamps"] == "file names (ns)" and run["frames_done"] == 24
+    assert run["timestamps"] == "file names (ns)" and run["frames_done"] == 16
     tum = np.loadtxt(tmp_path / "mycam_run" / "trajectory.tum.txt")
     assert tum[0, 0] == pytest.approx(T0_NS * 1e-9)  # the camera's own stamps, so TUM ground truth associates
     ape = next(o for o in outputs if "rmse" in o)
@@ -128,7 +128,7 @@ def test_your_own_stereo_camera_and_bag_as_written(tmp_path: Path, monkeypatch, 
     export_bag(open_sequence(cam), tmp_path / "mycam.bag", "ros1")
     run_block("own-bag", tmp_path, monkeypatch)
     bag_run = json.loads((tmp_path / "mycam_bag_run" / "run.json").read_text())
-    assert bag_run["frames_done"] == 24 and bag_run["timestamps"].startswith("bag header stamps")
+    assert bag_run["frames_done"] == 16 and bag_run["timestamps"].startswith("bag header stamps")
     assert np.loadtxt(tmp_path / "mycam_bag_run" / "trajectory.tum.txt")[0, 0] == pytest.approx(T0_NS * 1e-9)
 
 
