@@ -103,7 +103,7 @@ def make_own_camera(root: Path, frames: int = 16) -> Path:
     return cam
 
 
-def test_quick_start_as_written(tmp_path: Path, monkeypatch, models_dir: Path) -> None:
+def test_quick_start_as_written(tmp_path: Path, monkeypatch) -> None:
     run_block("quickstart", tmp_path, monkeypatch)
     demo = json.loads((tmp_path / "demo" / "demo.json").read_text())
     rows = {r["masker"]: r for r in demo["rows"]}
@@ -118,9 +118,10 @@ def test_your_own_stereo_camera_and_bag_as_written(tmp_path: Path, monkeypatch, 
     assert run["timestamps"] == "file names (ns)" and run["frames_done"] == 16
     tum = np.loadtxt(tmp_path / "mycam_run" / "trajectory.tum.txt")
     assert tum[0, 0] == pytest.approx(T0_NS * 1e-9)  # the camera's own stamps, so TUM ground truth associates
-    ape = next(o for o in outputs if "rmse" in o)
+    evaluation = outputs[[a[0] for a in readme_block("own-camera")].index("eval")]
+    assert "rmse" in evaluation and (tmp_path / "mycam_run" / "trajectory_vs_gt.png").is_file()
     assert (tmp_path / "mycam_run" / "report.html").is_file()
-    assert ape
+    assert len(list((tmp_path / "mycam_masks" / "overlays").glob("*.png"))) == 10
 
     from dynastereo.io import open_sequence
     from dynastereo.ros.bags import export_bag
