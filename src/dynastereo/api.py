@@ -220,6 +220,39 @@ def slam_job(
                         progress=progress, save_map=save_map, map_info=info, observers=observers)
 
 
+# --------------------------------------------------------------------------- benchmarks
+
+
+def bench(
+    root: str | Path,
+    out: str | Path,
+    *,
+    sequences: str | None = None,
+    maskers: str | list[str] = "none,box,outline,seg",
+    repeats: int = 3,
+    config: str | Path | None = None,
+    overrides: dict | None = None,
+    frames: str | None = None,
+    engine: str = "local",
+    address: str | None = None,
+    workers: int | None = None,
+    threads: int = 1,
+    models_dir: str | Path | None = None,
+    plots: bool = True,
+    progress: Callable[[dict], None] | None = None,
+):
+    """Run every (sequence, masker, repeat) of the sequences under ``root`` as its own job,
+    evaluate each against its ground truth, write ``out/results.json``, ``out/tables.md``
+    and ``out/plots/``; finished jobs are reused.  ``engine``: ``local`` (process pool) or
+    ``ray`` (local instance, or the cluster at ``address``).  See
+    :func:`dynastereo.bench.runner.run_bench`."""
+    from .bench import run_bench
+
+    return run_bench(root, out, sequences=sequences, maskers=maskers, repeats=repeats, config=config,
+                     overrides=overrides, frames=frames, engine=engine, address=address, workers=workers,
+                     threads=threads, models_dir=models_dir, plots=plots, progress=progress)
+
+
 # --------------------------------------------------------------------------- ROS bags
 
 

@@ -503,6 +503,59 @@ def eval_cmd(
         print(f"plot: {png}")
 
 
+@app.command("bench")
+def bench_cmd(
+    root: Path = typer.Argument(..., help="Dataset root: KITTI odometry (sequences/NN + poses/NN.txt), KITTI raw drives, EuRoC folders, or a folder of `dynastereo synth` outputs."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder: results.json, tables.md, plots/, runs/<sequence>/<masker>/r<k>/."),
+    sequences: Optional[str] = typer.Option(None, "--sequences", help="Which sequences: ranges and names, e.g. 00-10 or 03,07 or 'convoy/*' (default: all found)."),
+    maskers: str = typer.Option("none,box,outline,seg", "--maskers", help="Comma list of none, box, outline, seg."),
+    repeats: int = typer.Option(3, "--repeats", help="Runs per sequence and masker (seed = config seed + repeat)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML configuration (or ORB-SLAM2 settings) for every job."),
+    detector: Optional[str] = typer.Option(None, "--detector", help="Detector for every job (overrides the configuration), e.g. oracle for synthetic sequences."),
+    frames: Optional[str] = typer.Option(None, "--frames", help="Frames of every sequence: a count N or ranges a-b (default: all)."),
+    engine: str = typer.Option("local", "--engine", help="local (process pool) | ray."),
+    address: Optional[str] = typer.Option(None, "--address", help="[ray] Join this Ray cluster (host:6379, ray://host:10001, auto) instead of starting a local instance."),
+    workers: Optional[int] = typer.Option(None, "--workers", "-j", help="Jobs at a time (local processes / local Ray CPUs); default: the CPU cores."),
+    threads: int = typer.Option(1, "--threads", help="Threads per job (detector.threads, slam.threads)."),
+    models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
+    no_plots: bool = typer.Option(False, "--no-plots", help="Do not draw plots/ate.png and plots/trajectories_*.png."),
+) -> None:
+    """Benchmark a whole dataset: every (sequence, masker, repeat) as a job, in parallel, resumable, with the thesis' tables."""
+    from ..api import bench
+
+    bar = _progress()
+    task = bar.add_task("bench frames", total=None, info="")
+
+    def on_progress(p: dict) -> None:
+        running = ", ".join(p["running"][:3]) + (" ..." if len(p["running"]) > 3 else "")
+        failed = f", {p['jobs_failed']} failed" if p["jobs_failed"] else ""
+        bar.update(task, completed=p["frames_done"], total=p["frames_total"] or None,
+                   info=f"jobs {p['jobs_done']}/{p['jobs_total']}{failed}" + (f", running {running}" if running else ""))
+        ev = p.get("event")
+        if ev and ev[0] == "failed":
+            bar.console.print(f"[yellow]job {ev[1]} failed[/] (retried once; errors in results.json)", highlight=False)
+
+    try:
+        with bar:
+            result = bench(root, out, sequences=sequences, maskers=maskers, repeats=repeats, config=config,
+                           overrides={"detector.name": detector}, frames=frames, engine=engine, address=address,
+                           workers=workers, threads=threads, models_dir=models_dir, plots=not no_plots,
+                           progress=on_progress)
+    except KeyboardInterrupt:
+        console.print(f"[bold yellow]interrupted[/]: {out / 'results.json'} and tables.md hold the finished runs; "
+                      "run the same command again to continue", highlight=False)
+        raise typer.Exit(130)
+    except DynastereoError as e:
+        _fail(e)
+    print(result.tables_path.read_text())
+    reused = sum(bool(r.get("reused")) for r in result.runs)
+    out_console.print(
+        f"{result.count('done')} of {len(result.runs)} runs done ({reused} reused), {result.count('failed')} failed, "
+        f"in {result.wall_s:.1f} s -> {result.results_path}, {result.tables_path}", highlight=False)
+    if result.count("failed"):
+        raise typer.Exit(1)
+
+
 @app.command("vocab")
 def vocab_cmd(
     images: list[str] = typer.Argument(..., help="Image files, folders (the images directly inside) or glob patterns ('**' recurses)."),

@@ -310,30 +310,9 @@ def object_mask_in_roi(
         return RoiOutline(None, med, MaskMethod.FALLBACK_TINY, med, med)
     if n_valid < max(cfg.min_valid_fraction * area, 8):
         return RoiOutline(None, med, MaskMethod.FALLBACK_NO_DISPARITY, med, med)
-    top = None  # per row: disparities below this are the road (or below it)
-    if road is not None:
-        top = (np.asarray(road, np.float32).reshape(h, 1) + np.float32(cfg.ground_tolerance))
-        above = valid & (droi >= top)
-        if np.count_nonzero(above) < max(cfg.min_valid_fraction * area, 8):
-            top = None  # (nearly) all of the box is road-like: the line does not fit here
-    sel = valid if top is None else above
-    weights = None
-    if shared is not None and cfg.overlap_weight < 1.0:
-        sh = shared[sel]
-        if sh.any() and not sh.all():
-            weights = np.where(sh, np.float32(cfg.overlap_weight), np.float32(1.0))
-    peak = dominant_disparity(
-        droi[sel],
-        cfg.bin_width,
-        rel=cfg.peak_tolerance_rel,
-        near_ratio=cfg.near_peak_ratio,
-        weights=weights,
-        extend_ratio=cfg.peak_extend_ratio,
-    )
-    assert peak is not None
-    d = peak.disparity
-    tol = tolerance(d, cfg)
-    lo, hi = max(min(d - tol, peak.lo), 1e-3), max(d + tol, peak.hi)  # lo > 0: never the invalid
+    top = _road_top(droi, valid, road, cfg)
+    sel = valid if top is None else valid & (droi >= top)
+    d, lo, hi = _peak_range(droi, sel, shared, cfg)
     in_range = (droi >= lo) & (droi <= hi)
     support = int(np.count_nonzero(in_range))
     if max_disparity is not None and hi >= max_disparity - RANGE_MARGIN:
@@ -350,6 +329,52 @@ def object_mask_in_roi(
         on_road = np.count_nonzero(in_range & (droi < top))
         if on_road > cfg.ground_max_fraction * support:
             top = None
+    m = _shape(droi, context, lo, hi, top, cfg)
+    if not m.any():
+        return RoiOutline(None, d, MaskMethod.FALLBACK_NO_PEAK, lo, hi, support)
+    return RoiOutline(m, d, MaskMethod.OUTLINE, lo, hi, support)
+
+
+def _road_top(droi: np.ndarray, valid: np.ndarray, road: np.ndarray | None, cfg: OutlineConfig) -> np.ndarray | None:
+    """Per ROI row (``(h, 1)``): disparities below this are the road (or below it); None
+    without a road line or when (nearly) all of the box is road-like (the line does not fit)."""
+    if road is None:
+        return None
+    h, w = droi.shape
+    top = np.asarray(road, np.float32).reshape(h, 1) + np.float32(cfg.ground_tolerance)
+    if np.count_nonzero(valid & (droi >= top)) < max(cfg.min_valid_fraction * h * w, 8):
+        return None
+    return top
+
+
+def _peak_range(droi: np.ndarray, sel: np.ndarray, shared: np.ndarray | None,
+                cfg: OutlineConfig) -> tuple[float, float, float]:
+    """``(peak disparity, lo, hi)``: the dominant histogram peak of ``droi[sel]`` (pixels
+    shared with other boxes weigh ``overlap_weight``) and the range taken as the object."""
+    weights = None
+    if shared is not None and cfg.overlap_weight < 1.0:
+        sh = shared[sel]
+        if sh.any() and not sh.all():
+            weights = np.where(sh, np.float32(cfg.overlap_weight), np.float32(1.0))
+    peak = dominant_disparity(
+        droi[sel],
+        cfg.bin_width,
+        rel=cfg.peak_tolerance_rel,
+        near_ratio=cfg.near_peak_ratio,
+        weights=weights,
+        extend_ratio=cfg.peak_extend_ratio,
+    )
+    assert peak is not None
+    d = peak.disparity
+    tol = tolerance(d, cfg)
+    return d, max(min(d - tol, peak.lo), 1e-3), max(d + tol, peak.hi)  # lo > 0: never the invalid
+
+
+def _shape(droi: np.ndarray, context: np.ndarray | None, lo: float, hi: float, top: np.ndarray | None,
+           cfg: OutlineConfig) -> np.ndarray:
+    """The object's uint8 mask: pixels in ``[lo, hi]`` after filling invalid ones along
+    their row (``context``: the rows left of the box), less the road, then the largest
+    component, holes filled and dilated."""
     if context is not None and context.shape[1] > 0:
         filled = fill_invalid_rows(np.concatenate([context, droi], axis=1))[:, context.shape[1]:]
     else:
@@ -371,9 +396,7 @@ def object_mask_in_roi(
     m = _dilate(m, int(cfg.dilate))
     if road_px is not None and cfg.ground_after_dilate:
         m[road_px] = 0
-    if not m.any():
-        return RoiOutline(None, d, MaskMethod.FALLBACK_NO_PEAK, lo, hi, support)
-    return RoiOutline(m, d, MaskMethod.OUTLINE, lo, hi, support)
+    return m
 
 
 def outline_objects(

@@ -29,9 +29,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..config import TRANSFER_MODES
 from .outline import roi_disparity
 
-MODES = ("rigid", "affine")
+MODES = TRANSFER_MODES  # masker.outline.transfer (config)
 # A box ending this close to the right border is taken as cut by it.
 BORDER_TOUCH = 3
 

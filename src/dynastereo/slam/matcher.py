@@ -61,7 +61,36 @@ def stereo_match(
         return StereoResult(u_right, depth)
     max_d = float(fx if max_disparity is None else max_disparity)
     min_d = 0.0
-    # candidates per right level o: rows within 2 * scale[o], left level in o-1..o+1
+    qi, ri = _row_candidates(uv_l, oct_l, uv_r, oct_r, scales, min_d, max_d)
+    if len(qi) == 0:
+        return StereoResult(u_right, depth)
+    dist = hamming_pairs(desc_u64(desc_l), qi, desc_u64(desc_r), ri)
+    best, _, _ = best_two_per_group(qi, dist)
+    keep = dist[best] <= th_dist
+    li = qi[best[keep]]
+    rj = ri[best[keep]]
+    if len(li) == 0:
+        return StereoResult(u_right, depth)
+    ur_best, sad_best = _refine_by_sad(uv_l, oct_l, uv_r, li, rj, img_l, img_r, scales)
+    ok = np.isfinite(ur_best)
+    disp = uv_l[li, 0] - ur_best
+    ok &= (disp >= min_d) & (disp < max_d)
+    if not ok.any():
+        return StereoResult(u_right, depth)
+    disp = np.where(disp <= 0, 0.01, disp)
+    ur_best = uv_l[li, 0] - disp
+    # reject block-matching outliers (SAD > 1.5 * 1.4 * median)
+    med = np.median(sad_best[ok])
+    ok &= sad_best <= 1.5 * 1.4 * med
+    u_right[li[ok]] = ur_best[ok]
+    depth[li[ok]] = bf / disp[ok]
+    return StereoResult(u_right, depth)
+
+
+def _row_candidates(uv_l: np.ndarray, oct_l: np.ndarray, uv_r: np.ndarray, oct_r: np.ndarray, scales: np.ndarray,
+                    min_d: float, max_d: float) -> tuple[np.ndarray, np.ndarray]:
+    """(left, right) keypoint pairs: per right level o, the left keypoints of levels
+    o-1..o+1 within ``2 * scale[o]`` rows, with a disparity in ``[min_d, max_d]``."""
     qs, rs = [], []
     for o in np.unique(oct_r):
         rsel = np.flatnonzero(oct_r == o)
@@ -80,31 +109,24 @@ def stereo_match(
     ri = np.concatenate(rs) if rs else np.zeros(0, np.int64)
     disp = uv_l[qi, 0] - uv_r[ri, 0]
     ok = (disp >= min_d) & (disp <= max_d)
-    qi, ri = qi[ok], ri[ok]
-    if len(qi) == 0:
-        return StereoResult(u_right, depth)
-    dl = desc_u64(desc_l)
-    dr = desc_u64(desc_r)
-    dist = hamming_pairs(dl, qi, dr, ri)
-    best, _, _ = best_two_per_group(qi, dist)
-    keep = dist[best] <= th_dist
-    li = qi[best[keep]]
-    rj = ri[best[keep]]
-    if len(li) == 0:
-        return StereoResult(u_right, depth)
+    return qi[ok], ri[ok]
 
-    # Sub-pixel refinement by SAD block matching (11x11 windows, brightness offset
-    # removed with the centre pixel, as ORB-SLAM2) along the row.  ORB-SLAM2 does it on
-    # the keypoint's pyramid level; we do it on the full-resolution images for every
-    # level: the disparity is then measured in level-0 pixels (on KITTI about 0.25 px
-    # median difference to SGBM instead of 0.40; on rendered scenes 0.16 px error
-    # instead of 0.37 and no level-dependent bias).  The search covers +-(5 + half a
-    # pixel of the coarsest level) around the right keypoint.
+
+def _refine_by_sad(uv_l: np.ndarray, oct_l: np.ndarray, uv_r: np.ndarray, li: np.ndarray, rj: np.ndarray,
+                   img_l: np.ndarray, img_r: np.ndarray, scales: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel right u of the matches ``li`` / ``rj`` (NaN: no good minimum) and their SAD.
+
+    SAD block matching (11x11 windows, brightness offset removed with the centre pixel, as
+    ORB-SLAM2) along the row.  ORB-SLAM2 does it on the keypoint's pyramid level; we do it
+    on the full-resolution images for every level: the disparity is then measured in
+    level-0 pixels (on KITTI about 0.25 px median difference to SGBM instead of 0.40; on
+    rendered scenes 0.16 px error instead of 0.37 and no level-dependent bias).  The
+    search covers +-(5 + half a pixel of the coarsest level) around the right keypoint.
+    """
     w = 5
     m_all = len(li)
     L = 5 + int(np.ceil(0.5 * float(scales[int(oct_l[li].max())])))
-    IL, IR = img_l, img_r
-    H0, W0 = IL.shape
+    H0, W0 = img_l.shape
     ul = np.rint(uv_l[li, 0]).astype(np.int64)
     vl = np.rint(uv_l[li, 1]).astype(np.int64)
     ur0 = np.rint(uv_r[rj, 0]).astype(np.int64)
@@ -115,8 +137,8 @@ def stereo_match(
     rows = (vl[sel, None] + dy[None, :])[:, :, None]
     PL = np.zeros((m_all, 2 * w + 1, 2 * w + 1), np.int16)
     SR = np.zeros((m_all, 2 * w + 1, 2 * (w + L) + 1), np.int16)
-    PL[sel] = IL[rows, (ul[sel, None] + dy[None, :])[:, None, :]]
-    SR[sel] = IR[rows, (ur0[sel, None] + dx[None, :])[:, None, :]]
+    PL[sel] = img_l[rows, (ul[sel, None] + dy[None, :])[:, None, :]]
+    SR[sel] = img_r[rows, (ur0[sel, None] + dx[None, :])[:, None, :]]
     PL -= PL[:, w : w + 1, w : w + 1]
     sad = np.empty((m_all, 2 * L + 1), np.float64)
     for k in range(2 * L + 1):  # one shift at a time, over all matches
@@ -134,20 +156,7 @@ def stereo_match(
     # disparity measured between the integer window centres, as the right u of the
     # left keypoint (independent of where inside its pixel the keypoint is reported)
     ur_best = np.where(good, uv_l[li, 0] - (ul - (ur0 + (b - L) + delta)), np.nan)
-
-    ok = np.isfinite(ur_best)
-    disp = uv_l[li, 0] - ur_best
-    ok &= (disp >= min_d) & (disp < max_d)
-    if not ok.any():
-        return StereoResult(u_right, depth)
-    disp = np.where(disp <= 0, 0.01, disp)
-    ur_best = uv_l[li, 0] - disp
-    # reject block-matching outliers (SAD > 1.5 * 1.4 * median)
-    med = np.median(sad_best[ok])
-    ok &= sad_best <= 1.5 * 1.4 * med
-    u_right[li[ok]] = ur_best[ok]
-    depth[li[ok]] = bf / disp[ok]
-    return StereoResult(u_right, depth)
+    return ur_best, sad_best
 
 
 class KeypointGrid:
