@@ -29,6 +29,10 @@ models_app = typer.Typer(help="List, download and verify detector models.", invo
 app.add_typer(models_app, name="models")
 
 
+_RATE_HELP = ("Frame rate (Hz) for the timestamps of a folder with no times.txt and no timestamp file names "
+              "(default: 10 Hz, with a warning).")
+
+
 def _fail(e: Exception) -> None:
     console.print(f"[bold red]error:[/] {e}", soft_wrap=True, highlight=False, markup=True)
     raise typer.Exit(2)
@@ -114,7 +118,7 @@ def mask(
     overlays: bool = typer.Option(False, "--overlays", help="Write DIR/overlays/NNNNNN.png."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML configuration."),
     calib: Optional[Path] = typer.Option(None, "--calib", help="YAML calibration for a generic folder pair."),
-    rate: Optional[float] = typer.Option(None, "--rate", help="Frame rate (Hz) for the timestamps of a folder with no times.txt and no timestamp file names (default: 10 Hz, with a warning)."),
+    rate: Optional[float] = typer.Option(None, "--rate", help=_RATE_HELP),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an earlier run in DIR (its outputs are deleted first)."),
     no_stereo_check: bool = typer.Option(False, "--no-stereo-check", help="Skip the check that the pair is rectified left/right (not identical, swapped or unrectified)."),
@@ -158,7 +162,7 @@ def run(
     frames: Optional[str] = typer.Option(None, help="A count N, or inclusive index ranges a-b,c-d (a- = a to the end), fed in that order (revisits allowed)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML configuration, or an ORB-SLAM2 stereo settings file."),
     calib: Optional[Path] = typer.Option(None, "--calib", help="YAML calibration for a generic folder pair (with --bag: wins over CameraInfo)."),
-    rate: Optional[float] = typer.Option(None, "--rate", help="Frame rate (Hz) for the timestamps of a folder with no times.txt and no timestamp file names (default: 10 Hz, with a warning)."),
+    rate: Optional[float] = typer.Option(None, "--rate", help=_RATE_HELP),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
     save_masks: bool = typer.Option(False, "--save-masks", help="Also write DIR/masks/{left,right}/NNNNNN.png."),
     bag: Optional[Path] = typer.Option(None, "--bag", help="Read a ROS bag instead of a folder: ROS 1 .bag, ROS 2 .db3 (or bag directory), .mcap. Writes DIR/output.<same format> too."),
@@ -275,14 +279,15 @@ def export_bag_cmd(
     color: bool = typer.Option(False, "--color", help="KITTI: the colour pair image_2/image_3."),
     raw: bool = typer.Option(False, "--raw", help="Raw images + raw CameraInfo (K, D, R, P) for sequences rectified on read (EuRoC)."),
     calib: Optional[Path] = typer.Option(None, "--calib", help="YAML calibration for a generic folder pair."),
-    rate: Optional[float] = typer.Option(None, "--rate", help="Frame rate (Hz) for the timestamps of a folder with no times.txt and no timestamp file names (default: 10 Hz, with a warning)."),
+    rate: Optional[float] = typer.Option(None, "--rate", help=_RATE_HELP),
     time_offset: float = typer.Option(0.0, "--time-offset", help="Seconds added to every stamp (KITTI's times.txt starts at 0 s = 1970; e.g. 1.7e9 for a 2023 date)."),
     force: bool = typer.Option(False, "--overwrite", "--force", help="Replace OUT if it exists."),
 ) -> None:
-    """Write a stereo sequence as a ROS bag: /camera/{left,right}/image_raw + camera_info, stamps from times.txt."""
+    """Write a stereo sequence as a ROS bag: /camera/{left,right}/image_raw + camera_info, with the sequence's stamps."""
     from ..api import export_bag
     from ..io.outputs import check_output_file
-    from ..ros.bags import BAG_SUFFIX, EPOCH_1973_NS, check_format
+    from ..io.times import UNIX_DATE_MIN_S
+    from ..ros.bags import BAG_SUFFIX, check_format
 
     with _job(f"{out} holds the frames written so far (closed, readable)") as job:
         if fmt is None:
@@ -305,7 +310,7 @@ def export_bag_cmd(
                            time_offset_s=time_offset, overwrite=force, progress=on_frame, rate=rate)
     out_console.print(f"wrote {r.path} ({r.format}, {r.frames} frames): "
                       + ", ".join(f"{t} {n}" for t, n in r.topics.items()), highlight=False)
-    if r.first_stamp_ns is not None and r.first_stamp_ns < EPOCH_1973_NS:
+    if r.first_stamp_ns is not None and r.first_stamp_ns < UNIX_DATE_MIN_S * 1_000_000_000:
         out_console.print(f"note: the stamps start at {r.first_stamp_ns * 1e-9:g} s (1970); some ROS tools show "
                           "that oddly: --time-offset S shifts them (e.g. --time-offset 1.7e9)", highlight=False)
 

@@ -24,7 +24,6 @@ from .sequence import ImagePairSequence, list_image_pairs
 from .times import DEFAULT_RATE_HZ, check_rate, read_times
 
 
-
 def kitti_image_dirs(path: Path, color: bool | None) -> tuple[Path, Path, bool] | None:
     """``(left_dir, right_dir, uses_colour_pair)`` for a KITTI sequence folder, or None.
 

@@ -29,10 +29,12 @@ DEFAULT_RATE_HZ = 10.0  # KITTI's cameras run at about 10 Hz
 
 # A file name (without suffix) that is a Unix time: digits, optionally a decimal fraction (seconds).
 _NUMERIC_NAME = re.compile(r"^\d+(\.\d+)?$")
-# Unit of an integer name by its magnitude (first stamp >= the bound): 1e8 s is 1973, so a Unix
-# time of any date from 1973 to 5138 falls in exactly one band.
+UNIX_DATE_MIN_S = 100_000_000  # 1e8 s (March 1973): smaller stamps are not dates (KITTI's times.txt starts at 0)
+# Unit of an integer name by its magnitude (first stamp >= the bound): a Unix time of any date
+# from 1973 to 5138 falls in exactly one band.
 _UNIT_BANDS: tuple[tuple[float, str, int], ...] = (
-    (1e17, "ns", 1), (1e14, "µs", 1_000), (1e11, "ms", 1_000_000), (1e8, "s", 1_000_000_000),
+    (UNIX_DATE_MIN_S * 1e9, "ns", 1), (UNIX_DATE_MIN_S * 1e6, "µs", 1_000),
+    (UNIX_DATE_MIN_S * 1e3, "ms", 1_000_000), (UNIX_DATE_MIN_S, "s", 1_000_000_000),
 )
 # Median interval between frames (s) that file-name stamps must show to be taken as stamps.
 _PLAUSIBLE_INTERVAL_S = (1e-4, 10.0)
@@ -109,7 +111,7 @@ def stamps_from_names(paths: list[Path]) -> Timestamps | None:
     if any("." in s for s in stems):
         unit, ns = "s", None
         seconds = np.array([float(s) for s in stems], dtype=np.float64)
-        if seconds[0] < 1e8:
+        if seconds[0] < UNIX_DATE_MIN_S:
             return None
     else:
         values = [int(s) for s in stems]

@@ -545,9 +545,6 @@ class BagStereoSequence:
 # --------------------------------------------------------------------------- export
 
 
-EPOCH_1973_NS = 100_000_000 * 1_000_000_000  # 1e8 s: stamps below this are not dates (KITTI's start at 0)
-
-
 @dataclass
 class ExportResult:
     path: Path
