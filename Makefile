@@ -1,5 +1,7 @@
-# The two commands of README.md.  Both create or reuse .venv in the repository root.
-.PHONY: demo test venv bench
+# The two commands of README.md (and `make install`).  All create or reuse .venv in the repository root.
+.PHONY: demo test venv bench install
+
+BINDIR ?= $(HOME)/.local/bin
 
 venv:
 	@bash scripts/venv.sh
@@ -12,3 +14,9 @@ test: venv
 
 bench: venv
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; .venv/bin/python $$b || exit 1; done
+
+# `dynastereo` on your PATH: a symlink $(BINDIR)/dynastereo -> .venv/bin/dynastereo
+install: venv
+	@mkdir -p "$(BINDIR)"
+	ln -sf "$(CURDIR)/.venv/bin/dynastereo" "$(BINDIR)/dynastereo"
+	@case ":$$PATH:" in *":$(BINDIR):"*) ;; *) echo "note: $(BINDIR) is not on your PATH";; esac

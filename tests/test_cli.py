@@ -163,3 +163,20 @@ def test_config_file_documents_every_default(tmp_path: Path) -> None:
     bad.write_text("stereo:\n  blocksize: 9\n")
     r = runner.invoke(app, ["config", str(bad)])
     assert r.exit_code == 2 and "stereo.blocksize" in r.output and "bad.yaml" in r.output
+
+
+def test_synth_list_needs_no_out(tmp_path: Path) -> None:
+    from dynastereo.synth import SCENARIOS
+
+    for args in (["synth", "--list"], ["synth", str(tmp_path / "unused"), "--scenario", "list"]):
+        r = runner.invoke(app, args)
+        assert r.exit_code == 0, r.output
+        assert [ln.split()[0] for ln in r.output.splitlines() if ln.strip()] == list(SCENARIOS)
+    assert not (tmp_path / "unused").exists()
+    r = runner.invoke(app, ["synth"])
+    assert r.exit_code == 2 and "synth needs an output folder OUT (or --list)" in r.output
+
+
+def test_rate_is_for_folders_not_bags(tmp_path: Path) -> None:
+    r = runner.invoke(app, ["run", "--bag", str(tmp_path / "x.bag"), "--out", str(tmp_path / "o"), "--rate", "30"])
+    assert r.exit_code == 2 and "--rate is for sequence folders" in r.output

@@ -26,9 +26,10 @@ from .pipeline import MaskJobResult, SlamJobResult, run_mask_job, run_slam_job
 
 
 def load_sequence(sequence: str | Path | Sequence, calib: str | Path | None = None,
-                  color: bool | None = None) -> Sequence:
+                  color: bool | None = None, rate: float | None = None) -> Sequence:
+    """``sequence`` opened with :func:`~dynastereo.io.open_sequence` (a path), or as it is."""
     if isinstance(sequence, (str, Path)):
-        return open_sequence(Path(sequence), calib=Path(calib) if calib else None, color=color)
+        return open_sequence(Path(sequence), calib=Path(calib) if calib else None, color=color, rate=rate)
     return sequence
 
 
@@ -92,6 +93,7 @@ def mask_sequence(
     *,
     frames: str | int | None = None,
     calib: str | Path | None = None,
+    rate: float | None = None,
     models_dir: str | Path | None = None,
     save_disparity: bool = False,
     overlays: bool = False,
@@ -108,11 +110,12 @@ def mask_sequence(
     :class:`~dynastereo.errors.OutputError`, as the CLI without ``--overwrite``);
     ``stereo_check``: refuse pairs that are identical, swapped or not rectified
     (:class:`~dynastereo.errors.StereoCheckError`; ``io.stereo_check``).  ``viewer`` /
-    ``rrd``: show the frames in the rerun viewer / record them (see :func:`viewers`)."""
+    ``rrd``: show the frames in the rerun viewer / record them (see :func:`viewers`).
+    ``rate``: frame rate (Hz) for a folder without timestamps (see :func:`~dynastereo.io.open_sequence`)."""
     cfg = cfg or Config()
     if save_disparity and cfg.stereo.region != "full":
         cfg = cfg.with_overrides({"stereo.region": "full"})
-    seq = load_sequence(sequence, calib)
+    seq = load_sequence(sequence, calib, rate=rate)
     indices, masker = _checked_inputs(seq, cfg, frames, models_dir, getattr(seq, "path", None), out=out,
                                       overwrite=overwrite, stereo_check=stereo_check)
     with viewers(observers, viewer=viewer, rrd=rrd, name="dynastereo mask") as obs:
@@ -127,6 +130,7 @@ def run_sequence(
     *,
     frames: str | int | None = None,
     calib: str | Path | None = None,
+    rate: float | None = None,
     models_dir: str | Path | None = None,
     save_masks: bool = False,
     progress: Callable[[int, int, dict], None] | None = None,
@@ -151,10 +155,11 @@ def run_sequence(
     ``out/report.html`` (:func:`make_report`; its path in ``result.report``).  ``viewer`` /
     ``rrd``: show the run in the rerun viewer / record it to an ``.rrd`` file
     (:func:`viewers`).  ``gt``: ground truth for both (default: ``poses/NN.txt`` of a KITTI
-    layout, when present).
+    layout, when present).  ``rate``: as for :func:`mask_sequence`; where the stamps came
+    from is ``run.json``'s ``timestamps``.
     """
     cfg = cfg or Config()
-    seq = load_sequence(sequence, calib)
+    seq = load_sequence(sequence, calib, rate=rate)
     gt = resolve_ground_truth(gt, seq)
     with viewers(observers, viewer=viewer, rrd=rrd, gt=gt, name="dynastereo run") as obs:
         res = slam_job(seq, out, cfg, frames=frames, models_dir=models_dir, ground_truth=getattr(seq, "path", None),
@@ -315,12 +320,15 @@ def export_bag(
     time_offset_s: float = 0.0,
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    rate: float | None = None,
 ):
     """Write a stereo sequence folder as a bag (``ros1`` .bag, ``ros2`` .db3, ``mcap``) on
-    ``/camera/{left,right}/image_raw`` + ``camera_info``; see :func:`dynastereo.ros.bags.export_bag`."""
+    ``/camera/{left,right}/image_raw`` + ``camera_info``; see :func:`dynastereo.ros.bags.export_bag`.
+    The stamps are the sequence's plus ``time_offset_s`` (KITTI's ``times.txt`` starts at
+    0 s, i.e. 1970); ``rate`` as for :func:`mask_sequence`."""
     from .ros.bags import export_bag as _export
 
-    seq = load_sequence(sequence, calib, color=color)
+    seq = load_sequence(sequence, calib, color=color, rate=rate)
     indices = parse_frame_spec(frames, len(seq))
     return _export(seq, out, fmt, frames=indices, encoding=encoding, raw=raw, time_offset_s=time_offset_s,
                    overwrite=overwrite, progress=progress)

@@ -334,6 +334,7 @@ def run_slam_job(
                     **({"error": error} if error else {}))
         run = {
             "sequence": str(getattr(sequence, "path", "")),
+            "timestamps": getattr(sequence, "timestamp_source", None),
             "masker": getattr(masker, "name", "none") if masker is not None else "none",
             "frames_requested": len(frames),
             "frames_done": n_done,

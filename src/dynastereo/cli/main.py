@@ -29,6 +29,10 @@ models_app = typer.Typer(help="List, download and verify detector models.", invo
 app.add_typer(models_app, name="models")
 
 
+_RATE_HELP = ("Frame rate (Hz) for the timestamps of a folder with no times.txt and no timestamp file names "
+              "(default: 10 Hz, with a warning).")
+
+
 def _fail(e: Exception) -> None:
     console.print(f"[bold red]error:[/] {e}", soft_wrap=True, highlight=False, markup=True)
     raise typer.Exit(2)
@@ -109,11 +113,12 @@ def mask(
     masker: Optional[str] = typer.Option(None, help="outline | box | seg | none."),
     canvas: Optional[str] = typer.Option(None, help="How the frame meets the detector: frame (its own scale, default) | tiles | model (the model's square canvas)."),
     schedule: Optional[str] = typer.Option(None, help="When the detector runs: interval (every detector.interval-th frame, default 2) | every | rotate (one tile per frame); boxes are carried between runs."),
-    frames: Optional[str] = typer.Option(None, help="A count N, or inclusive index ranges a-b,c-d."),
+    frames: Optional[str] = typer.Option(None, help="A count N, or inclusive index ranges a-b,c-d (a- = a to the end)."),
     save_disparity: bool = typer.Option(False, "--save-disparity", help="Write DIR/disparity/NNNNNN.png (uint16, disparity*256)."),
     overlays: bool = typer.Option(False, "--overlays", help="Write DIR/overlays/NNNNNN.png."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML configuration."),
     calib: Optional[Path] = typer.Option(None, "--calib", help="YAML calibration for a generic folder pair."),
+    rate: Optional[float] = typer.Option(None, "--rate", help=_RATE_HELP),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an earlier run in DIR (its outputs are deleted first)."),
     no_stereo_check: bool = typer.Option(False, "--no-stereo-check", help="Skip the check that the pair is rectified left/right (not identical, swapped or unrectified)."),
@@ -138,7 +143,7 @@ def mask(
                             info=f"detect {ms.get('detect', 0):.0f} ms  mask {ms.get('mask', 0):.0f} ms")
                 job.tick(done, total)
 
-            result = mask_sequence(sequence, out, cfg, frames=frames, calib=calib, models_dir=models_dir,
+            result = mask_sequence(sequence, out, cfg, frames=frames, calib=calib, rate=rate, models_dir=models_dir,
                                    save_disparity=save_disparity, overlays=overlays, progress=on_frame,
                                    overwrite=overwrite, stereo_check=not no_stereo_check, viewer=viewer, rrd=rrd)
     out_console.print(timing_table(result.summary))
@@ -154,9 +159,10 @@ def run(
     stereo: Optional[str] = typer.Option(None, help="Stereo matcher for the masks: bm | sgbm | sgbm3way."),
     canvas: Optional[str] = typer.Option(None, help="How the frame meets the detector: frame (its own scale, default) | tiles | model (the model's square canvas)."),
     schedule: Optional[str] = typer.Option(None, help="When the detector runs: interval (every detector.interval-th frame, default 2) | every | rotate (one tile per frame); boxes are carried between runs."),
-    frames: Optional[str] = typer.Option(None, help="A count N, or inclusive index ranges a-b,c-d fed in that order (revisits allowed)."),
+    frames: Optional[str] = typer.Option(None, help="A count N, or inclusive index ranges a-b,c-d (a- = a to the end), fed in that order (revisits allowed)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML configuration, or an ORB-SLAM2 stereo settings file."),
-    calib: Optional[Path] = typer.Option(None, "--calib", help="YAML calibration for a generic folder pair."),
+    calib: Optional[Path] = typer.Option(None, "--calib", help="YAML calibration for a generic folder pair (with --bag: wins over CameraInfo)."),
+    rate: Optional[float] = typer.Option(None, "--rate", help=_RATE_HELP),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
     save_masks: bool = typer.Option(False, "--save-masks", help="Also write DIR/masks/{left,right}/NNNNNN.png."),
     bag: Optional[Path] = typer.Option(None, "--bag", help="Read a ROS bag instead of a folder: ROS 1 .bag, ROS 2 .db3 (or bag directory), .mcap. Writes DIR/output.<same format> too."),
@@ -188,6 +194,8 @@ def run(
         _fail(DynastereoError("--save-map / --load-map work on sequence folders, not with --bag"))
     if localize_only and load_map is None:
         _fail(DynastereoError("--localize-only needs --load-map FILE"))
+    if bag is not None and rate is not None:
+        _fail(DynastereoError("--rate is for sequence folders; a bag's images carry their stamps"))
     bag_report = None
     kept = f"run.json, timing.json (with the signal) and the trajectory of the frames done are in {out}"
     with _job(kept + (f"; the map of those frames in {save_map}" if save_map else "")) as job:
@@ -214,7 +222,7 @@ def run(
                              viewer=viewer, rrd=rrd)
                 result, bag_report = br.slam, br.report
             else:
-                result = run_sequence(sequence, out, cfg, frames=frames, calib=calib, models_dir=models_dir,
+                result = run_sequence(sequence, out, cfg, frames=frames, calib=calib, rate=rate, models_dir=models_dir,
                                       save_masks=save_masks, progress=on_frame, save_map=save_map,
                                       load_map=load_map, localize_only=localize_only, overwrite=overwrite,
                                       stereo_check=not no_stereo_check, report=report, gt=gt, viewer=viewer, rrd=rrd)
@@ -266,17 +274,19 @@ def export_bag_cmd(
     sequence: Path = typer.Argument(..., help="Sequence folder (KITTI layout; EuRoC and generic folders too)."),
     out: Path = typer.Argument(..., help="Output bag file: .bag (ros1), .db3 (ros2), .mcap."),
     fmt: Optional[str] = typer.Option(None, "--format", "-f", help="ros1 | ros2 | mcap (default: from OUT's suffix)."),
-    frames: Optional[str] = typer.Option(None, help="A count N, or inclusive index ranges a-b,c-d."),
+    frames: Optional[str] = typer.Option(None, help="A count N, or inclusive index ranges a-b,c-d (a- = a to the end)."),
     encoding: str = typer.Option("auto", "--encoding", help="auto (mono8/bgr8) | mono8 | mono16 | bgr8 | rgb8 | png | jpeg (CompressedImage on <topic>/compressed)."),
     color: bool = typer.Option(False, "--color", help="KITTI: the colour pair image_2/image_3."),
     raw: bool = typer.Option(False, "--raw", help="Raw images + raw CameraInfo (K, D, R, P) for sequences rectified on read (EuRoC)."),
     calib: Optional[Path] = typer.Option(None, "--calib", help="YAML calibration for a generic folder pair."),
-    time_offset: float = typer.Option(0.0, "--time-offset", help="Seconds added to every stamp."),
+    rate: Optional[float] = typer.Option(None, "--rate", help=_RATE_HELP),
+    time_offset: float = typer.Option(0.0, "--time-offset", help="Seconds added to every stamp (KITTI's times.txt starts at 0 s = 1970; e.g. 1.7e9 for a 2023 date)."),
     force: bool = typer.Option(False, "--overwrite", "--force", help="Replace OUT if it exists."),
 ) -> None:
-    """Write a stereo sequence as a ROS bag: /camera/{left,right}/image_raw + camera_info, stamps from times.txt."""
+    """Write a stereo sequence as a ROS bag: /camera/{left,right}/image_raw + camera_info, with the sequence's stamps."""
     from ..api import export_bag
     from ..io.outputs import check_output_file
+    from ..io.times import UNIX_DATE_MIN_S
     from ..ros.bags import BAG_SUFFIX, check_format
 
     with _job(f"{out} holds the frames written so far (closed, readable)") as job:
@@ -297,9 +307,12 @@ def export_bag_cmd(
                 job.tick(i, n)
 
             r = export_bag(sequence, out, fmt, frames=frames, calib=calib, color=color, encoding=encoding, raw=raw,
-                           time_offset_s=time_offset, overwrite=force, progress=on_frame)
+                           time_offset_s=time_offset, overwrite=force, progress=on_frame, rate=rate)
     out_console.print(f"wrote {r.path} ({r.format}, {r.frames} frames): "
                       + ", ".join(f"{t} {n}" for t, n in r.topics.items()), highlight=False)
+    if r.first_stamp_ns is not None and r.first_stamp_ns < UNIX_DATE_MIN_S * 1_000_000_000:
+        out_console.print(f"note: the stamps start at {r.first_stamp_ns * 1e-9:g} s (1970); some ROS tools show "
+                          "that oddly: --time-offset S shifts them (e.g. --time-offset 1.7e9)", highlight=False)
 
 
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
@@ -394,8 +407,9 @@ def models_verify(
 
 @app.command()
 def synth(
-    out: Path = typer.Argument(..., help="Output root (KITTI odometry layout: OUT/sequences/00, OUT/poses/00.txt)."),
-    scenario: str = typer.Option("mixed", help="Scenario name; `--scenario list` lists them."),
+    out: Optional[Path] = typer.Argument(None, help="Output root (KITTI odometry layout: OUT/sequences/00, OUT/poses/00.txt)."),
+    scenario: str = typer.Option("mixed", help="Scenario name (see --list)."),
+    list_: bool = typer.Option(False, "--list", help="List the scenarios and exit (no OUT needed; also `--scenario list`)."),
     frames: Optional[int] = typer.Option(None, help="Number of frames (default: the scenario's)."),
     seed: int = typer.Option(0, help="Random seed."),
     size: str = typer.Option("640x192", help="Image size WxH."),
@@ -405,10 +419,12 @@ def synth(
     from ..io.outputs import SYNTH_OUTPUTS, prepare_output_dir
     from ..synth import SCENARIOS, generate
 
-    if scenario == "list":
+    if list_ or scenario == "list":
         for name, sc in SCENARIOS.items():
             out_console.print(f"{name:10s} {getattr(sc, 'description', '')}")
         return
+    if out is None:
+        _fail(DynastereoError("synth needs an output folder OUT (or --list)"))
     try:
         w, h = (int(v) for v in size.lower().split("x"))
     except ValueError:
@@ -429,7 +445,7 @@ def synth(
 @app.command()
 def demo(
     out: Optional[Path] = typer.Option(None, "--out", help="Where to write (default: a new temporary directory)."),
-    scenario: str = typer.Option("convoy", help="Synthetic scenario (see `dynastereo synth --scenario list`)."),
+    scenario: str = typer.Option("convoy", help="Synthetic scenario (see `dynastereo synth --list`)."),
     frames: int = typer.Option(60, help="Frames to generate."),
     detector: Optional[str] = typer.Option(None, help="Detector (default: yolox-nano if its weights are present, else the oracle)."),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),

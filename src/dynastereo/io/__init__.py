@@ -20,6 +20,7 @@ asks for colour (KITTI: the colour pair, an error without it).  Disparity and SL
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 from ..errors import SequenceError
@@ -92,6 +93,8 @@ __all__ = [
     "write_pfm",
 ]
 
+log = logging.getLogger(__name__)
+
 _LOOKED_FOR = (
     "KITTI: calib.txt with image_0/+image_1/ or image_2/+image_3/; "
     "KITTI raw: a drive folder with image_00/+image_01/ or image_02/+image_03/ (or a date folder with one drive); "
@@ -135,19 +138,25 @@ def detect_format(path: str | Path, calib: str | Path | None = None) -> str:
     raise SequenceError(f"unrecognised sequence folder; looked for {_LOOKED_FOR}", path)
 
 
-def open_sequence(path: str | Path, calib: str | Path | None = None, color: bool | None = None) -> Sequence:
+def open_sequence(path: str | Path, calib: str | Path | None = None, color: bool | None = None,
+                  rate: float | None = None) -> Sequence:
     """Open a stereo sequence folder in any supported format (see module doc).
 
     ``calib``: a YAML calibration overriding the folder's own (or supplying a missing one).
     ``color``: ``None`` (auto) BGR frames when the images used are colour, else gray;
     ``False`` gray; ``True`` BGR (KITTI: the colour pair).
+    ``rate``: frame rate (Hz) for the stamps of a KITTI or generic folder that has no
+    ``times.txt`` (and, generic, no timestamp file names); ignored, with a warning, by
+    formats that always carry stamps.  ``seq.timestamp_source`` says where they came from.
     """
     path = Path(path)
     fmt = detect_format(path, calib)
     if fmt == "kitti":
-        return KittiSequence(path, color=color, calib=calib)
+        return KittiSequence(path, color=color, calib=calib, rate=rate)
+    if fmt == "folder":
+        return FolderSequence.from_root(path, calib=calib, color=color, rate=rate)
+    if rate is not None:
+        log.warning("%s: --rate %g ignored: %s folders carry their own timestamps", path, rate, fmt)
     if fmt == "kitti_raw":
         return KittiRawSequence(path, color=color, calib=calib)
-    if fmt == "euroc":
-        return EurocSequence(path, calib=calib, color=color)
-    return FolderSequence.from_root(path, calib=calib, color=color)
+    return EurocSequence(path, calib=calib, color=color)

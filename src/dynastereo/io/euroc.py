@@ -161,4 +161,5 @@ class EurocSequence(ImagePairSequence):
             calib_path=calib_path,
             left_dir=cam0 / "data",
             right_dir=cam1 / "data",
+            timestamp_source="data.csv (ns)" if (cam0 / "data.csv").is_file() else "file names (ns)",
         )

@@ -7,8 +7,11 @@ Layout recognised by :func:`find_folder_layout` / :meth:`FolderSequence.from_roo
         calib.yaml           (or calibration.yaml, or the only *.yaml / *.yml in root)
         times.txt            optional: one timestamp (s) per frame
 
-Images are paired in sorted-name order (the counts must match).  Without ``times.txt`` the
-timestamps are ``index * frame_interval`` (0.1 s by default).  The YAML is read by
+Images are paired in sorted-name order (the counts must match).  Timestamps
+(:func:`~dynastereo.io.times.sequence_timestamps`): ``times.txt`` when present, else the
+left image names when they are Unix times (``1403636579763555584.png``: s, ms, µs or ns by
+magnitude), else ``index / rate`` (10 Hz unless ``rate`` is given, with a warning);
+``timestamp_source`` says which.  The YAML is read by
 :func:`~dynastereo.io.calib.load_stereo_yaml`: dynastereo's own format (rectified or raw)
 or an ORB-SLAM2 settings file; raw calibrations are rectified on read.
 
@@ -27,7 +30,7 @@ from ..errors import SequenceError
 from .calib import load_stereo_yaml
 from .images import image_size, list_images
 from .sequence import ImagePairSequence
-from .times import read_times
+from .times import Timestamps, sequence_timestamps
 
 PAIR_DIR_NAMES: tuple[tuple[str, str], ...] = (("left", "right"), ("cam0", "cam1"))
 CALIB_NAMES: tuple[str, ...] = ("calib.yaml", "calib.yml", "calibration.yaml", "calibration.yml")
@@ -74,7 +77,7 @@ class FolderSequence(ImagePairSequence):
         calib_yaml: str | Path,
         color: bool | None = None,
         times: str | Path | np.ndarray | None = None,
-        frame_interval: float = 0.1,
+        rate: float | None = None,
         name: str | None = None,
     ) -> None:
         left_dir, right_dir = Path(left_dir), Path(right_dir)
@@ -91,35 +94,32 @@ class FolderSequence(ImagePairSequence):
             raise SequenceError("no images (png, jpg, ...) in the folder", left_dir)
         root = left_dir.parent if left_dir.name != "data" else left_dir.parent.parent
         calibration = load_stereo_yaml(calib_yaml, image_size(left[0]))
-        n = len(left)
-        if times is None and (root / "times.txt").is_file():
-            times = root / "times.txt"
-        if times is None:
-            ts = np.arange(n, dtype=np.float64) * frame_interval
-        elif isinstance(times, np.ndarray):
-            ts = times
+        if isinstance(times, np.ndarray):
+            stamps = Timestamps(np.asarray(times, np.float64), "given")
         else:
-            tp = Path(times)
-            ts = read_times(tp)
-            if len(ts) != n:
-                raise SequenceError(f"{len(ts)} timestamps for {n} image pairs", tp)
+            stamps = sequence_timestamps(len(left), Path(times) if times is not None else root / "times.txt",
+                                         left, rate, where=root, required=times is not None)
+        if stamps.ns is not None:
+            self.timestamps_ns = stamps.ns  # exact, for bag export
         super().__init__(
             name=name or root.name,
             path=root,
             left_paths=left,
             right_paths=right,
-            timestamps=ts,
+            timestamps=stamps.seconds,
             calibration=calibration,
             color=color,
             calib_path=Path(calib_yaml),
             left_dir=left_dir,
             right_dir=right_dir,
+            timestamp_source=stamps.source,
         )
 
     @classmethod
     def from_root(cls, root: str | Path, calib: str | Path | None = None,
-                  color: bool | None = None) -> "FolderSequence":
-        """Open ``root`` with ``left/``+``right/`` (or ``cam0/``+``cam1/``) and a YAML calibration."""
+                  color: bool | None = None, rate: float | None = None) -> "FolderSequence":
+        """Open ``root`` with ``left/``+``right/`` (or ``cam0/``+``cam1/``) and a YAML calibration;
+        ``rate`` (Hz) for stamps when neither ``times.txt`` nor the file names give them."""
         root = Path(root)
         dirs = find_pair_dirs(root)
         if dirs is None:
@@ -127,4 +127,4 @@ class FolderSequence(ImagePairSequence):
         calib_path = Path(calib) if calib is not None else find_calib_yaml(root)
         if calib_path is None:
             raise SequenceError("no calibration: put calib.yaml in the folder or pass one explicitly", root)
-        return cls(dirs[0], dirs[1], calib_path, color=color, name=root.name)
+        return cls(dirs[0], dirs[1], calib_path, color=color, rate=rate, name=root.name)

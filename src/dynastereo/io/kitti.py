@@ -21,9 +21,7 @@ from ..errors import SequenceError
 from .calib import load_kitti_calib, load_stereo_yaml
 from .images import image_size
 from .sequence import ImagePairSequence, list_image_pairs
-from .times import read_times
-
-KITTI_FRAME_INTERVAL = 0.1  # s: KITTI's cameras run at about 10 Hz
+from .times import DEFAULT_RATE_HZ, check_rate, read_times
 
 
 def kitti_image_dirs(path: Path, color: bool | None) -> tuple[Path, Path, bool] | None:
@@ -52,13 +50,15 @@ class KittiSequence(ImagePairSequence):
 
     Timestamps come from ``times.txt`` when present (indexed by the frame number in the
     file name, so a folder holding the first N frames of a sequence can use the full
-    ``times.txt``); without it they are ``frame_number * 0.1`` s (KITTI's ~10 Hz).
+    ``times.txt``); without it they are ``frame_number / rate`` s (``rate`` None: KITTI's
+    ~10 Hz).  ``timestamp_source`` says which.
 
     ``calib``: an optional YAML calibration (see :func:`~dynastereo.io.calib.load_stereo_yaml`)
     used instead of ``calib.txt``.
     """
 
-    def __init__(self, path: str | Path, color: bool | None = None, calib: str | Path | None = None) -> None:
+    def __init__(self, path: str | Path, color: bool | None = None, calib: str | Path | None = None,
+                 rate: float | None = None) -> None:
         path = Path(path)
         if not path.is_dir():
             raise SequenceError("KITTI sequence folder not found", path)
@@ -78,7 +78,12 @@ class KittiSequence(ImagePairSequence):
             calibration = load_kitti_calib(calib_path, size, color=colour_pair)
         self.times_path: Path | None = path / "times.txt" if (path / "times.txt").is_file() else None
         numbers = _frame_numbers(left)
-        times = _kitti_times(self.times_path, numbers)
+        rate = check_rate(rate)
+        times = _kitti_times(self.times_path, numbers, rate or DEFAULT_RATE_HZ)
+        if self.times_path is not None:
+            source = "times.txt"
+        else:
+            source = f"rate {rate:g} Hz (given)" if rate else f"rate {DEFAULT_RATE_HZ:g} Hz (KITTI's, assumed)"
         self.uses_colour_pair = colour_pair
         super().__init__(
             name=path.name,
@@ -91,6 +96,7 @@ class KittiSequence(ImagePairSequence):
             calib_path=calib_path,
             left_dir=left_dir,
             right_dir=right_dir,
+            timestamp_source=source,
         )
 
 
@@ -102,9 +108,9 @@ def _frame_numbers(paths: list[Path]) -> np.ndarray:
     return np.arange(len(paths), dtype=np.int64)
 
 
-def _kitti_times(times_path: Path | None, numbers: np.ndarray) -> np.ndarray:
+def _kitti_times(times_path: Path | None, numbers: np.ndarray, rate: float) -> np.ndarray:
     if times_path is None:
-        return numbers.astype(np.float64) * KITTI_FRAME_INTERVAL
+        return numbers.astype(np.float64) / rate
     t = read_times(times_path)
     if len(t) <= int(numbers.max()):
         raise SequenceError(

@@ -251,4 +251,5 @@ class KittiRawSequence(ImagePairSequence):
             calib_path=calib_path,
             left_dir=left_dir,
             right_dir=right_dir,
+            timestamp_source="timestamps.txt",
         )

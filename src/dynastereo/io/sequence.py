@@ -42,6 +42,9 @@ class ImagePairSequence:
     ``color``: ``True`` BGR frames, ``False`` gray frames, ``None`` (auto) BGR when the first
     left image holds colour (see :func:`is_colour_image`), else gray.  ``self.color`` is the
     resolved ``bool``.
+
+    ``timestamp_source`` says where the stamps came from (``"times.txt"``, ``"file names
+    (ns)"``, ``"rate 10 Hz (assumed)"``, ...); ``run`` records it in ``run.json``.
     """
 
     def __init__(
@@ -56,8 +59,10 @@ class ImagePairSequence:
         calib_path: Path | None = None,
         left_dir: Path | None = None,
         right_dir: Path | None = None,
+        timestamp_source: str = "given",
     ) -> None:
         self.name = name
+        self.timestamp_source = timestamp_source
         self.path = Path(path)
         self.left_paths = list(left_paths)
         self.right_paths = list(right_paths)

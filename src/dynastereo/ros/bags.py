@@ -320,6 +320,8 @@ class BagStereoSequence:
     ``fallback_calib``: a calibration file used only when the bag has no CameraInfo.
     """
 
+    timestamp_source = "bag header stamps (left image)"
+
     def __init__(
         self,
         path: str | Path,
@@ -549,6 +551,7 @@ class ExportResult:
     format: str
     frames: int
     topics: dict[str, int]  # topic -> messages written
+    first_stamp_ns: int | None = None  # the first frame's stamp as written
 
 
 def _exact_projections(seq: Any) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -642,7 +645,7 @@ def export_bag(
             if progress is not None:
                 progress(k + 1, len(frames))
         counts = dict(w.counts)
-    return ExportResult(out, fmt, len(frames), counts)
+    return ExportResult(out, fmt, len(frames), counts, int(stamps_ns[frames[0]]))
 
 
 def _export_stamps_ns(sequence: Any, time_offset_s: float) -> np.ndarray:
