@@ -1,15 +1,15 @@
-"""Benchmark loop closing, relocalisation and map reuse (``dynastereo.slam``).
+"""Benchmark loop closing, relocalization and map reuse (``dynastereo.slam``).
 
 1. **Loop** -- the synthetic ``loop`` scenario (one lap of the ~390 m ring and 60 m over
    the start again, with traffic and pedestrians; 640x192), per seed: the whole pipeline
    (``--masker``, default ``outline``, on the oracle boxes) with loop closing on and off.  ATE = APE RMSE
    after SE(3) alignment; the loop found (frame, loop keyframe, correction), the time per
    loop-detection query (BoW transform + database query, every keyframe), per pose-graph
-   optimisation and per full BA (worker process).
+   optimization and per full BA (worker process).
 2. **Kidnapped camera** -- KITTI 03, ``--frames 0-98,40-60``: the frames fed after the jump
    are compared with the same frames of the first pass (frames until the first one
    tracked again; largest pose difference after it).
-3. **Localise only** -- KITTI 03 mapped (``save_map``), then re-run on the same frames in
+3. **Localize only** -- KITTI 03 mapped (``save_map``), then re-run on the same frames in
    that map with ``localize_only``: ATE against the ground truth; keyframes added (0).
 4. **Black frames** -- KITTI 03 with 10 black frames in the middle: every frame gets a
    row, the frames after them are tracked again.
@@ -119,15 +119,15 @@ def kitti_parts(seq: Path, gt: Path, work: Path) -> dict:
     out["kidnapped"] = {
         "frames": "0-98,40-60",
         "lost_after_jump": len(lost_after_jump),
-        "frames_to_relocalise": None if first_ok is None else first_ok - 99,
-        "relocalisations": run["stats"]["relocalisations"],
+        "frames_to_relocalize": None if first_ok is None else first_ok - 99,
+        "relocalizations": run["stats"]["relocalizations"],
         "reloc_ms_median": run["stats"]["relocalisation_ms_median"],
         "max_diff_m": float(diff[(first_ok or 99) - 99:].max()),
         "median_diff_m": float(np.median(diff)),
         "recoveries": states_after,
     }
     print(f"kidnapped 03: {out['kidnapped']}", flush=True)
-    # map, then localise only
+    # map, then localize only
     m = work / "map03"
     map_file = work / "kitti03.dsmap"
     run_sequence(seq, m, cfg, frames="0-98", save_map=map_file)
@@ -142,7 +142,7 @@ def kitti_parts(seq: Path, gt: Path, work: Path) -> dict:
         "map_file_mb": map_file.stat().st_size / 1e6,
         "fps": run["fps"],
     }
-    print(f"localise only 03: {out['localize_only']}", flush=True)
+    print(f"localize only 03: {out['localize_only']}", flush=True)
     return out
 
 
@@ -175,7 +175,7 @@ def black_frames(seq: Path, work: Path) -> dict:
         "frames_lost": run["frames_lost"],
         "lost": [x["frame"] for x in run["lost"]],
         "recoveries": run["recoveries"],
-        "reinitialisations": run["stats"]["reinitialisations"],
+        "reinitializations": run["stats"]["reinitializations"],
     }
     print(f"black frames 03: {res}", flush=True)
     return res
@@ -238,7 +238,7 @@ def main() -> None:
             result["kitti03"] = kitti_parts(seq, gt, work)
             result["kitti03"]["black_frames"] = black_frames(seq, work)
         elif not args.no_kitti:
-            print("KITTI 03 not found under $DYNASTEREO_DATA: kidnapped / localise-only parts skipped")
+            print("KITTI 03 not found under $DYNASTEREO_DATA: kidnapped / localize-only parts skipped")
     if "synthetic_loop" in result:
         s = result["synthetic_loop"]
         print(

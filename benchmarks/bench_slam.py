@@ -208,7 +208,7 @@ def bench_revisit(kitti: Path, seq_name: str, spec: str) -> dict:
         })
     st = system.stats().to_dict()
     return {"sequence": seq_name, "order": spec, "frames": len(order), "lost": st["lost"],
-            "relocalisations": st["relocalisations"], "reinitialisations": st["reinitialisations"], "rows": rows}
+            "relocalizations": st["relocalizations"], "reinitializations": st["reinitializations"], "rows": rows}
 
 
 def mask_mean_ms(stages: dict) -> float:
@@ -374,8 +374,8 @@ def main() -> int:
                 continue
             rv = bench_revisit(kitti, seq_name, spec)
             revisits.append(rv)
-            print(f"revisit {seq_name} {spec}: lost {rv['lost']}, relocalisations {rv['relocalisations']}, "
-                  f"reinitialisations {rv['reinitialisations']}")
+            print(f"revisit {seq_name} {spec}: lost {rv['lost']}, relocalizations {rv['relocalizations']}, "
+                  f"reinitializations {rv['reinitializations']}")
             shown = [r for r in rv["rows"] if r["image"] is not None][:4]
             for row in shown:
                 print(f"   #{row['position']:3d} image {row['image']!s:>4s}  {row['status']:8s} {row['method']:9s} "

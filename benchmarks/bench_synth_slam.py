@@ -223,7 +223,7 @@ def _med(v: list) -> float | None:
     return round(float(np.median(v)), 4) if v else None
 
 
-def summarise(runs: list[dict]) -> dict:
+def summarize(runs: list[dict]) -> dict:
     """scenario -> "detector/masker" -> medians over seeds."""
     out: dict[str, dict] = {}
     keys = sorted({(r["scenario"], r["detector"], r["masker"]) for r in runs if "ate_rmse" in r})
@@ -411,7 +411,7 @@ def main() -> None:
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
-    summary = summarise(runs)
+    summary = summarize(runs)
     tgt = targets(runs, summary)
     print_tables(summary, tgt, recalls, args.frames, size)
     out = {

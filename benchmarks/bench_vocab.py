@@ -352,7 +352,7 @@ def speed(vocab: Vocabulary, pool: list[np.ndarray], repeats: int, sizes=(100, 5
             tq.append(t1 - t0)
             tl.append(t2 - t1)
             tr.append(t3 - t2)
-        rows.append({"what": "add (amortised, incl. index merges)", "n_keyframes": n, "ms": add_ms})
+        rows.append({"what": "add (amortized, incl. index merges)", "n_keyframes": n, "ms": add_ms})
         rows.append({"what": "query top 10", "n_keyframes": n, "ms": float(np.median(tq) * 1000)})
         rows.append({"what": "detect_loop_candidates", "n_keyframes": n, "ms": float(np.median(tl) * 1000)})
         rows.append({"what": "detect_relocalisation_candidates", "n_keyframes": n, "ms": float(np.median(tr) * 1000)})

@@ -1,5 +1,5 @@
 """Disparity estimation: OpenCV BM / SGBM (+ WLS), band and half-resolution fast paths,
-parameter validation, the normalised view.  Synthetic known-answer pairs + KITTI 2015 GT."""
+parameter validation, the normalized view.  Synthetic known-answer pairs + KITTI 2015 GT."""
 
 from __future__ import annotations
 

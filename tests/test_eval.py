@@ -462,7 +462,7 @@ def test_kitti06_against_itself_and_perturbed(kitti06_poses, tmp_path):
     assert r.kitti.r_err_deg_per_100m == pytest.approx(ref[1], rel=1e-9)
     assert r.kitti.n_segments == ref[2]
     assert 0.1 < r.kitti.t_err_percent < 20.0
-    # the vectorised rotation RPE equals evo's (so3_log per pair)
+    # the vectorized rotation RPE equals evo's (so3_log per pair)
     evo_rot = evo_metrics.RPE(evo_metrics.PoseRelation.rotation_angle_deg, delta=1, delta_unit=Unit.frames)
     evo_rot.process_data((PosePath3D(poses_se3=list(gt.poses)), PosePath3D(poses_se3=list(est.poses))))
     evo_stats = evo_rot.get_all_statistics()

@@ -410,7 +410,7 @@ def test_kitti_unreadable_image(tmp_path):
 def test_unknown_folder(tmp_path):
     (tmp_path / "stuff").mkdir()
     (tmp_path / "stuff" / "a.png").write_bytes(b"")
-    with pytest.raises(SequenceError, match=r"stuff: unrecognised sequence folder; looked for KITTI.*EuRoC.*generic"):
+    with pytest.raises(SequenceError, match=r"stuff: unrecognized sequence folder; looked for KITTI.*EuRoC.*generic"):
         open_sequence(tmp_path / "stuff")
     with pytest.raises(SequenceError, match="not found"):
         open_sequence(tmp_path / "missing")
@@ -454,7 +454,7 @@ def test_own_yaml_rectified_and_raw(tmp_path):
         ("fx: 700\ncx: 10\ncy: 5\nbaseline: -0.5\n", r"baseline must be positive"),
         ("left: {K: [1, 1, 1]}\nright: {K: [1, 1, 1, 1]}\nR: [0, 0, 0]\nT: [-1, 0, 0]\n", r"'left.K': expected 4 or 9"),
         ("left: {K: [1, 1, 1, 1]}\nright: {K: [1, 1, 1, 1]}\nR: [0, 0, 0]\nT: [1, 0, 0]\n", r"right camera must be to the right"),
-        ("foo: 1\n", r"unrecognised calibration YAML.*found keys foo"),
+        ("foo: 1\n", r"unrecognized calibration YAML.*found keys foo"),
         ("fx: [1, 2\n", r"invalid YAML"),
     ],
 )

@@ -1,6 +1,6 @@
-"""Loop closing, relocalisation and map reuse (``dynastereo.slam``): the pose graph on a
+"""Loop closing, relocalization and map reuse (``dynastereo.slam``): the pose graph on a
 known drifted loop, the whole loop closer on the synthetic ``loop`` scenario, the
-kidnapped camera and localise-only runs on KITTI 03, map files through the CLI."""
+kidnapped camera and localize-only runs on KITTI 03, map files through the CLI."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ def _yaw(a: float) -> np.ndarray:
 
 def test_pose_graph_closes_a_drifted_loop() -> None:
     """A 40-pose circle driven with a biased odometry (yaw +0.4 deg per step) and one
-    exact loop edge: the optimised poses are far closer to the truth than dead reckoning,
+    exact loop edge: the optimized poses are far closer to the truth than dead reckoning,
     the fixed pose stays where it is."""
     n = 40
     step = np.eye(4)
@@ -91,9 +91,9 @@ def _kitti_cfg() -> Config:
     return Config().with_overrides({"masker.kind": "box", "detector.name": "fastestdet"})
 
 
-def test_kitti03_kidnapped_camera_relocalises(kitti03: Path, models_dir: Path, tmp_path: Path) -> None:
+def test_kitti03_kidnapped_camera_relocalizes(kitti03: Path, models_dir: Path, tmp_path: Path) -> None:
     """``0-98,40-60``: the camera jumps back to frame 40.  The jump frame's motion-model
-    pose is refused; the bag-of-words relocalisation places it (within 3 frames), and
+    pose is refused; the bag-of-words relocalization places it (within 3 frames), and
     every revisited frame is within 0.2 m of the first pass."""
     out = tmp_path / "run"
     run_sequence(kitti03, out, _kitti_cfg(), frames="0-98,40-60", models_dir=models_dir)
@@ -103,10 +103,10 @@ def test_kitti03_kidnapped_camera_relocalises(kitti03: Path, models_dir: Path, t
     lost = [x["position"] for x in run["lost"]]
     after = [p for p in range(99, 120) if p not in lost]
     assert after and after[0] - 99 <= 3
-    assert run["stats"]["relocalisations"] >= 1
+    assert run["stats"]["relocalizations"] >= 1
     diff = np.linalg.norm(P[after[0] : 120, :, 3] - P[40 + after[0] - 99 : 61, :, 3], axis=1)
     assert diff.max() < 0.2, diff
-    assert run["stats"]["reinitialisations"] == 0
+    assert run["stats"]["reinitializations"] == 0
 
 
 def test_kitti03_map_reuse_localise_only(kitti03: Path, models_dir: Path, tmp_path: Path, data_dir: Path) -> None:

@@ -1,6 +1,6 @@
 """Map files (``dynastereo.slam.map_io``): a map built by the SLAM on a synthetic sequence
 is saved and loaded back exactly, the loaded map works (frustum, covisibility, point
-resolution, relocalisation of a frame gives the same pose as in the original map), and
+resolution, relocalization of a frame gives the same pose as in the original map), and
 every kind of bad file -- missing, truncated, random bytes, a flipped byte, another
 format, a newer version, a missing entry, a wrong dtype, a pickled entry, inconsistent
 tables, another camera -- is a MapFileError naming the file and the problem.  A failing
@@ -103,9 +103,9 @@ def _frame(sysm: System, sf, index: int = 0) -> Frame:
     return Frame.from_features(index, fl, st.u_right, st.depth, c)
 
 
-def _relocalise(tr: Tracker, mp: Map, f: Frame) -> tuple[bool, int]:
-    """``Tracker.relocalise`` on the descriptor-vote candidates."""
-    return tr.relocalise(mp, f, tr.candidate_keyframes(mp, f, 3))
+def _relocalize(tr: Tracker, mp: Map, f: Frame) -> tuple[bool, int]:
+    """``Tracker.relocalize`` on the descriptor-vote candidates."""
+    return tr.relocalize(mp, f, tr.candidate_keyframes(mp, f, 3))
 
 
 def _assert_same_map(a: Map, b: Map) -> None:
@@ -222,7 +222,7 @@ def test_a_frame_relocalises_in_the_loaded_map_as_in_the_original(built):
     for mp in (copy.deepcopy(built.mp), load_map(built.path).map):
         tr = sysm.tracker
         f = _frame(sysm, built.seq.frame(k))
-        found, kid = _relocalise(tr, mp, f)
+        found, kid = _relocalize(tr, mp, f)
         assert found and kid in mp.keyframes and tr.n_inliers > 100
         poses.append((f.T_cw.copy(), kid, tr.n_inliers))
     (Ta, ka, na), (Tb, kb, nb) = poses
@@ -539,7 +539,7 @@ def test_kitti06_map_round_trip_and_a_seq03_camera_is_refused(kitti06: Path, kit
     # image 10 found again in the loaded map, where the SLAM had put it
     tr = sysm.tracker
     f = _frame(sysm, seq.frame(10))
-    found, _ = _relocalise(tr, mf.map, f)
+    found, _ = _relocalize(tr, mf.map, f)
     assert found and tr.n_inliers > 300
     T_wc = sysm.trajectory()[10]
     assert np.linalg.norm(inv_T(f.T_cw)[:3, 3] - T_wc[:, 3]) < 0.05

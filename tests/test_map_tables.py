@@ -1,4 +1,4 @@
-"""The map's tables (``MapPoints``, ``Observations``): growth, the vectorised point
+"""The map's tables (``MapPoints``, ``Observations``): growth, the vectorized point
 updates, the per-point observation lists, and their own ``to_arrays`` / ``from_arrays``
 (the map-file entries) with checks that name the entry."""
 

@@ -478,18 +478,18 @@ def test_lost_tracking_is_logged_filled_and_recovered_in_the_kept_map(caplog):
     assert all(s.status in ("tracked", "init") for s in states[14:])
     msgs = " ".join(r.getMessage() for r in caplog.records)
     assert "frame 100: tracking lost" in msgs and "constant-velocity prediction" in msgs
-    assert "too few to re-initialise" in msgs and "map is kept" in msgs
+    assert "too few to re-initialize" in msgs and "map is kept" in msgs
     # the lost rows are the constant-velocity prediction (smooth path: close to the truth)
     for i in (12, 13):
         assert np.linalg.norm(est[i, :, 3] - gt_feed[i, :3, 3]) < 0.2
     # neither lost frame could start a map: the old one was kept and frame 14 found its
     # place in it again -- same map, same accuracy as without the gap
-    assert sysm.stats().reinitialisations == 0 and {s.map_id for s in states} == {0}
+    assert sysm.stats().reinitializations == 0 and {s.map_id for s in states} == {0}
     err = np.linalg.norm(est[14:, :, 3] - gt_feed[14:, :3, 3], axis=1)
     assert err.max() < 0.05
 
 
-def test_jump_to_an_unknown_place_is_lost_and_reinitialised(caplog):
+def test_jump_to_an_unknown_place_is_lost_and_reinitialized(caplog):
     """The same path through a differently textured corridor from frame 12 on: nothing
     matches the map, so frame 12 is lost and starts a new map at the predicted pose."""
     frames, gt = _sequence()
@@ -505,9 +505,9 @@ def test_jump_to_an_unknown_place_is_lost_and_reinitialised(caplog):
     assert states[12].status == "lost" and states[12].keyframe  # the new map's first keyframe
     assert [s.map_id for s in states] == [0] * 12 + [1] * 8
     assert all(s.status == "tracked" for s in states[13:])
-    assert sysm.stats().reinitialisations == 1
+    assert sysm.stats().reinitializations == 1
     msgs = " ".join(r.getMessage() for r in caplog.records)
-    assert "frame 212: tracking lost" in msgs and "re-initialising the map at that pose" in msgs
+    assert "frame 212: tracking lost" in msgs and "re-initializing the map at that pose" in msgs
     # the new map is anchored to the constant-velocity prediction: the path continues
     est = sysm.trajectory()
     err = np.linalg.norm(est[:, :, 3] - gt[:20, :3, 3], axis=1)
@@ -727,7 +727,7 @@ def test_kitti06_black_frames_are_lost_then_recovered(kitti06: Path, data_dir: P
     assert sysm.lost_frames() == list(range(10, 20))
     states = sysm.results()
     assert all(s.status == "tracked" for s in states[20:])
-    assert sysm.stats().reinitialisations == 0
+    assert sysm.stats().reinitializations == 0
     gt = read_trajectory(data_dir / "kitti_odometry/dataset/poses/06.txt").positions
     err = np.linalg.norm(est[20:, :, 3] - gt[10:20], axis=1)
     assert err.max() < 0.5  # 0.28 measured: the drift of frames 0-19 without the gap

@@ -109,7 +109,7 @@ def test_transform_bow_and_nodes(places, vocab):
     d = kfs[4]
     bow, nodes = vocab.transform(d, node_level=2)
     words = vocab.words_of(d)
-    # sparse, sorted, unique, L1-normalised tf-idf
+    # sparse, sorted, unique, L1-normalized tf-idf
     assert np.all(np.diff(bow.words) > 0) and np.all(bow.weights > 0)
     assert bow.weights.sum() == pytest.approx(1.0)
     tfidf = np.bincount(words, minlength=vocab.n_words) * vocab.idf
@@ -439,7 +439,7 @@ def test_kitti03_place_retrieval(kitti03, data_dir):
     0-98 (3 m apart); queries 40-60 (every 4th; the query's own frame left out) and the
     right images of frames 42 and 58 (another viewpoint): the best database frame is
     within 5 m of the query's ground-truth position, for the plain ranking and the
-    relocalisation candidates."""
+    relocalization candidates."""
     from dynastereo.slam.orb import ORBExtractor
 
     poses = require(data_dir / "kitti_odometry/dataset/poses/03.txt", "KITTI 03 poses")

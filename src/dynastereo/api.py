@@ -149,7 +149,7 @@ def run_sequence(
 
     ``frames`` may revisit (``"0-98,40-60"``): frames are fed in the order given.
     ``load_map``: start from a map file (``save_map`` of an earlier run); with
-    ``localize_only`` the map is only localised in (no new keyframes).  ``save_map``:
+    ``localize_only`` the map is only localized in (no new keyframes).  ``save_map``:
     write the final map there (its path is checked before the first frame).
     ``overwrite`` / ``stereo_check``: as for :func:`mask_sequence`.  ``report``: also write
     ``out/report.html`` (:func:`make_report`; its path in ``result.report``).  ``viewer`` /
@@ -200,7 +200,7 @@ def slam_job(
     from .slam import System
 
     if localize_only and load_map is None:
-        raise ConfigError("localisation only needs a map: give load_map (--load-map FILE)")
+        raise ConfigError("localization only needs a map: give load_map (--load-map FILE)")
     if save_map is not None:
         check_output_file(save_map, what="map file")
     indices, masker = _checked_inputs(seq, cfg, frames, models_dir, ground_truth, out=out, overwrite=overwrite,

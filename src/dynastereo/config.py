@@ -350,13 +350,13 @@ class SlamConfig:
     # its best hypothesis needs reloc_min_inliers, else the frame is lost.  0 = no search
     reloc_candidates: int = 3
     reloc_min_inliers: int = 50
-    min_init_points: int = 100  # stereo points needed to (re)initialise a map
+    min_init_points: int = 100  # stereo points needed to (re)initialize a map
     max_frames: int = 10  # keyframe at least every max_frames (ORB-SLAM2: camera fps)
     min_frames: int = 0
     # local mapping
     local_ba: LocalBAMode = "process"  # in a worker process, inline, or none
     ba_iterations: int = 3  # Levenberg-Marquardt iterations per local BA (converges in 2-3)
-    ba_max_keyframes: int = 10  # optimised keyframes (current + best covisible)
+    ba_max_keyframes: int = 10  # optimized keyframes (current + best covisible)
     ba_max_fixed: int = 10  # fixed keyframes that anchor the local window
     ba_lag_frames: int = 2  # a local BA submitted at frame k is applied after tracking frame k+lag
     triangulation_neighbours: int = 6  # covisible keyframes searched for new points

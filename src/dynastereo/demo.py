@@ -89,7 +89,7 @@ def run_demo(
             real = None
         else:
             why = (f"{why}; the masks below use the ORACLE (ground-truth) boxes, plus one row with "
-                   f"{real}'s boxes (detectors trained on photos find few of the stylised synthetic objects)")
+                   f"{real}'s boxes (detectors trained on photos find few of the stylized synthetic objects)")
     else:
         why = f"detector: {detector}" + (" (ground-truth boxes)" if detector == "oracle" else "")
     console.print(f"[bold]dynastereo demo[/] -> {root}")

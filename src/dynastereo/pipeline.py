@@ -60,7 +60,7 @@ def new_mask_timer() -> StageTimer:
 
 def draw_overlay(frame: StereoFrame, masks: StereoMasks) -> np.ndarray:
     """Left|right side by side, dynamic pixels tinted red, boxes (left) in green (orange:
-    box fallback); below, when the masker computed a full-frame disparity, its normalised,
+    box fallback); below, when the masker computed a full-frame disparity, its normalized,
     contrast-enhanced 8-bit view (thesis 3.3.3) in false colour beside the left mask."""
     views = []
     for img, m in ((frame.left, masks.left), (frame.right, masks.right)):

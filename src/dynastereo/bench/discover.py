@@ -1,7 +1,7 @@
 """Finding the sequences of a dataset root and their ground truth.
 
 ``discover(root)`` walks ``root`` (at most :data:`MAX_DEPTH` folders deep, hidden folders
-skipped) and recognises, with the readers' own detection functions (``dynastereo.io``):
+skipped) and recognizes, with the readers' own detection functions (``dynastereo.io``):
 
 * **KITTI odometry** sets: a folder with ``sequences/NN`` (each a KITTI sequence folder,
   :func:`~dynastereo.io.detect_format` ``"kitti"``); ground truth ``poses/NN.txt`` beside

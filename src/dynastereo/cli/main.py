@@ -175,7 +175,7 @@ def run(
     bag_outputs: str = typer.Option("all", "--bag-outputs", help="[--bag] Output bag content: all, or a comma list of odometry,tf,masked,masks,disparity,path,map_points."),
     save_map: Optional[Path] = typer.Option(None, "--save-map", help="Write the final map to FILE (docs/map_format.md)."),
     load_map: Optional[Path] = typer.Option(None, "--load-map", help="Start from the map in FILE (from --save-map)."),
-    localize_only: bool = typer.Option(False, "--localize-only", help="With --load-map: localise in the map, add no keyframes."),
+    localize_only: bool = typer.Option(False, "--localize-only", help="With --load-map: localize in the map, add no keyframes."),
     no_loop_closing: bool = typer.Option(False, "--no-loop-closing", help="Turn loop closing off (slam.loop_closing: false)."),
     vocabulary: Optional[Path] = typer.Option(None, "--vocabulary", help="ORB vocabulary file from `dynastereo vocab` (default: the built-in one)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an earlier run in DIR (its outputs are deleted first)."),

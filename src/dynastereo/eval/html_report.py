@@ -184,7 +184,7 @@ def _summary_section(rf: RunFiles) -> str:
         items.append(("detector", cfg["detector"].get("name"), "detector"))
     items += [(k.replace("_", " "), run.get(k), k) for k in SUMMARY_KEYS if k in run]
     items.append(("loops closed", len(run.get("loops", [])), "loops"))
-    items.append(("relocalisations / recoveries", len(run.get("recoveries", [])), "recoveries"))
+    items.append(("relocalizations / recoveries", len(run.get("recoveries", [])), "recoveries"))
     if run.get("map"):
         items += [(f"map {k}", v, f"map.{k}") for k, v in run["map"].items()]
     if rf.timing and not run:

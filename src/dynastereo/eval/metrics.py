@@ -19,7 +19,7 @@ Definitions (all translations in metres, poses camera-to-world):
   ``path_length_m`` the length of the matched ground-truth path.  Independent of the
   Umeyama alignment (which would hide drift by spreading it over the path).
 * **KITTI**: the odometry devkit's ``calcSequenceErrors`` (evaluate_odometry.cpp),
-  vectorised: every 10th frame starts segments of 100, 200, ..., 800 m of ground-truth
+  vectorized: every 10th frame starts segments of 100, 200, ..., 800 m of ground-truth
   path; the relative pose error over each segment gives a translation error / length
   and a rotation angle / length; their means over all segments are reported as
   ``t_err_percent`` and ``r_err_deg_per_100m``.  ``None`` when no segment fits (path
@@ -163,7 +163,7 @@ def match_trajectories(
 
 
 def umeyama_se3(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """4x4 SE(3) ``T`` minimising ``sum |T x_i - y_i|^2`` for ``(N, 3)`` point sets.
+    """4x4 SE(3) ``T`` minimizing ``sum |T x_i - y_i|^2`` for ``(N, 3)`` point sets.
 
     Same equations as ``evo.core.geometry.umeyama_alignment`` without its rank check: for
     collinear or identical points the rotation about the degenerate directions is
@@ -318,7 +318,7 @@ def evaluate(
         )
         m.process_data((gt_path, est_path))
         rpe = _stats(m)
-        # Rotation part from the same relative error poses, vectorised (evo's per-pair so3_log
+        # Rotation part from the same relative error poses, vectorized (evo's per-pair so3_log
         # is 4x slower than all the rest and rejects rotations off SO(3) by > 1e-6).
         rpe_rot = _array_stats(rotation_angle_deg(np.asarray(m.E)))
     else:

@@ -1,6 +1,6 @@
 """Input layer: stereo sequences, calibration, images, frame selection.
 
-``open_sequence(path)`` recognises the folder's format and returns a
+``open_sequence(path)`` recognizes the folder's format and returns a
 :class:`~dynastereo.io.base.Sequence` of rectified pairs:
 
 * **KITTI** odometry: ``calib.txt`` + ``image_0/``,``image_1/`` (gray) or ``image_2/``,``image_3/`` (colour);
@@ -135,7 +135,7 @@ def detect_format(path: str | Path, calib: str | Path | None = None) -> str:
         raise SequenceError(
             "this is a KITTI dataset root; pass one sequence folder, e.g. " f"{path / 'sequences' / '06'}", path
         )
-    raise SequenceError(f"unrecognised sequence folder; looked for {_LOOKED_FOR}", path)
+    raise SequenceError(f"unrecognized sequence folder; looked for {_LOOKED_FOR}", path)
 
 
 def open_sequence(path: str | Path, calib: str | Path | None = None, color: bool | None = None,

@@ -597,7 +597,7 @@ def load_stereo_yaml(path: str | Path,
     if "fx" in d:
         return _own_rectified(d, path, image_size)
     raise CalibrationError(
-        "unrecognised calibration YAML: expected 'fx, cx, cy, baseline' (rectified), "
+        "unrecognized calibration YAML: expected 'fx, cx, cy, baseline' (rectified), "
         "'left: {K, D}, right: {K, D}, R, T' (raw) or an ORB-SLAM2 settings file with 'Camera.fx'; "
         f"found keys {', '.join(map(str, d)) or 'none'}",
         path,

@@ -80,7 +80,7 @@ def pair_by_timestamp(left_ns: np.ndarray, right_ns: np.ndarray, tolerance_ns: i
     """Index pairs ``(il, ir)`` matching sorted timestamps one-to-one within ``tolerance_ns``.
 
     Each left stamp takes its nearest right stamp; when two left stamps want the same right
-    one, the closer keeps it.  Vectorised (searchsorted), result sorted by left index.
+    one, the closer keeps it.  Vectorized (searchsorted), result sorted by left index.
     """
     left_ns = np.asarray(left_ns, np.int64)
     right_ns = np.asarray(right_ns, np.int64)

@@ -1,6 +1,6 @@
 """Generic stereo sequences: two folders of images and a YAML calibration.
 
-Layout recognised by :func:`find_folder_layout` / :meth:`FolderSequence.from_root`::
+Layout recognized by :func:`find_folder_layout` / :meth:`FolderSequence.from_root`::
 
     root/
         left/  right/        (or cam0/ cam1/; a data/ subfolder inside each is used if present)

@@ -1,7 +1,7 @@
 """Disparity estimation with OpenCV StereoBM / StereoSGBM (+ optional WLS filter).
 
 Thesis 3.3.1 (block matching and its parameters), 3.3.2 (WLS post-filter) and 3.3.3
-(normalised, contrast-enhanced view of the disparity).
+(normalized, contrast-enhanced view of the disparity).
 
 ``StereoMatcher(cfg).compute(left_gray, right_gray)`` gives the full-frame disparity
 (float32 pixels, ``<= 0`` invalid).  The masking fast path is
@@ -351,7 +351,7 @@ def normalize_disparity(disp: np.ndarray, enhance: bool = True) -> np.ndarray:
 
     Valid disparities are stretched linearly to 1..255 -- between the 2nd and 98th
     percentile with ``enhance`` (robust to a few outliers), else between min and max --
-    and with ``enhance`` the contrast is then equalised locally (CLAHE), which brings out
+    and with ``enhance`` the contrast is then equalized locally (CLAHE), which brings out
     objects in scenes with poor disparity (much sky or plain ground).
     """
     d = np.asarray(disp, dtype=np.float32)

@@ -15,9 +15,9 @@ road is a large smooth surface) and :func:`fit_ground_line` fits ``d = a v + c``
 a v-disparity Hough vote (slopes restricted to the range a camera ``min_height ..
 max_height`` metres above the road gives -- a truck filling the view, constant
 disparity, is no road; votes weighted by disparity; lines with points below them
-penalised: nothing is seen below the road), refined by least squares on the inliers.
+penalized: nothing is seen below the road), refined by least squares on the inliers.
 A fit with too little support, or whose slope wants out of the range, is *unreliable*
-and not used (``GroundLine.ok`` False, ``reason`` says why).  Vectorised numpy; about
+and not used (``GroundLine.ok`` False, ``reason`` says why).  Vectorized numpy; about
 1.2 ms for a KITTI frame, coarse disparity included.
 """
 

@@ -142,7 +142,7 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
 
 
 def read_messages(path: str | Path, topics: list[str] | None = None) -> Iterator[tuple[str, int, Any]]:
-    """``(topic, bag time ns, deserialised message)`` for ``topics`` (all when None), in time order."""
+    """``(topic, bag time ns, deserialized message)`` for ``topics`` (all when None), in time order."""
     r = _open_reader(Path(path))
     try:
         conns = [c for c in r.connections if topics is None or c.topic in topics]

@@ -339,7 +339,7 @@ class StereoNodeCore:
 
     def warm_up(self) -> None:
         """Run the detector once on a black image (its first call is slow: lazy
-        initialisation), so the first real frame does not pay for it.  No state changes."""
+        initialization), so the first real frame does not pay for it.  No state changes."""
         det = self._detector
         if det is not None and self.calibration is not None:
             c = self.calibration

@@ -7,7 +7,7 @@ python3-nav-msgs python3-stereo-msgs python3-tf2-msgs python3-std-srvs``) import
 dynastereo: a venv made with ``/usr/bin/python3 -m venv --system-site-packages``.  Images are
 converted with numpy (:mod:`.convert`), not cv_bridge.
 
-Subscribes (message_filters, approximate-time synchronised; ``~exact_sync`` for exact)
+Subscribes (message_filters, approximate-time synchronized; ``~exact_sync`` for exact)
     ``~left_topic`` / ``~right_topic``   sensor_msgs/Image (or CompressedImage on
     ``<topic>/compressed`` with ``~compressed: true``), default ``/camera/{left,right}/image_raw``;
     ``~left_info_topic`` / ``~right_info_topic``  sensor_msgs/CameraInfo (``~use_camera_info``).

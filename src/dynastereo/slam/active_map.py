@@ -1,7 +1,7 @@
 """The map being built and what works on it: local mapping, the keyframe database
-(place recognition, shared by relocalisation and loop closing) and loop closing.
+(place recognition, shared by relocalization and loop closing) and loop closing.
 
-A System has one at a time; a re-initialisation (tracking lost where there are enough
+A System has one at a time; a re-initialization (tracking lost where there are enough
 stereo points) or a loaded map file replaces it (``System._new_map``).
 """
 
@@ -19,11 +19,11 @@ from .vocabulary import Vocabulary
 
 @dataclass
 class ActiveMap:
-    id: int  # increments at each re-initialisation
+    id: int  # increments at each re-initialization
     map: Map
     mapper: LocalMapper
     kfdb: KeyFrameDatabase
-    closer: LoopCloser | None  # None: loop closing off, or localisation only
+    closer: LoopCloser | None  # None: loop closing off, or localization only
 
     def place_keyframe(self, kf: KeyFrame, frame_pos: int, vocab: Vocabulary) -> None:
         """A new keyframe goes to loop closing (detection + correction), which adds it to

@@ -1,4 +1,4 @@
-"""Small vectorised geometry helpers: SE(3), projection, Hamming distances, index ranges.
+"""Small vectorized geometry helpers: SE(3), projection, Hamming distances, index ranges.
 
 Poses are 4x4 float64 matrices.  ``T_cw`` maps world points into the camera
 (ORB-SLAM2's convention inside the SLAM); the trajectory the System returns is
@@ -150,8 +150,8 @@ def rotation_consistent(angle_diff_deg: np.ndarray, bins: int = 30) -> np.ndarra
 
 
 def triangulate_dlt(P1: np.ndarray, P2: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """Linear triangulation of (N, 2) normalised-pixel pairs with 3x4 projection matrices
-    (world -> normalised image); returns (N, 3) world points (nan where degenerate)."""
+    """Linear triangulation of (N, 2) normalized-pixel pairs with 3x4 projection matrices
+    (world -> normalized image); returns (N, 3) world points (nan where degenerate)."""
     A = np.empty((len(x1), 4, 4))
     A[:, 0] = x1[:, 0, None] * P1[2] - P1[0]
     A[:, 1] = x1[:, 1, None] * P1[2] - P1[1]

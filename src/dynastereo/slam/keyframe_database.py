@@ -3,11 +3,11 @@
 Every keyframe is added with its :class:`~dynastereo.slam.vocabulary.BowVector`; a query
 gathers the postings of the query's words, counts the words each keyframe shares with
 the query and computes DBoW2's L1 score for all of them at once (``np.bincount``; the L1
-score of two L1-normalised vectors is the sum over common words of ``min(q_w, v_w)``).
+score of two L1-normalized vectors is the sum over common words of ``min(q_w, v_w)``).
 
 The index is a CSR by word (``indptr`` into postings of (keyframe slot, weight)) plus a
 small append-only *delta* of recent additions, merged into the CSR when it grows past
-``merge_postings`` entries (amortised: adding a keyframe costs O(its words), a merge
+``merge_postings`` entries (amortized: adding a keyframe costs O(its words), a merge
 O(all postings)).  Erasing marks the keyframe's slot dead; dead postings are dropped at
 the next merge.  No Python loop over postings or words; the loops in
 :meth:`detect_loop_candidates` run over the few candidate keyframes and their 10 best
@@ -252,7 +252,7 @@ class KeyFrameDatabase:
     def detect_relocalisation_candidates(
         self, bow: BowVector, covisibles: Callable[[int], list[int]], n_covisibles: int = 10
     ) -> list[int]:
-        """Relocalisation candidates of a frame (ORB-SLAM2 ``DetectRelocalizationCandidates``):
+        """Relocalization candidates of a frame (ORB-SLAM2 ``DetectRelocalizationCandidates``):
         as :meth:`detect_loop_candidates` without excluded keyframes and minimum score."""
         return [k for k, _ in self._candidates(bow, (), -np.inf, covisibles, n_covisibles)]
 

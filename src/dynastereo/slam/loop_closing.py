@@ -16,7 +16,7 @@ For every new keyframe (after its local mapping):
    loop correction, their map points with them; duplicated map points are fused
    (the loop side's points projected into the corrected keyframes); covisibility is
    updated, and the new links across the loop become loop edges.
-4. **Essential-graph optimisation** with gtsam (``optimizer.optimize_pose_graph``):
+4. **Essential-graph optimization** with gtsam (``optimizer.optimize_pose_graph``):
    spanning-tree edges (each keyframe to its strongest earlier covisible keyframe),
    covisibility edges of weight >= ``covis_edge_weight``, all loop edges; the loop
    keyframe and the map's first keyframe fixed.  Every map point then follows its
@@ -63,7 +63,7 @@ class LoopEvent:
     loop_frame_index: int  # StereoFrame.index of the loop keyframe's frame
     score: float  # bag-of-words score keyframe / loop keyframe
     matches: int  # descriptor matches to the loop keyframe
-    inliers: int  # after projection matching and pose optimisation
+    inliers: int  # after projection matching and pose optimization
     correction_m: float  # translation of the keyframe's correction
     correction_deg: float  # rotation of the keyframe's correction
     points_fused: int
@@ -94,7 +94,7 @@ def _rot_deg(R: np.ndarray) -> float:
 
 class LoopCloser:
     """Loop detection and correction on one map; owns nothing but its loop state.  The
-    keyframe database (shared with relocalisation) is kept by ``System``."""
+    keyframe database (shared with relocalization) is kept by ``System``."""
 
     def __init__(
         self,

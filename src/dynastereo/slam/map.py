@@ -328,7 +328,7 @@ class Map:
     def in_frustum(self, pts: np.ndarray, T_cw: np.ndarray, center: np.ndarray, calib) -> "Frustum":
         """ORB-SLAM2's ``isInFrustum`` for points ``pts`` seen from a camera at ``T_cw``
         (optical centre ``center`` in world): in front, inside the image, within the
-        scale-invariance distances, viewing angle under 60 degrees; vectorised."""
+        scale-invariance distances, viewing angle under 60 degrees; vectorized."""
         from .optimizer import project
 
         K = calib.K
@@ -505,7 +505,7 @@ def _as(a, dtype: np.dtype, what: str) -> np.ndarray:
 
 
 def _check_arrays(a: dict[str, np.ndarray], c: dict[str, int], next_kf_id: int) -> None:
-    """Cross references between the tables (vectorised): anything that would make the
+    """Cross references between the tables (vectorized): anything that would make the
     map index out of range, or disagree with itself, is an error naming the problem."""
     n, m, nk = c["points"], c["observations"], c["keyframes"]
 

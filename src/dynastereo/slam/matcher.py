@@ -1,4 +1,4 @@
-"""Descriptor matching, vectorised (ORB-SLAM2's ORBmatcher).
+"""Descriptor matching, vectorized (ORB-SLAM2's ORBmatcher).
 
 * ``stereo_match``: left/right keypoints along the rectified rows by descriptor
   distance, then SAD block matching at full resolution with parabola sub-pixel
@@ -46,7 +46,7 @@ def stereo_match(
     max_disparity: float | None = None,
     th_dist: int = (TH_HIGH + TH_LOW) // 2,
 ) -> StereoResult:
-    """Stereo matches of left keypoints (``Frame::ComputeStereoMatches``, vectorised).
+    """Stereo matches of left keypoints (``Frame::ComputeStereoMatches``, vectorized).
 
     Candidates: right keypoints within ``2 * scale[octave]`` rows, at most one octave
     apart, with disparity in ``[0, max_disparity]`` (default ``fx``: depth >= baseline).

@@ -1,10 +1,10 @@
-"""Optimisation: motion-only BA (numpy) and local bundle adjustment (gtsam).
+"""Optimization: motion-only BA (numpy) and local bundle adjustment (gtsam).
 
 Motion-only BA (``optimize_pose``) is ORB-SLAM2's ``Optimizer::PoseOptimization``:
 stereo observations (u, v, u_right) and monocular ones (u, v), information
 ``1 / sigma^2`` of the keypoint's level, Huber kernel (delta = sqrt(chi2 95%)),
 4 rounds of 10 Gauss-Newton iterations with outliers re-classified by chi2 after each
-round and the kernel dropped in the last rounds.  It is a vectorised Gauss-Newton on
+round and the kernel dropped in the last rounds.  It is a vectorized Gauss-Newton on
 SE(3) in numpy, chosen by measurement: 1.7 ms for 800 observations with the whole
 4-round schedule, against 14 ms for a single robust LM pass of a gtsam graph built per
 frame, same pose (``benchmarks/bench_slam.py``, ``pose_optimizer`` in its JSON).

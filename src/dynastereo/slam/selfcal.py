@@ -8,7 +8,7 @@ inverse depth -- on KITTI a 0.7 % too long path.  :class:`SelfCalibration` owns 
   solves a BA over the whole map at three offsets (:data:`GRID`) in its worker; the
   parabola of its cost gives the offset (``optimizer.self_calibrating_ba``).  It is refined
   the same way at 1.5x, 2.25x... that many keyframes (``selfcal_rounds`` estimates in
-  all).  A new map (re-initialisation) starts the schedule again only while no estimate
+  all).  A new map (re-initialization) starts the schedule again only while no estimate
   has been applied; a loaded map keeps its offset;
 * **the estimate** ``offset`` +- ``sigma`` (px).  No offset is applied until an estimate is
   ``selfcal_min_sigmas`` from 0; the later rounds then refine it whatever its size;
@@ -121,7 +121,7 @@ class SelfCalibration:
         keyframe (not in the BA) are placed again from that keyframe's new depth."""
         offset = self._base + float(estimate)
         delta = offset - self.offset
-        self._restart = False  # a new map (re-initialisation) does not start over
+        self._restart = False  # a new map (re-initialization) does not start over
         self.sigma = sigma
         if delta == 0.0:
             return

@@ -20,7 +20,7 @@ A pose is accepted only with enough support: after local-map tracking at least
 last tracked frames.  A jump the motion model cannot follow (a revisit fed as
 ``--frames 0-98,40-60``, a gap) leaves a wrong prediction with a few chance inliers on far
 points: such a pose is refused, and a prior-free search over the map's keyframes runs
-instead (``Tracker.relocalise``: bag-of-words candidate keyframes, PnP-RANSAC,
+instead (``Tracker.relocalize``: bag-of-words candidate keyframes, PnP-RANSAC,
 motion-only BA, local map; ``reloc_min_inliers`` needed).  A frame placed that way is
 ``tracked`` with method ``reloc`` (or ``reference`` when the reference keyframe's
 descriptors already placed it); the velocity is not taken across such a jump.
@@ -32,10 +32,10 @@ velocity yet) -- over a run of lost frames the prediction continues at that velo
 Then:
 
 * the frame has at least ``min_init_points`` stereo points (a new place): a new map is
-  initialised from them, anchored to that predicted pose, and tracking continues on it
+  initialized from them, anchored to that predicted pose, and tracking continues on it
   (``map_id`` increments; the frame is the new map's first keyframe);
 * it has fewer (a black or blank frame, a lens cover): the map is kept, and the next
-  frames are tracked / relocalised in it again -- after ten black frames KITTI 06 is
+  frames are tracked / relocalized in it again -- after ten black frames KITTI 06 is
   found again at its true place, no new map needed.
 
 Nothing raises on bad frames.
@@ -43,7 +43,7 @@ Nothing raises on bad frames.
 Stereo self-calibration (``slam.self_calibrate``, on by default) of the rig's disparity
 offset: :mod:`.selfcal` (``stats().disparity_offset``).
 
-Loop closing (``loop_closing.LoopCloser``, after each new keyframe), relocalisation with
+Loop closing (``loop_closing.LoopCloser``, after each new keyframe), relocalization with
 the bag-of-words keyframe database and map files (``save_map`` / ``load_map``, with
 ``localize_only``) are described in the README and in those modules.
 """
@@ -82,7 +82,7 @@ class SystemStats:
     frames: int
     tracked: int
     lost: int
-    reinitialisations: int
+    reinitializations: int
     keyframes: int
     keyframes_created: int
     keyframes_loaded: int
@@ -96,7 +96,7 @@ class SystemStats:
     keyframes_culled: int
     disparity_offset: float
     disparity_offset_sigma: float | None
-    relocalisations: int
+    relocalizations: int
     relocalisation_ms_median: float
     recoveries: int
     loops: int
@@ -114,7 +114,7 @@ class FrameView:
     """What the last tracked frame looks like to a viewer (``System.frame_view()``)."""
 
     uv: np.ndarray  # (N, 2) left keypoints, pixels
-    inlier: np.ndarray  # (N,) bool: matched to a map point and kept by the pose optimisation
+    inlier: np.ndarray  # (N,) bool: matched to a map point and kept by the pose optimization
     outlier: np.ndarray  # (N,) bool: matched, rejected as an outlier
     local_points: np.ndarray  # (M, 3) world positions of the local map's points
 
@@ -172,7 +172,7 @@ class System:
     # ------------------------------------------------------------------ maps
     @property
     def map(self) -> Map:
-        """The map being built (or localised in)."""
+        """The map being built (or localized in)."""
         return self.active.map
 
     @property
@@ -184,7 +184,7 @@ class System:
         """The disparity offset (px) every stereo observation carries now."""
         return self.selfcal.offset
 
-    def _new_map(self, mp: Map | None = None, initialised: bool = False) -> None:
+    def _new_map(self, mp: Map | None = None, initialized: bool = False) -> None:
         """Start a new map (empty, or ``mp``: a loaded one) and track in it; the old
         map's frame poses are made absolute first."""
         old = self.active
@@ -200,7 +200,7 @@ class System:
             closer = LoopCloser(mp, kfdb, self.vocab, mapper, self.cfg, self.th_depth_m, self.seed, ex.inv_sigma2,
                                 ex.scales, events=self._loop_events, stats=self._loop_stats)
         self.active = ActiveMap(old.id + 1 if old is not None else 0, mp, mapper, kfdb, closer)
-        self.tracker.attach(self.active, initialised=initialised)
+        self.tracker.attach(self.active, initialized=initialized)
 
     # ------------------------------------------------------------------ track
     def track(
@@ -260,7 +260,7 @@ class System:
             frames=len(st),
             tracked=sum(s.status != TrackingState.LOST for s in st),
             lost=sum(s.status == TrackingState.LOST for s in st),
-            reinitialisations=self.active.id,
+            reinitializations=self.active.id,
             keyframes=len(self.map.keyframes),
             keyframes_created=tr.keyframes_created,
             keyframes_loaded=self._kf_loaded,
@@ -274,7 +274,7 @@ class System:
             keyframes_culled=ms.keyframes_culled,
             disparity_offset=self.selfcal.offset,
             disparity_offset_sigma=self.selfcal.sigma,
-            relocalisations=sum(s.method == TrackingMethod.RELOC for s in st),
+            relocalizations=sum(s.method == TrackingMethod.RELOC for s in st),
             relocalisation_ms_median=_median(tr.reloc_ms),
             recoveries=len(tr.recoveries),
             loops=len(self._loop_events),
@@ -322,7 +322,7 @@ class System:
     def load_map(self, path, localize_only: bool = False) -> None:
         """Start from the map in ``path`` (written by ``save_map``), before the first
         frame.  ``localize_only``: track in it without adding keyframes or points (no
-        local mapping, no loop closing); the first frame is placed by relocalisation.
+        local mapping, no loop closing); the first frame is placed by relocalization.
         Otherwise mapping (and loop closing) go on in the loaded map."""
         from .map_io import check_compatible, load_map, orb_settings
 
@@ -336,7 +336,7 @@ class System:
         self.selfcal.loaded(mf.disparity_offset)
         self.active.shutdown()
         self.active = None  # the loaded map is map 0
-        self._new_map(mf.map, initialised=bool(mf.map.keyframes))
+        self._new_map(mf.map, initialized=bool(mf.map.keyframes))
         saved = mf.bow or {}
         for k, kf in self.map.keyframes.items():
             if k in saved:
@@ -350,7 +350,7 @@ class System:
             path,
             len(self.map.keyframes),
             self.map.stats()["map_points"],
-            "; localisation only" if self.localize_only else "",
+            "; localization only" if self.localize_only else "",
         )
 
     def shutdown(self) -> None:

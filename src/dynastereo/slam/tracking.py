@@ -12,13 +12,13 @@ tracking state -- last frame, velocity, reference keyframe -- held once, here.
    motion-only BA after each matching step.  A pose is accepted only with enough
    support: at least ``min_inliers`` inliers after local-map tracking and at least
    ``min_inlier_fraction`` of the median of the last tracked frames.  Otherwise a
-   prior-free search over the map's keyframes runs (relocalisation: bag-of-words
+   prior-free search over the map's keyframes runs (relocalization: bag-of-words
    candidates, PnP-RANSAC, motion-only BA, local map; ``reloc_min_inliers`` needed);
 3. **keyframe decision** (``need_new_keyframe``) and the keyframe handed to local
    mapping and loop closing (:class:`~.active_map.ActiveMap`);
 4. **lost**: when no pose is supported the frame's pose is the constant-velocity
    prediction; with ``min_init_points`` stereo points a new map is started there
-   (``reset_map``, the System's), else the map is kept to relocalise the next frames in.
+   (``reset_map``, the System's), else the map is kept to relocalize the next frames in.
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ log = logging.getLogger("dynastereo.slam")
 class TrackingState(StrEnum):
     """What became of a frame."""
 
-    INIT = "init"  # it started a map (the first frame, or a re-initialisation)
+    INIT = "init"  # it started a map (the first frame, or a re-initialization)
     TRACKED = "tracked"
     LOST = "lost"  # no supported pose: the constant-velocity prediction
 
@@ -84,7 +84,7 @@ class TrackResult:
     inliers: int  # after local-map tracking (lost: of the best refused pose, 0 if none)
     n_features: int
     n_stereo: int
-    map_id: int  # increments at each re-initialisation
+    map_id: int  # increments at each re-initialization
     pose: np.ndarray  # 3x4 camera-to-world as tracked (trajectory() has the refined one)
 
     @property
@@ -178,16 +178,16 @@ class Tracker:
         self.last_kf_frame = -(10**9)
         self.n_inliers = 0
         self.local_kfs: list[int] = []
-        self.initialised = False
+        self.initialized = False
         self.recent_inliers: deque[int] = deque(maxlen=5)
 
-    def attach(self, active: "ActiveMap", initialised: bool = False) -> None:
-        """Track in ``active`` from now on (a new map; ``initialised``: a loaded one)."""
+    def attach(self, active: "ActiveMap", initialized: bool = False) -> None:
+        """Track in ``active`` from now on (a new map; ``initialized``: a loaded one)."""
         if self.active is not None:
             self.trajectory.bake(self.active.map)  # the old map's frame poses made absolute
         self.active = active
         self._forget_map()
-        self.initialised = bool(initialised)
+        self.initialized = bool(initialized)
 
     # --------------------------------------------------------------- features
     def _features(self, frame: StereoFrame, masks: StereoMasks | None):
@@ -232,27 +232,27 @@ class Tracker:
         status, method, is_kf = TrackingState.TRACKED, TrackingMethod.NONE, False
         reason = ""
         with tm.stage("track"):
-            if not self.initialised:
+            if not self.initialized:
                 ok = False
             else:
                 ok, method, reason = self._track_frame(f, frame.index)
                 f.T_cw = orthonormalize(f.T_cw)
-        track_inliers = int(self.n_inliers) if self.initialised else 0
+        track_inliers = int(self.n_inliers) if self.initialized else 0
         with tm.stage("local_mapping"):
             # the local BA submitted ba_lag_frames ago is applied now (waiting for it if
             # needed): it ran while this frame's features, stereo and tracking were computed
             self.active.collect(n)
             offset_used = self.selfcal.sync(f, offset_used)
-        if not self.initialised:
+        if not self.initialized:
             f.T_cw = self._predict()
             f.clear_matches(np.arange(len(f)))
             with tm.stage("local_mapping"):
-                is_kf = self._initialise(f, first=(n == 0))
+                is_kf = self._initialize(f, first=(n == 0))
             status, method = (TrackingState.INIT, TrackingMethod.INIT) if is_kf else \
                 (TrackingState.LOST, TrackingMethod.NONE)
             if not is_kf:
                 log.warning(
-                    "frame %d: cannot initialise the map (%d stereo points < %d); "
+                    "frame %d: cannot initialize the map (%d stereo points < %d); "
                     "pose from the constant-velocity prediction",
                     frame.index, n_stereo, self.cfg.min_init_points,
                 )
@@ -292,29 +292,29 @@ class Tracker:
 
     def _lost(self, f: Frame, frame_index: int, reason: str, n_stereo: int, tm: StageTimer,
               offset_used: float) -> bool:
-        """No supported pose: keep the map (localisation only, or too few stereo points),
+        """No supported pose: keep the map (localization only, or too few stereo points),
         else start a new map at the predicted pose.  True when ``f`` became a keyframe."""
         if self.localize_only:
             log.warning(
                 "frame %d: tracking lost (%s); pose from the constant-velocity prediction; "
-                "localisation only: the map is kept",
+                "localization only: the map is kept",
                 frame_index, reason,
             )
             return False
         if n_stereo >= self.cfg.min_init_points:
             log.warning(
                 "frame %d: tracking lost (%s); pose from the constant-velocity prediction; "
-                "re-initialising the map at that pose",
+                "re-initializing the map at that pose",
                 frame_index, reason,
             )
             with tm.stage("local_mapping"):
                 self._reset_map()
                 self.selfcal.sync(f, offset_used)
-                return self._initialise(f, first=False)
+                return self._initialize(f, first=False)
         log.warning(
             "frame %d: tracking lost (%s); pose from the constant-velocity prediction; "
-            "%d stereo points are too few to re-initialise (< %d): the map is kept to "
-            "relocalise the next frames in",
+            "%d stereo points are too few to re-initialize (< %d): the map is kept to "
+            "relocalize the next frames in",
             frame_index, reason, n_stereo, self.cfg.min_init_points,
         )
         return False
@@ -322,7 +322,7 @@ class Tracker:
     def _update_motion(self, T_cw: np.ndarray, status: TrackingState, method: TrackingMethod) -> None:
         """The velocity (the last frame's motion, in the camera frame), only between two
         frames tracked in a row.  A frame the motion model could not place (its pose from
-        the reference keyframe or a relocalisation) may follow a jump (a revisit): it keeps
+        the reference keyframe or a relocalization) may follow a jump (a revisit): it keeps
         the old velocity, unless the frame before it was placed that way too."""
         continuous = self.last_ok and status == TrackingState.TRACKED and (
             method == TrackingMethod.MOTION or self.velocity is None
@@ -370,7 +370,7 @@ class Tracker:
 
     def _track_frame(self, f: Frame, frame_index: int) -> tuple[bool, TrackingMethod, str]:
         """Motion model, else reference keyframe; then the local map; a supported pose,
-        else relocalisation (module doc).  Returns ``(ok, method, reason for a failure)``."""
+        else relocalization (module doc).  Returns ``(ok, method, reason for a failure)``."""
         mp, cfg = self.active.map, self.cfg
         self.n_inliers = 0
         f.T_cw = self._predict()
@@ -401,21 +401,21 @@ class Tracker:
                 f"{ref:.0f} (< {100.0 * cfg.min_inlier_fraction:.0f}%)"
             )
         if cfg.reloc_candidates > 0:
-            found, kid = self._relocalise(f)
+            found, kid = self._relocalize(f)
             if found and self.n_inliers >= max(cfg.reloc_min_inliers, cfg.min_inliers):
                 log.info(
-                    "frame %d: %s; relocalised against keyframe %d (%d inliers)", frame_index, why, kid, self.n_inliers
+                    "frame %d: %s; relocalized against keyframe %d (%d inliers)", frame_index, why, kid, self.n_inliers
                 )
                 return True, TrackingMethod.RELOC, ""
             why += (
-                f"; relocalisation found {self.n_inliers} inliers < {cfg.reloc_min_inliers}"
+                f"; relocalization found {self.n_inliers} inliers < {cfg.reloc_min_inliers}"
                 if found
-                else "; relocalisation found no keyframe"
+                else "; relocalization found no keyframe"
             )
         return False, method, why
 
-    def _relocalise(self, f: Frame) -> tuple[bool, int]:
-        """:meth:`relocalise` on the bag-of-words candidates (ORB-SLAM2's
+    def _relocalize(self, f: Frame) -> tuple[bool, int]:
+        """:meth:`relocalize` on the bag-of-words candidates (ORB-SLAM2's
         ``DetectRelocalizationCandidates``); when none of them holds, on the keyframes
         that see most of a sample of the frame's descriptors (brute force)."""
         t0 = time.perf_counter()
@@ -423,16 +423,16 @@ class Tracker:
         bow, _ = self.vocab.transform(f.desc)
         cands = [k for k in self.active.kfdb.detect_relocalisation_candidates(bow, mp.best_covisibles)
                  if k in mp.keyframes]
-        found, kid = self.relocalise(mp, f, cands[:n])
+        found, kid = self.relocalize(mp, f, cands[:n])
         if not found or self.n_inliers < max(self.cfg.reloc_min_inliers, self.cfg.min_inliers):
             more = [k for k in self.candidate_keyframes(mp, f, n) if k not in cands[:n]]
             if more:
-                found, kid = self.relocalise(mp, f, more)
+                found, kid = self.relocalize(mp, f, more)
         self.reloc_ms.append((time.perf_counter() - t0) * 1e3)
         return found, kid
 
     # ------------------------------------------------------------ keyframes
-    def _initialise(self, f: Frame, first: bool) -> bool:
+    def _initialize(self, f: Frame, first: bool) -> bool:
         """A map from the frame's stereo points (at least ``min_init_points``)."""
         idx = np.flatnonzero(f.depth > 0)
         if len(idx) < self.cfg.min_init_points:
@@ -451,7 +451,7 @@ class Tracker:
         self.n_inliers = len(idx)
         self.active.mapper.process(kf, np.zeros(0, np.int64), f.index)
         self.active.place_keyframe(kf, f.index, self.vocab)
-        self.initialised = True
+        self.initialized = True
         return True
 
     def _make_keyframe(self, f: Frame) -> KeyFrame:
@@ -618,7 +618,7 @@ class Tracker:
         n = self._optimize(mp, frame)
         return n >= 10
 
-    # --------------------------------------------------------------- relocalisation
+    # --------------------------------------------------------------- relocalization
     def candidate_keyframes(self, mp: Map, frame: Frame, n: int = 3, max_points: int = 20000) -> list[int]:
         """Keyframes of the map most likely to see the frame's place: a sample of the
         frame's descriptors is matched to the map's points (nearest, <= TH_LOW) and every
@@ -642,7 +642,7 @@ class Tracker:
         )
         return [k for _, k in ranked[:n]]
 
-    def relocalise(self, mp: Map, frame: Frame, candidates: list[int]) -> tuple[bool, int]:
+    def relocalize(self, mp: Map, frame: Frame, candidates: list[int]) -> tuple[bool, int]:
         """Prior-free pose of the frame in the map (ORB-SLAM2 ``Relocalization``): for each
         candidate keyframe (from the bag-of-words database, or ``candidate_keyframes``),
         descriptor matches + PnP-RANSAC + motion-only BA + local-map tracking; the
@@ -725,7 +725,7 @@ class Tracker:
 
     def track_local_map(self, mp: Map, frame: Frame, count: bool = True) -> bool:
         """Project the local map's points, match, motion-only BA.  ``count``: update the
-        points' visible / found counters (off for relocalisation hypotheses)."""
+        points' visible / found counters (off for relocalization hypotheses)."""
         local = self.update_local_keyframes(mp, frame)
         if not local:
             return False

@@ -3,7 +3,7 @@
 The vocabulary is a ``k``-ary tree of ``levels`` levels below the root, learnt by
 hierarchical binary k-medians (k-means++ seeding, Hamming distances, majority-bit
 centres) as in DBoW2.  Its leaves are the *words*.  A set of descriptors becomes a
-:class:`BowVector` (sparse tf-idf weights, L1-normalised) and, per descriptor, the id of
+:class:`BowVector` (sparse tf-idf weights, L1-normalized) and, per descriptor, the id of
 its node at a coarser level (ORB-SLAM2's ``FeatureVector``: matching restricted to
 descriptors under the same node).
 
@@ -59,7 +59,7 @@ _MAX_SLOTS = 1 << 24  # k**levels limit of the dense layout (16.7M leaf slots)
 
 @dataclass(frozen=True, eq=False)
 class BowVector:
-    """Sparse bag-of-words vector: unique ``words`` ascending, L1-normalised ``weights``.
+    """Sparse bag-of-words vector: unique ``words`` ascending, L1-normalized ``weights``.
 
     An empty vector (no descriptors, or only zero-weight words) is allowed.
     """
@@ -211,7 +211,7 @@ class Vocabulary:
         return self._word_of_slot[leaf]
 
     def bow_from_words(self, words: np.ndarray) -> BowVector:
-        """tf-idf BowVector of a multiset of word ids (DBoW2 TF_IDF, L1-normalised)."""
+        """tf-idf BowVector of a multiset of word ids (DBoW2 TF_IDF, L1-normalized)."""
         words = np.asarray(words, np.int64)
         if len(words) == 0:
             return BowVector.empty()
@@ -241,7 +241,7 @@ class Vocabulary:
 
     @staticmethod
     def score(a: BowVector, b: BowVector) -> float:
-        """DBoW2's L1 score ``1 - 0.5 * |a - b|_1`` of two L1-normalised vectors, in [0, 1]
+        """DBoW2's L1 score ``1 - 0.5 * |a - b|_1`` of two L1-normalized vectors, in [0, 1]
         (= sum over common words of ``min(a_w, b_w)``)."""
         if len(a) == 0 or len(b) == 0:
             return 0.0
@@ -274,7 +274,7 @@ class Vocabulary:
         ``descriptors``: one (N, 32) uint8 array, or a list of per-image arrays (then the
         idf weights come from those images).  ``images``: per-image descriptor sets for
         the idf weights when ``descriptors`` is one array (default: idf = 1, i.e. tf only;
-        see :meth:`with_idf`).  At every level all clusters are split at once (vectorised
+        see :meth:`with_idf`).  At every level all clusters are split at once (vectorized
         over clusters and descriptors): k-means++ seeding with probability ~ distance^2,
         then up to ``max_iter`` rounds of nearest-centre assignment and majority-bit
         centres (DBoW2's ``meanValue``: a bit is set when at least half the members have
@@ -450,7 +450,7 @@ def _idf_from_words(words_per_image: Sequence[np.ndarray], n_words: int) -> np.n
     if n_img == 0:
         return np.ones(n_words)
     df = np.zeros(n_words, np.int64)
-    for w in words_per_image:  # per image (a few hundred), vectorised within
+    for w in words_per_image:  # per image (a few hundred), vectorized within
         df[np.unique(w)] += 1
     return np.log(n_img / np.maximum(df, 1))
 
@@ -478,7 +478,7 @@ def _split_level(D: np.ndarray, slot: np.ndarray, k: int, rng: np.random.Generat
     C[gs[sm], rank[sm]] = Ds[sm]
     V[gs[sm], rank[sm]] = True
 
-    # larger clusters: k-means++ seeding, vectorised over clusters
+    # larger clusters: k-means++ seeding, vectorized over clusters
     big = np.flatnonzero(~small_g)
     if len(big):
         bi = np.flatnonzero(~sm)  # their descriptors, still sorted by cluster
@@ -547,7 +547,7 @@ def _assign(Ds: np.ndarray, gs: np.ndarray, C: np.ndarray, V: np.ndarray, chunk:
 
 def same_node_pairs(nodes_a: np.ndarray, nodes_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """All index pairs ``(ia, ib)`` with ``nodes_a[ia] == nodes_b[ib]`` (ORB-SLAM2's
-    SearchByBoW candidate pairs from two ``transform`` node arrays), vectorised; pairs are
+    SearchByBoW candidate pairs from two ``transform`` node arrays), vectorized; pairs are
     grouped by ``ia`` ascending."""
     nodes_a = np.asarray(nodes_a, np.int64)
     nodes_b = np.asarray(nodes_b, np.int64)

@@ -3,7 +3,7 @@
 ``generate(out, scenario)`` renders a KITTI-odometry folder (``out/sequences/00`` with
 ``image_0``, ``image_1``, ``calib.txt``, ``times.txt``; ``out/poses/00.txt``) plus
 ``sequences/00/gt/``: left disparity (uint16 x256), left/right instance masks and
-``objects.json``.  Scenes are ray cast analytically (vectorised numpy; exact pinhole
+``objects.json``.  Scenes are ray cast analytically (vectorized numpy; exact pinhole
 stereo with a z-buffer), so the right image is the left one warped by the disparity on
 non-occluded pixels.  ``OracleDetector`` returns the ground-truth boxes of a frame (for
 testing masking and SLAM without a network).

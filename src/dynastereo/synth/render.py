@@ -1,4 +1,4 @@
-"""Vectorised ray casting of one view of the synthetic world.
+"""Vectorized ray casting of one view of the synthetic world.
 
 Every pixel's ray is intersected analytically with the scene; the nearest hit wins
 (z-buffer).  Rays are ``(u, v, 1)`` in camera coordinates, so the ray parameter IS the
@@ -422,7 +422,7 @@ class Renderer:
         self.mat_texel = np.array(texels or [1.0], np.float64)
 
     def _objects(self, shown: list[PosedObject], img, depth, ids, Rc, cam, lod_origin) -> None:
-        """Ray casts all primitives of all shown objects in one vectorised pass.
+        """Ray casts all primitives of all shown objects in one vectorized pass.
 
         Every primitive contributes the pixels of its projected box as (primitive, pixel)
         pairs; the pairs are intersected together, the z-buffer keeps the nearest hit per

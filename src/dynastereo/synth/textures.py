@@ -140,7 +140,7 @@ class MipTexture:
 
 
 # ---------------------------------------------------------------------------------------------
-# procedural generators (run once per world; vectorised over the texture, never per pixel)
+# procedural generators (run once per world; vectorized over the texture, never per pixel)
 
 
 def periodic_noise(rng: np.random.Generator, shape: tuple[int, int], cells: tuple[int, int]) -> np.ndarray:

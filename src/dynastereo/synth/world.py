@@ -7,7 +7,7 @@ addressed by ``(side, sigma, d)``: side 0..3 of the block, ``sigma`` metres alon
 the driving direction, ``d`` metres away from the block facade.  Driving direction is
 clockwise seen from above with the block on the RIGHT (right-hand traffic, right turns
 at the corners); the contour at offset ``d`` is a rounded rectangle (corner radius ``d``)
-parametrised by arc length ``s`` (:meth:`RingRoad.contour`).
+parametrized by arc length ``s`` (:meth:`RingRoad.contour`).
 
 Cross section (distance from the inner facade): sidewalk 0-4 m, parking 4-6.5, the
 camera's lane 6.5-10 (centre 8.25), oncoming lane 10-13.5 (centre 11.75), parking
@@ -96,7 +96,7 @@ class WorldParams:
 
 
 class RingRoad:
-    """Geometry of the ring road around the inner block (vectorised)."""
+    """Geometry of the ring road around the inner block (vectorized)."""
 
     def __init__(self, A: float, B: float):
         self.A = float(A)

@@ -4,7 +4,7 @@
 :class:`~dynastereo.config.DetectorConfig`: ``cfg.name`` is a registry name
 (``yolov3``, ``yolov3-tiny``, ``yolox-nano``, ``fastestdet``, ``yolo11n-int8``) found in
 ``<models_dir>/<name>/``, or a path to a Darknet ``.cfg`` (weights beside it, same stem)
-or an ``.onnx`` file (layout recognised from its output shapes).
+or an ``.onnx`` file (layout recognized from its output shapes).
 ``create_seg_model`` builds the instance-segmentation baseline (``yolov8n-seg-int8``).
 """
 

@@ -2,7 +2,7 @@
 
 Models name the 80 COCO classes slightly differently: Darknet's ``coco.names`` says
 ``motorbike``, ``aeroplane``, ``sofa``, ``tvmonitor``...; Ultralytics says ``motorcycle``,
-``airplane``, ``couch``, ``tv``.  Every name is normalised to one canonical spelling (the
+``airplane``, ``couch``, ``tv``.  Every name is normalized to one canonical spelling (the
 Ultralytics/COCO-API one, :data:`COCO_CLASSES`), so ``dynamic_classes`` means the same for
 every model and ``Detections.class_names`` can be compared across models.
 """
@@ -51,7 +51,7 @@ def canonical_name(name: str) -> str:
 
 
 def read_names_file(path: Path) -> tuple[str, ...]:
-    """One class name per line (blank lines ignored), canonicalised."""
+    """One class name per line (blank lines ignored), canonicalized."""
     try:
         lines = Path(path).read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as e:

@@ -75,7 +75,7 @@ def detect_onnx_layout(session: Any, path: Path | str = "") -> str:
         if a is not None and b is not None:
             return "ultralytics" if a < b else "yolox"
     raise ModelError(
-        f"cannot recognise the detector layout from input {in_shape} and outputs {outs} "
+        f"cannot recognize the detector layout from input {in_shape} and outputs {outs} "
         "(expected YOLOX 1xNx(5+C), FastestDet 1x(5+C)xHxW, Ultralytics 1x(4+C)xN [+ 1x32xHxW prototypes])",
         path,
     )

@@ -4,7 +4,7 @@
 (``detect_frame(frame, timer)``).  Per frame:
 
 1. **Contrast** (``detector.contrast: clahe``): the detector sees the left image after
-   CLAHE (contrast-limited adaptive histogram equalisation, on the luminance of a colour
+   CLAHE (contrast-limited adaptive histogram equalization, on the luminance of a colour
    image), so dark cars in shade are found; disparity and SLAM keep the original images.
 2. **Schedule** (``detector.schedule``): ``every`` runs the network on every frame;
    ``interval`` every ``detector.interval``-th frame; ``rotate`` (with ``canvas: tiles``)
