@@ -260,15 +260,7 @@ class LoopCloser:
     ) -> LoopEvent:
         mp = self.mp
         t0 = time.perf_counter()
-        # the local BA in flight was solved on the poses before the loop: applied first
-        self.mapper.collect(frame_pos, force=True)
-        # a full BA still running belongs to the map before this loop: dropped
-        if self._ba_job is not None:
-            self._ba_job = None
-            self.stats.full_ba_discarded += 1
-            if self._ba_runner is not None:  # its answer is never read: stop the worker now
-                self._ba_runner.abort()
-                self._ba_runner = None
+        self._settle_bundle_adjustments(frame_pos)
         # 1. the keyframe and its neighbours move by the correction, their points with them
         T_old_all = {k: k_.T_cw.copy() for k, k_ in mp.keyframes.items()}
         D = inv_T(kf.T_cw) @ T_new  # T_i_new = T_i_old @ D for every connected keyframe
@@ -277,29 +269,8 @@ class LoopCloser:
             mp.keyframes[k].T_cw = orthonormalize(mp.keyframes[k].T_cw @ D)
         pts = mp.points_of(connected)
         mp.points.transform(pts, inv_T(D))
-        # 2. fusion: the verified matches, then the loop side's points in every connected keyframe
-        cur = kf.point_ids[ki]
-        has = cur >= 0
-        mp.replace(cur[has], loop_pts[has])
-        fused = int(has.sum())
-        mp.add_observations(kf, ki[~has], loop_pts[~has])
-        loop_side = [loop.id] + [k for k in loop.covis if k in mp.keyframes and k not in connected]
-        side_pts = mp.points_of(loop_side)
-        for k in connected:
-            if k in mp.keyframes:
-                fused += self.mapper._fuse_into(mp.keyframes[k], side_pts)
-        # 3. covisibility and the new links across the loop
-        before = {k: set(mp.keyframes[k].covis) for k in connected if k in mp.keyframes}
-        for k in before:
-            mp.update_connections(mp.keyframes[k])
-        new_links: list[tuple[int, int]] = []
-        conn = set(connected)
-        for k in before:
-            for j in mp.keyframes[k].covis:
-                if j not in before[k] and j not in conn:
-                    new_links.append((k, j))
-        if not any(j == loop.id or k == loop.id for k, j in new_links):
-            new_links.append((kf.id, loop.id))
+        fused = self._fuse_loop(kf, loop, ki, loop_pts, connected)
+        new_links = self._new_links(kf, loop, connected)
         # 4. essential graph
         t_pg = time.perf_counter()
         n_kf, n_edges = self._optimize_essential_graph(kf, loop, T_old_all, new_links)
@@ -336,6 +307,51 @@ class LoopCloser:
         if self.cfg.loop_full_ba and self.cfg.mapping_on:
             self._submit_full_ba(kf, frame_pos)
         return event
+
+    def _settle_bundle_adjustments(self, frame_pos: int) -> None:
+        """Before a correction: the local BA in flight (solved on the poses before the loop)
+        is applied; a full BA still running belongs to the map before this loop: dropped."""
+        self.mapper.collect(frame_pos, force=True)
+        if self._ba_job is not None:
+            self._ba_job = None
+            self.stats.full_ba_discarded += 1
+            if self._ba_runner is not None:  # its answer is never read: stop the worker now
+                self._ba_runner.abort()
+                self._ba_runner = None
+
+    def _fuse_loop(self, kf: KeyFrame, loop: KeyFrame, ki: np.ndarray, loop_pts: np.ndarray,
+                   connected: list[int]) -> int:
+        """2. Fusion: the verified matches, then the loop side's points in every connected
+        keyframe.  Returns the points fused."""
+        mp = self.mp
+        cur = kf.point_ids[ki]
+        has = cur >= 0
+        mp.replace(cur[has], loop_pts[has])
+        fused = int(has.sum())
+        mp.add_observations(kf, ki[~has], loop_pts[~has])
+        loop_side = [loop.id] + [k for k in loop.covis if k in mp.keyframes and k not in connected]
+        side_pts = mp.points_of(loop_side)
+        for k in connected:
+            if k in mp.keyframes:
+                fused += self.mapper._fuse_into(mp.keyframes[k], side_pts)
+        return fused
+
+    def _new_links(self, kf: KeyFrame, loop: KeyFrame, connected: list[int]) -> list[tuple[int, int]]:
+        """3. Covisibility of the connected keyframes again, and the new links across the
+        loop (at least keyframe -- loop keyframe)."""
+        mp = self.mp
+        before = {k: set(mp.keyframes[k].covis) for k in connected if k in mp.keyframes}
+        for k in before:
+            mp.update_connections(mp.keyframes[k])
+        new_links: list[tuple[int, int]] = []
+        conn = set(connected)
+        for k in before:
+            for j in mp.keyframes[k].covis:
+                if j not in before[k] and j not in conn:
+                    new_links.append((k, j))
+        if not any(j == loop.id or k == loop.id for k, j in new_links):
+            new_links.append((kf.id, loop.id))
+        return new_links
 
     def _optimize_essential_graph(
         self, kf: KeyFrame, loop: KeyFrame, T_old: dict[int, np.ndarray], new_links: list[tuple[int, int]]
