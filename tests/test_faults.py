@@ -123,6 +123,30 @@ def test_stereo_fault_refused(fault: str, command: str, seq: Path, models_dir: P
     assert not (tmp_path / "out" / "trajectory.kitti.txt").exists()
 
 
+def test_a_camera_failing_mid_run_stops_the_run_keeping_what_was_done(seq: Path, tmp_path: Path,
+                                                                        monkeypatch) -> None:
+    """The check runs again every CHECK_EVERY frames: the right camera starts sending the
+    left image at frame 2 -> the run stops at the next check (frame 3) with the one-line
+    error, and the rows, run.json and timing.json of the frames done are kept."""
+    import json
+
+    from dynastereo.api import run_sequence
+    from dynastereo.config import Config
+    from dynastereo.errors import StereoCheckError
+    from dynastereo.io import stereo_check
+
+    for p in _images(seq, "image_0")[2:]:
+        shutil.copy(p, seq / "image_1" / p.name)
+    monkeypatch.setattr(stereo_check, "CHECK_EVERY", 3)
+    out = tmp_path / "out"
+    with pytest.raises(StereoCheckError, match=r"frame 3 .*identical"):
+        run_sequence(seq, out, Config().with_overrides({"masker.kind": "none"}))
+    run = json.loads((out / "run.json").read_text())
+    rows = (out / "trajectory.kitti.txt").read_text().splitlines()
+    assert run["frames_done"] == len(rows) == 4 and "StereoCheckError" in run["error"]
+    assert json.loads((out / "timing.json").read_text())["frames_done"] == 4
+
+
 def test_no_stereo_check_overrides(seq: Path, tmp_path: Path) -> None:
     _identical(seq)
     r = cli(["run", seq, "-o", tmp_path / "out", "--frames", 2, "--masker", "none", "--no-stereo-check"], tmp_path)

@@ -49,6 +49,13 @@ def _checked_inputs(seq: Sequence, cfg: Config, frames, models_dir, ground_truth
     return indices, masker
 
 
+def _stereo_watch(seq: Sequence, stereo_check: bool) -> tuple[FrameObserver, ...]:
+    """The stereo check again every ``CHECK_EVERY`` frames of the job (``io.stereo_check``)."""
+    from .io.stereo_check import PeriodicStereoCheck
+
+    return (PeriodicStereoCheck(getattr(seq, "path", None)),) if stereo_check else ()
+
+
 def make_report(run_dir: str | Path, gt: str | Path | None = None, out: str | Path | None = None, *,
                 overlays: int = 6, auto_gt: bool = True) -> Path:
     """Write the self-contained HTML page of a run folder (default ``RUN_DIR/report.html``)
@@ -118,7 +125,8 @@ def mask_sequence(
     seq = load_sequence(sequence, calib, rate=rate)
     indices, masker = _checked_inputs(seq, cfg, frames, models_dir, getattr(seq, "path", None), out=out,
                                       overwrite=overwrite, stereo_check=stereo_check)
-    with viewers(observers, viewer=viewer, rrd=rrd, name="dynastereo mask") as obs:
+    watch = _stereo_watch(seq, stereo_check)
+    with viewers((*observers, *watch), viewer=viewer, rrd=rrd, name="dynastereo mask") as obs:
         return run_mask_job(seq, masker, out, indices, save_disparity=save_disparity, overlays=overlays,
                             progress=progress, observers=obs)
 
@@ -205,6 +213,7 @@ def slam_job(
         check_output_file(save_map, what="map file")
     indices, masker = _checked_inputs(seq, cfg, frames, models_dir, ground_truth, out=out, overwrite=overwrite,
                                       stereo_check=stereo_check)
+    observers = (*observers, *_stereo_watch(seq, stereo_check))
     if open_observers is not None:
         observers = (*observers, *open_observers())
     system = System(cfg, seq.calibration)

@@ -290,6 +290,7 @@ def run_slam_job(
                 pose = tracked.pose
                 rec = timer.end_frame(status=tracked.status)
                 writer.append(pose, frame_index=idx, timestamp=float(stamps[idx]))
+                n_done = k + 1  # its row is written: what follows (an observer too) may fail, the row stays
                 if save_masks and masks is not None:
                     _write_png(out / "masks" / "left" / frame_name(idx), masks.left)
                     _write_png(out / "masks" / "right" / frame_name(idx), masks.right)
@@ -298,7 +299,6 @@ def run_slam_job(
                     objects_log.flush()
                 notify(observers, FrameEvent(k, frame, masks, rec["ms"], pose, tracked.status, system,
                                              sequence.calibration))
-                n_done = k + 1
                 if progress is not None:
                     progress(k + 1, len(frames), dict(rec, fps=n_done / (time.perf_counter() - t0)))
     except BaseException as e:

@@ -43,6 +43,7 @@ IDENTICAL_SHARE = 0.8  # zero-shift share above which the images are one and the
 ROW_SHARE = 0.5  # row-agreement share below which the rows do not line up
 NEGATIVE_SHARE = 0.6  # negative-disparity share above which left and right are swapped
 CHECK_FRAMES = 2  # frames the offline check looks at
+CHECK_EVERY = 100  # frames between the checks of a running job (~20 ms each: 0.2 ms a frame)
 
 
 class StereoFault(str, Enum):
@@ -174,3 +175,24 @@ class StereoWatch:
         if not v.ok:
             log.warning("%s: stereo check failed: %s", self.source, v.describe())
         return v
+
+
+class PeriodicStereoCheck:
+    """A job's observer (:class:`~dynastereo.observers.FrameObserver`): the check again on
+    every ``every``-th frame after the first ones, so a camera that fails mid-run (a driver
+    that starts publishing one image twice) stops the job with a
+    :class:`StereoCheckError` naming the frame, its results so far kept."""
+
+    def __init__(self, source=None, every: int | None = None) -> None:
+        self.source = source
+        self.every = int(every or CHECK_EVERY)
+        self.checked = 0
+
+    def on_frame(self, event) -> None:
+        if event.position == 0 or event.position % self.every:
+            return
+        self.checked += 1
+        v = check_frames([event.frame])
+        if not v.ok:
+            raise StereoCheckError(f"stereo check failed at frame {event.frame.index} (the {event.position + 1}-th "
+                                   f"fed): {v.describe()} (--no-stereo-check to run anyway)", self.source)

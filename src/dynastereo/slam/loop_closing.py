@@ -436,6 +436,7 @@ class LoopCloser:
             return
         self._ba_job = None
         res = job if isinstance(job, LocalBAResult) else job.result()
+        self._release_runner()  # the full BA's worker (hundreds of MB on a long map) gives its memory back
         if n_loops != len(self.events):
             self.stats.full_ba_discarded += 1
             return
@@ -473,9 +474,12 @@ class LoopCloser:
         self._move_points(ids, M, np.flatnonzero(~mp.points.bad[: mp.points.n] & ~in_prob))
         mp.points.pos[res.pt_ids[ok]] = res.X[ok]
 
-    def shutdown(self) -> None:
-        if self._ba_job is not None:
-            self.collect(0, force=True)
+    def _release_runner(self) -> None:
         if self._ba_runner is not None:
             self._ba_runner.shutdown()
             self._ba_runner = None
+
+    def shutdown(self) -> None:
+        if self._ba_job is not None:
+            self.collect(0, force=True)
+        self._release_runner()
