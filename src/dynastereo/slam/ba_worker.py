@@ -19,6 +19,18 @@ import sys
 from .ipc import read_msg, write_msg
 
 
+def _trim_heap():
+    """glibc's ``malloc_trim``: the memory a big BA (the whole map) freed goes back to the
+    system instead of staying in this process's heap; a no-op elsewhere."""
+    try:
+        import ctypes
+
+        trim = ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return lambda: None
+    return lambda: trim(0)
+
+
 def main() -> int:
     # a signal is the parent's to handle: it stops cleanly and closes the pipe, ending this loop
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -28,6 +40,7 @@ def main() -> int:
 
     from .optimizer import run_ba
 
+    trim = _trim_heap()
     inp = sys.stdin.buffer
     out = sys.stdout.buffer
     # nothing else may write to the result stream
@@ -47,6 +60,8 @@ def main() -> int:
             write_msg(out, res)
         except OSError:  # the parent is gone (killed, or stopped without reading): end quietly
             return 0
+        del msg, res
+        trim()
 
 
 if __name__ == "__main__":

@@ -113,13 +113,17 @@ def _describe(events: list[dict]) -> tuple[list[str], list[str]]:
 BROKEN_IMAGES_JS = "[...document.images].filter(i => !i.complete || i.naturalWidth === 0).map(i => i.alt || i.src.slice(0, 60))"
 
 
-def load_page(path: str | Path, *, width: int = 1200, screenshot: bool = True, timeout_s: float = 60.0,
-              chromium: str | None = None) -> PageLoad:
-    """Load the HTML file ``path`` in headless Chromium; see :class:`PageLoad`."""
+def load_page(path: str | Path, *, width: int = 1200, height: int = 900, screenshot: bool = True,
+              timeout_s: float = 60.0, chromium: str | None = None, settle_s: float = 0.0,
+              webgl: bool = False) -> PageLoad:
+    """Load the HTML file ``path`` (or an ``http://`` URL) in headless Chromium; see
+    :class:`PageLoad`.  ``settle_s``: seconds to wait after the load event (a page that
+    draws after it, such as the rerun web viewer); ``webgl``: software WebGL (SwiftShader)
+    instead of no GPU at all."""
     exe = chromium or find_chromium()
     if exe is None:
         raise DynastereoError("chromium not found (Debian: apt-get install chromium)")
-    url = Path(path).resolve().as_uri()
+    url = str(path) if str(path).startswith(("http://", "https://")) else Path(path).resolve().as_uri()
     cmd_r, cmd_w = os.pipe()  # we write commands -> chromium reads fd 3
     out_r, out_w = os.pipe()  # chromium writes fd 4 -> we read
     profile = tempfile.mkdtemp(prefix="dynastereo-chromium-")
@@ -129,7 +133,8 @@ def load_page(path: str | Path, *, width: int = 1200, screenshot: bool = True, t
         os.dup2(high_r, 3)
         os.dup2(high_w, 4)
 
-    args = [exe, "--headless", "--remote-debugging-pipe", "--no-sandbox", "--disable-gpu", "--no-first-run",
+    gpu = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader"] if webgl else ["--disable-gpu"]
+    args = [exe, "--headless", "--remote-debugging-pipe", "--no-sandbox", *gpu, "--no-first-run",
             "--disable-extensions", "--disable-background-networking", f"--user-data-dir={profile}",
             "--hide-scrollbars", "about:blank"]
     proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
@@ -142,11 +147,13 @@ def load_page(path: str | Path, *, width: int = 1200, screenshot: bool = True, t
         s = pipe.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
         for domain in ("Page", "Runtime", "Log"):
             pipe.call(f"{domain}.enable", s)
-        pipe.call("Emulation.setDeviceMetricsOverride", s, width=width, height=900, deviceScaleFactor=1,
+        pipe.call("Emulation.setDeviceMetricsOverride", s, width=width, height=height, deviceScaleFactor=1,
                   mobile=False)
         pipe.events.clear()
         pipe.call("Page.navigate", s, url=url)
         pipe.wait_event("Page.loadEventFired")
+        if settle_s > 0:
+            time.sleep(settle_s)
         dom = pipe.call("Runtime.evaluate", s, expression="document.documentElement.outerHTML",
                         returnByValue=True)["result"]["value"]
         broken = pipe.call("Runtime.evaluate", s, expression=BROKEN_IMAGES_JS, returnByValue=True)["result"]["value"]
