@@ -304,6 +304,65 @@ class MaskerConfig:
         self.outline.validate()
 
 
+MotionMode = Literal["moving", "all"]
+MOTION_MODES: tuple[str, ...] = typing.get_args(MotionMode)
+
+
+@dataclass
+class MotionConfig:
+    """Which detected objects are masked (``masking/motion.py``): ``mode: moving`` (default)
+    masks an object only while the stereo motion test judges it moving or has not judged
+    it yet -- static (parked) objects take part in tracking and mapping; ``mode: all``
+    masks every detection (the thesis' behaviour, for comparison).
+
+    The test: an object's points (corners on its outline) are followed from frame k-1 to
+    k by optical flow, with the masker's disparity at both frames; a static object's
+    points must land where the camera's motion (SLAM's) puts them.  A point's residual
+    in (u, v, disparity) is weighed by its covariance (``sigma_px`` in the image,
+    ``sigma_disparity`` in disparity, at both frames, propagated through the prediction:
+    the stereo depth uncertainty) and compared with the chi-square bound ``chi2`` (3 dof).
+    A frame is evidence of motion when at least ``moving_fraction`` of an object's points
+    (at least ``min_points`` of them) exceed the bound, of rest when at most
+    ``static_fraction`` do.  ``confirm_frames`` frames of evidence in a row decide an
+    undecided object or turn a static one moving; a moving one is judged static again
+    only after ``release_frames`` frames of rest in a row."""
+
+    mode: MotionMode = "moving"
+    sigma_px: float = 0.5
+    sigma_disparity: float = 0.5
+    chi2: float = 11.34  # 99 % of chi-square with 3 degrees of freedom
+    moving_fraction: float = 0.5
+    static_fraction: float = 0.25
+    min_points: int = 8
+    max_points: int = 40  # corners followed per object and frame
+    confirm_frames: int = 2
+    release_frames: int = 5
+    forget_points: bool = True  # map points on an object judged moving are removed from the map
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        if str(self.mode).lower() not in MOTION_MODES:
+            raise _bad("motion.mode", "one of " + ", ".join(MOTION_MODES), self.mode)
+        for k in ("sigma_px", "sigma_disparity", "chi2"):
+            if not getattr(self, k) > 0:
+                raise _bad(f"motion.{k}", "> 0", getattr(self, k))
+        for k in ("moving_fraction", "static_fraction"):
+            if not 0.0 <= getattr(self, k) <= 1.0:
+                raise _bad(f"motion.{k}", "in [0, 1]", getattr(self, k))
+        if self.static_fraction >= self.moving_fraction:
+            raise ConfigError("motion.static_fraction must be below motion.moving_fraction, got "
+                              f"{self.static_fraction!r} >= {self.moving_fraction!r}")
+        if self.min_points < 3:
+            raise _bad("motion.min_points", ">= 3", self.min_points)
+        if self.max_points < self.min_points:
+            raise _bad("motion.max_points", f">= motion.min_points ({self.min_points})", self.max_points)
+        for k in ("confirm_frames", "release_frames"):
+            if getattr(self, k) < 1:
+                raise _bad(f"motion.{k}", ">= 1", getattr(self, k))
+
+
 LocalBAMode = Literal["process", "inline", "off"]
 LOCAL_BA_MODES: tuple[str, ...] = typing.get_args(LocalBAMode)
 
@@ -477,6 +536,7 @@ class Config:
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     masker: MaskerConfig = field(default_factory=MaskerConfig)
     slam: SlamConfig = field(default_factory=SlamConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -485,7 +545,7 @@ class Config:
 
     def validate(self) -> None:
         """Every section's checks again (a configuration changed after it was made)."""
-        for section in (self.stereo, self.detector, self.masker, self.slam):
+        for section in (self.stereo, self.detector, self.masker, self.slam, self.motion):
             section.validate()
         self.__post_init__()
 
