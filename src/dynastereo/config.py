@@ -333,6 +333,9 @@ class MotionConfig:
     chi2: float = 11.34  # 99 % of chi-square with 3 degrees of freedom
     moving_fraction: float = 0.5
     static_fraction: float = 0.25
+    object_chi2: float = 11.34  # the object's median residual (3 dof) above this: moving evidence
+    object_chi2_static: float = 6.25  # at most this (and few points over chi2): evidence of rest
+    object_points: int = 10  # at most this many points count as independent in the object's test
     min_points: int = 8
     max_points: int = 40  # corners followed per object and frame
     confirm_frames: int = 2
@@ -345,7 +348,12 @@ class MotionConfig:
     def validate(self) -> None:
         if str(self.mode).lower() not in MOTION_MODES:
             raise _bad("motion.mode", "one of " + ", ".join(MOTION_MODES), self.mode)
-        for k in ("sigma_px", "sigma_disparity", "chi2"):
+        if self.object_chi2_static > self.object_chi2:
+            raise ConfigError("motion.object_chi2_static must be at most motion.object_chi2, got "
+                              f"{self.object_chi2_static!r} > {self.object_chi2!r}")
+        if self.object_points < 1:
+            raise _bad("motion.object_points", ">= 1", self.object_points)
+        for k in ("sigma_px", "sigma_disparity", "chi2", "object_chi2", "object_chi2_static"):
             if not getattr(self, k) > 0:
                 raise _bad(f"motion.{k}", "> 0", getattr(self, k))
         for k in ("moving_fraction", "static_fraction"):

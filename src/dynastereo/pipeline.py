@@ -206,13 +206,18 @@ def _versions() -> dict[str, str]:
     return out
 
 
-def _masking_step(sequence: Sequence, masker: Masker | None, idx: int) -> tuple[StereoFrame, StereoMasks | None, dict]:
-    """Read and mask one frame; its own timer (this runs on the prefetch thread)."""
+def _masking_step(sequence: Sequence, masker: Masker | None, idx: int,
+                  motion=None) -> tuple[StereoFrame, StereoMasks | None, dict]:
+    """Read and mask one frame, and measure its objects' flow for the motion test
+    (``motion_flow``); its own timer (this runs on the prefetch thread)."""
     t = new_mask_timer()
     t.start_frame(idx)
     with t.stage("read"):
         frame = sequence.frame(idx)
     masks = masker.mask(frame, t) if masker is not None else None
+    if motion is not None:
+        with t.stage("motion_flow"):
+            motion.measure(frame, masks)
     return frame, masks, t.end_frame()["ms"]
 
 
@@ -230,6 +235,7 @@ def run_slam_job(
     save_map: str | Path | None = None,
     map_info: dict | None = None,
     observers: tuple[FrameObserver, ...] = (),
+    motion=None,
 ) -> SlamJobResult:
     """Feed ``frames`` of ``sequence`` (masked by ``masker``, None = unmasked) to the SLAM
     ``system`` and write, under ``out``:
@@ -250,6 +256,12 @@ def run_slam_job(
 
     Masking of frame k+1 runs on a prefetch thread while frame k is tracked (OpenCV and
     onnxruntime release the GIL).
+
+    ``motion`` (a :class:`~dynastereo.masking.motion.ObjectMotion`, None = every
+    detection masked): its flow is measured on the prefetch thread; SLAM gets the masks of
+    the objects judged moving or not yet judged (``select``, from the verdicts up to the
+    previous frame), and after tracking the verdicts are updated with this frame's
+    camera motion (``motion`` stage) -- ``objects.jsonl`` and ``masks/`` show them.
     """
     from concurrent.futures import ThreadPoolExecutor
 
@@ -272,8 +284,8 @@ def run_slam_job(
         if k >= len(frames):
             return None
         if pool is None:
-            return _masking_step(sequence, masker, frames[k])
-        return pool.submit(_masking_step, sequence, masker, frames[k])
+            return _masking_step(sequence, masker, frames[k], motion)
+        return pool.submit(_masking_step, sequence, masker, frames[k], motion)
 
     objects_log = open(out / "objects.jsonl", "w") if masker is not None else None
     try:
@@ -286,17 +298,21 @@ def run_slam_job(
                 for name, ms in mask_ms.items():
                     if name not in ("total", "mask"):
                         timer.add(name, ms)
-                tracked = system.track(frame, masks, timer)
+                slam_masks = motion.select(masks) if motion is not None else masks
+                tracked = system.track(frame, slam_masks, timer)
                 pose = tracked.pose
+                if motion is not None:
+                    with timer.stage("motion"):
+                        motion.update(masks, tracked, system)
                 rec = timer.end_frame(status=tracked.status)
                 writer.append(pose, frame_index=idx, timestamp=float(stamps[idx]))
-                if save_masks and masks is not None:
-                    _write_png(out / "masks" / "left" / frame_name(idx), masks.left)
-                    _write_png(out / "masks" / "right" / frame_name(idx), masks.right)
+                if save_masks and slam_masks is not None:
+                    _write_png(out / "masks" / "left" / frame_name(idx), slam_masks.left)
+                    _write_png(out / "masks" / "right" / frame_name(idx), slam_masks.right)
                 if objects_log is not None:
                     objects_log.write(json.dumps(objects_record(idx, masks)) + "\n")
                     objects_log.flush()
-                notify(observers, FrameEvent(k, frame, masks, rec["ms"], pose, tracked.status, system,
+                notify(observers, FrameEvent(k, frame, slam_masks, rec["ms"], pose, tracked.status, system,
                                              sequence.calibration))
                 n_done = k + 1
                 if progress is not None:
@@ -335,6 +351,8 @@ def run_slam_job(
         run = {
             "sequence": str(getattr(sequence, "path", "")),
             "masker": getattr(masker, "name", "none") if masker is not None else "none",
+            "motion": ({"mode": "moving", "map_points_forgotten": motion.forgotten} if motion is not None
+                       else {"mode": "all" if masker is not None else "none"}),
             "frames_requested": len(frames),
             "frames_done": n_done,
             "frames_tracked": sum(s.status in ("tracked", "init") for s in states),

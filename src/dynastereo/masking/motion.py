@@ -121,7 +121,7 @@ class SceneFlow:
         if np.count_nonzero(sel) < self.cfg.min_points:
             return np.zeros((0, 2), np.float32)
         min_dist = max(2.0, min(x1 - x0, y1 - y0) / 12.0)
-        c = cv2.goodFeaturesToTrack(prev.gray[y0:y1, x0:x1], self.cfg.max_points, 0.01, min_dist,
+        c = cv2.goodFeaturesToTrack(prev.gray[y0:y1, x0:x1], self.cfg.max_points, 0.001, min_dist,
                                     mask=sel.view(np.uint8), blockSize=3)
         if c is None:
             return np.zeros((0, 2), np.float32)
@@ -197,11 +197,11 @@ def _points(uv: np.ndarray, d: np.ndarray, K: np.ndarray, bf: float) -> np.ndarr
     return np.stack([(uv[:, 0] - K[0, 2]) * Z / K[0, 0], (uv[:, 1] - K[1, 2]) * Z / K[1, 1], Z], axis=1)
 
 
-def static_chi2(flow: ObjectFlow, T_10: np.ndarray, calib: StereoCalibration, sigma_px: float,
-                sigma_d: float) -> np.ndarray:
-    """Per point, the chi-square (3 dof) of ``(u, v, d)`` at k against a static object's
-    prediction from k-1 under the camera motion ``T_10`` (k-1 camera -> k camera, 4x4);
-    ``inf`` where the prediction falls behind the camera (module docstring)."""
+def static_residuals(flow: ObjectFlow, T_10: np.ndarray, calib: StereoCalibration, sigma_px: float,
+                     sigma_d: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per point, the residual ``(n, 3)`` of ``(u, v, d)`` at k against a static object's
+    prediction from k-1 under the camera motion ``T_10`` (k-1 camera -> k camera, 4x4) and
+    its covariance ``(n, 3, 3)``; rows with a prediction behind the camera are dropped."""
     K, bf = calib.K, calib.bf
     p = _project(flow.uv0, flow.d0, T_10, K, bf)
     # Jacobian of the prediction w.r.t. (u0, v0, d0), by forward differences
@@ -217,12 +217,27 @@ def static_chi2(flow: ObjectFlow, T_10: np.ndarray, calib: StereoCalibration, si
     S = np.array([sigma_px**2, sigma_px**2, sigma_d**2])
     C = np.einsum("nij,j,nkj->nik", J, S, J) + np.diag(S)
     r = np.stack([flow.uv1[:, 0], flow.uv1[:, 1], flow.d1], axis=1) - p
-    ok = np.isfinite(r).all(axis=1)
-    chi = np.full(len(p), np.inf)
-    if np.any(ok):
-        sol = np.linalg.solve(C[ok], r[ok][:, :, None])[:, :, 0]
-        chi[ok] = np.einsum("ni,ni->n", r[ok], sol)
-    return chi
+    ok = np.isfinite(r).all(axis=1) & np.isfinite(C).all(axis=(1, 2))
+    return r[ok], C[ok]
+
+
+def _mahalanobis(r: np.ndarray, C: np.ndarray) -> np.ndarray:
+    return np.einsum("ni,ni->n", r, np.linalg.solve(C, r[:, :, None])[:, :, 0])
+
+
+def static_chi2(flow: ObjectFlow, T_10: np.ndarray, calib: StereoCalibration, sigma_px: float,
+                sigma_d: float, max_points: int) -> tuple[np.ndarray, float]:
+    """(per point chi-square of the static hypothesis, the object's chi-square): the
+    object's is that of its median residual, whose covariance is the median point
+    covariance * (pi / 2) / n with n at most ``max_points`` (the points' errors are not
+    independent: the pose's and the disparity's biases are shared)."""
+    r, C = static_residuals(flow, T_10, calib, sigma_px, sigma_d)
+    if len(r) == 0:
+        return np.zeros(0), 0.0
+    chi = _mahalanobis(r, C)
+    n = min(len(r), max_points)
+    Cm = np.median(C, axis=0) * (np.pi / 2) / n
+    return chi, float(_mahalanobis(np.median(r, axis=0)[None], Cm[None])[0])
 
 
 @dataclass
@@ -244,6 +259,9 @@ class MotionJudge:
         self.tracks: dict[int, _TrackState] = {}
         self._last: tuple[int, np.ndarray] | None = None  # (seq, T_wc 4x4) of the last tracked frame
         self._n = 0
+        # with a list here, one row per object and frame tested:
+        # (seq, track, points, fraction over chi2, object chi2, evidence)
+        self.log: list | None = None
 
     def reset(self) -> None:
         self.tracks.clear()
@@ -274,14 +292,14 @@ class MotionJudge:
                           masks.box_disparity, masks.flow)
         return out
 
-    def _evidence(self, chi: np.ndarray) -> bool | None:
+    def _evidence(self, chi: np.ndarray, chi_obj: float) -> bool | None:
         c = self.cfg
-        if len(chi) < c.min_points:
+        if len(chi) < max(3, c.min_points // 2):
             return None
         frac = float(np.mean(chi > c.chi2))
-        if frac >= c.moving_fraction:
-            return True
-        if frac <= c.static_fraction:
+        if frac >= c.moving_fraction or chi_obj > c.object_chi2:
+            return True  # (half of min_points suffice to keep an object masked)
+        if len(chi) >= c.min_points and frac <= c.static_fraction and chi_obj <= c.object_chi2_static:
             return False
         return None
 
@@ -320,8 +338,12 @@ class MotionJudge:
             c = self.cfg
             for of in flow.objects:
                 t = self.tracks[of.track]
-                chi = static_chi2(of, T_10, self.calib, c.sigma_px, c.sigma_disparity)
-                if self._step(t, self._evidence(chi[np.isfinite(chi)] if np.any(np.isfinite(chi)) else chi[:0])):
+                chi, chi_obj = static_chi2(of, T_10, self.calib, c.sigma_px, c.sigma_disparity, c.object_points)
+                e = self._evidence(chi, chi_obj)
+                if self.log is not None:
+                    self.log.append((flow.seq, of.track, len(chi), float(np.mean(chi > c.chi2)) if len(chi) else 0.0,
+                                     chi_obj, e))
+                if self._step(t, e):
                     turned.append(of.index)
                 X0 = _points(of.uv0, of.d0, self.calib.K, self.calib.bf) @ last[1][:3, :3].T + last[1][:3, 3]
                 X1 = _points(of.uv1, of.d1, self.calib.K, self.calib.bf) @ T_wc[:3, :3].T + T_wc[:3, 3]
