@@ -75,6 +75,7 @@ class FrameFlow:
     seq: int  # the frame's number in the order measured (0, 1, ...)
     dt: float  # seconds since the previous frame
     objects: list[ObjectFlow] = field(default_factory=list)
+    epoch: int = 0  # SceneFlow.reset() counts up: the track ids start again (a new masker)
 
 
 @dataclass
@@ -105,9 +106,13 @@ class SceneFlow:
         self.cfg = cfg or MotionConfig()
         self._prev: _Prev | None = None
         self._seq = 0
+        self.epoch = 0
 
     def reset(self) -> None:
+        """Forget the previous frame; the verdicts are forgotten too (a new masker's track
+        ids start again): the judge sees the new ``epoch``."""
         self._prev = None
+        self.epoch += 1
 
     def _corners(self, prev: _Prev, i: int) -> np.ndarray:
         """Up to ``max_points`` points (n, 2) float32 on object ``i``'s outline at k-1."""
@@ -136,7 +141,7 @@ class SceneFlow:
         self._prev = None
         stamp = float(frame.timestamp)
         dt = stamp - prev.stamp if prev is not None else 0.0
-        out = FrameFlow(seq, dt if dt > 0 else 0.1)
+        out = FrameFlow(seq, dt if dt > 0 else 0.1, epoch=self.epoch)
         if masks is None or masks.labels_left is None or masks.box_disparity is None:
             return out
         gray = frame.left_gray
@@ -259,6 +264,7 @@ class MotionJudge:
         self.tracks: dict[int, _TrackState] = {}
         self._last: tuple[int, np.ndarray] | None = None  # (seq, T_wc 4x4) of the last tracked frame
         self._n = 0
+        self._epoch = 0
         # with a list here, one row per object and frame tested:
         # (seq, track, points, fraction over chi2, object chi2, evidence)
         self.log: list | None = None
@@ -266,6 +272,12 @@ class MotionJudge:
     def reset(self) -> None:
         self.tracks.clear()
         self._last = None
+
+    def _sync(self, masks: StereoMasks) -> None:
+        flow = masks.flow
+        if flow is not None and flow.epoch != self._epoch:
+            self.reset()
+            self._epoch = flow.epoch
 
     def state(self, track: int) -> bool | None:
         t = self.tracks.get(int(track))
@@ -277,6 +289,7 @@ class MotionJudge:
         when every object stays masked."""
         if masks is None:
             return None
+        self._sync(masks)
         keep = []
         for i, o in enumerate(masks.objects):
             o.moving = self.state(o.track_id) if o.track_id >= 0 else None
@@ -323,6 +336,8 @@ class MotionJudge:
         update the verdicts (``moving`` / ``speed_mps`` of ``masks.objects``).  Returns the
         indices (into ``masks.objects``) of the objects that turned moving from static."""
         self._n += 1
+        if masks is not None:
+            self._sync(masks)
         flow = masks.flow if masks is not None else None
         T_wc = np.vstack([np.asarray(pose, np.float64)[:3, :4], [0.0, 0.0, 0.0, 1.0]])
         last = self._last
