@@ -333,13 +333,24 @@ class MotionConfig:
     chi2: float = 11.34  # 99 % of chi-square with 3 degrees of freedom
     moving_fraction: float = 0.5
     static_fraction: float = 0.25
-    object_chi2: float = 11.34  # the object's median residual (3 dof) above this: moving evidence
-    object_chi2_static: float = 6.25  # at most this (and few points over chi2): evidence of rest
-    object_points: int = 10  # at most this many points count as independent in the object's test
+    # the object's world displacement summed over the last window_frames frames (its
+    # covariance from the stereo uncertainty, points counted at most object_points times):
+    # its chi-square (3 dof) above object_chi2 is evidence of motion, at most
+    # object_chi2_static (with few points over chi2) of rest
+    object_chi2: float = 11.34
+    object_chi2_static: float = 6.25
+    object_points: int = 10
+    window_frames: int = 8
+    # the error of SLAM's camera motion per frame (rotation about any axis, translation)
+    sigma_pose_deg: float = 0.05
+    sigma_pose_m: float = 0.02
+    # a frame where this fraction of the objects judged static seem to move is not used
+    # (the camera's pose is suspect)
+    suspect_fraction: float = 0.67
     min_points: int = 8
-    max_points: int = 40  # corners followed per object and frame
+    max_points: int = 25  # corners followed per object and frame
     confirm_frames: int = 2
-    release_frames: int = 5
+    release_frames: int = 8
     forget_points: bool = True  # map points on an object judged moving are removed from the map
 
     def __post_init__(self) -> None:
@@ -366,7 +377,12 @@ class MotionConfig:
             raise _bad("motion.min_points", ">= 3", self.min_points)
         if self.max_points < self.min_points:
             raise _bad("motion.max_points", f">= motion.min_points ({self.min_points})", self.max_points)
-        for k in ("confirm_frames", "release_frames"):
+        for k in ("sigma_pose_deg", "sigma_pose_m"):
+            if not getattr(self, k) >= 0:
+                raise _bad(f"motion.{k}", ">= 0", getattr(self, k))
+        if not 0.0 < self.suspect_fraction <= 1.0:
+            raise _bad("motion.suspect_fraction", "in (0, 1]", self.suspect_fraction)
+        for k in ("confirm_frames", "release_frames", "window_frames"):
             if getattr(self, k) < 1:
                 raise _bad(f"motion.{k}", ">= 1", getattr(self, k))
 

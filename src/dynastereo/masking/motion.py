@@ -46,11 +46,12 @@ import numpy as np
 from ..config import MotionConfig
 from ..types import StereoCalibration, StereoFrame, StereoMasks
 
-__all__ = ["FrameFlow", "ObjectFlow", "SceneFlow", "MotionJudge", "ObjectMotion", "static_chi2"]
+__all__ = ["FrameFlow", "ObjectFlow", "SceneFlow", "MotionJudge", "ObjectMotion", "static_chi2", "world_velocity"]
 
-_LK = dict(winSize=(15, 15), maxLevel=3, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03))
+_LK = dict(winSize=(11, 11), maxLevel=3, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03))
 _FB_MAX = 1.0  # px, forward-backward error to keep a point
 _MARGIN = 48  # px around the boxes' union that LK works on
+_MIN_PIXELS = 150  # objects with fewer outline pixels are not followed (they stay undecided: masked)
 
 
 @dataclass
@@ -63,6 +64,15 @@ class ObjectFlow:
     d0: np.ndarray
     uv1: np.ndarray
     d1: np.ndarray
+    # each point where it was first seen (followed since): pixel, disparity, frame (seq)
+    uva: np.ndarray | None = None
+    da: np.ndarray | None = None
+    seqa: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.uva is None:  # first seen at k-1
+            self.uva, self.da = self.uv0, self.d0
+            self.seqa = np.full(len(self.d0), -1, np.int64)
 
     def __len__(self) -> int:
         return len(self.d0)
@@ -88,6 +98,8 @@ class _Prev:
     disparity: np.ndarray
     tracks: np.ndarray  # (N,) track id per object
     boxes: np.ndarray  # (N, 4)
+    # per track id, the points followed into this frame: (uv (n, 2), their anchors (uv, d, seq))
+    points: dict = field(default_factory=dict)
 
 
 def _lookup(img: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -114,8 +126,9 @@ class SceneFlow:
         self._prev = None
         self.epoch += 1
 
-    def _corners(self, prev: _Prev, i: int) -> np.ndarray:
-        """Up to ``max_points`` points (n, 2) float32 on object ``i``'s outline at k-1."""
+    def _corners(self, prev: _Prev, i: int, have: np.ndarray | None = None) -> np.ndarray:
+        """Up to ``max_points`` points (n, 2) float32 on object ``i``'s outline at k-1, at
+        least 3 px from the points it ``have`` already (and no more than make up the number)."""
         h, w = prev.gray.shape
         x0, y0, x1, y1 = prev.boxes[i]
         x0, y0 = max(int(np.floor(x0)), 0), max(int(np.floor(y0)), 0)
@@ -123,10 +136,19 @@ class SceneFlow:
         if x1 - x0 < 4 or y1 - y0 < 4:
             return np.zeros((0, 2), np.float32)
         sel = (prev.labels[y0:y1, x0:x1] == i + 1) & (prev.disparity[y0:y1, x0:x1] > 0)
-        if np.count_nonzero(sel) < self.cfg.min_points:
+        if np.count_nonzero(sel) < max(self.cfg.min_points, _MIN_PIXELS):
             return np.zeros((0, 2), np.float32)
+        n = self.cfg.max_points - (0 if have is None else len(have))
+        if n < max(3, self.cfg.max_points // 4):
+            return np.zeros((0, 2), np.float32)
+        if have is not None and len(have):
+            hx = np.rint(have[:, 0]).astype(np.int64) - x0
+            hy = np.rint(have[:, 1]).astype(np.int64) - y0
+            for dy in range(-3, 4):
+                for dx in range(-3, 4):
+                    sel[np.clip(hy + dy, 0, y1 - y0 - 1), np.clip(hx + dx, 0, x1 - x0 - 1)] = False
         min_dist = max(2.0, min(x1 - x0, y1 - y0) / 12.0)
-        c = cv2.goodFeaturesToTrack(prev.gray[y0:y1, x0:x1], self.cfg.max_points, 0.001, min_dist,
+        c = cv2.goodFeaturesToTrack(prev.gray[y0:y1, x0:x1], n, 0.001, min_dist,
                                     mask=sel.view(np.uint8), blockSize=3)
         if c is None:
             return np.zeros((0, 2), np.float32)
@@ -153,11 +175,27 @@ class SceneFlow:
             return out
         cur_of = {int(t): j for j, t in enumerate(tracks) if t >= 0}
         pairs = [(i, cur_of[int(t)]) for i, t in enumerate(prev.tracks) if t >= 0 and int(t) in cur_of]
-        pts = [self._corners(prev, i) for i, _ in pairs]
-        owner = np.concatenate([np.full(len(p), k) for k, p in enumerate(pts)]) if pts else np.zeros(0, int)
+        if not pairs:
+            return out
+        # the points followed into k-1 (anchors kept up to window_frames back), topped up
+        # with new corners on the outline at k-1 (anchored there)
+        W = self.cfg.window_frames
+        empty2, empty1 = np.zeros((0, 2)), np.zeros(0)
+        p0s, anchors = [], []
+        for i, _ in pairs:
+            uv, (ua, da, sa) = prev.points.get(int(prev.tracks[i]), (empty2, (empty2, empty1, empty1)))
+            young = seq - sa <= W
+            uv, ua, da, sa = uv[young], ua[young], da[young], sa[young]
+            new = self._corners(prev, i, uv).astype(np.float64)
+            dn, _ = _lookup(prev.disparity, new)
+            p0s.append(np.concatenate([uv, new]))
+            anchors.append((np.concatenate([ua, new]), np.concatenate([da, dn]),
+                            np.concatenate([sa, np.full(len(new), seq - 1)])))
+        owner = np.concatenate([np.full(len(p), k) for k, p in enumerate(p0s)])
         if len(owner) == 0:
             return out
-        p0 = np.concatenate(pts)
+        p0 = np.concatenate(p0s).astype(np.float32)
+        ua, da, sa = (np.concatenate([a[c] for a in anchors]) for c in range(3))
         # LK on the union of both frames' boxes grown by a margin, not the whole image
         h, w = gray.shape
         sel_boxes = np.concatenate([prev.boxes[[i for i, _ in pairs]], boxes[[j for _, j in pairs]]])
@@ -175,12 +213,14 @@ class SceneFlow:
         d1, in1 = _lookup(masks.box_disparity, p1)
         lab1, _ = _lookup(masks.labels_left, p1)
         cur_label = np.array([j + 1 for _, j in pairs], np.int64)[owner]
-        good &= in1 & (d0 > 0) & (d1 > 0) & (lab1 == cur_label)
+        good &= in1 & (d0 > 0) & (d1 > 0) & (da > 0) & (lab1 == cur_label)
+        p0, p1 = p0.astype(np.float64), p1.astype(np.float64)
+        d0, d1 = d0.astype(np.float64), d1.astype(np.float64)
         for k, (_, j) in enumerate(pairs):
             s = good & (owner == k)
             if np.any(s):
-                out.objects.append(ObjectFlow(int(tracks[j]), j, p0[s].astype(np.float64), d0[s].astype(np.float64),
-                                              p1[s].astype(np.float64), d1[s].astype(np.float64)))
+                out.objects.append(ObjectFlow(int(tracks[j]), j, p0[s], d0[s], p1[s], d1[s], ua[s], da[s], sa[s]))
+                self._prev.points[int(tracks[j])] = (p1[s], (ua[s], da[s], sa[s]))
         return out
 
 
@@ -231,18 +271,65 @@ def _mahalanobis(r: np.ndarray, C: np.ndarray) -> np.ndarray:
 
 
 def static_chi2(flow: ObjectFlow, T_10: np.ndarray, calib: StereoCalibration, sigma_px: float,
-                sigma_d: float, max_points: int) -> tuple[np.ndarray, float]:
-    """(per point chi-square of the static hypothesis, the object's chi-square): the
-    object's is that of its median residual, whose covariance is the median point
-    covariance * (pi / 2) / n with n at most ``max_points`` (the points' errors are not
-    independent: the pose's and the disparity's biases are shared)."""
+                sigma_d: float) -> np.ndarray:
+    """Per point, the chi-square (3 dof) of the static hypothesis (:func:`static_residuals`)."""
     r, C = static_residuals(flow, T_10, calib, sigma_px, sigma_d)
-    if len(r) == 0:
-        return np.zeros(0), 0.0
-    chi = _mahalanobis(r, C)
-    n = min(len(r), max_points)
-    Cm = np.median(C, axis=0) * (np.pi / 2) / n
-    return chi, float(_mahalanobis(np.median(r, axis=0)[None], Cm[None])[0])
+    return _mahalanobis(r, C) if len(r) else np.zeros(0)
+
+
+def _point_cov(uv: np.ndarray, d: np.ndarray, calib: StereoCalibration, S: np.ndarray) -> np.ndarray:
+    """Covariances ``(n, 3, 3)`` of the stereo points ``(uv, d)`` (camera frame) for pixel /
+    disparity variances ``S`` = (su^2, sv^2, sd^2): sigma_Z = Z^2 sigma_d / bf, lateral Z
+    sigma_px / f, and their correlation."""
+    fx, fy, cx, cy = calib.fx, calib.fy, calib.cx, calib.cy
+    Z = calib.bf / d
+    J = np.zeros((len(d), 3, 3))
+    J[:, 0, 0] = Z / fx
+    J[:, 1, 1] = Z / fy
+    J[:, 0, 2] = -(uv[:, 0] - cx) * Z / (fx * d)
+    J[:, 1, 2] = -(uv[:, 1] - cy) * Z / (fy * d)
+    J[:, 2, 2] = -Z / d
+    return np.einsum("nij,j,nkj->nik", J, S, J)
+
+
+def world_velocity(flow: ObjectFlow, seq: int, poses: dict[int, np.ndarray], calib: StereoCalibration,
+                   sigma_px: float, sigma_d: float, max_points: int, sigma_rot: float = 0.0,
+                   sigma_t: float = 0.0) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """(the object's world displacement per frame (3,), its covariance (3, 3), points used)
+    from its points' displacements since they were first seen (``flow.uva`` / ``da`` at
+    frame ``seqa``; ``poses``: seq -> 4x4 camera-to-world of the frames tracked, ``seq``
+    this frame's): the median of ``(X_k - X_a) / age`` over the points; the covariance is
+    the median point covariance (stereo at both ends, / age^2) * (pi / 2) / n with n at
+    most ``max_points`` (the points' errors are not independent: the pose's and the
+    disparity's biases are shared), plus the camera motion's own error per frame:
+    ``sigma_rot`` (rad) about any axis moves the object's median point X by ``dw x X``,
+    ``sigma_t`` (m) shifts it, both as a random walk over the age.  None: no point has
+    a known anchor pose."""
+    if seq not in poses:
+        return None
+    anchor = flow.seqa.copy()
+    anchor[anchor < 0] = seq - 1
+    use = np.array([a in poses for a in anchor.tolist()], bool)
+    if not use.any():
+        return None
+    K, bf = calib.K, calib.bf
+    S = np.array([sigma_px**2, sigma_px**2, sigma_d**2])
+    T1 = poses[seq]
+    R1 = T1[:3, :3]
+    Ta = np.stack([poses[a] for a in anchor[use].tolist()])
+    Ra = Ta[:, :3, :3]
+    age = (seq - anchor[use]).astype(np.float64)
+    uva, da, uv1, d1 = flow.uva[use], flow.da[use], flow.uv1[use], flow.d1[use]
+    Xa = np.einsum("nij,nj->ni", Ra, _points(uva, da, K, bf)) + Ta[:, :3, 3]
+    X1 = _points(uv1, d1, K, bf)
+    V = ((X1 @ R1.T + T1[:3, 3]) - Xa) / age[:, None]
+    Ca = np.einsum("nij,njk,nlk->nil", Ra, _point_cov(uva, da, calib, S), Ra)
+    C = (Ca + R1 @ _point_cov(uv1, d1, calib, S) @ R1.T) / (age**2)[:, None, None]
+    n = min(len(V), max_points)
+    X = np.median(X1, axis=0)
+    pose = sigma_rot**2 * (X @ X * np.eye(3) - np.outer(X, X)) + sigma_t**2 * np.eye(3)  # camera frame
+    Cm = np.median(C, axis=0) * (np.pi / 2) / n + R1 @ pose @ R1.T / float(np.median(age))
+    return np.median(V, axis=0), Cm, len(V)
 
 
 @dataclass
@@ -263,15 +350,17 @@ class MotionJudge:
         self.calib = calibration
         self.tracks: dict[int, _TrackState] = {}
         self._last: tuple[int, np.ndarray] | None = None  # (seq, T_wc 4x4) of the last tracked frame
+        self._poses: dict[int, np.ndarray] = {}  # seq -> T_wc of the recent frames tracked
         self._n = 0
         self._epoch = 0
         # with a list here, one row per object and frame tested:
-        # (seq, track, points, fraction over chi2, object chi2, evidence)
+        # (seq, track, points, fraction over chi2 (-1: frame skipped), window chi2, evidence)
         self.log: list | None = None
 
     def reset(self) -> None:
         self.tracks.clear()
         self._last = None
+        self._poses.clear()
 
     def _sync(self, masks: StereoMasks) -> None:
         flow = masks.flow
@@ -305,14 +394,15 @@ class MotionJudge:
                           masks.box_disparity, masks.flow)
         return out
 
-    def _evidence(self, chi: np.ndarray, chi_obj: float) -> bool | None:
+    def _evidence(self, chi: np.ndarray, chi_velocity: float) -> bool | None:
+        """This frame's evidence: True motion, False rest, None neither (too few points)."""
         c = self.cfg
         if len(chi) < max(3, c.min_points // 2):
             return None
         frac = float(np.mean(chi > c.chi2))
-        if frac >= c.moving_fraction or chi_obj > c.object_chi2:
+        if frac >= c.moving_fraction or chi_velocity > c.object_chi2:
             return True  # (half of min_points suffice to keep an object masked)
-        if len(chi) >= c.min_points and frac <= c.static_fraction and chi_obj <= c.object_chi2_static:
+        if len(chi) >= c.min_points and frac <= c.static_fraction and chi_velocity <= c.object_chi2_static:
             return False
         return None
 
@@ -329,6 +419,36 @@ class MotionJudge:
         elif (was is None and t.run <= -c.confirm_frames) or (was is True and t.run <= -c.release_frames):
             t.moving = False
         return was is False and t.moving is True
+
+    def _weigh(self, flow: FrameFlow, T0: np.ndarray, T1: np.ndarray) -> list[int]:
+        """The evidence of one frame's flow under the camera motion ``T0`` -> ``T1``."""
+        c = self.cfg
+        T_10 = np.linalg.inv(T1) @ T0
+        rows = []
+        for of in flow.objects:
+            t = self.tracks[of.track]
+            chi = static_chi2(of, T_10, self.calib, c.sigma_px, c.sigma_disparity)
+            vel = world_velocity(of, flow.seq, self._poses, self.calib, c.sigma_px, c.sigma_disparity,
+                                 c.object_points, np.radians(c.sigma_pose_deg), c.sigma_pose_m)
+            chi_v = float(vel[0] @ np.linalg.solve(vel[1], vel[0])) if vel is not None else 0.0
+            rows.append((of, t, chi, chi_v, vel, self._evidence(chi, chi_v)))
+        # the camera's motion itself is suspect when most objects judged static seem to move
+        # at once (a bad pose): no evidence from this frame
+        judged = [r for r in rows if r[1].moving is False and r[5] is not None]
+        if len(judged) >= 2 and sum(r[5] is True for r in judged) >= c.suspect_fraction * len(judged):
+            if self.log is not None:
+                self.log.extend((flow.seq, r[0].track, len(r[2]), -1.0, r[3], None) for r in rows)
+            return []
+        turned = []
+        for of, t, chi, chi_v, vel, e in rows:
+            if self.log is not None:
+                self.log.append((flow.seq, of.track, len(chi), float(np.mean(chi > c.chi2)) if len(chi) else 0.0,
+                                 chi_v, e))
+            if self._step(t, e):
+                turned.append(of.index)
+            if vel is not None:
+                t.speeds.append(float(np.linalg.norm(vel[0])) / flow.dt)
+        return turned
 
     def update(self, masks: StereoMasks | None, pose: np.ndarray, ok: bool) -> list[int]:
         """Weigh the frame's flow (``masks.flow``) against the camera motion since the last
@@ -348,21 +468,12 @@ class MotionJudge:
         for o in masks.objects:
             if o.track_id >= 0:
                 self.tracks.setdefault(int(o.track_id), _TrackState()).last_seen = self._n
+        if flow is not None and ok:
+            self._poses[flow.seq] = T_wc
+            for k in [k for k in self._poses if k < flow.seq - self.cfg.window_frames - 1]:
+                del self._poses[k]
         if flow is not None and last is not None and ok and last[0] == flow.seq - 1:
-            T_10 = np.linalg.inv(T_wc) @ last[1]
-            c = self.cfg
-            for of in flow.objects:
-                t = self.tracks[of.track]
-                chi, chi_obj = static_chi2(of, T_10, self.calib, c.sigma_px, c.sigma_disparity, c.object_points)
-                e = self._evidence(chi, chi_obj)
-                if self.log is not None:
-                    self.log.append((flow.seq, of.track, len(chi), float(np.mean(chi > c.chi2)) if len(chi) else 0.0,
-                                     chi_obj, e))
-                if self._step(t, e):
-                    turned.append(of.index)
-                X0 = _points(of.uv0, of.d0, self.calib.K, self.calib.bf) @ last[1][:3, :3].T + last[1][:3, 3]
-                X1 = _points(of.uv1, of.d1, self.calib.K, self.calib.bf) @ T_wc[:3, :3].T + T_wc[:3, 3]
-                t.speeds.append(float(np.linalg.norm(np.median(X1 - X0, axis=0))) / flow.dt)
+            turned = self._weigh(flow, last[1], T_wc)
         for o in masks.objects:
             t = self.tracks.get(int(o.track_id)) if o.track_id >= 0 else None
             o.moving = None if t is None else t.moving
