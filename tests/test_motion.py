@@ -252,3 +252,40 @@ def test_overlay_colours_follow_the_verdicts() -> None:
     assert px[1][2] > px[1][1] and px[1][2] > px[1][0]  # moving: red
     assert px[2][2] > px[2][0] and px[2][1] > px[2][0] and px[2][1] < px[2][2]  # undecided: orange
     assert VERDICT_COLOURS[True] != VERDICT_COLOURS[False] != VERDICT_COLOURS[None]
+
+
+def test_live_node_masks_only_what_moves(convoy: Path) -> None:
+    from dynastereo.io import open_sequence
+    from dynastereo.masking import build_masker
+    from dynastereo.ros.core import StereoInput, StereoNodeCore
+    from dynastereo.ros.ros1 import _objects_view
+    from dynastereo.synth import OracleDetector
+
+    class ByImage:  # the oracle finds the frame from the image itself (the node numbers frames itself)
+        def __init__(self, oracle):
+            self.oracle, self.name, self.class_names = oracle, "oracle", oracle.class_names
+
+        def detect(self, image):
+            return self.oracle.detect(image)
+
+    seq = open_sequence(convoy)
+    cfg = Config().with_overrides({"slam.local_ba": "inline"})
+    masker = build_masker(cfg, seq.calibration, detector=ByImage(OracleDetector(convoy)))
+    core = StereoNodeCore(cfg, calibration=seq.calibration, masker=masker)
+    try:
+        for i in range(FRAMES):
+            f = seq.frame(i)
+            res = core.process(StereoInput(f.left, f.right, int(round(f.timestamp * 1e9)) + 1))
+    finally:
+        core.shutdown()
+    gt = {o.id: o for o in read_objects(convoy).frame(FRAMES - 1)}
+    objs = res.masks.objects
+    truck = next(o for o in objs if gt[o.track_id].label == "truck")
+    assert truck.moving is True and truck.masked
+    static = [o for o in objs if o.moving is False]
+    assert static and all(not o.masked and not gt[o.track_id].moving for o in static)
+    for o in static:  # left to SLAM: not in the published mask
+        lab = res.masks.labels_left == objs.index(o) + 1
+        assert not res.masks.left[lab].any()
+    view = _objects_view(res.frame.left, res.masks.left, res.masks)
+    assert view.shape == res.frame.left.shape[:2] + (3,)

@@ -446,7 +446,7 @@ class MotionJudge:
                                  chi_v, e))
             if self._step(t, e):
                 turned.append(of.index)
-            if vel is not None:
+            if vel is not None and vel[2] >= c.min_points:
                 t.speeds.append(float(np.linalg.norm(vel[0])) / flow.dt)
         return turned
 
