@@ -347,7 +347,7 @@ class MotionConfig:
     # a frame where this fraction of the objects judged static seem to move is not used
     # (the camera's pose is suspect)
     suspect_fraction: float = 0.67
-    min_points: int = 8
+    min_points: int = 5
     max_points: int = 25  # corners followed per object and frame
     confirm_frames: int = 2
     release_frames: int = 8

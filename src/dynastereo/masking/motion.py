@@ -51,6 +51,7 @@ __all__ = ["FrameFlow", "ObjectFlow", "SceneFlow", "MotionJudge", "ObjectMotion"
 _LK = dict(winSize=(11, 11), maxLevel=3, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03))
 _FB_MAX = 1.0  # px, forward-backward error to keep a point
 _MARGIN = 48  # px around the boxes' union that LK works on
+_NEAR = tuple(a.ravel() for a in np.meshgrid(np.arange(-3, 4), np.arange(-3, 4)))  # (dx, dy) offsets
 _MIN_PIXELS = 150  # objects with fewer outline pixels are not followed (they stay undecided: masked)
 
 
@@ -141,12 +142,10 @@ class SceneFlow:
         n = self.cfg.max_points - (0 if have is None else len(have))
         if n < max(3, self.cfg.max_points // 4):
             return np.zeros((0, 2), np.float32)
-        if have is not None and len(have):
-            hx = np.rint(have[:, 0]).astype(np.int64) - x0
-            hy = np.rint(have[:, 1]).astype(np.int64) - y0
-            for dy in range(-3, 4):
-                for dx in range(-3, 4):
-                    sel[np.clip(hy + dy, 0, y1 - y0 - 1), np.clip(hx + dx, 0, x1 - x0 - 1)] = False
+        if have is not None and len(have):  # not within 3 px of a point followed already
+            hx = (np.rint(have[:, 0]).astype(np.int64) - x0)[:, None] + _NEAR[0]
+            hy = (np.rint(have[:, 1]).astype(np.int64) - y0)[:, None] + _NEAR[1]
+            sel[np.clip(hy, 0, y1 - y0 - 1), np.clip(hx, 0, x1 - x0 - 1)] = False
         min_dist = max(2.0, min(x1 - x0, y1 - y0) / 12.0)
         c = cv2.goodFeaturesToTrack(prev.gray[y0:y1, x0:x1], n, 0.001, min_dist,
                                     mask=sel.view(np.uint8), blockSize=3)
@@ -196,19 +195,25 @@ class SceneFlow:
             return out
         p0 = np.concatenate(p0s).astype(np.float32)
         ua, da, sa = (np.concatenate([a[c] for a in anchors]) for c in range(3))
-        # LK on the union of both frames' boxes grown by a margin, not the whole image
+        # LK per object on its boxes (k-1 and k) grown by a margin: small pyramids
         h, w = gray.shape
-        sel_boxes = np.concatenate([prev.boxes[[i for i, _ in pairs]], boxes[[j for _, j in pairs]]])
-        cx0, cy0 = (max(0, int(v) - _MARGIN) for v in sel_boxes[:, :2].min(axis=0))
-        cx1, cy1 = min(w, int(sel_boxes[:, 2].max()) + _MARGIN), min(h, int(sel_boxes[:, 3].max()) + _MARGIN)
-        off = np.float32([cx0, cy0])
-        a, b = prev.gray[cy0:cy1, cx0:cx1], gray[cy0:cy1, cx0:cx1]
-        q0 = (p0 - off).reshape(-1, 1, 2)
-        q1, st1, _ = cv2.calcOpticalFlowPyrLK(a, b, q0, None, **_LK)
-        q0b, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, q1, None, **_LK)
-        p1 = q1.reshape(-1, 2) + off
-        fb = np.linalg.norm(q0.reshape(-1, 2) - q0b.reshape(-1, 2), axis=1)
-        good = (st1.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(fb) & (fb < _FB_MAX)
+        p1 = np.zeros_like(p0)
+        good = np.zeros(len(p0), bool)
+        for k, (i, j) in enumerate(pairs):
+            s = owner == k
+            if not s.any():
+                continue
+            bx = np.stack([prev.boxes[i], boxes[j]])
+            cx0, cy0 = max(0, int(bx[:, 0].min()) - _MARGIN), max(0, int(bx[:, 1].min()) - _MARGIN)
+            cx1, cy1 = min(w, int(bx[:, 2].max()) + _MARGIN), min(h, int(bx[:, 3].max()) + _MARGIN)
+            off = np.float32([cx0, cy0])
+            a, b = prev.gray[cy0:cy1, cx0:cx1], gray[cy0:cy1, cx0:cx1]
+            q0 = (p0[s] - off).reshape(-1, 1, 2)
+            q1, st1, _ = cv2.calcOpticalFlowPyrLK(a, b, q0, None, **_LK)
+            q0b, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, q1, None, **_LK)
+            p1[s] = q1.reshape(-1, 2) + off
+            fb = np.linalg.norm(q0.reshape(-1, 2) - q0b.reshape(-1, 2), axis=1)
+            good[s] = (st1.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(fb) & (fb < _FB_MAX)
         d0, _ = _lookup(prev.disparity, p0)
         d1, in1 = _lookup(masks.box_disparity, p1)
         lab1, _ = _lookup(masks.labels_left, p1)
@@ -243,10 +248,11 @@ def _points(uv: np.ndarray, d: np.ndarray, K: np.ndarray, bf: float) -> np.ndarr
 
 
 def static_residuals(flow: ObjectFlow, T_10: np.ndarray, calib: StereoCalibration, sigma_px: float,
-                     sigma_d: float) -> tuple[np.ndarray, np.ndarray]:
+                     sigma_d: float, keep: bool = False):
     """Per point, the residual ``(n, 3)`` of ``(u, v, d)`` at k against a static object's
     prediction from k-1 under the camera motion ``T_10`` (k-1 camera -> k camera, 4x4) and
-    its covariance ``(n, 3, 3)``; rows with a prediction behind the camera are dropped."""
+    its covariance ``(n, 3, 3)``; rows with a prediction behind the camera are dropped
+    (``keep``: kept, and their flags returned third)."""
     K, bf = calib.K, calib.bf
     p = _project(flow.uv0, flow.d0, T_10, K, bf)
     # Jacobian of the prediction w.r.t. (u0, v0, d0), by forward differences
@@ -263,7 +269,7 @@ def static_residuals(flow: ObjectFlow, T_10: np.ndarray, calib: StereoCalibratio
     C = np.einsum("nij,j,nkj->nik", J, S, J) + np.diag(S)
     r = np.stack([flow.uv1[:, 0], flow.uv1[:, 1], flow.d1], axis=1) - p
     ok = np.isfinite(r).all(axis=1) & np.isfinite(C).all(axis=(1, 2))
-    return r[ok], C[ok]
+    return (r, C, ok) if keep else (r[ok], C[ok])
 
 
 def _mahalanobis(r: np.ndarray, C: np.ndarray) -> np.ndarray:
@@ -292,31 +298,20 @@ def _point_cov(uv: np.ndarray, d: np.ndarray, calib: StereoCalibration, S: np.nd
     return np.einsum("nij,j,nkj->nik", J, S, J)
 
 
-def world_velocity(flow: ObjectFlow, seq: int, poses: dict[int, np.ndarray], calib: StereoCalibration,
-                   sigma_px: float, sigma_d: float, max_points: int, sigma_rot: float = 0.0,
-                   sigma_t: float = 0.0) -> tuple[np.ndarray, np.ndarray, int] | None:
-    """(the object's world displacement per frame (3,), its covariance (3, 3), points used)
-    from its points' displacements since they were first seen (``flow.uva`` / ``da`` at
-    frame ``seqa``; ``poses``: seq -> 4x4 camera-to-world of the frames tracked, ``seq``
-    this frame's): the median of ``(X_k - X_a) / age`` over the points; the covariance is
-    the median point covariance (stereo at both ends, / age^2) * (pi / 2) / n with n at
-    most ``max_points`` (the points' errors are not independent: the pose's and the
-    disparity's biases are shared), plus the camera motion's own error per frame:
-    ``sigma_rot`` (rad) about any axis moves the object's median point X by ``dw x X``,
-    ``sigma_t`` (m) shifts it, both as a random walk over the age.  None: no point has
-    a known anchor pose."""
-    if seq not in poses:
-        return None
+def _point_velocities(flow: ObjectFlow, seq: int, poses: dict[int, np.ndarray], calib: StereoCalibration,
+                      S: np.ndarray):
+    """Per point with a known anchor pose: (which points (n,) bool, world displacement per
+    frame since the anchor (m, 3), its covariance (m, 3, 3), age in frames (m,), the
+    point at k in the camera frame (m, 3))."""
     anchor = flow.seqa.copy()
     anchor[anchor < 0] = seq - 1
-    use = np.array([a in poses for a in anchor.tolist()], bool)
-    if not use.any():
-        return None
+    known = np.array(sorted(poses), np.int64)
+    use = np.isin(anchor, known)
     K, bf = calib.K, calib.bf
-    S = np.array([sigma_px**2, sigma_px**2, sigma_d**2])
     T1 = poses[seq]
     R1 = T1[:3, :3]
-    Ta = np.stack([poses[a] for a in anchor[use].tolist()])
+    stack = np.stack([poses[int(k)] for k in known]) if len(known) else np.zeros((0, 4, 4))
+    Ta = stack[np.searchsorted(known, anchor[use])]
     Ra = Ta[:, :3, :3]
     age = (seq - anchor[use]).astype(np.float64)
     uva, da, uv1, d1 = flow.uva[use], flow.da[use], flow.uv1[use], flow.d1[use]
@@ -325,11 +320,37 @@ def world_velocity(flow: ObjectFlow, seq: int, poses: dict[int, np.ndarray], cal
     V = ((X1 @ R1.T + T1[:3, 3]) - Xa) / age[:, None]
     Ca = np.einsum("nij,njk,nlk->nil", Ra, _point_cov(uva, da, calib, S), Ra)
     C = (Ca + R1 @ _point_cov(uv1, d1, calib, S) @ R1.T) / (age**2)[:, None, None]
+    return use, V, C, age, X1
+
+
+def _object_velocity(V, C, age, X1, R1, max_points, sigma_rot, sigma_t):
     n = min(len(V), max_points)
-    X = np.median(X1, axis=0)
+    X = X1.mean(axis=0)
     pose = sigma_rot**2 * (X @ X * np.eye(3) - np.outer(X, X)) + sigma_t**2 * np.eye(3)  # camera frame
-    Cm = np.median(C, axis=0) * (np.pi / 2) / n + R1 @ pose @ R1.T / float(np.median(age))
+    Cm = C.mean(axis=0) * (np.pi / 2) / n + R1 @ pose @ R1.T / float(age.mean())
     return np.median(V, axis=0), Cm, len(V)
+
+
+def world_velocity(flow: ObjectFlow, seq: int, poses: dict[int, np.ndarray], calib: StereoCalibration,
+                   sigma_px: float, sigma_d: float, max_points: int, sigma_rot: float = 0.0,
+                   sigma_t: float = 0.0) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """(the object's world displacement per frame (3,), its covariance (3, 3), points used)
+    from its points' displacements since they were first seen (``flow.uva`` / ``da`` at
+    frame ``seqa``; ``poses``: seq -> 4x4 camera-to-world of the frames tracked, ``seq``
+    this frame's): the median of ``(X_k - X_a) / age`` over the points; the covariance is
+    the mean point covariance (stereo at both ends, / age^2) * (pi / 2) / n with n at
+    most ``max_points`` (the points' errors are not independent: the pose's and the
+    disparity's biases are shared), plus the camera motion's own error per frame:
+    ``sigma_rot`` (rad) about any axis moves the object's median point X by ``dw x X``,
+    ``sigma_t`` (m) shifts it, both as a random walk over the age.  None: no point has
+    a known anchor pose."""
+    if seq not in poses:
+        return None
+    S = np.array([sigma_px**2, sigma_px**2, sigma_d**2])
+    use, V, C, age, X1 = _point_velocities(flow, seq, poses, calib, S)
+    if not use.any():
+        return None
+    return _object_velocity(V, C, age, X1, poses[seq][:3, :3], max_points, sigma_rot, sigma_t)
 
 
 @dataclass
@@ -387,12 +408,20 @@ class MotionJudge:
                 keep.append(i + 1)
         if len(keep) == len(masks.objects):
             return masks
-        lut = np.zeros(len(masks.objects) + 1, np.uint8)
-        lut[keep] = 255
-        out = StereoMasks(lut[masks.labels_left], lut[masks.labels_right], masks.objects, masks.detections,
-                          masks.disparity, masks.ground, masks.labels_left, masks.labels_right,
-                          masks.box_disparity, masks.flow)
-        return out
+        left, right = masks.left.copy(), masks.right.copy()
+        h, w = left.shape
+        for i, o in enumerate(masks.objects):
+            if o.masked:
+                continue
+            # the object's pixels: in its box on the left, in its rows on the right
+            x0, y0 = max(int(o.box[0]), 0), max(int(o.box[1]), 0)
+            x1, y1 = min(int(np.ceil(o.box[2])), w), min(int(np.ceil(o.box[3])), h)
+            crop = left[y0:y1, x0:x1]
+            crop[masks.labels_left[y0:y1, x0:x1] == i + 1] = 0
+            band = right[y0:y1]
+            band[masks.labels_right[y0:y1] == i + 1] = 0
+        return StereoMasks(left, right, masks.objects, masks.detections, masks.disparity, masks.ground,
+                           masks.labels_left, masks.labels_right, masks.box_disparity, masks.flow)
 
     def _evidence(self, chi: np.ndarray, chi_velocity: float) -> bool | None:
         """This frame's evidence: True motion, False rest, None neither (too few points)."""
@@ -425,11 +454,32 @@ class MotionJudge:
         c = self.cfg
         T_10 = np.linalg.inv(T1) @ T0
         rows = []
-        for of in flow.objects:
+        objs = flow.objects
+        if not objs:
+            return []
+        # all objects' points at once, then per object
+        owner = np.concatenate([np.full(len(of), k) for k, of in enumerate(objs)])
+        cat = ObjectFlow(-1, -1, *(np.concatenate([getattr(of, a) for of in objs])
+                                   for a in ("uv0", "d0", "uv1", "d1", "uva", "da", "seqa")))
+        r, C, ok = static_residuals(cat, T_10, self.calib, c.sigma_px, c.sigma_disparity, keep=True)
+        chi_all = np.full(len(owner), np.nan)
+        if ok.any():
+            chi_all[ok] = _mahalanobis(r[ok], C[ok])
+        S = np.array([c.sigma_px**2, c.sigma_px**2, c.sigma_disparity**2])
+        if flow.seq in self._poses:
+            use, V, Cv, age, X1 = _point_velocities(cat, flow.seq, self._poses, self.calib, S)
+            vowner = owner[use]
+        else:
+            vowner = np.zeros(0, np.int64)
+        R1 = T1[:3, :3]
+        for k, of in enumerate(objs):
             t = self.tracks[of.track]
-            chi = static_chi2(of, T_10, self.calib, c.sigma_px, c.sigma_disparity)
-            vel = world_velocity(of, flow.seq, self._poses, self.calib, c.sigma_px, c.sigma_disparity,
-                                 c.object_points, np.radians(c.sigma_pose_deg), c.sigma_pose_m)
+            chi = chi_all[(owner == k) & ok]
+            sel = vowner == k
+            vel = None
+            if sel.any():
+                vel = _object_velocity(V[sel], Cv[sel], age[sel], X1[sel], R1, c.object_points,
+                                       np.radians(c.sigma_pose_deg), c.sigma_pose_m)
             chi_v = float(vel[0] @ np.linalg.solve(vel[1], vel[0])) if vel is not None else 0.0
             rows.append((of, t, chi, chi_v, vel, self._evidence(chi, chi_v)))
         # the camera's motion itself is suspect when most objects judged static seem to move
