@@ -340,7 +340,7 @@ class MotionConfig:
     object_chi2: float = 11.34
     object_chi2_static: float = 6.25
     object_points: int = 10
-    window_frames: int = 8
+    window_frames: int = 15
     # the error of SLAM's camera motion per frame (rotation about any axis, translation)
     sigma_pose_deg: float = 0.05
     sigma_pose_m: float = 0.02
@@ -348,7 +348,7 @@ class MotionConfig:
     # (the camera's pose is suspect)
     suspect_fraction: float = 0.67
     min_points: int = 5
-    max_points: int = 25  # corners followed per object and frame
+    max_points: int = 20  # corners followed per object and frame
     confirm_frames: int = 2
     release_frames: int = 8
     forget_points: bool = True  # map points on an object judged moving are removed from the map
