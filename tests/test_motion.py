@@ -289,3 +289,18 @@ def test_live_node_masks_only_what_moves(convoy: Path) -> None:
         assert not res.masks.left[lab].any()
     view = _objects_view(res.frame.left, res.masks.left, res.masks)
     assert view.shape == res.frame.left.shape[:2] + (3,)
+
+
+def test_cli_mask_all_and_default(convoy: Path, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from dynastereo.cli.main import app
+
+    runner = CliRunner()
+    for flag, mode in ((["--mask-all"], "all"), ([], "moving")):
+        out = tmp_path / mode
+        r = runner.invoke(app, ["run", str(convoy), "-o", str(out), "--detector", "oracle", "--frames", "0-5", *flag])
+        assert r.exit_code == 0, r.output
+        assert json.loads((out / "run.json").read_text())["motion"]["mode"] == mode
+        last = _lines(out / "objects.jsonl")[-1]["objects"]
+        assert any(o["moving"] is not None for o in last) == (mode == "moving")

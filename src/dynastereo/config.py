@@ -310,48 +310,50 @@ MOTION_MODES: tuple[str, ...] = typing.get_args(MotionMode)
 
 @dataclass
 class MotionConfig:
-    """Which detected objects are masked (``masking/motion.py``): ``mode: moving`` (default)
-    masks an object only while the stereo motion test judges it moving or has not judged
-    it yet -- static (parked) objects take part in tracking and mapping; ``mode: all``
-    masks every detection (the thesis' behaviour, for comparison).
+    """Which detected objects are masked (``masking/motion.py``, README "Mask only what
+    moves"): ``mode: moving`` (default) masks an object only while the stereo motion test
+    judges it moving or has not judged it yet -- static (parked) objects take part in
+    tracking and mapping; ``mode: all`` masks every detection (the thesis' behaviour, for
+    comparison).
 
-    The test: an object's points (corners on its outline) are followed from frame k-1 to
-    k by optical flow, with the masker's disparity at both frames; a static object's
-    points must land where the camera's motion (SLAM's) puts them.  A point's residual
-    in (u, v, disparity) is weighed by its covariance (``sigma_px`` in the image,
-    ``sigma_disparity`` in disparity, at both frames, propagated through the prediction:
-    the stereo depth uncertainty) and compared with the chi-square bound ``chi2`` (3 dof).
-    A frame is evidence of motion when at least ``moving_fraction`` of an object's points
-    (at least ``min_points`` of them) exceed the bound, of rest when at most
-    ``static_fraction`` do.  ``confirm_frames`` frames of evidence in a row decide an
-    undecided object or turn a static one moving; a moving one is judged static again
-    only after ``release_frames`` frames of rest in a row."""
+    The test: up to ``max_points`` corners on each tracked object's outline are followed
+    from frame to frame by optical flow, with the masker's disparity at every frame.
+    (1) Frame to frame: a static object's point at k-1, moved by SLAM's camera motion and
+    projected, must land on its measurement at k; the residual in (u, v, disparity) is
+    weighed by its covariance (``sigma_px``, ``sigma_disparity`` at both frames,
+    propagated through the prediction: the stereo depth uncertainty) against the
+    chi-square bound ``chi2`` (3 dof).  (2) Over up to ``window_frames`` frames: the
+    object's world velocity, the median of its points' displacements since they were
+    first seen, against its covariance (stereo, points counted at most
+    ``object_points`` times, SLAM's pose error ``sigma_pose_deg`` / ``sigma_pose_m`` per
+    frame): chi-square ``object_chi2``.  A frame is evidence of motion when at least
+    ``moving_fraction`` of the points exceed (1) or the velocity exceeds (2); of rest
+    when at most ``static_fraction`` of the points exceed (1), the velocity's chi-square
+    is at most ``object_chi2_static`` and there are ``min_points`` points.
+    ``confirm_frames`` frames of evidence in a row decide an undecided object or turn a
+    static one moving (its map points are then removed, ``forget_points``); a moving one
+    is judged static again after ``release_frames`` frames of rest in a row.  A frame in
+    which at least ``suspect_fraction`` of the objects judged static seem to move gives no
+    evidence (SLAM's pose is suspect)."""
 
     mode: MotionMode = "moving"
     sigma_px: float = 0.5
     sigma_disparity: float = 0.5
+    sigma_pose_deg: float = 0.05
+    sigma_pose_m: float = 0.02
     chi2: float = 11.34  # 99 % of chi-square with 3 degrees of freedom
     moving_fraction: float = 0.5
     static_fraction: float = 0.25
-    # the object's world displacement summed over the last window_frames frames (its
-    # covariance from the stereo uncertainty, points counted at most object_points times):
-    # its chi-square (3 dof) above object_chi2 is evidence of motion, at most
-    # object_chi2_static (with few points over chi2) of rest
+    min_points: int = 5
+    max_points: int = 20  # corners followed per object
     object_chi2: float = 11.34
     object_chi2_static: float = 6.25
     object_points: int = 10
     window_frames: int = 15
-    # the error of SLAM's camera motion per frame (rotation about any axis, translation)
-    sigma_pose_deg: float = 0.05
-    sigma_pose_m: float = 0.02
-    # a frame where this fraction of the objects judged static seem to move is not used
-    # (the camera's pose is suspect)
-    suspect_fraction: float = 0.67
-    min_points: int = 5
-    max_points: int = 20  # corners followed per object and frame
     confirm_frames: int = 2
     release_frames: int = 8
-    forget_points: bool = True  # map points on an object judged moving are removed from the map
+    suspect_fraction: float = 0.67
+    forget_points: bool = True
 
     def __post_init__(self) -> None:
         self.validate()
