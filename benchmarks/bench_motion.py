@@ -21,6 +21,9 @@ the prefetch thread, stereo SLAM with local BA):
   and of the first seed's mixed / static (oracle boxes) -- the target is judged on the
   worst sequence's median; the runs' own ``timing.json`` medians (which include the waits
   of a masking thread beside the SLAM on shared cores) are reported beside.
+* **KITTI raw drive 0001** (an oncoming tram, cyclists, a passing car, parked cars; no
+  ground-truth poses): the decisions per label, and overlays of frames 30, 60, 90 written
+  to ``docs/motion_raw0001_NNN.jpg`` (README) to check by eye.
 
 Targets (issue 13): decisions >= 90 % on mixed; KITTI ATE(moving) <= 1.10 x ATE(none);
 convoy / crossing ATE(moving) <= ATE(none) / 3; motion_flow + motion <= 3 ms per frame.
@@ -61,6 +64,8 @@ TARGET_ACCURACY = 0.90
 TARGET_KITTI_RATIO = 1.10
 TARGET_SYNTH_RATIO = 1.0 / 3.0
 TARGET_MS = 3.0
+RAW_OVERLAY_FRAMES = (30, 60, 90)
+DOCS = Path(__file__).resolve().parent.parent / "docs"
 
 
 def decision_accuracy(run_dir: Path, seq_dir: Path) -> dict:
@@ -164,12 +169,15 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=150, help="frames per synthetic sequence")
     ap.add_argument("--size", default="640x192")
     ap.add_argument("--kitti", default="06,03")
+    ap.add_argument("--raw", type=int, default=1, help="1: also run KITTI raw drive 0001 (decisions only)")
+    ap.add_argument("--overlays", type=int, default=1, help="1: write its overlays to docs/motion_raw0001_*.jpg")
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "dynastereo_bench_synth")
     ap.add_argument("--quick", action="store_true", help="one seed, 60 frames, mixed + convoy, KITTI 06")
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
     if args.quick:
         args.seeds, args.ate_seeds, args.frames, args.scenarios, args.kitti = "1", "1", 60, "mixed,convoy", "06"
+        args.raw = args.overlays = 0
     logging.basicConfig(level=logging.ERROR)
     logging.getLogger("dynastereo").setLevel(logging.ERROR)
     size = tuple(int(v) for v in args.size.split("x"))
@@ -214,6 +222,13 @@ def main() -> int:
                     print(f"KITTI {name} motion test alone: {row['replay']}", flush=True)
                 ate.append(row)
                 print(f"{row['sequence']:22s} {mode:7s} ATE {row['ate_m']:.4f} m  lost {row['lost']}", flush=True)
+
+    raw = None
+    if data and args.raw:
+        drive = Path(data) / "kitti_raw" / "2011_09_26" / "2011_09_26_drive_0001_sync"
+        raw = raw_drive(drive, work, DOCS if args.overlays else None)
+        print(f"KITTI raw 0001 (no poses): decisions per label {raw['decisions']}; overlays {raw['overlays']}",
+              flush=True)
 
     # ------------------------------------------------------------------ summary
     table = {}
@@ -270,6 +285,7 @@ def main() -> int:
         "ate": ate,
         "ate_table": table,
         "ratios": ratios,
+        "kitti_raw_0001": raw,
         "ms": {"replay_motion_flow": flow_ms, "replay_motion": test_ms, "replay_total": ms,
                "replay_total_worst_sequence": ms_worst, "in_pipeline_total": pipe_ms},
         "targets": targets,
@@ -278,6 +294,36 @@ def main() -> int:
     args.out.write_text(json.dumps(result, indent=1, default=float))
     print(f"-> {args.out}")
     return 0
+
+
+class _Overlays:
+    """Observer: the left image with the objects in their verdict's colours at ``frames``."""
+
+    def __init__(self, out: Path, frames: tuple[int, ...]):
+        self.out, self.frames = out, set(frames)
+
+    def on_frame(self, ev) -> None:
+        import cv2
+
+        from dynastereo.pipeline import draw_objects
+
+        if ev.position in self.frames and ev.masks is not None:
+            img = draw_objects(ev.frame.left, ev.masks.left, ev.masks.objects, ev.masks.labels_left)
+            cv2.imwrite(str(self.out / f"motion_raw0001_{ev.position:03d}.jpg"), img, [cv2.IMWRITE_JPEG_QUALITY, 80])
+
+
+def raw_drive(drive: Path, work: Path, overlays: Path | None) -> dict:
+    """KITTI raw drive 0001 (moving traffic, no poses): the decisions per label, and
+    overlays of a few frames (``overlays``: a folder) to check by eye."""
+    obs = ()
+    if overlays is not None:
+        overlays.mkdir(parents=True, exist_ok=True)
+        obs = (_Overlays(overlays, RAW_OVERLAY_FRAMES),)
+    out = work / "raw0001_moving"
+    res = run_sequence(drive, out, Config(), stereo_check=False, observers=obs)
+    return {"frames": len(res.frames), "lost": len(res.lost), "decisions": _kitti_decisions(out),
+            "overlays": sorted(str(p) for p in overlays.glob("motion_raw0001_*.jpg")) if overlays else [],
+            **motion_ms(out)}
 
 
 def _kitti_decisions(run_dir: Path) -> dict:
