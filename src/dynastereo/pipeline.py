@@ -72,8 +72,8 @@ def draw_objects(image: np.ndarray, mask: np.ndarray, objects, labels: np.ndarra
     """``image`` (grey or BGR) with the masked pixels ``mask`` tinted and outlined in the
     colour of their object's verdict (:data:`VERDICT_COLOURS`; without instance
     ``labels``: red), static objects' pixels lightly tinted green, and, with ``boxes``, each
-    object's box with its label, verdict and speed (box-fallback outlines: dashed look
-    aside, their box is drawn thinner)."""
+    object's box in its verdict's colour with its label, verdict and speed (a box-fallback
+    mask's box is drawn thinner)."""
     bgr = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
     sel = mask > 0
     if labels is None or not objects:
