@@ -7,28 +7,37 @@ with the camera is moving).  Two halves, because masking runs one frame ahead of
 tracking on a prefetch thread:
 
 * :class:`SceneFlow` (masking thread, ``measure(frame, masks)`` after the masker):
-  for every object seen in frames k-1 and k under the same track id, up to
-  ``motion.max_points`` corners on its outline at k-1 (``goodFeaturesToTrack`` on the
-  instance label, where the masker's disparity is valid) are followed to k by one
-  pyramidal Lucas-Kanade call for all objects (forward-backward checked, error < 1 px);
-  a point is kept when it lands on the same object's outline at k with a valid
-  disparity there.  Result: a :class:`FrameFlow` of ``(u, v, d)`` at k-1 and k per object.
+  for every object seen in frames k-1 and k under the same track id, the points followed
+  into k-1 topped up to ``motion.max_points`` with new corners on its outline at k-1
+  (``goodFeaturesToTrack`` on the instance label, where the masker's disparity is
+  valid, 3 px from the points it has) are followed to k by pyramidal Lucas-Kanade on a
+  crop around the object (forward-backward checked, error < 1 px); a point is kept when
+  it lands on the same object's outline at k with a valid disparity there.  Each point
+  keeps where it was first seen (pixel, disparity, frame), up to ``window_frames`` back.
+  Result: a :class:`FrameFlow` of ``(u, v, d)`` at k-1, k and first sight per object.
 * :class:`MotionJudge` (main thread): ``select(masks)`` just before ``System.track``
   gives the masks SLAM gets -- only objects judged moving or not yet judged (the safe
   default) are masked, static ones are left to tracking and mapping; ``update(masks,
-  pose, ok)`` after tracking weighs the frame's flow against the camera motion
-  ``T_{k,k-1}``: a static point's ``(u, v, d)`` at k-1, moved by the camera motion and
-  projected, must land on its measurement at k.  The residual's covariance holds the
-  measurement noise at k (``sigma_px``, ``sigma_disparity``) and the noise at k-1
-  propagated through the prediction (its Jacobian, by finite differences): the stereo
-  depth uncertainty ``sigma_Z = Z^2 sigma_d / bf`` and the lateral ``Z sigma_px / f``
-  enter that way.  Per object the fraction of points whose chi-square exceeds
-  ``motion.chi2`` is evidence of motion (>= ``moving_fraction``) or of rest
-  (<= ``static_fraction``); hysteresis over frames (``confirm_frames``,
-  ``release_frames``) gives the verdict ``moving`` True / False / None (undecided).
-  Speed = the median world-frame displacement of the points / dt (median of the last 3
-  frames).  ``update`` returns the tracks that turned moving from static, whose map
-  points the caller removes (``System.forget_region``).
+  pose, ok)`` after tracking weighs the frame's flow against the camera motion:
+
+  - frame to frame (:func:`static_chi2`): a static point's ``(u, v, d)`` at k-1, moved by
+    ``T_{k,k-1}`` and projected, must land on its measurement at k.  The residual's
+    covariance holds the measurement noise at k (``sigma_px``, ``sigma_disparity``) and
+    the noise at k-1 propagated through the prediction (its Jacobian, by finite
+    differences): the stereo depth uncertainty ``sigma_Z = Z^2 sigma_d / bf`` and the
+    lateral ``Z sigma_px / f`` enter that way; the fraction of points over ``chi2``;
+  - over the window (:func:`world_velocity`): the object's world velocity, the median of
+    ``(X_k - X_first) / age`` of its points in the world frame, against its covariance
+    (stereo at both ends, at most ``object_points`` independent points, SLAM's pose
+    error as a random walk): chi-square against ``object_chi2``.  The long baseline sees
+    a car ahead at the camera's speed far away, which one frame cannot.
+
+  Evidence of motion / rest per frame, hysteresis over frames (``confirm_frames``,
+  ``release_frames``) gives the verdict ``moving`` True / False / None (undecided); a
+  frame where most objects judged static seem to move gives none (a bad pose).  Speed =
+  the velocity's norm / dt (median of the last 3 frames).  ``update`` returns the objects
+  that turned moving from static, whose map points :class:`ObjectMotion` removes
+  (``System.forget_region``).
 
 Everything is vectorised over the points; the per-object work is a few array slices.
 Maskers without instance labels (``seg``) get verdicts but keep every object masked;
@@ -359,7 +368,6 @@ class _TrackState:
     run: int = 0  # > 0: frames of motion evidence in a row; < 0: of rest
     speeds: deque = field(default_factory=lambda: deque(maxlen=3))
     last_seen: int = 0
-    evidence: int = 0  # frames that gave evidence either way
 
 
 class MotionJudge:
@@ -440,7 +448,6 @@ class MotionJudge:
         c = self.cfg
         if e is None:
             return False
-        t.evidence += 1
         t.run = (max(t.run, 0) + 1) if e else (min(t.run, 0) - 1)
         was = t.moving
         if t.run >= c.confirm_frames:
