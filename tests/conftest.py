@@ -76,14 +76,21 @@ def track_offline(sequence: Path, models_dir: Path, n_frames: int):
     from dynastereo.masking import build_masker
     from dynastereo.slam import System
 
+    from dynastereo.masking.motion import build_motion
+
     seq = KittiSequence(sequence)
     cfg = Config()
     masker = build_masker(cfg, seq.calibration, models_dir=models_dir)
     system = System(cfg, seq.calibration)
+    motion = build_motion(cfg, seq.calibration, masker)  # the default: only what moves is masked
     poses = []
     for i in range(n_frames):
         f = seq.frame(i)
-        poses.append(system.track(f, masker.mask(f)).pose)
+        masks = masker.mask(f)
+        motion.measure(f, masks)
+        res = system.track(f, motion.select(masks))
+        motion.update(masks, res, system)
+        poses.append(res.pose)
     system.shutdown()
     return np.array(poses), system
 

@@ -1050,6 +1050,7 @@ def test_object_method_and_source_are_enums_written_as_their_strings() -> None:
     assert type(d["method"]) is str and type(d["source"]) is str
     assert json.dumps(d) == json.dumps({"box": [1.0, 2.0, 3.0, 4.0], "label": "car", "score": 0.9,
                                         "method": "box-fallback:tiny", "disparity": 5.0, "pixels_left": 6,
-                                        "pixels_right": 7, "track_id": -1, "source": "carried"})
+                                        "pixels_right": 7, "track_id": -1, "source": "carried", "track": -1,
+                                        "moving": None, "masked": True, "speed_mps": None})
     with pytest.raises(ValueError):
         ObjectMask((0.0, 0.0, 1.0, 1.0), "car", 0.5, "bogus", 0.0, 0, 0)

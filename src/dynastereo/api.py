@@ -200,9 +200,10 @@ def slam_job(
     bag or anything else that is a :class:`~dynastereo.io.base.Sequence`: the inputs checked
     (:func:`_checked_inputs`: frames, stereo pair, model, then the output folder), the
     masker from :func:`dynastereo.masking.build_masker` (the sequence's calibration), the
-    SLAM system (optionally from ``load_map``), then :func:`~dynastereo.pipeline.run_slam_job`
-    with ``observers`` and those ``open_observers()`` returns once the output folder is
-    ready (a bag's writer)."""
+    SLAM system (optionally from ``load_map``), the motion test (``cfg.motion``:
+    :func:`dynastereo.masking.motion.build_motion`), then
+    :func:`~dynastereo.pipeline.run_slam_job` with ``observers`` and those
+    ``open_observers()`` returns once the output folder is ready (a bag's writer)."""
     from .config import to_dict
     from .errors import ConfigError
     from .slam import System
@@ -225,8 +226,11 @@ def slam_job(
             system.shutdown()
             raise
         info = {"loaded": str(load_map), "localize_only": bool(localize_only)}
+    from .masking.motion import build_motion
+
     return run_slam_job(seq, masker, system, out, indices, config_dict=to_dict(cfg), save_masks=save_masks,
-                        progress=progress, save_map=save_map, map_info=info, observers=observers)
+                        progress=progress, save_map=save_map, map_info=info, observers=observers,
+                        motion=build_motion(cfg, seq.calibration, masker))
 
 
 # --------------------------------------------------------------------------- benchmarks

@@ -304,6 +304,91 @@ class MaskerConfig:
         self.outline.validate()
 
 
+MotionMode = Literal["moving", "all"]
+MOTION_MODES: tuple[str, ...] = typing.get_args(MotionMode)
+
+
+@dataclass
+class MotionConfig:
+    """Which detected objects are masked (``masking/motion.py``, README "Mask only what
+    moves"): ``mode: moving`` (default) masks an object only while the stereo motion test
+    judges it moving or has not judged it yet -- static (parked) objects take part in
+    tracking and mapping; ``mode: all`` masks every detection (the thesis' behaviour, for
+    comparison).
+
+    The test: up to ``max_points`` corners on each tracked object's outline are followed
+    from frame to frame by optical flow, with the masker's disparity at every frame.
+    (1) Frame to frame: a static object's point at k-1, moved by SLAM's camera motion and
+    projected, must land on its measurement at k; the residual in (u, v, disparity) is
+    weighed by its covariance (``sigma_px``, ``sigma_disparity`` at both frames,
+    propagated through the prediction: the stereo depth uncertainty) against the
+    chi-square bound ``chi2`` (3 dof).  (2) Over up to ``window_frames`` frames: the
+    object's world velocity, the median of its points' displacements since they were
+    first seen, against its covariance (stereo, points counted at most
+    ``object_points`` times, SLAM's pose error ``sigma_pose_deg`` / ``sigma_pose_m`` per
+    frame): chi-square ``object_chi2``.  A frame is evidence of motion when at least
+    ``moving_fraction`` of the points exceed (1) or the velocity exceeds (2); of rest
+    when at most ``static_fraction`` of the points exceed (1), the velocity's chi-square
+    is at most ``object_chi2_static`` and there are ``min_points`` points.
+    ``confirm_frames`` frames of evidence in a row decide an undecided object or turn a
+    static one moving (its map points are then removed, ``forget_points``); a moving one
+    is judged static again after ``release_frames`` frames of rest in a row.  A frame in
+    which at least ``suspect_fraction`` of the objects judged static seem to move gives no
+    evidence (SLAM's pose is suspect)."""
+
+    mode: MotionMode = "moving"
+    sigma_px: float = 0.5
+    sigma_disparity: float = 0.5
+    sigma_pose_deg: float = 0.05
+    sigma_pose_m: float = 0.02
+    chi2: float = 11.34  # 99 % of chi-square with 3 degrees of freedom
+    moving_fraction: float = 0.5
+    static_fraction: float = 0.25
+    min_points: int = 5
+    max_points: int = 20  # corners followed per object
+    object_chi2: float = 11.34
+    object_chi2_static: float = 6.25
+    object_points: int = 10
+    window_frames: int = 15
+    confirm_frames: int = 2
+    release_frames: int = 8
+    suspect_fraction: float = 0.67
+    forget_points: bool = True
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        if str(self.mode).lower() not in MOTION_MODES:
+            raise _bad("motion.mode", "one of " + ", ".join(MOTION_MODES), self.mode)
+        if self.object_chi2_static > self.object_chi2:
+            raise ConfigError("motion.object_chi2_static must be at most motion.object_chi2, got "
+                              f"{self.object_chi2_static!r} > {self.object_chi2!r}")
+        if self.object_points < 1:
+            raise _bad("motion.object_points", ">= 1", self.object_points)
+        for k in ("sigma_px", "sigma_disparity", "chi2", "object_chi2", "object_chi2_static"):
+            if not getattr(self, k) > 0:
+                raise _bad(f"motion.{k}", "> 0", getattr(self, k))
+        for k in ("moving_fraction", "static_fraction"):
+            if not 0.0 <= getattr(self, k) <= 1.0:
+                raise _bad(f"motion.{k}", "in [0, 1]", getattr(self, k))
+        if self.static_fraction >= self.moving_fraction:
+            raise ConfigError("motion.static_fraction must be below motion.moving_fraction, got "
+                              f"{self.static_fraction!r} >= {self.moving_fraction!r}")
+        if self.min_points < 3:
+            raise _bad("motion.min_points", ">= 3", self.min_points)
+        if self.max_points < self.min_points:
+            raise _bad("motion.max_points", f">= motion.min_points ({self.min_points})", self.max_points)
+        for k in ("sigma_pose_deg", "sigma_pose_m"):
+            if not getattr(self, k) >= 0:
+                raise _bad(f"motion.{k}", ">= 0", getattr(self, k))
+        if not 0.0 < self.suspect_fraction <= 1.0:
+            raise _bad("motion.suspect_fraction", "in (0, 1]", self.suspect_fraction)
+        for k in ("confirm_frames", "release_frames", "window_frames"):
+            if getattr(self, k) < 1:
+                raise _bad(f"motion.{k}", ">= 1", getattr(self, k))
+
+
 LocalBAMode = Literal["process", "inline", "off"]
 LOCAL_BA_MODES: tuple[str, ...] = typing.get_args(LocalBAMode)
 
@@ -477,6 +562,7 @@ class Config:
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     masker: MaskerConfig = field(default_factory=MaskerConfig)
     slam: SlamConfig = field(default_factory=SlamConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -485,7 +571,7 @@ class Config:
 
     def validate(self) -> None:
         """Every section's checks again (a configuration changed after it was made)."""
-        for section in (self.stereo, self.detector, self.masker, self.slam):
+        for section in (self.stereo, self.detector, self.masker, self.slam, self.motion):
             section.validate()
         self.__post_init__()
 

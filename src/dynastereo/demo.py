@@ -137,7 +137,9 @@ def run_demo(
         ev = evaluate_files(run_dir / "trajectory.kitti.txt", gt)
         iou_l = iou_r = None
         if kind != "none":
-            agree = score_mask_dir(run_dir, seq, frames=list(range(frames))).summary()
+            # the masks SLAM got: with the motion test (the default) only the moving objects'
+            agree = score_mask_dir(run_dir, seq, frames=list(range(frames)),
+                                   moving_only=c.motion.mode == "moving").summary()
             iou_l, iou_r = agree["iou_left"], agree["iou_right"]
         ev.estimate.name = ""
         trajectories[f"masker {label}"] = ev.estimate

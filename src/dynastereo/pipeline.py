@@ -58,27 +58,55 @@ def new_mask_timer() -> StageTimer:
     return t
 
 
-def draw_overlay(frame: StereoFrame, masks: StereoMasks) -> np.ndarray:
-    """Left|right side by side, dynamic pixels tinted red, boxes (left) in green (orange:
-    box fallback); below, when the masker computed a full-frame disparity, its normalized,
-    contrast-enhanced 8-bit view (thesis 3.3.3) in false colour beside the left mask."""
-    views = []
-    for img, m in ((frame.left, masks.left), (frame.right, masks.right)):
-        bgr = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img.copy()
-        sel = m > 0
-        tint = np.array([0, 0, 255], np.float32)
-        bgr[sel] = (0.5 * bgr[sel] + 0.5 * tint).astype(np.uint8)
-        contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-        cv2.drawContours(bgr, contours, -1, (0, 0, 255), 1)
-        views.append(bgr)
-    left = views[0]
-    for ob in masks.objects:
+#: Overlay colours (BGR) of the motion test's verdicts (``ObjectMask.moving``): moving
+#: objects red, not yet judged orange (both masked), static ones green (left to SLAM).
+VERDICT_COLOURS = {True: (0, 0, 255), None: (0, 165, 255), False: (0, 200, 0)}
+
+
+def _tint(bgr: np.ndarray, sel: np.ndarray, colour: tuple[int, int, int], alpha: float = 0.5) -> None:
+    bgr[sel] = ((1 - alpha) * bgr[sel] + alpha * np.array(colour, np.float32)).astype(np.uint8)
+
+
+def draw_objects(image: np.ndarray, mask: np.ndarray, objects, labels: np.ndarray | None = None,
+                 boxes: bool = True) -> np.ndarray:
+    """``image`` (grey or BGR) with the masked pixels ``mask`` tinted and outlined in the
+    colour of their object's verdict (:data:`VERDICT_COLOURS`; without instance
+    ``labels``: red), static objects' pixels lightly tinted green, and, with ``boxes``, each
+    object's box in its verdict's colour with its label, verdict and speed (a box-fallback
+    mask's box is drawn thinner)."""
+    bgr = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
+    sel = mask > 0
+    if labels is None or not objects:
+        _tint(bgr, sel, VERDICT_COLOURS[True])
+    else:
+        verdict = np.array([0] + [{True: 1, None: 2, False: 3}[o.moving] for o in objects], np.uint8)[labels]
+        _tint(bgr, sel & (verdict <= 1), VERDICT_COLOURS[True])
+        _tint(bgr, sel & (verdict == 2), VERDICT_COLOURS[None])
+        _tint(bgr, ~sel & (verdict == 3), VERDICT_COLOURS[False], 0.3)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(bgr, contours, -1, (0, 0, 255), 1)
+    if not boxes:
+        return bgr
+    for ob in objects:
         x1, y1, x2, y2 = (int(round(v)) for v in ob.box)
-        color = (0, 200, 0) if ob.method in ("outline", "seg", "box") else (0, 200, 255)
-        cv2.rectangle(left, (x1, y1), (x2 - 1, y2 - 1), color, 1)
-        cv2.putText(left, f"{ob.label} {ob.method}", (x1, max(10, y1 - 3)),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.4, color, 1, cv2.LINE_AA)
-    top = np.hstack(views)
+        colour = VERDICT_COLOURS[ob.moving]
+        state = {True: "moving", False: "static", None: "?"}[ob.moving]
+        speed = f" {ob.speed_mps:.1f}m/s" if ob.speed_mps is not None else ""
+        cv2.rectangle(bgr, (x1, y1), (x2 - 1, y2 - 1), colour, 1 if ob.method.is_fallback else 2)
+        cv2.putText(bgr, f"{ob.label} {state}{speed}", (x1, max(10, y1 - 3)), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                    colour, 1, cv2.LINE_AA)
+    return bgr
+
+
+def draw_overlay(frame: StereoFrame, masks: StereoMasks) -> np.ndarray:
+    """Left|right side by side, masked pixels tinted by their object's verdict (moving red,
+    not yet judged orange; static objects, left to SLAM, green: :data:`VERDICT_COLOURS`),
+    boxes (left) in the verdict's colour (thin: box fallback); below, when the masker
+    computed a full-frame disparity, its normalized, contrast-enhanced 8-bit view (thesis
+    3.3.3) in false colour beside the left mask."""
+    left = draw_objects(frame.left, masks.left, masks.objects, masks.labels_left)
+    right = draw_objects(frame.right, masks.right, masks.objects, masks.labels_right, boxes=False)
+    top = np.hstack([left, right])
     if masks.disparity is None:
         return top
     from .masking.disparity import normalize_disparity
@@ -206,13 +234,18 @@ def _versions() -> dict[str, str]:
     return out
 
 
-def _masking_step(sequence: Sequence, masker: Masker | None, idx: int) -> tuple[StereoFrame, StereoMasks | None, dict]:
-    """Read and mask one frame; its own timer (this runs on the prefetch thread)."""
+def _masking_step(sequence: Sequence, masker: Masker | None, idx: int,
+                  motion=None) -> tuple[StereoFrame, StereoMasks | None, dict]:
+    """Read and mask one frame, and measure its objects' flow for the motion test
+    (``motion_flow``); its own timer (this runs on the prefetch thread)."""
     t = new_mask_timer()
     t.start_frame(idx)
     with t.stage("read"):
         frame = sequence.frame(idx)
     masks = masker.mask(frame, t) if masker is not None else None
+    if motion is not None:
+        with t.stage("motion_flow"):
+            motion.measure(frame, masks)
     return frame, masks, t.end_frame()["ms"]
 
 
@@ -230,6 +263,7 @@ def run_slam_job(
     save_map: str | Path | None = None,
     map_info: dict | None = None,
     observers: tuple[FrameObserver, ...] = (),
+    motion=None,
 ) -> SlamJobResult:
     """Feed ``frames`` of ``sequence`` (masked by ``masker``, None = unmasked) to the SLAM
     ``system`` and write, under ``out``:
@@ -250,6 +284,12 @@ def run_slam_job(
 
     Masking of frame k+1 runs on a prefetch thread while frame k is tracked (OpenCV and
     onnxruntime release the GIL).
+
+    ``motion`` (a :class:`~dynastereo.masking.motion.ObjectMotion`, None = every
+    detection masked): its flow is measured on the prefetch thread; SLAM gets the masks of
+    the objects judged moving or not yet judged (``select``, from the verdicts up to the
+    previous frame), and after tracking the verdicts are updated with this frame's
+    camera motion (``motion`` stage) -- ``objects.jsonl`` and ``masks/`` show them.
     """
     from concurrent.futures import ThreadPoolExecutor
 
@@ -272,8 +312,8 @@ def run_slam_job(
         if k >= len(frames):
             return None
         if pool is None:
-            return _masking_step(sequence, masker, frames[k])
-        return pool.submit(_masking_step, sequence, masker, frames[k])
+            return _masking_step(sequence, masker, frames[k], motion)
+        return pool.submit(_masking_step, sequence, masker, frames[k], motion)
 
     objects_log = open(out / "objects.jsonl", "w") if masker is not None else None
     try:
@@ -286,18 +326,22 @@ def run_slam_job(
                 for name, ms in mask_ms.items():
                     if name not in ("total", "mask"):
                         timer.add(name, ms)
-                tracked = system.track(frame, masks, timer)
+                slam_masks = motion.select(masks) if motion is not None else masks
+                tracked = system.track(frame, slam_masks, timer)
                 pose = tracked.pose
+                if motion is not None:
+                    with timer.stage("motion"):
+                        motion.update(masks, tracked, system)
                 rec = timer.end_frame(status=tracked.status)
                 writer.append(pose, frame_index=idx, timestamp=float(stamps[idx]))
                 n_done = k + 1  # its row is written: what follows (an observer too) may fail, the row stays
-                if save_masks and masks is not None:
-                    _write_png(out / "masks" / "left" / frame_name(idx), masks.left)
-                    _write_png(out / "masks" / "right" / frame_name(idx), masks.right)
+                if save_masks and slam_masks is not None:
+                    _write_png(out / "masks" / "left" / frame_name(idx), slam_masks.left)
+                    _write_png(out / "masks" / "right" / frame_name(idx), slam_masks.right)
                 if objects_log is not None:
                     objects_log.write(json.dumps(objects_record(idx, masks)) + "\n")
                     objects_log.flush()
-                notify(observers, FrameEvent(k, frame, masks, rec["ms"], pose, tracked.status, system,
+                notify(observers, FrameEvent(k, frame, slam_masks, rec["ms"], pose, tracked.status, system,
                                              sequence.calibration))
                 if progress is not None:
                     progress(k + 1, len(frames), dict(rec, fps=n_done / (time.perf_counter() - t0)))
@@ -336,6 +380,8 @@ def run_slam_job(
             "sequence": str(getattr(sequence, "path", "")),
             "timestamps": getattr(sequence, "timestamp_source", None),
             "masker": getattr(masker, "name", "none") if masker is not None else "none",
+            "motion": ({"mode": "moving", "map_points_forgotten": motion.forgotten} if motion is not None
+                       else {"mode": "all" if masker is not None else "none"}),
             "frames_requested": len(frames),
             "frames_done": n_done,
             "frames_tracked": sum(s.status in ("tracked", "init") for s in states),

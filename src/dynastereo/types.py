@@ -236,6 +236,11 @@ class ObjectMask:
     pixels_right: int
     track_id: int = -1  # the box tracker's id (-1: boxes not tracked)
     source: DetectionSource = DetectionSource.DETECTED
+    # the motion test's verdict (masking.motion): True moving, False static, None not
+    # (yet) decided; whether the object was masked in the images SLAM got; its speed
+    moving: bool | None = None
+    masked: bool = True
+    speed_mps: float | None = None
 
     def __post_init__(self) -> None:
         self.method = MaskMethod(self.method)
@@ -252,6 +257,10 @@ class ObjectMask:
             "pixels_right": int(self.pixels_right),
             "track_id": int(self.track_id),
             "source": self.source.value,
+            "track": int(self.track_id),
+            "moving": None if self.moving is None else bool(self.moving),
+            "masked": bool(self.masked),
+            "speed_mps": None if self.speed_mps is None else round(float(self.speed_mps), 3),
         }
 
 
@@ -265,6 +274,14 @@ class StereoMasks:
     detections: Detections | None = None
     disparity: np.ndarray | None = None  # float32 pixels (full frame) if computed
     ground: Any = None  # masking.ground.GroundLine: the road line the outlines left out, when fitted
+    # instance labels (int32, k + 1 = objects[k], 0 = none) of the left / right masks, from
+    # the maskers that make them: what lets the motion test unmask one object alone
+    labels_left: np.ndarray | None = None
+    labels_right: np.ndarray | None = None
+    # the disparity the masker computed (full frame, 0 where not computed: the boxes'
+    # regions with stereo.region "boxes"), for the motion test
+    box_disparity: np.ndarray | None = None
+    flow: Any = None  # masking.motion.FrameFlow: the objects' points k-1 -> k, when measured
 
     @classmethod
     def empty(cls, shape: tuple[int, int]) -> "StereoMasks":

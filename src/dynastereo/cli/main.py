@@ -165,6 +165,7 @@ def run(
     rate: Optional[float] = typer.Option(None, "--rate", help=_RATE_HELP),
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
     save_masks: bool = typer.Option(False, "--save-masks", help="Also write DIR/masks/{left,right}/NNNNNN.png."),
+    mask_all: bool = typer.Option(False, "--mask-all", help="Mask every detection, moving or not (the thesis; motion.mode: all). Default: only objects judged moving or not yet judged."),
     bag: Optional[Path] = typer.Option(None, "--bag", help="Read a ROS bag instead of a folder: ROS 1 .bag, ROS 2 .db3 (or bag directory), .mcap. Writes DIR/output.<same format> too."),
     left_topic: str = typer.Option("/camera/left/image_raw", "--left-topic", help="[--bag] Left sensor_msgs/Image or CompressedImage topic."),
     right_topic: str = typer.Option("/camera/right/image_raw", "--right-topic", help="[--bag] Right image topic."),
@@ -202,7 +203,8 @@ def run(
         overrides = {"detector.name": detector, "stereo.algorithm": stereo, "masker.kind": masker,
                      "detector.canvas": canvas, "detector.schedule": schedule,
                      "slam.loop_closing": False if no_loop_closing else None,
-                     "slam.vocabulary": str(vocabulary) if vocabulary else None}
+                     "slam.vocabulary": str(vocabulary) if vocabulary else None,
+                     "motion.mode": "all" if mask_all else None}
         cfg = _build_config(config, overrides)
         with _progress() as prog:
             task = prog.add_task("tracking", total=None, info="")

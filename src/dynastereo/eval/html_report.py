@@ -365,7 +365,8 @@ def _overlay_section(rf: RunFiles, ev: EvalResult | None, n: int) -> str:
         label = f"frame {f} ({why}{': ' + why_worst if why == 'worst' else ''})"
         figs.append(f"<figure>{_img(jpg.tobytes(), label, 'image/jpeg')}<figcaption>{_esc(label)}</figcaption></figure>")
     note = "" if seq is not None else "<p>(sequence images not found: masks on grey)</p>"
-    return ("<h2>Masks</h2><p>left | right, dynamic pixels in red, boxes in green (orange: box fallback)</p>"
+    return ("<h2>Masks</h2><p>left | right, masked pixels tinted; boxes by the motion test's verdict: "
+            "red moving, orange not yet judged (both masked), green static (left to SLAM); thin: box fallback</p>"
             + note + "".join(figs))
 
 

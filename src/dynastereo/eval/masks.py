@@ -149,9 +149,12 @@ def score_mask_dir(
     sequence: str | Path,
     frames: list[int] | None = None,
     max_distance: float = 30.0,
+    moving_only: bool = False,
 ) -> MaskAgreement:
     """Score the masks ``dynastereo mask`` wrote under ``out_dir/masks`` against the GT of
-    the synthetic ``sequence`` (frames: those given, else every mask present)."""
+    the synthetic ``sequence`` (frames: those given, else every mask present);
+    ``moving_only``: against the objects moving in each frame (the masks of a ``run``
+    that masks only what moves, ``motion.mode: moving``)."""
     from ..synth import read_gt_masks, read_objects
 
     out_dir, seq = Path(out_dir), Path(sequence)
@@ -163,5 +166,6 @@ def score_mask_dir(
         name = f"{i:06d}.png"
         pred = {v: _read_mask(out_dir / "masks" / v / name) for v in ("left", "right")}
         gl, gr = read_gt_masks(seq, i)
-        result.scores += score_frame(i, pred, {"left": gl, "right": gr}, gt.frames[i], max_distance)
+        objects = [o for o in gt.frames[i] if o.moving or not moving_only]
+        result.scores += score_frame(i, pred, {"left": gl, "right": gr}, objects, max_distance)
     return result

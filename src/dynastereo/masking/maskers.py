@@ -167,8 +167,12 @@ class _DisparityMasker:
     def mask_detections(
         self, frame: StereoFrame, dets: Detections, timer: StageTimer | None = None
     ) -> StereoMasks:
-        """Masks for given detections (the detector is not run)."""
-        return self.mask_labels(frame, dets, timer)[0]
+        """Masks for given detections (the detector is not run), with their instance
+        labels and the disparity computed (``labels_left`` / ``labels_right`` /
+        ``box_disparity``)."""
+        masks, left, right = self.mask_labels(frame, dets, timer)
+        masks.labels_left, masks.labels_right = left, right
+        return masks
 
     def _detect(self, frame: StereoFrame, timer: StageTimer | None) -> Detections:
         from .detection.stage import DetectionStage
@@ -251,6 +255,7 @@ class OutlineMasker(_DisparityMasker):
             m = StereoMasks.empty(shape)
             m.detections = dets
             m.disparity = disp if self.full_disparity else None
+            m.box_disparity = disp
             z = np.zeros(shape, np.int32)
             return m, z, z
         assert disp is not None
@@ -270,7 +275,8 @@ class OutlineMasker(_DisparityMasker):
             )
             right = _to_mask(t.labels)
         objects = _objects(dets, o.methods, o.disparity, o.pixels, t.pixels)
-        masks = StereoMasks(left, right, objects, dets, disp if self.full_disparity else None, ground=ground)
+        masks = StereoMasks(left, right, objects, dets, disp if self.full_disparity else None, ground=ground,
+                            box_disparity=disp)
         return masks, o.labels, t.labels
 
     def mask(self, frame: StereoFrame, timer: StageTimer | None = None) -> StereoMasks:
@@ -311,6 +317,7 @@ class BoxMasker(_DisparityMasker):
             m = StereoMasks.empty(shape)
             m.detections = dets
             m.disparity = disp if self.full_disparity else None
+            m.box_disparity = disp
             z = np.zeros(shape, np.int32)
             return m, z, z
         assert disp is not None
@@ -341,7 +348,7 @@ class BoxMasker(_DisparityMasker):
             t = transfer_labels(labels, disparity, rois, mode="rigid", sweep=self._sweep())
             right = _to_mask(t.labels)
         objects = _objects(dets, methods, disparity, pixels, t.pixels)
-        masks = StereoMasks(left, right, objects, dets, disp if self.full_disparity else None)
+        masks = StereoMasks(left, right, objects, dets, disp if self.full_disparity else None, box_disparity=disp)
         return masks, labels, t.labels
 
     def mask(self, frame: StereoFrame, timer: StageTimer | None = None) -> StereoMasks:

@@ -288,6 +288,7 @@ class StereoNodeCore:
         self._matcher = None  # for published disparity when the masker computed none
         self._matcher_cfg: Any = None
         self._system: Any = None
+        self._motion: Any = None  # masking.motion.ObjectMotion (motion.mode: moving), once calibrated
         self._calib_in: StereoCalibration | RawStereoCalibration | None = None
         self.rectifier: Rectifier | None = None
         self._stamps: list[int] = []
@@ -334,6 +335,9 @@ class StereoNodeCore:
                     self._masker = self._build_masker(self._masker_cfg)
             with _sigint_blocked():  # the BA worker process inherits it: Ctrl-C / roslaunch's
                 self._system = System(self.cfg, self.calibration)  # SIGINT to the group is ours to handle
+            from ..masking.motion import build_motion
+
+            self._motion = build_motion(self.cfg, self.calibration, self._masker)
             self._calib_in = calibration
             return True
 
@@ -393,6 +397,8 @@ class StereoNodeCore:
                 self._masker, self._masker_cfg = self._pending
                 self._own_masker = True
                 self._pending = None
+                if self._motion is not None:  # the new masker's track ids start again
+                    self._motion.flow.reset()
 
     # ------------------------------------------------------------------ input
     def submit(self, inp: StereoInput) -> int:
@@ -536,6 +542,9 @@ class StereoNodeCore:
         if not self.stereo_watch.done:
             self.stereo_watch.observe(frame)
         masks = self._masker.mask(frame, t) if self._masker is not None else None
+        if self._motion is not None and masks is not None:
+            with t.stage("motion_flow"):
+                self._motion.measure(frame, masks)
         ms = t.end_frame()["ms"]
         return inp, frame, masks, ms
 
@@ -548,8 +557,14 @@ class StereoNodeCore:
             for k, v in mask_ms.items():
                 if k not in ("total", "masking"):
                     self.timer.add(k, v)
+            motion = self._motion if masks is not None else None
+            if motion is not None:  # only objects judged moving or not yet judged are masked
+                judged, masks = masks, motion.select(masks)
             tracked = self._system.track(frame, masks, self.timer)
             pose, status = tracked.pose, tracked.status
+            if motion is not None:
+                with self.timer.stage("motion"):
+                    motion.update(judged, tracked, self._system)
             self._position += 1
             self._stamps.append(int(inp.stamp_ns))
         pose_time = time.time()

@@ -14,7 +14,10 @@ Subscribes (message_filters, approximate-time synchronized; ``~exact_sync`` for 
 
 Publishes
     ``~odometry`` nav_msgs/Odometry, ``/tf`` (``~odom_frame`` -> camera frame), ``~left/masked``,
-    ``~right/masked``, ``~left/mask``, ``~right/mask`` (sensor_msgs/Image), ``~disparity``
+    ``~right/masked``, ``~left/mask``, ``~right/mask`` (sensor_msgs/Image; the masks SLAM got:
+    objects judged moving or not yet judged), ``~left/objects`` (bgr8: the left image with
+    the objects in the colours of the motion test's verdicts, ``pipeline.VERDICT_COLOURS``:
+    moving red, undecided orange, static green), ``~disparity``
     (stereo_msgs/DisparityImage), ``~path`` (nav_msgs/Path, the trajectory so far, latched),
     ``~map_points`` (sensor_msgs/PointCloud2, the map every ``MAP_EVERY``-th frame, latched),
     ``~ready`` (std_msgs/Bool, latched: true once the SLAM has its calibration).  Images,
@@ -81,6 +84,15 @@ def import_rospy():
             f"ROS 1 is not importable ({e}). On Debian bookworm: apt-get install {' '.join(ROS1_PACKAGES)}; "
             "then use a venv created with '/usr/bin/python3 -m venv --system-site-packages' (make venv does)") from None
 
+
+
+def _objects_view(image: np.ndarray, mask: np.ndarray, masks: Any) -> np.ndarray:
+    """The left image with the objects coloured by the motion test's verdicts (``~left/objects``)."""
+    from ..pipeline import draw_objects
+
+    if masks is None:
+        return draw_objects(image, mask, [])
+    return draw_objects(image, mask, masks.objects, masks.labels_left)
 
 class GenpyBuilder(MessageBuilder):
     """Messages as rospy's (genpy) classes."""
@@ -194,7 +206,7 @@ class Ros1Node:
         self.pub_odom = rospy.Publisher("~odometry", Odometry, queue_size=10)
         self.pub_tf = rospy.Publisher("/tf", TFMessage, queue_size=100) if self.publish_tf else None
         self.pub_img = {k: rospy.Publisher("~" + k, Image, queue_size=2)
-                        for k in ("left/masked", "right/masked", "left/mask", "right/mask")}
+                        for k in ("left/masked", "right/masked", "left/mask", "right/mask", "left/objects")}
         self.pub_disp = rospy.Publisher("~disparity", DisparityImage, queue_size=2)
         self.pub_path = rospy.Publisher("~path", PathMsg, queue_size=1, latch=True)
         self.pub_map = rospy.Publisher("~map_points", PointCloud2, queue_size=1, latch=True)
@@ -318,7 +330,8 @@ class Ros1Node:
         fid = r.odometry.child_frame_id
         for key, img, enc in (("left/masked", lambda: masked_image(frame.left, ml), None),
                               ("right/masked", lambda: masked_image(frame.right, mr), None),
-                              ("left/mask", lambda: ml, "mono8"), ("right/mask", lambda: mr, "mono8")):
+                              ("left/mask", lambda: ml, "mono8"), ("right/mask", lambda: mr, "mono8"),
+                              ("left/objects", lambda: _objects_view(frame.left, ml, masks), None)):
             pub = self.pub_img[key]
             if pub.get_num_connections() > 0:
                 pub.publish(self.b.image(img(), r.stamp_ns, fid, enc, seq=r.position))

@@ -223,6 +223,14 @@ class System:
             tm.end_frame(status=res.status)
         return res
 
+    def forget_region(self, region: np.ndarray, z_min: float, z_max: float) -> int:
+        """Remove from the map the points that project, from the last tracked frame, into
+        the left-image pixels ``region`` (bool) at depths ``[z_min, z_max]`` m -- an
+        object that turned out to move (``slam.dynamic``); returns how many."""
+        from .dynamic import forget_region
+
+        return forget_region(self.map, self.tracker.last, region, z_min, z_max)
+
     # ---------------------------------------------------------------- results
     def trajectory(self) -> np.ndarray:
         """(N, 3, 4) camera-to-world poses of the left camera, one per frame fed."""

@@ -132,15 +132,16 @@ class Shape:
 
     def const(self) -> dict[str, np.ndarray]:
         """Stacked constraint arrays of the primitives (same for every animation phase)."""
-        if self._const is None:
+        if self._const is None:  # built whole, then published: the two views render in threads
             prims = self.prims(0.0)
             arrs = [p.arrays() for p in prims]
-            self._const = {k: np.stack([a[k] for a in arrs]) for k in arrs[0]}
-            self._const["mat"] = np.array([p.material for p in prims], np.int64)
-            self._const["gain"] = np.array([p.gain for p in prims], np.float32)
+            const = {k: np.stack([a[k] for a in arrs]) for k in arrs[0]}
+            const["mat"] = np.array([p.material for p in prims], np.int64)
+            const["gain"] = np.array([p.gain for p in prims], np.float32)
             if self.animate is None:
-                self._const["R"] = np.stack([p.R for p in prims])
-                self._const["c"] = np.stack([p.c for p in prims])
+                const["R"] = np.stack([p.R for p in prims])
+                const["c"] = np.stack([p.c for p in prims])
+            self._const = const
         return self._const
 
     def pose_arrays(self, phase: float) -> tuple[np.ndarray, np.ndarray]:

@@ -174,7 +174,8 @@ class OracleDetector:
     ``classes`` limits the labels returned (default: the dynamic COCO classes);
     ``min_pixels`` drops objects with fewer visible left-image pixels; ``moving_only``
     returns only objects moving in that frame; ``with_masks`` adds the GT instance masks
-    (``Detections.masks``, (N, H, W) bool, left view).  See the module docstring for how
+    (``Detections.masks``, (N, H, W) bool, left view).  Every box's track id
+    (``Detections.track_ids``) is the object's GT instance id.  See the module docstring for how
     the frame is chosen.
     """
 
@@ -230,7 +231,8 @@ class OracleDetector:
         if self.with_masks:
             left, _ = read_gt_masks(self.path, index)
             masks = np.stack([left == o.id for o in objs])
-        return Detections(boxes, np.ones(len(objs), np.float32), ids, self.class_names, masks)
+        tracks = np.array([o.id for o in objs], np.int64)  # the GT instance id is the track id
+        return Detections(boxes, np.ones(len(objs), np.float32), ids, self.class_names, masks, tracks)
 
     def detect(self, image: np.ndarray) -> Detections:
         if self.frame_index is not None:

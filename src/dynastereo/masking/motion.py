@@ -1,0 +1,597 @@
+"""Mask only what moves: each tracked object judged moving or static from stereo scene flow.
+
+Masking every detected car costs SLAM its best texture when the cars are parked.  This
+module decides per object, against the camera's motion that SLAM measured from the
+static background (world frame, not the image: a truck that fills the view and drives
+with the camera is moving).  Two halves, because masking runs one frame ahead of
+tracking on a prefetch thread:
+
+* :class:`SceneFlow` (masking thread, ``measure(frame, masks)`` after the masker):
+  for every object seen in frames k-1 and k under the same track id, the points followed
+  into k-1 topped up to ``motion.max_points`` with new corners on its outline at k-1
+  (``goodFeaturesToTrack`` on the instance label, where the masker's disparity is
+  valid, 3 px from the points it has) are followed to k by pyramidal Lucas-Kanade on a
+  crop around the object (forward-backward checked, error < 1 px); a point is kept when
+  it lands on the same object's outline at k with a valid disparity there.  Each point
+  keeps where it was first seen (pixel, disparity, frame), up to ``window_frames`` back.
+  Result: a :class:`FrameFlow` of ``(u, v, d)`` at k-1, k and first sight per object.
+* :class:`MotionJudge` (main thread): ``select(masks)`` just before ``System.track``
+  gives the masks SLAM gets -- only objects judged moving or not yet judged (the safe
+  default) are masked, static ones are left to tracking and mapping; ``update(masks,
+  pose, ok)`` after tracking weighs the frame's flow against the camera motion:
+
+  - frame to frame (:func:`static_chi2`): a static point's ``(u, v, d)`` at k-1, moved by
+    ``T_{k,k-1}`` and projected, must land on its measurement at k.  The residual's
+    covariance holds the measurement noise at k (``sigma_px``, ``sigma_disparity``) and
+    the noise at k-1 propagated through the prediction (its Jacobian, by finite
+    differences): the stereo depth uncertainty ``sigma_Z = Z^2 sigma_d / bf`` and the
+    lateral ``Z sigma_px / f`` enter that way; the fraction of points over ``chi2``;
+  - over the window (:func:`world_velocity`): the object's world velocity, the median of
+    ``(X_k - X_first) / age`` of its points in the world frame, against its covariance
+    (stereo at both ends, at most ``object_points`` independent points, SLAM's pose
+    error as a random walk): chi-square against ``object_chi2``.  The long baseline sees
+    a car ahead at the camera's speed far away, which one frame cannot.
+
+  Evidence of motion / rest per frame, hysteresis over frames (``confirm_frames``,
+  ``release_frames``) gives the verdict ``moving`` True / False / None (undecided); a
+  frame where most objects judged static seem to move gives none (a bad pose).  Speed =
+  the velocity's norm / dt (median of the last 3 frames).  ``update`` returns the objects
+  that turned moving from static, whose map points :class:`ObjectMotion` removes
+  (``System.forget_region``).
+
+Everything is vectorized over the points; the per-object work is a few array slices.
+Maskers without instance labels (``seg``) get verdicts but keep every object masked;
+objects without a track id (``detector.track: false``) stay undecided (masked).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..config import MotionConfig
+from ..types import StereoCalibration, StereoFrame, StereoMasks
+
+__all__ = ["FrameFlow", "ObjectFlow", "SceneFlow", "MotionJudge", "ObjectMotion", "static_chi2", "world_velocity"]
+
+_LK = dict(winSize=(11, 11), maxLevel=3, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03))
+_FB_MAX = 1.0  # px, forward-backward error to keep a point
+_MARGIN = 48  # px around the boxes' union that LK works on
+_NEAR = tuple(a.ravel() for a in np.meshgrid(np.arange(-3, 4), np.arange(-3, 4)))  # (dx, dy) offsets
+_MIN_PIXELS = 150  # objects with fewer outline pixels are not followed (they stay undecided: masked)
+
+
+@dataclass
+class ObjectFlow:
+    """One object's points from frame k-1 to k: pixels ``(n, 2)`` and disparities ``(n,)``."""
+
+    track: int
+    index: int  # the object's index in masks.objects at k
+    uv0: np.ndarray
+    d0: np.ndarray
+    uv1: np.ndarray
+    d1: np.ndarray
+    # each point where it was first seen (followed since): pixel, disparity, frame (seq)
+    uva: np.ndarray | None = None
+    da: np.ndarray | None = None
+    seqa: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.uva is None:  # first seen at k-1
+            self.uva, self.da = self.uv0, self.d0
+            self.seqa = np.full(len(self.d0), -1, np.int64)
+
+    def __len__(self) -> int:
+        return len(self.d0)
+
+
+@dataclass
+class FrameFlow:
+    """The objects' scene flow into one frame (``StereoMasks.flow``)."""
+
+    seq: int  # the frame's number in the order measured (0, 1, ...)
+    dt: float  # seconds since the previous frame
+    objects: list[ObjectFlow] = field(default_factory=list)
+    epoch: int = 0  # SceneFlow.reset() counts up: the track ids start again (a new masker)
+
+
+@dataclass
+class _Prev:
+    seq: int
+    index: int
+    stamp: float
+    gray: np.ndarray
+    labels: np.ndarray
+    disparity: np.ndarray
+    tracks: np.ndarray  # (N,) track id per object
+    boxes: np.ndarray  # (N, 4)
+    # per track id, the points followed into this frame: (uv (n, 2), their anchors (uv, d, seq))
+    points: dict = field(default_factory=dict)
+
+
+def _lookup(img: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(values at the nearest pixels, inside-the-image flags)."""
+    h, w = img.shape[:2]
+    x = np.rint(uv[:, 0]).astype(np.int64)
+    y = np.rint(uv[:, 1]).astype(np.int64)
+    inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    return img[np.clip(y, 0, h - 1), np.clip(x, 0, w - 1)], inside
+
+
+class SceneFlow:
+    """The measuring half (masking thread): module docstring."""
+
+    def __init__(self, cfg: MotionConfig | None = None):
+        self.cfg = cfg or MotionConfig()
+        self._prev: _Prev | None = None
+        self._seq = 0
+        self.epoch = 0
+
+    def reset(self) -> None:
+        """Forget the previous frame; the verdicts are forgotten too (a new masker's track
+        ids start again): the judge sees the new ``epoch``."""
+        self._prev = None
+        self.epoch += 1
+
+    def _corners(self, prev: _Prev, i: int, have: np.ndarray | None = None) -> np.ndarray:
+        """Up to ``max_points`` points (n, 2) float32 on object ``i``'s outline at k-1, at
+        least 3 px from the points it ``have`` already (and no more than make up the number)."""
+        h, w = prev.gray.shape
+        x0, y0, x1, y1 = prev.boxes[i]
+        x0, y0 = max(int(np.floor(x0)), 0), max(int(np.floor(y0)), 0)
+        x1, y1 = min(int(np.ceil(x1)), w), min(int(np.ceil(y1)), h)
+        if x1 - x0 < 4 or y1 - y0 < 4:
+            return np.zeros((0, 2), np.float32)
+        sel = (prev.labels[y0:y1, x0:x1] == i + 1) & (prev.disparity[y0:y1, x0:x1] > 0)
+        if np.count_nonzero(sel) < max(self.cfg.min_points, _MIN_PIXELS):
+            return np.zeros((0, 2), np.float32)
+        n = self.cfg.max_points - (0 if have is None else len(have))
+        if n < max(3, self.cfg.max_points // 4):
+            return np.zeros((0, 2), np.float32)
+        if have is not None and len(have):  # not within 3 px of a point followed already
+            hx = (np.rint(have[:, 0]).astype(np.int64) - x0)[:, None] + _NEAR[0]
+            hy = (np.rint(have[:, 1]).astype(np.int64) - y0)[:, None] + _NEAR[1]
+            sel[np.clip(hy, 0, y1 - y0 - 1), np.clip(hx, 0, x1 - x0 - 1)] = False
+        min_dist = max(2.0, min(x1 - x0, y1 - y0) / 12.0)
+        c = cv2.goodFeaturesToTrack(prev.gray[y0:y1, x0:x1], n, 0.001, min_dist,
+                                    mask=sel.view(np.uint8), blockSize=3)
+        if c is None:
+            return np.zeros((0, 2), np.float32)
+        return (c.reshape(-1, 2) + np.float32([x0, y0])).astype(np.float32)
+
+    def measure(self, frame: StereoFrame, masks: StereoMasks | None) -> FrameFlow:
+        """The objects' flow from the previous frame measured into this one (empty on the
+        first frame, after a jump in the frame indices, or without labels/disparity)."""
+        seq = self._seq
+        self._seq += 1
+        prev = self._prev
+        self._prev = None
+        stamp = float(frame.timestamp)
+        dt = stamp - prev.stamp if prev is not None else 0.0
+        out = FrameFlow(seq, dt if dt > 0 else 0.1, epoch=self.epoch)
+        if masks is None or masks.labels_left is None or masks.box_disparity is None:
+            return out
+        gray = frame.left_gray
+        objs = masks.objects
+        tracks = np.array([o.track_id for o in objs], np.int64)
+        boxes = np.array([o.box for o in objs], np.float64).reshape(-1, 4)
+        self._prev = _Prev(seq, frame.index, stamp, gray, masks.labels_left, masks.box_disparity, tracks, boxes)
+        if prev is None or prev.gray.shape != gray.shape or (frame.index >= 0 and frame.index != prev.index + 1):
+            return out
+        cur_of = {int(t): j for j, t in enumerate(tracks) if t >= 0}
+        pairs = [(i, cur_of[int(t)]) for i, t in enumerate(prev.tracks) if t >= 0 and int(t) in cur_of]
+        if not pairs:
+            return out
+        # the points followed into k-1 (anchors kept up to window_frames back), topped up
+        # with new corners on the outline at k-1 (anchored there)
+        W = self.cfg.window_frames
+        empty2, empty1 = np.zeros((0, 2)), np.zeros(0)
+        p0s, anchors = [], []
+        for i, _ in pairs:
+            uv, (ua, da, sa) = prev.points.get(int(prev.tracks[i]), (empty2, (empty2, empty1, empty1)))
+            young = seq - sa <= W
+            uv, ua, da, sa = uv[young], ua[young], da[young], sa[young]
+            new = self._corners(prev, i, uv).astype(np.float64)
+            dn, _ = _lookup(prev.disparity, new)
+            p0s.append(np.concatenate([uv, new]))
+            anchors.append((np.concatenate([ua, new]), np.concatenate([da, dn]),
+                            np.concatenate([sa, np.full(len(new), seq - 1)])))
+        owner = np.concatenate([np.full(len(p), k) for k, p in enumerate(p0s)])
+        if len(owner) == 0:
+            return out
+        p0 = np.concatenate(p0s).astype(np.float32)
+        ua, da, sa = (np.concatenate([a[c] for a in anchors]) for c in range(3))
+        # LK per object on its boxes (k-1 and k) grown by a margin: small pyramids
+        h, w = gray.shape
+        p1 = np.zeros_like(p0)
+        good = np.zeros(len(p0), bool)
+        for k, (i, j) in enumerate(pairs):
+            s = owner == k
+            if not s.any():
+                continue
+            bx = np.stack([prev.boxes[i], boxes[j]])
+            cx0, cy0 = max(0, int(bx[:, 0].min()) - _MARGIN), max(0, int(bx[:, 1].min()) - _MARGIN)
+            cx1, cy1 = min(w, int(bx[:, 2].max()) + _MARGIN), min(h, int(bx[:, 3].max()) + _MARGIN)
+            off = np.float32([cx0, cy0])
+            a, b = prev.gray[cy0:cy1, cx0:cx1], gray[cy0:cy1, cx0:cx1]
+            q0 = (p0[s] - off).reshape(-1, 1, 2)
+            q1, st1, _ = cv2.calcOpticalFlowPyrLK(a, b, q0, None, **_LK)
+            q0b, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, q1, None, **_LK)
+            p1[s] = q1.reshape(-1, 2) + off
+            fb = np.linalg.norm(q0.reshape(-1, 2) - q0b.reshape(-1, 2), axis=1)
+            good[s] = (st1.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(fb) & (fb < _FB_MAX)
+        d0, _ = _lookup(prev.disparity, p0)
+        d1, in1 = _lookup(masks.box_disparity, p1)
+        lab1, _ = _lookup(masks.labels_left, p1)
+        cur_label = np.array([j + 1 for _, j in pairs], np.int64)[owner]
+        good &= in1 & (d0 > 0) & (d1 > 0) & (da > 0) & (lab1 == cur_label)
+        p0, p1 = p0.astype(np.float64), p1.astype(np.float64)
+        d0, d1 = d0.astype(np.float64), d1.astype(np.float64)
+        for k, (_, j) in enumerate(pairs):
+            s = good & (owner == k)
+            if np.any(s):
+                out.objects.append(ObjectFlow(int(tracks[j]), j, p0[s], d0[s], p1[s], d1[s], ua[s], da[s], sa[s]))
+                self._prev.points[int(tracks[j])] = (p1[s], (ua[s], da[s], sa[s]))
+        return out
+
+
+# ----------------------------------------------------------------------------- the test
+
+
+def _project(uv: np.ndarray, d: np.ndarray, T: np.ndarray, K: np.ndarray, bf: float) -> np.ndarray:
+    """``(u, v, d)`` (n, 3) of the stereo points ``(uv, d)`` moved by the 4x4 ``T`` (NaN behind)."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    Z = bf / d
+    X = np.stack([(uv[:, 0] - cx) * Z / fx, (uv[:, 1] - cy) * Z / fy, Z], axis=1)
+    Y = X @ T[:3, :3].T + T[:3, 3]
+    z = np.where(Y[:, 2] > 1e-6, Y[:, 2], np.nan)
+    return np.stack([fx * Y[:, 0] / z + cx, fy * Y[:, 1] / z + cy, bf / z], axis=1)
+
+
+def _points(uv: np.ndarray, d: np.ndarray, K: np.ndarray, bf: float) -> np.ndarray:
+    Z = bf / d
+    return np.stack([(uv[:, 0] - K[0, 2]) * Z / K[0, 0], (uv[:, 1] - K[1, 2]) * Z / K[1, 1], Z], axis=1)
+
+
+def static_residuals(flow: ObjectFlow, T_10: np.ndarray, calib: StereoCalibration, sigma_px: float,
+                     sigma_d: float, keep: bool = False):
+    """Per point, the residual ``(n, 3)`` of ``(u, v, d)`` at k against a static object's
+    prediction from k-1 under the camera motion ``T_10`` (k-1 camera -> k camera, 4x4) and
+    its covariance ``(n, 3, 3)``; rows with a prediction behind the camera are dropped
+    (``keep``: kept, and their flags returned third)."""
+    K, bf = calib.K, calib.bf
+    p = _project(flow.uv0, flow.d0, T_10, K, bf)
+    # Jacobian of the prediction w.r.t. (u0, v0, d0), by forward differences
+    steps = (0.5, 0.5, 0.05)
+    J = np.empty((len(p), 3, 3))
+    for c, h in enumerate(steps):
+        uv, d = flow.uv0.copy(), flow.d0.copy()
+        if c < 2:
+            uv[:, c] += h
+        else:
+            d = d + h
+        J[:, :, c] = (_project(uv, d, T_10, K, bf) - p) / h
+    S = np.array([sigma_px**2, sigma_px**2, sigma_d**2])
+    C = np.einsum("nij,j,nkj->nik", J, S, J) + np.diag(S)
+    r = np.stack([flow.uv1[:, 0], flow.uv1[:, 1], flow.d1], axis=1) - p
+    ok = np.isfinite(r).all(axis=1) & np.isfinite(C).all(axis=(1, 2))
+    return (r, C, ok) if keep else (r[ok], C[ok])
+
+
+def _mahalanobis(r: np.ndarray, C: np.ndarray) -> np.ndarray:
+    return np.einsum("ni,ni->n", r, np.linalg.solve(C, r[:, :, None])[:, :, 0])
+
+
+def static_chi2(flow: ObjectFlow, T_10: np.ndarray, calib: StereoCalibration, sigma_px: float,
+                sigma_d: float) -> np.ndarray:
+    """Per point, the chi-square (3 dof) of the static hypothesis (:func:`static_residuals`)."""
+    r, C = static_residuals(flow, T_10, calib, sigma_px, sigma_d)
+    return _mahalanobis(r, C) if len(r) else np.zeros(0)
+
+
+def _point_cov(uv: np.ndarray, d: np.ndarray, calib: StereoCalibration, S: np.ndarray) -> np.ndarray:
+    """Covariances ``(n, 3, 3)`` of the stereo points ``(uv, d)`` (camera frame) for pixel /
+    disparity variances ``S`` = (su^2, sv^2, sd^2): sigma_Z = Z^2 sigma_d / bf, lateral Z
+    sigma_px / f, and their correlation."""
+    fx, fy, cx, cy = calib.fx, calib.fy, calib.cx, calib.cy
+    Z = calib.bf / d
+    J = np.zeros((len(d), 3, 3))
+    J[:, 0, 0] = Z / fx
+    J[:, 1, 1] = Z / fy
+    J[:, 0, 2] = -(uv[:, 0] - cx) * Z / (fx * d)
+    J[:, 1, 2] = -(uv[:, 1] - cy) * Z / (fy * d)
+    J[:, 2, 2] = -Z / d
+    return np.einsum("nij,j,nkj->nik", J, S, J)
+
+
+def _point_velocities(flow: ObjectFlow, seq: int, poses: dict[int, np.ndarray], calib: StereoCalibration,
+                      S: np.ndarray):
+    """Per point with a known anchor pose: (which points (n,) bool, world displacement per
+    frame since the anchor (m, 3), its covariance (m, 3, 3), age in frames (m,), the
+    point at k in the camera frame (m, 3))."""
+    anchor = flow.seqa.copy()
+    anchor[anchor < 0] = seq - 1
+    known = np.array(sorted(poses), np.int64)
+    use = np.isin(anchor, known)
+    K, bf = calib.K, calib.bf
+    T1 = poses[seq]
+    R1 = T1[:3, :3]
+    stack = np.stack([poses[int(k)] for k in known]) if len(known) else np.zeros((0, 4, 4))
+    Ta = stack[np.searchsorted(known, anchor[use])]
+    Ra = Ta[:, :3, :3]
+    age = (seq - anchor[use]).astype(np.float64)
+    uva, da, uv1, d1 = flow.uva[use], flow.da[use], flow.uv1[use], flow.d1[use]
+    Xa = np.einsum("nij,nj->ni", Ra, _points(uva, da, K, bf)) + Ta[:, :3, 3]
+    X1 = _points(uv1, d1, K, bf)
+    V = ((X1 @ R1.T + T1[:3, 3]) - Xa) / age[:, None]
+    Ca = np.einsum("nij,njk,nlk->nil", Ra, _point_cov(uva, da, calib, S), Ra)
+    C = (Ca + R1 @ _point_cov(uv1, d1, calib, S) @ R1.T) / (age**2)[:, None, None]
+    return use, V, C, age, X1
+
+
+def _object_velocity(V, C, age, X1, R1, max_points, sigma_rot, sigma_t):
+    n = min(len(V), max_points)
+    X = X1.mean(axis=0)
+    pose = sigma_rot**2 * (X @ X * np.eye(3) - np.outer(X, X)) + sigma_t**2 * np.eye(3)  # camera frame
+    Cm = C.mean(axis=0) * (np.pi / 2) / n + R1 @ pose @ R1.T / float(age.mean())
+    return np.median(V, axis=0), Cm, len(V)
+
+
+def world_velocity(flow: ObjectFlow, seq: int, poses: dict[int, np.ndarray], calib: StereoCalibration,
+                   sigma_px: float, sigma_d: float, max_points: int, sigma_rot: float = 0.0,
+                   sigma_t: float = 0.0) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """(the object's world displacement per frame (3,), its covariance (3, 3), points used)
+    from its points' displacements since they were first seen (``flow.uva`` / ``da`` at
+    frame ``seqa``; ``poses``: seq -> 4x4 camera-to-world of the frames tracked, ``seq``
+    this frame's): the median of ``(X_k - X_a) / age`` over the points; the covariance is
+    the mean point covariance (stereo at both ends, / age^2) * (pi / 2) / n with n at
+    most ``max_points`` (the points' errors are not independent: the pose's and the
+    disparity's biases are shared), plus the camera motion's own error per frame:
+    ``sigma_rot`` (rad) about any axis moves the object's median point X by ``dw x X``,
+    ``sigma_t`` (m) shifts it, both as a random walk over the age.  None: no point has
+    a known anchor pose."""
+    if seq not in poses:
+        return None
+    S = np.array([sigma_px**2, sigma_px**2, sigma_d**2])
+    use, V, C, age, X1 = _point_velocities(flow, seq, poses, calib, S)
+    if not use.any():
+        return None
+    return _object_velocity(V, C, age, X1, poses[seq][:3, :3], max_points, sigma_rot, sigma_t)
+
+
+@dataclass
+class _TrackState:
+    moving: bool | None = None
+    run: int = 0  # > 0: frames of motion evidence in a row; < 0: of rest
+    speeds: deque = field(default_factory=lambda: deque(maxlen=3))
+    last_seen: int = 0
+
+
+class MotionJudge:
+    """The deciding half (main thread): module docstring."""
+
+    def __init__(self, cfg: MotionConfig | None, calibration: StereoCalibration):
+        self.cfg = cfg or MotionConfig()
+        self.cfg.validate()
+        self.calib = calibration
+        self.tracks: dict[int, _TrackState] = {}
+        self._last: tuple[int, np.ndarray] | None = None  # (seq, T_wc 4x4) of the last tracked frame
+        self._poses: dict[int, np.ndarray] = {}  # seq -> T_wc of the recent frames tracked
+        self._n = 0
+        self._epoch = 0
+        # with a list here, one row per object and frame tested:
+        # (seq, track, points, fraction over chi2 (-1: frame skipped), window chi2, evidence)
+        self.log: list | None = None
+
+    def reset(self) -> None:
+        self.tracks.clear()
+        self._last = None
+        self._poses.clear()
+
+    def _sync(self, masks: StereoMasks) -> None:
+        flow = masks.flow
+        if flow is not None and flow.epoch != self._epoch:
+            self.reset()
+            self._epoch = flow.epoch
+
+    def state(self, track: int) -> bool | None:
+        t = self.tracks.get(int(track))
+        return None if t is None else t.moving
+
+    def select(self, masks: StereoMasks | None) -> StereoMasks | None:
+        """The masks SLAM gets for this frame: only objects judged moving or not yet judged
+        (``ObjectMask.masked`` / ``moving`` set on ``masks.objects``); ``masks`` itself
+        when every object stays masked."""
+        if masks is None:
+            return None
+        self._sync(masks)
+        keep = []
+        for i, o in enumerate(masks.objects):
+            o.moving = self.state(o.track_id) if o.track_id >= 0 else None
+            o.masked = o.moving is not False or masks.labels_left is None
+            if o.masked:
+                keep.append(i + 1)
+        if len(keep) == len(masks.objects):
+            return masks
+        left, right = masks.left.copy(), masks.right.copy()
+        h, w = left.shape
+        for i, o in enumerate(masks.objects):
+            if o.masked:
+                continue
+            # the object's pixels: in its box on the left, in its rows on the right
+            x0, y0 = max(int(o.box[0]), 0), max(int(o.box[1]), 0)
+            x1, y1 = min(int(np.ceil(o.box[2])), w), min(int(np.ceil(o.box[3])), h)
+            crop = left[y0:y1, x0:x1]
+            crop[masks.labels_left[y0:y1, x0:x1] == i + 1] = 0
+            band = right[y0:y1]
+            band[masks.labels_right[y0:y1] == i + 1] = 0
+        return StereoMasks(left, right, masks.objects, masks.detections, masks.disparity, masks.ground,
+                           masks.labels_left, masks.labels_right, masks.box_disparity, masks.flow)
+
+    def _evidence(self, chi: np.ndarray, chi_velocity: float) -> bool | None:
+        """This frame's evidence: True motion, False rest, None neither (too few points)."""
+        c = self.cfg
+        if len(chi) < max(3, c.min_points // 2):
+            return None
+        frac = float(np.mean(chi > c.chi2))
+        if frac >= c.moving_fraction or chi_velocity > c.object_chi2:
+            return True  # (half of min_points suffice to keep an object masked)
+        if len(chi) >= c.min_points and frac <= c.static_fraction and chi_velocity <= c.object_chi2_static:
+            return False
+        return None
+
+    def _step(self, t: _TrackState, e: bool | None) -> bool:
+        """Hysteresis; True when the track turned moving from static."""
+        c = self.cfg
+        if e is None:
+            return False
+        t.run = (max(t.run, 0) + 1) if e else (min(t.run, 0) - 1)
+        was = t.moving
+        if t.run >= c.confirm_frames:
+            t.moving = True
+        elif (was is None and t.run <= -c.confirm_frames) or (was is True and t.run <= -c.release_frames):
+            t.moving = False
+        return was is False and t.moving is True
+
+    def _weigh(self, flow: FrameFlow, T0: np.ndarray, T1: np.ndarray) -> list[int]:
+        """The evidence of one frame's flow under the camera motion ``T0`` -> ``T1``."""
+        c = self.cfg
+        T_10 = np.linalg.inv(T1) @ T0
+        rows = []
+        objs = flow.objects
+        if not objs:
+            return []
+        # all objects' points at once, then per object
+        owner = np.concatenate([np.full(len(of), k) for k, of in enumerate(objs)])
+        cat = ObjectFlow(-1, -1, *(np.concatenate([getattr(of, a) for of in objs])
+                                   for a in ("uv0", "d0", "uv1", "d1", "uva", "da", "seqa")))
+        r, C, ok = static_residuals(cat, T_10, self.calib, c.sigma_px, c.sigma_disparity, keep=True)
+        chi_all = np.full(len(owner), np.nan)
+        if ok.any():
+            chi_all[ok] = _mahalanobis(r[ok], C[ok])
+        S = np.array([c.sigma_px**2, c.sigma_px**2, c.sigma_disparity**2])
+        if flow.seq in self._poses:
+            use, V, Cv, age, X1 = _point_velocities(cat, flow.seq, self._poses, self.calib, S)
+            vowner = owner[use]
+        else:
+            vowner = np.zeros(0, np.int64)
+        R1 = T1[:3, :3]
+        for k, of in enumerate(objs):
+            t = self.tracks[of.track]
+            chi = chi_all[(owner == k) & ok]
+            sel = vowner == k
+            vel = None
+            if sel.any():
+                vel = _object_velocity(V[sel], Cv[sel], age[sel], X1[sel], R1, c.object_points,
+                                       np.radians(c.sigma_pose_deg), c.sigma_pose_m)
+            chi_v = float(vel[0] @ np.linalg.solve(vel[1], vel[0])) if vel is not None else 0.0
+            rows.append((of, t, chi, chi_v, vel, self._evidence(chi, chi_v)))
+        # the camera's motion itself is suspect when most objects judged static seem to move
+        # at once (a bad pose): no evidence from this frame
+        judged = [r for r in rows if r[1].moving is False and r[5] is not None]
+        if len(judged) >= 2 and sum(r[5] is True for r in judged) >= c.suspect_fraction * len(judged):
+            if self.log is not None:
+                self.log.extend((flow.seq, r[0].track, len(r[2]), -1.0, r[3], None) for r in rows)
+            return []
+        turned = []
+        for of, t, chi, chi_v, vel, e in rows:
+            if self.log is not None:
+                self.log.append((flow.seq, of.track, len(chi), float(np.mean(chi > c.chi2)) if len(chi) else 0.0,
+                                 chi_v, e))
+            if self._step(t, e):
+                turned.append(of.index)
+            if vel is not None and vel[2] >= c.min_points:
+                t.speeds.append(float(np.linalg.norm(vel[0])) / flow.dt)
+        return turned
+
+    def update(self, masks: StereoMasks | None, pose: np.ndarray, ok: bool) -> list[int]:
+        """Weigh the frame's flow (``masks.flow``) against the camera motion since the last
+        frame (``pose``: 3x4 camera-to-world of this frame; ``ok``: tracked, not lost) and
+        update the verdicts (``moving`` / ``speed_mps`` of ``masks.objects``).  Returns the
+        indices (into ``masks.objects``) of the objects that turned moving from static."""
+        self._n += 1
+        if masks is not None:
+            self._sync(masks)
+        flow = masks.flow if masks is not None else None
+        T_wc = np.vstack([np.asarray(pose, np.float64)[:3, :4], [0.0, 0.0, 0.0, 1.0]])
+        last = self._last
+        self._last = ((flow.seq if flow is not None else -1), T_wc) if ok else None
+        turned: list[int] = []
+        if masks is None:
+            return turned
+        for o in masks.objects:
+            if o.track_id >= 0:
+                self.tracks.setdefault(int(o.track_id), _TrackState()).last_seen = self._n
+        if flow is not None and ok:
+            self._poses[flow.seq] = T_wc
+            for k in [k for k in self._poses if k < flow.seq - self.cfg.window_frames - 1]:
+                del self._poses[k]
+        if flow is not None and last is not None and ok and last[0] == flow.seq - 1:
+            turned = self._weigh(flow, last[1], T_wc)
+        for o in masks.objects:
+            t = self.tracks.get(int(o.track_id)) if o.track_id >= 0 else None
+            o.moving = None if t is None else t.moving
+            o.speed_mps = float(np.median(t.speeds)) if t is not None and t.speeds else None
+        stale = [k for k, t in self.tracks.items() if self._n - t.last_seen > 50]
+        for k in stale:
+            del self.tracks[k]
+        return turned
+
+
+def object_region(masks: StereoMasks, index: int, flow: FrameFlow | None, calib: StereoCalibration
+                  ) -> tuple[np.ndarray, float, float] | None:
+    """(left-image pixels of object ``index``, nearest and farthest depth in metres) of an
+    object that turned moving, for removing its map points; None when unknown."""
+    if masks.labels_left is None:
+        return None
+    region = masks.labels_left == index + 1
+    d = [of.d1 for of in (flow.objects if flow is not None else []) if of.index == index]
+    if not d or not len(d[0]):
+        return None
+    z = calib.bf / d[0]
+    return region, float(z.min()) - 1.0, float(z.max()) + 1.0
+
+
+class ObjectMotion:
+    """Both halves for one stream of frames: ``measure`` on the masking thread, ``select``
+    before and ``update`` after ``System.track`` on the tracking thread; ``update`` also
+    removes the map points of objects that turned moving (``motion.forget_points``)."""
+
+    def __init__(self, cfg: MotionConfig, calibration: StereoCalibration):
+        self.cfg = cfg
+        self.calib = calibration
+        self.flow = SceneFlow(cfg)
+        self.judge = MotionJudge(cfg, calibration)
+        self.forgotten = 0  # map points removed so far
+
+    def measure(self, frame: StereoFrame, masks: StereoMasks | None) -> None:
+        if masks is not None:
+            masks.flow = self.flow.measure(frame, masks)
+
+    def select(self, masks: StereoMasks | None) -> StereoMasks | None:
+        return self.judge.select(masks)
+
+    def update(self, masks: StereoMasks | None, tracked, system=None) -> list[int]:
+        """``tracked``: the frame's ``TrackResult``; ``system``: the SLAM ``System`` whose map
+        loses the points of objects that turned moving (None: the map is left alone)."""
+        ok = str(tracked.status) in ("tracked", "init")
+        turned = self.judge.update(masks, tracked.pose, ok)
+        if turned and system is not None and self.cfg.forget_points and masks is not None:
+            for i in turned:
+                reg = object_region(masks, i, masks.flow, self.calib)
+                if reg is not None:
+                    self.forgotten += system.forget_region(*reg)
+        return turned
+
+
+def build_motion(cfg, calibration: StereoCalibration | None, masker=None) -> ObjectMotion | None:
+    """The motion test for a job (``cfg``: the whole Config), or None when every detection
+    is masked (``motion.mode: all``), nothing is masked, or there is no calibration."""
+    if masker is None or getattr(masker, "name", "") == "none" or calibration is None:
+        return None
+    if str(cfg.motion.mode).lower() == "all":
+        return None
+    return ObjectMotion(cfg.motion, calibration)
