@@ -249,6 +249,60 @@ def _masking_step(sequence: Sequence, masker: Masker | None, idx: int,
     return frame, masks, t.end_frame()["ms"]
 
 
+def _save_map(system, save_map: str | Path | None, sequence: Sequence, done: list[int],
+              map_info: dict | None) -> dict:
+    """The final map into ``save_map`` (when frames were done); the run.json ``map`` entry
+    (``save_error`` when it failed: raised once the run's files are written)."""
+    map_out = dict(map_info or {})
+    if save_map is not None and done:
+        try:
+            system.save_map(save_map, meta={"sequence": str(getattr(sequence, "path", "")),
+                                            "frames": [int(i) for i in done]})
+            map_out["saved"] = str(save_map)
+        except Exception as e:  # noqa: BLE001 -- reported, and raised when the run itself went well
+            map_out["save_error"] = f"{type(e).__name__}: {e}"
+    return map_out
+
+
+def _write_final_trajectory(out: Path, poses: np.ndarray, stamps: np.ndarray, done: list[int]) -> None:
+    """The trajectory files again, with the final (bundle-adjusted) poses of the frames done."""
+    from .eval.trajectory import FRAMES_NAME, write_kitti, write_tum
+
+    write_kitti(out / "trajectory.kitti.txt", poses)
+    write_tum(out / "trajectory.tum.txt", poses, stamps[done])
+    (out / FRAMES_NAME).write_text("".join(f"{i}\n" for i in done))
+
+
+def _run_record(sequence: Sequence, masker: Masker | None, motion, frames: list[int], n_done: int, system,
+                stats: dict, map_out: dict, fps: float, wall: float, config_dict: dict | None) -> dict:
+    """``run.json``: what ran (sequence, masker, motion test, configuration, versions) and
+    what came of it (frames tracked / lost, keyframes, map points, loops, recoveries, map)."""
+    states = system.results() if n_done else []
+    lost = [k for k, s in enumerate(states) if s.status == "lost"]
+    return {
+        "sequence": str(getattr(sequence, "path", "")),
+        "timestamps": getattr(sequence, "timestamp_source", None),
+        "masker": getattr(masker, "name", "none") if masker is not None else "none",
+        "motion": ({"mode": "moving", "map_points_forgotten": motion.forgotten} if motion is not None
+                   else {"mode": "all" if masker is not None else "none"}),
+        "frames_requested": len(frames),
+        "frames_done": n_done,
+        "frames_tracked": sum(s.status in ("tracked", "init") for s in states),
+        "frames_lost": len(lost),
+        "lost": [{"position": k, "frame": frames[k], "map_id": states[k].map_id} for k in lost],
+        "keyframes": stats.get("keyframes"),
+        "map_points": stats.get("map_points"),
+        "stats": stats,
+        "loops": [e.to_dict() for e in system.loops()] if n_done else [],
+        "recoveries": [dataclasses.asdict(r) for r in system.recoveries()] if n_done else [],
+        "map": map_out,
+        "fps": round(fps, 3),
+        "wall_s": round(wall, 3),
+        "config": config_dict or {},
+        "versions": _versions(),
+    }
+
+
 def run_slam_job(
     sequence: Sequence,
     masker: Masker | None,
@@ -293,7 +347,7 @@ def run_slam_job(
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    from .eval.trajectory import TrajectoryWriter, write_kitti, write_tum, FRAMES_NAME
+    from .eval.trajectory import TrajectoryWriter
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -352,52 +406,20 @@ def run_slam_job(
         if objects_log is not None:
             objects_log.close()
         system.shutdown()  # finishes the pending local BA; also stops the worker on an error
-        map_out = dict(map_info or {})
-        if save_map is not None and n_done:
-            try:
-                system.save_map(save_map, meta={"sequence": str(getattr(sequence, "path", "")),
-                                                "frames": [int(i) for i in frames[:n_done]]})
-                map_out["saved"] = str(save_map)
-            except Exception as e:  # noqa: BLE001 -- reported, and raised below when the run itself went well
-                map_out["save_error"] = f"{type(e).__name__}: {e}"
+        map_out = _save_map(system, save_map, sequence, frames[:n_done], map_info)
         if pool is not None:
             pool.shutdown(wait=False, cancel_futures=True)
         wall = time.perf_counter() - t0
         fps = n_done / wall if wall > 0 else 0.0
         poses = system.trajectory() if n_done else np.zeros((0, 3, 4))
         if error is None and n_done:
-            done = frames[:n_done]
-            write_kitti(out / "trajectory.kitti.txt", poses)
-            write_tum(out / "trajectory.tum.txt", poses, stamps[done])
-            (out / FRAMES_NAME).write_text("".join(f"{i}\n" for i in done))
+            _write_final_trajectory(out, poses, stamps, frames[:n_done])
         stats = system.stats().to_dict() if n_done else {}
-        states = system.results() if n_done else []
-        lost = [k for k, s in enumerate(states) if s.status == "lost"]
+        lost = system.lost_frames() if n_done else []
         timer.write(out / "timing.json", summary_extra={"fps": round(fps, 3)}, wall_s=round(wall, 3),
                     frames_done=n_done, local_mapping={k: v for k, v in stats.items() if k.startswith("local_ba")},
                     **({"error": error} if error else {}))
-        run = {
-            "sequence": str(getattr(sequence, "path", "")),
-            "timestamps": getattr(sequence, "timestamp_source", None),
-            "masker": getattr(masker, "name", "none") if masker is not None else "none",
-            "motion": ({"mode": "moving", "map_points_forgotten": motion.forgotten} if motion is not None
-                       else {"mode": "all" if masker is not None else "none"}),
-            "frames_requested": len(frames),
-            "frames_done": n_done,
-            "frames_tracked": sum(s.status in ("tracked", "init") for s in states),
-            "frames_lost": len(lost),
-            "lost": [{"position": k, "frame": frames[k], "map_id": states[k].map_id} for k in lost],
-            "keyframes": stats.get("keyframes"),
-            "map_points": stats.get("map_points"),
-            "stats": stats,
-            "loops": [e.to_dict() for e in system.loops()] if n_done else [],
-            "recoveries": [dataclasses.asdict(r) for r in system.recoveries()] if n_done else [],
-            "map": map_out,
-            "fps": round(fps, 3),
-            "wall_s": round(wall, 3),
-            "config": config_dict or {},
-            "versions": _versions(),
-        }
+        run = _run_record(sequence, masker, motion, frames, n_done, system, stats, map_out, fps, wall, config_dict)
         if error:
             run["error"] = error
         (out / "run.json").write_text(json.dumps(run, indent=1, default=float))

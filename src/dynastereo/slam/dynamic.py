@@ -20,11 +20,10 @@ def points_in_region(mp: Map, T_cw: np.ndarray, K: np.ndarray, region: np.ndarra
                      z_max: float) -> np.ndarray:
     """Ids of the good map points that project into the bool image ``region`` from the
     camera ``T_cw`` (4x4 or 3x4, world -> camera) with depth in ``[z_min, z_max]``."""
-    n = mp.n
-    ids = np.flatnonzero(~mp.bad[:n])
+    ids = mp.points.good_ids()
     if len(ids) == 0:
         return ids
-    Xc = mp.pos[ids] @ T_cw[:3, :3].T + T_cw[:3, 3]
+    Xc = mp.points.pos[ids] @ T_cw[:3, :3].T + T_cw[:3, 3]
     z = Xc[:, 2]
     front = (z >= max(z_min, 1e-3)) & (z <= z_max)
     ids, Xc, z = ids[front], Xc[front], z[front]
