@@ -110,9 +110,10 @@ def test_kitti03_kidnapped_camera_relocalizes(kitti03: Path, models_dir: Path, t
 
 
 def test_kitti03_map_reuse_localise_only(kitti03: Path, models_dir: Path, tmp_path: Path, data_dir: Path) -> None:
-    """Map 03 with --save-map (default outline masks), then --load-map --localize-only on
-    the same frames: no new keyframe, every frame tracked, ATE <= 0.10 m; run.json names
-    the map files."""
+    """Map 03 with --save-map (default outline masks, only what moves), then --load-map
+    --localize-only on the same frames: no new keyframe, every frame tracked, the ATE of
+    the mapping run within 1 cm (0.110 m with the default masks since the motion test;
+    0.100 m when every car was masked) and <= 0.12 m; run.json names the map files."""
     gt = data_dir / "kitti_odometry/dataset/poses/03.txt"
     map_file = tmp_path / "03.dsmap"
     r = runner.invoke(
@@ -135,7 +136,9 @@ def test_kitti03_map_reuse_localise_only(kitti03: Path, models_dir: Path, tmp_pa
     saved_kfs = json.loads((tmp_path / "map/run.json").read_text())["stats"]["keyframes"]
     assert run["stats"]["keyframes"] == run["stats"]["keyframes_loaded"] == saved_kfs
     assert run["stats"]["keyframes_created"] == 0  # no keyframe added
-    assert evaluate_files(tmp_path / "loc/trajectory.kitti.txt", gt).ape["rmse"] <= 0.10
+    ate_map = evaluate_files(tmp_path / "map/trajectory.kitti.txt", gt).ape["rmse"]
+    ate_loc = evaluate_files(tmp_path / "loc/trajectory.kitti.txt", gt).ape["rmse"]
+    assert ate_loc <= 0.12 and ate_loc <= ate_map + 0.01, (ate_map, ate_loc)
 
 
 def test_map_file_errors_through_the_cli(kitti06: Path, kitti03: Path, models_dir: Path, tmp_path: Path) -> None:

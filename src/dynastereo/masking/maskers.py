@@ -24,7 +24,6 @@ from typing import Any
 import numpy as np
 
 from ..config import OutlineConfig, StereoConfig
-from ..errors import ConfigError
 from ..timing import StageTimer, timed
 from ..types import Detections, MaskMethod, ObjectMask, StereoFrame, StereoMasks
 from .base import Detector

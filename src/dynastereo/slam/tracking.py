@@ -38,7 +38,7 @@ from ..config import SlamConfig
 from ..timing import StageTimer
 from ..types import StereoCalibration, StereoFrame, StereoMasks
 from .frame import Frame
-from .geometry import desc_u64, inv_T, orthonormalize, rotation_consistent, unique_best
+from .geometry import desc_u64, inv_T, orthonormalize
 from .keyframe import KeyFrame
 from .map import Map
 from .matcher import TH_HIGH, TH_LOW, keyframe_point_matches, search_by_projection, stereo_match
