@@ -357,7 +357,7 @@ def run_slam_job(
     timer = StageTimer()
     timer.add_derived("masking", ("detect",) + MASK_STAGES)
     stamps = np.asarray(sequence.timestamps(), dtype=np.float64)
-    pool = ThreadPoolExecutor(max_workers=1) if prefetch else None
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="prefetch") if prefetch else None
     error: str | None = None
     t0 = time.perf_counter()
     n_done = 0

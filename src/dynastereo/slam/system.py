@@ -147,7 +147,7 @@ class System:
         )
         self.th_depth_m = cfg.th_depth * calibration.baseline
         self.selfcal = SelfCalibration(cfg, calibration.bf)
-        self._threads = ThreadPoolExecutor(max_workers=2) if cfg.threads > 1 else None
+        self._threads = ThreadPoolExecutor(max_workers=2, thread_name_prefix="features") if cfg.threads > 1 else None
         self.runner = BARunner(cfg.local_ba)
         self.timer = StageTimer()
         self.vocab = Vocabulary.load(cfg.vocabulary) if cfg.vocabulary else Vocabulary.default()

@@ -1,0 +1,140 @@
+"""Where the CPU goes in one ``dynastereo run``: wall and CPU time per thread and process.
+
+Runs ``api.run_sequence`` on a KITTI sequence with the default settings (the way a user
+runs it: images read and masked on the prefetch thread, tracking on the main thread, the
+local BA in its worker process), then reads from ``/proc`` the CPU time (user + system)
+of every thread of this process (by its name: ``MainThread`` is the tracking,
+``prefetch`` the reading and masking of the next frame, ``features`` the right image's ORB
+beside the left one's; OpenCV / onnxruntime pools show as native threads) and from ``getrusage`` that of the child processes (the BA
+workers), beside the run's per-stage medians from ``timing.json``.  The share of the two
+cores used is total CPU / (wall x cores).
+
+    DYNASTEREO_DATA=... DYNASTEREO_MODELS=... .venv/bin/python benchmarks/bench_profile.py \\
+        [--sequences 06,03] [--repeats 3] [--masker outline]
+
+Prints a table per sequence (medians over the repeats) and writes
+benchmarks/results/profile.json.  The groundwork of the real-time issue: the budget the
+pipeline spends today.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import tempfile
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from dynastereo.api import run_sequence
+from dynastereo.config import Config
+
+RESULTS = Path(__file__).resolve().parent / "results" / "profile.json"
+TICK = os.sysconf("SC_CLK_TCK")
+
+
+def _thread_cpu() -> dict[str, float]:
+    """CPU seconds per thread name of this process (threads of one name summed)."""
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    out: dict[str, float] = {}
+    for d in Path("/proc/self/task").iterdir():
+        try:
+            fields = (d / "stat").read_text().rsplit(")", 1)[1].split()
+            comm = (d / "comm").read_text().strip()
+        except OSError:
+            continue
+        cpu = (int(fields[11]) + int(fields[12])) / TICK  # utime + stime
+        name = names.get(int(d.name), f"native:{comm}")
+        key = name.rsplit("_", 1)[0] if name.startswith(("prefetch", "features")) else name
+        out[key] = out.get(key, 0.0) + cpu
+    return out
+
+
+def _children_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+class ThreadSampler:
+    """Observer: the threads' CPU times after every frame (the prefetch thread ends with the
+    run, so it is read while the run goes on; the largest value of each thread is kept)."""
+
+    def __init__(self) -> None:
+        self.cpu: dict[str, float] = {}
+
+    def on_frame(self, event) -> None:
+        for k, v in _thread_cpu().items():
+            self.cpu[k] = max(self.cpu.get(k, 0.0), v)
+
+
+def profile_once(seq: Path, cfg: Config, models: Path | None) -> dict:
+    before_t, before_c = _thread_cpu(), _children_cpu()
+    sampler = ThreadSampler()
+    with tempfile.TemporaryDirectory() as tmp:
+        res = run_sequence(seq, Path(tmp) / "run", cfg, models_dir=models, observers=(sampler,))
+        timing = json.loads((Path(tmp) / "run" / "timing.json").read_text())
+    after_t, after_c = {**sampler.cpu, **_thread_cpu()}, _children_cpu()
+    threads = {k: round(v - before_t.get(k, 0.0), 2) for k, v in after_t.items() if v - before_t.get(k, 0.0) > 0.005}
+    workers = round(after_c - before_c, 2)
+    total = sum(threads.values()) + workers
+    cores = os.cpu_count() or 1
+    return {
+        "frames": len(res.frames),
+        "wall_s": round(res.wall_s, 2),
+        "fps": round(res.fps, 2),
+        "cpu_threads_s": dict(sorted(threads.items(), key=lambda kv: -kv[1])),
+        "cpu_workers_s": workers,
+        "cpu_total_s": round(total, 2),
+        "cores_used": round(total / res.wall_s, 2) if res.wall_s > 0 else None,
+        "share_of_cores": round(total / (res.wall_s * cores), 3) if res.wall_s > 0 else None,
+        "stage_median_ms": {k: v["median"] for k, v in timing["summary"].items() if isinstance(v, dict)},
+    }
+
+
+def _median_dict(rows: list[dict]) -> dict:
+    keys = {k for r in rows for k in r}
+    return {k: round(float(np.median([r.get(k, 0.0) for r in rows])), 2) for k in sorted(keys)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sequences", default="06,03")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--masker", default="outline")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    args = ap.parse_args()
+    data = Path(os.environ["DYNASTEREO_DATA"])
+    models = Path(os.environ["DYNASTEREO_MODELS"]) if os.environ.get("DYNASTEREO_MODELS") else None
+    cfg = Config().with_overrides({"masker.kind": args.masker})
+    out = {"masker": args.masker, "repeats": args.repeats, "host": platform.node(), "cpus": os.cpu_count(),
+           "load_before": os.getloadavg()[0], "sequences": {}}
+    for name in args.sequences.split(","):
+        seq = data / "kitti_odometry" / "dataset" / "sequences" / name
+        runs = [profile_once(seq, cfg, models) for _ in range(args.repeats)]
+        med = {
+            "fps": round(float(np.median([r["fps"] for r in runs])), 2),
+            "wall_s": round(float(np.median([r["wall_s"] for r in runs])), 2),
+            "cores_used": round(float(np.median([r["cores_used"] for r in runs])), 2),
+            "cpu_threads_s": _median_dict([r["cpu_threads_s"] for r in runs]),
+            "cpu_workers_s": round(float(np.median([r["cpu_workers_s"] for r in runs])), 2),
+            "stage_median_ms": _median_dict([r["stage_median_ms"] for r in runs]),
+        }
+        out["sequences"][name] = {"median": med, "runs": runs}
+        print(f"KITTI {name}: {runs[0]['frames']} frames, {med['fps']} FPS, wall {med['wall_s']} s, "
+              f"{med['cores_used']} of {os.cpu_count()} cores busy")
+        for k, v in med["cpu_threads_s"].items():
+            print(f"  thread {k:<28} {v:7.2f} s CPU")
+        print(f"  BA worker processes           {med['cpu_workers_s']:7.2f} s CPU")
+        print("  stage medians (ms): " + ", ".join(f"{k} {v}" for k, v in med["stage_median_ms"].items()))
+    out["load_after"] = os.getloadavg()[0]
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=1))
+    print(f"-> {args.out}")
+
+
+if __name__ == "__main__":
+    main()
