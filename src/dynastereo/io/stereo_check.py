@@ -186,12 +186,10 @@ class PeriodicStereoCheck:
     def __init__(self, source=None, every: int | None = None) -> None:
         self.source = source
         self.every = int(every or CHECK_EVERY)
-        self.checked = 0
 
     def on_frame(self, event) -> None:
         if event.position == 0 or event.position % self.every:
             return
-        self.checked += 1
         v = check_frames([event.frame])
         if not v.ok:
             raise StereoCheckError(f"stereo check failed at frame {event.frame.index} (the {event.position + 1}-th "

@@ -279,8 +279,10 @@ class StereoNodeCore:
         self._detector = detector
         self._detector_cfg = to_dict(self.cfg.detector) if detector is None else None
         self.calibration: StereoCalibration | None = None
-        self._own_masker = masker is None  # built here: rebuilt for the rig once its calibration is known
-        self._masker = masker if masker is not None else self._build_masker(self.cfg)
+        self._own_masker = masker is None  # built here: (re)built for the rig once its calibration is known
+        # with the calibration given, set_calibration (below) builds it once; without it, a
+        # masker for no rig now (the configuration checked), rebuilt when CameraInfo comes
+        self._masker = masker if masker is not None or calibration is not None else self._build_masker(self.cfg)
         self._masker_cfg = self.cfg
         self._pending: tuple[Any, Config] | None = None
         self._param_lock = threading.Lock()

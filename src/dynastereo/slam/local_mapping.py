@@ -578,7 +578,6 @@ class LocalMapper:
         self.stats.ba_runs += 1
         self.stats.ba_ms.append(res.ms)
         if res.offset_costs is not None:
-            self.selfcal.estimate, self.selfcal.estimate_sigma = res.offset, res.offset_sigma
             log.info(
                 "disparity offset self-calibration: %s (costs %s; %.0f ms)",
                 "none" if res.offset is None else f"{res.offset:+.3f} +- {res.offset_sigma:.3f} px",

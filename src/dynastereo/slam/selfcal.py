@@ -53,8 +53,6 @@ class SelfCalibration:
         self.enabled = bool(cfg.self_calibrate and cfg.mapping_on)
         self.offset = float(cfg.disparity_offset)  # px, carried by every stereo observation now
         self.sigma: float | None = None
-        self.estimate: float | None = None  # the last BA's own estimate (relative to its base)
-        self.estimate_sigma: float | None = None
         self.follow = None  # the frame the next one is tracked against: it follows an estimate too
         self._restart = self.enabled  # a new map starts a schedule until an estimate was applied
         self._base = 0.0  # the offset the running self-calibrating BA's observations carry

@@ -145,7 +145,6 @@ class System:
         self.extractor = ORBExtractor(
             cfg.n_features, cfg.scale_factor, cfg.n_levels, cfg.ini_th_fast, cfg.min_th_fast, cfg.oversample, cfg.mask_margin
         )
-        self.th_depth_m = cfg.th_depth * calibration.baseline
         self.selfcal = SelfCalibration(cfg, calibration.bf)
         self._threads = ThreadPoolExecutor(max_workers=2, thread_name_prefix="features") if cfg.threads > 1 else None
         self.runner = BARunner(cfg.local_ba)
@@ -153,6 +152,7 @@ class System:
         self.vocab = Vocabulary.load(cfg.vocabulary) if cfg.vocabulary else Vocabulary.default()
         self.tracker = Tracker(cfg, calibration, self.extractor, self.selfcal, self.vocab, seed=self.seed,
                                reset_map=self._new_map, threads=self._threads)
+        self.th_depth_m = self.tracker.th_depth_m  # "close" stereo points: th_depth baselines
         self._loop_events: list[LoopEvent] = []
         self._loop_stats = LoopStats()
         self._kf_loaded = 0
