@@ -121,7 +121,7 @@ def kitti_parts(seq: Path, gt: Path, work: Path) -> dict:
         "lost_after_jump": len(lost_after_jump),
         "frames_to_relocalize": None if first_ok is None else first_ok - 99,
         "relocalizations": run["stats"]["relocalizations"],
-        "reloc_ms_median": run["stats"]["relocalisation_ms_median"],
+        "reloc_ms_median": run["stats"]["relocalization_ms_median"],
         "max_diff_m": float(diff[(first_ok or 99) - 99:].max()),
         "median_diff_m": float(np.median(diff)),
         "recoveries": states_after,

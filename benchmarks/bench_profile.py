@@ -1,4 +1,5 @@
-"""Where the CPU goes in one ``dynastereo run``: wall and CPU time per thread and process.
+"""Where the CPU goes in one ``dynastereo run``: wall and CPU time per thread and process,
+beside what its parts cost alone -- the CPU budget of the real-time design.
 
 Runs ``api.run_sequence`` on a KITTI sequence with the default settings (the way a user
 runs it: images read and masked on the prefetch thread, tracking on the main thread, the
@@ -12,9 +13,16 @@ cores used is total CPU / (wall x cores).
     DYNASTEREO_DATA=... DYNASTEREO_MODELS=... .venv/bin/python benchmarks/bench_profile.py \\
         [--sequences 06,03] [--repeats 3] [--masker outline]
 
+Then the same frames run as two jobs alone, one after the other: the masking alone
+(``mask_sequence``: read + detect + masks, no SLAM) and the SLAM alone (``run --masker
+none``: read + features + stereo + tracking + local mapping, its BA worker).  Their CPU per
+frame, added, is what the full pipeline must spend at least (``sum of parts``); divided by
+the cores it bounds the frame rate (``bound_fps`` = cores / CPU per frame): how close the
+pipeline gets to it is ``pipeline fps / bound_fps``.  Each alone job's ``read`` is counted
+once (the masking job reads; the SLAM's own read is taken off).
+
 Prints a table per sequence (medians over the repeats) and writes
-benchmarks/results/profile.json.  The groundwork of the real-time issue: the budget the
-pipeline spends today.
+benchmarks/results/profile.json.
 """
 
 from __future__ import annotations
@@ -30,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dynastereo.api import run_sequence
+from dynastereo.api import mask_sequence, run_sequence
 from dynastereo.config import Config
 
 RESULTS = Path(__file__).resolve().parent / "results" / "profile.json"
@@ -59,6 +67,46 @@ def _children_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
+def _descendants(pid: int) -> list[int]:
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            kids = [int(k) for k in (task / "children").read_text().split()]
+        except OSError:
+            continue
+        for k in kids:
+            out += [k, *_descendants(k)]
+    return out
+
+
+def _tree_cpu() -> float:
+    """CPU seconds of this process and its live descendants (the BA workers)."""
+    total = 0.0
+    for pid in [os.getpid(), *_descendants(os.getpid())]:
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += (int(fields[11]) + int(fields[12])) / TICK
+    return total
+
+
+class LoopCpu:
+    """Observer: CPU of the process tree per frame over the frame loop only (first frame
+    to last: start-up, model and vocabulary loading, and the final BA left out)."""
+
+    def __init__(self) -> None:
+        self.samples: list[float] = []
+
+    def on_frame(self, event) -> None:
+        self.samples.append(_tree_cpu())
+
+    @property
+    def ms_per_frame(self) -> float:
+        s = self.samples
+        return (s[-1] - s[0]) / (len(s) - 1) * 1e3 if len(s) > 1 else float("nan")
+
+
 class ThreadSampler:
     """Observer: the threads' CPU times after every frame (the prefetch thread ends with the
     run, so it is read while the run goes on; the largest value of each thread is kept)."""
@@ -73,9 +121,9 @@ class ThreadSampler:
 
 def profile_once(seq: Path, cfg: Config, models: Path | None) -> dict:
     before_t, before_c = _thread_cpu(), _children_cpu()
-    sampler = ThreadSampler()
+    sampler, loop = ThreadSampler(), LoopCpu()
     with tempfile.TemporaryDirectory() as tmp:
-        res = run_sequence(seq, Path(tmp) / "run", cfg, models_dir=models, observers=(sampler,))
+        res = run_sequence(seq, Path(tmp) / "run", cfg, models_dir=models, observers=(sampler, loop))
         timing = json.loads((Path(tmp) / "run" / "timing.json").read_text())
     after_t, after_c = {**sampler.cpu, **_thread_cpu()}, _children_cpu()
     threads = {k: round(v - before_t.get(k, 0.0), 2) for k, v in after_t.items() if v - before_t.get(k, 0.0) > 0.005}
@@ -89,9 +137,38 @@ def profile_once(seq: Path, cfg: Config, models: Path | None) -> dict:
         "cpu_threads_s": dict(sorted(threads.items(), key=lambda kv: -kv[1])),
         "cpu_workers_s": workers,
         "cpu_total_s": round(total, 2),
+        "loop_cpu_ms": round(loop.ms_per_frame, 1),
         "cores_used": round(total / res.wall_s, 2) if res.wall_s > 0 else None,
         "share_of_cores": round(total / (res.wall_s * cores), 3) if res.wall_s > 0 else None,
         "stage_median_ms": {k: v["median"] for k, v in timing["summary"].items() if isinstance(v, dict)},
+    }
+
+
+def alone_once(seq: Path, cfg: Config, models: Path | None) -> dict:
+    """CPU (this process + its workers) per frame and stage medians of the masking job
+    alone and of the SLAM job alone (``masker none``), on the same frames."""
+    lm, ls = LoopCpu(), LoopCpu()
+    with tempfile.TemporaryDirectory() as tmp:
+        m = mask_sequence(seq, Path(tmp) / "mask", cfg, models_dir=models, observers=(lm,))
+        w1 = _children_cpu()
+        s = run_sequence(seq, Path(tmp) / "slam", cfg.with_overrides({"masker.kind": "none"}), models_dir=models,
+                         observers=(ls,))
+        w2 = _children_cpu()
+        mask_t = json.loads((Path(tmp) / "mask" / "timing.json").read_text())["summary"]
+        slam_t = json.loads((Path(tmp) / "slam" / "timing.json").read_text())["summary"]
+    n_m, n_s = len(m.frames_done), len(s.frames)
+    slam_read = slam_t["read"]["mean"]  # read once: the masking job's
+    mask_ms = lm.ms_per_frame
+    slam_ms = ls.ms_per_frame - slam_read
+    return {
+        "mask_cpu_ms": round(mask_ms, 1),
+        "mask_fps": round(n_m / m.wall_s, 2),
+        "slam_cpu_ms": round(slam_ms, 1),
+        "slam_ba_cpu_ms": round((w2 - w1) / n_s * 1e3, 1),  # the workers' whole lives
+        "slam_fps": round(s.fps, 2),
+        "sum_cpu_ms": round(mask_ms + slam_ms, 1),
+        "stage_median_ms": {**{k: v["median"] for k, v in mask_t.items() if isinstance(v, dict)},
+                            **{k: v["median"] for k, v in slam_t.items() if isinstance(v, dict) and k != "read"}},
     }
 
 
@@ -123,13 +200,31 @@ def main() -> None:
             "cpu_workers_s": round(float(np.median([r["cpu_workers_s"] for r in runs])), 2),
             "stage_median_ms": _median_dict([r["stage_median_ms"] for r in runs]),
         }
-        out["sequences"][name] = {"median": med, "runs": runs}
+        alone = [alone_once(seq, cfg, models) for _ in range(args.repeats)]
+        a = {k: round(float(np.median([r[k] for r in alone])), 2) for k in alone[0] if k != "stage_median_ms"}
+        a["stage_median_ms"] = _median_dict([r["stage_median_ms"] for r in alone])
+        cores = os.cpu_count() or 1
+        pipe_cpu = float(np.median([r["loop_cpu_ms"] for r in runs]))
+        bound = {
+            "pipeline_cpu_ms": round(pipe_cpu, 1),
+            "sum_of_parts_cpu_ms": a["sum_cpu_ms"],
+            "bound_fps": round(cores * 1e3 / a["sum_cpu_ms"], 2),
+            "fps_over_bound": round(med["fps"] / (cores * 1e3 / a["sum_cpu_ms"]), 2),
+            "cpu_over_parts": round(pipe_cpu / a["sum_cpu_ms"], 2),
+        }
+        out["sequences"][name] = {"median": med, "alone": a, "bound": bound, "runs": runs, "alone_runs": alone}
         print(f"KITTI {name}: {runs[0]['frames']} frames, {med['fps']} FPS, wall {med['wall_s']} s, "
               f"{med['cores_used']} of {os.cpu_count()} cores busy")
         for k, v in med["cpu_threads_s"].items():
             print(f"  thread {k:<28} {v:7.2f} s CPU")
         print(f"  BA worker processes           {med['cpu_workers_s']:7.2f} s CPU")
         print("  stage medians (ms): " + ", ".join(f"{k} {v}" for k, v in med["stage_median_ms"].items()))
+        print(f"  alone: masking {a['mask_cpu_ms']} ms CPU a frame ({a['mask_fps']} FPS), SLAM {a['slam_cpu_ms']} ms "
+              f"(BA {a['slam_ba_cpu_ms']}; {a['slam_fps']} FPS); sum {a['sum_cpu_ms']} ms -> at most "
+              f"{bound['bound_fps']} FPS on {cores} cores")
+        print(f"  pipeline: {bound['pipeline_cpu_ms']} ms CPU a frame = {bound['cpu_over_parts']}x the parts; "
+              f"{med['fps']} FPS = {bound['fps_over_bound']} of the bound")
+        print("  alone stage medians (ms): " + ", ".join(f"{k} {v}" for k, v in a["stage_median_ms"].items()))
     out["load_after"] = os.getloadavg()[0]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1))

@@ -347,7 +347,7 @@ def speed(vocab: Vocabulary, pool: list[np.ndarray], repeats: int, sizes=(100, 5
             t1 = time.perf_counter()
             db.detect_loop_candidates(q, b, set(range(q - 5, q + 6)), 0.01, covis)
             t2 = time.perf_counter()
-            db.detect_relocalisation_candidates(b, covis)
+            db.detect_relocalization_candidates(b, covis)
             t3 = time.perf_counter()
             tq.append(t1 - t0)
             tl.append(t2 - t1)
@@ -355,7 +355,7 @@ def speed(vocab: Vocabulary, pool: list[np.ndarray], repeats: int, sizes=(100, 5
         rows.append({"what": "add (amortized, incl. index merges)", "n_keyframes": n, "ms": add_ms})
         rows.append({"what": "query top 10", "n_keyframes": n, "ms": float(np.median(tq) * 1000)})
         rows.append({"what": "detect_loop_candidates", "n_keyframes": n, "ms": float(np.median(tl) * 1000)})
-        rows.append({"what": "detect_relocalisation_candidates", "n_keyframes": n, "ms": float(np.median(tr) * 1000)})
+        rows.append({"what": "detect_relocalization_candidates", "n_keyframes": n, "ms": float(np.median(tr) * 1000)})
         rows.append({"what": "postings in the index", "n_keyframes": n, "ms": float(db.n_postings), "unit": "postings"})
     return rows
 

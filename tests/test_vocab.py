@@ -350,12 +350,12 @@ def test_detect_loop_candidates(places, vocab):
     assert db.detect_loop_candidates(100, bow, place4, thr, covis_of_place) == []
 
 
-def test_detect_relocalisation_candidates_and_accumulation(places, vocab):
+def test_detect_relocalization_candidates_and_accumulation(places, vocab):
     kfs, queries = places
     db = build_db(vocab, kfs)
     for p in (0, 6, 9):
         bow = vocab.transform(queries[p])[0]
-        cands = db.detect_relocalisation_candidates(bow, covis_of_place)
+        cands = db.detect_relocalization_candidates(bow, covis_of_place)
         assert cands and all(c // PER_PLACE == p for c in cands)
     # accumulated score = own score + scored covisibles' scores
     bow = vocab.transform(queries[2])[0]
@@ -465,7 +465,7 @@ def test_kitti03_place_retrieval(kitti03, data_dir):
         top = db.query(bow, exclude=(q,) if cam == "image_0" else (), top=3)
         d = np.linalg.norm(centres[top[0][0]] - centres[q])
         assert d <= 5.0, (cam, q, top, d)
-        cands = db.detect_relocalisation_candidates(bow, covis)
+        cands = db.detect_relocalization_candidates(bow, covis)
         assert cands and np.linalg.norm(centres[cands[0]] - centres[q]) <= 5.0, (cam, q, cands)
     # the frames 3 m away score above those 28-30 m away (by ~10 %: a 20k-word
     # vocabulary separates places less than ORB-SLAM2's 1M words; see bench_vocab.py)

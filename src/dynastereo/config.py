@@ -313,7 +313,7 @@ class MotionConfig:
     """Which detected objects are masked (``masking/motion.py``, README "Mask only what
     moves"): ``mode: moving`` (default) masks an object only while the stereo motion test
     judges it moving or has not judged it yet -- static (parked) objects take part in
-    tracking and mapping; ``mode: all`` masks every detection (the thesis' behaviour, for
+    tracking and mapping; ``mode: all`` masks every detection (the thesis' behavior, for
     comparison).
 
     The test: up to ``max_points`` corners on each tracked object's outline are followed

@@ -249,7 +249,7 @@ class KeyFrameDatabase:
         exclude.add(int(kf_id))
         return [k for k, _ in self._candidates(bow, exclude, float(min_score), covisibles, n_covisibles)]
 
-    def detect_relocalisation_candidates(
+    def detect_relocalization_candidates(
         self, bow: BowVector, covisibles: Callable[[int], list[int]], n_covisibles: int = 10
     ) -> list[int]:
         """Relocalization candidates of a frame (ORB-SLAM2 ``DetectRelocalizationCandidates``):

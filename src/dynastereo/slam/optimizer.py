@@ -273,8 +273,10 @@ def local_ba(p: LocalBAProblem) -> LocalBAResult:
     Km = gtsam.Cal3_S2(fx, fy, 0.0, cx, cy)
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
-    for j in range(P):
-        values.insert(j, p.X[j])
+    # the per-factor loops read Python lists: indexing numpy arrays one scalar at a time
+    # costs about as much as making the factor
+    for j, X in enumerate(np.asarray(p.X, np.float64)):
+        values.insert(j, X)
     for i in range(Kn):
         values.insert(P + i, gtsam.Pose3(p.T_wc[i]))
         if p.fixed[i]:
@@ -287,16 +289,10 @@ def local_ba(p: LocalBAProblem) -> LocalBAResult:
         model_s = gtsam.noiseModel.Robust.Create(huber_s, gtsam.noiseModel.Isotropic.Sigma(3, float(s)))
         model_m = gtsam.noiseModel.Robust.Create(huber_m, gtsam.noiseModel.Isotropic.Sigma(2, float(s)))
         at_s = p.sigma == s
-        for m in np.flatnonzero(at_s & st):
-            graph.add(
-                gtsam.GenericStereoFactor3D(
-                    gtsam.StereoPoint2(p.uv[m, 0], p.ur[m], p.uv[m, 1]),
-                    model_s,
-                    int(P + p.obs_kf[m]),
-                    int(p.obs_pt[m]),
-                    Ks,
-                )
-            )
+        sel = np.flatnonzero(at_s & st)
+        for u, ur, v, kf, pt in zip(p.uv[sel, 0].tolist(), p.ur[sel].tolist(), p.uv[sel, 1].tolist(),
+                                    (P + p.obs_kf[sel]).tolist(), p.obs_pt[sel].tolist()):
+            graph.add(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, ur, v), model_s, int(kf), int(pt), Ks))
         mono = np.flatnonzero(at_s & ~st)
         if len(mono):
             for i in np.unique(p.obs_kf[mono]):

@@ -97,7 +97,7 @@ class SystemStats:
     disparity_offset: float
     disparity_offset_sigma: float | None
     relocalizations: int
-    relocalisation_ms_median: float
+    relocalization_ms_median: float
     recoveries: int
     loops: int
     loop_candidates_rejected: int
@@ -283,7 +283,7 @@ class System:
             disparity_offset=self.selfcal.offset,
             disparity_offset_sigma=self.selfcal.sigma,
             relocalizations=sum(s.method == TrackingMethod.RELOC for s in st),
-            relocalisation_ms_median=_median(tr.reloc_ms),
+            relocalization_ms_median=_median(tr.reloc_ms),
             recoveries=len(tr.recoveries),
             loops=len(self._loop_events),
             loop_candidates_rejected=self._loop_stats.rejected,

@@ -421,7 +421,7 @@ class Tracker:
         t0 = time.perf_counter()
         mp, n = self.active.map, self.cfg.reloc_candidates
         bow, _ = self.vocab.transform(f.desc)
-        cands = [k for k in self.active.kfdb.detect_relocalisation_candidates(bow, mp.best_covisibles)
+        cands = [k for k in self.active.kfdb.detect_relocalization_candidates(bow, mp.best_covisibles)
                  if k in mp.keyframes]
         found, kid = self.relocalize(mp, f, cands[:n])
         if not found or self.n_inliers < max(self.cfg.reloc_min_inliers, self.cfg.min_inliers):

@@ -13,7 +13,7 @@ frame in 416x416 is shown at a third of its size, and most cars are missed.
   ``detector.scale``, batched into one network call where the graph allows; the boxes of
   all tiles are pooled (:func:`merge_tile_boxes`): duplicates suppressed, and an object
   cut by a seam, seen in part by two tiles, comes out whole.
-* ``model`` -- the model's own canvas (the frame letterboxed; the old behaviour).
+* ``model`` -- the model's own canvas (the frame letterboxed; the old behavior).
 
 A model that cannot be rewritten runs its tiles at its own canvas instead (each tile
 letterboxed: still about native scale for tiles near the canvas' size).
