@@ -419,6 +419,16 @@ def test_known_motion_is_recovered():
     assert {"features", "stereo", "track", "local_mapping"} <= stages
 
 
+def test_frame_view_shows_the_matches_the_pose_optimization_rejected():
+    frames, _ = _sequence()
+    sysm = _run(frames[:6], _cfg())
+    view = sysm.frame_view()
+    f = sysm.tracker.last
+    assert view.outlier.sum() == len(f.rejected) > 0  # a real scene always has a few
+    assert not (view.inlier & view.outlier).any()  # a rejected match is no longer matched
+    np.testing.assert_array_equal(view.inlier, f.point_ids >= 0)
+
+
 def test_map_invariants_after_a_run():
     frames, _ = _sequence()
     mp = _run(frames[:20], _cfg()).map

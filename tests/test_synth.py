@@ -386,6 +386,25 @@ def test_oracle_returns_gt_boxes(mixed_small: Path):
         assert sorted(det.labels()) == sorted(o.label for o in gt.frame(i) if o.box_left is not None)
 
 
+def test_oracle_masker_keeps_only_the_configured_classes(mixed_small: Path):
+    # detector.dynamic_classes limits the oracle as it limits a network: a hidden class is
+    # a mover the detector does not know
+    from dynastereo.config import Config
+    from dynastereo.io import open_sequence
+    from dynastereo.masking import build_masker
+
+    seq = open_sequence(mixed_small)
+    gt = read_objects(mixed_small)
+    i = max(range(len(gt)), key=lambda k: len({o.label for o in gt.frame(k) if o.box_left is not None}))
+    assert {"car", "person"} <= {o.label for o in gt.frame(i) if o.box_left is not None}
+    for classes, want in ((["person"], {"person"}), (None, {"car", "person"})):
+        cfg = Config().with_overrides({"detector.name": "oracle", **({"detector.dynamic_classes": classes}
+                                                                   if classes else {})})
+        masks = build_masker(cfg, seq.calibration, ground_truth=mixed_small).mask(seq.frame(i))
+        labels = {o.label for o in masks.objects}
+        assert want <= labels if classes is None else labels == want
+
+
 def test_oracle_frame_binding(mixed_small: Path):
     oracle = OracleDetector(mixed_small, with_masks=True)
     img5 = _png(mixed_small / "image_0" / "000005.png")

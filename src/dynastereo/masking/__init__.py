@@ -56,7 +56,7 @@ def build_masker(
     from .detection import DetectionStage, create_detector
 
     if detector is None:
-        detector = _oracle(ground_truth) if str(cfg.detector.name) == "oracle" else \
+        detector = _oracle(ground_truth, cfg.detector.dynamic_classes) if str(cfg.detector.name) == "oracle" else \
             create_detector(cfg.detector, models_dir)
     if not isinstance(detector, DetectionStage):
         detector = DetectionStage(detector, cfg.detector)
@@ -67,13 +67,15 @@ def build_masker(
     return OutlineMasker(detector, matcher, cfg.masker.outline, full_disparity=full_disparity, baseline=baseline)
 
 
-def _oracle(ground_truth: str | Path | None) -> Detector:
+def _oracle(ground_truth: str | Path | None, classes) -> Detector:
+    """The ground-truth boxes of a synthetic sequence, of the labels ``classes`` only
+    (``detector.dynamic_classes``: hiding a class makes a mover the detector does not know)."""
     if ground_truth is None:
         raise ConfigError("detector 'oracle' needs a synthetic sequence's ground truth (dynastereo synth); "
                           "not available for bags or live topics")
     from ..synth import OracleDetector
 
-    return OracleDetector(ground_truth)
+    return OracleDetector(ground_truth, classes=tuple(classes))
 
 
 __all__ = [

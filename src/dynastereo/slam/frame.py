@@ -59,6 +59,8 @@ class Frame(KeypointSet):
     point_ids: np.ndarray = field(default=None)  # type: ignore[assignment]
     match_xyz: np.ndarray = field(default=None)  # type: ignore[assignment]
     outlier: np.ndarray = field(default=None)  # type: ignore[assignment]
+    # the keypoints whose matches the last pose optimization rejected (the viewer shows them)
+    rejected: np.ndarray = field(default=None)  # type: ignore[assignment]
     _grid: KeypointGrid | None = None
     _desc64: np.ndarray | None = None
 
@@ -70,6 +72,8 @@ class Frame(KeypointSet):
             self.match_xyz = np.full((n, 3), np.nan)
         if self.outlier is None:
             self.outlier = np.zeros(n, bool)
+        if self.rejected is None:
+            self.rejected = np.zeros(0, np.int64)
 
     @classmethod
     def from_features(

@@ -115,7 +115,7 @@ class FrameView:
 
     uv: np.ndarray  # (N, 2) left keypoints, pixels
     inlier: np.ndarray  # (N,) bool: matched to a map point and kept by the pose optimization
-    outlier: np.ndarray  # (N,) bool: matched, rejected as an outlier
+    outlier: np.ndarray  # (N,) bool: matched, rejected by the pose optimization
     local_points: np.ndarray  # (M, 3) world positions of the local map's points
 
 
@@ -245,7 +245,9 @@ class System:
         matched = f.point_ids >= 0
         local = [k for k in self.tracker.local_kfs if k in self.map.keyframes]
         pts = self.map.points_of(local) if local else np.zeros(0, np.int64)
-        return FrameView(f.uv.copy(), matched & ~f.outlier, matched & f.outlier, self.map.points.pos[pts].copy())
+        rejected = np.zeros(len(f.uv), bool)
+        rejected[f.rejected] = True
+        return FrameView(f.uv.copy(), matched, rejected, self.map.points.pos[pts].copy())
 
     def map_points(self) -> np.ndarray:
         """(M, 3) world positions of all good map points (a copy)."""

@@ -513,7 +513,8 @@ class Tracker:
             calib.bf,
         )
         frame.T_cw = T
-        frame.clear_matches(idx[~inl])
+        frame.rejected = idx[~inl]
+        frame.clear_matches(frame.rejected)
         return int(np.count_nonzero(frame.point_ids[idx[inl]] >= 0))
 
     def _last_frame_points(self, mp: Map, last: Frame):
