@@ -19,7 +19,10 @@ none``: read + features + stereo + tracking + local mapping, its BA worker).  Th
 frame, added, is what the full pipeline must spend at least (``sum of parts``); divided by
 the cores it bounds the frame rate (``bound_fps`` = cores / CPU per frame): how close the
 pipeline gets to it is ``pipeline fps / bound_fps``.  Each alone job's ``read`` is counted
-once (the masking job reads; the SLAM's own read is taken off).
+once (the masking job reads; the SLAM's own read is taken off); the motion test (2-5 ms a
+frame) is in the pipeline only.  CPU a frame is counted over the frame loop (first frame to
+last, the process and its live BA workers): start-up, model and vocabulary loading are
+left out.
 
 Prints a table per sequence (medians over the repeats) and writes
 benchmarks/results/profile.json.
