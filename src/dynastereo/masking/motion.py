@@ -265,17 +265,15 @@ def static_residuals(flow: ObjectFlow, T_10: np.ndarray, calib: StereoCalibratio
     its covariance ``(n, 3, 3)``; rows with a prediction behind the camera are dropped
     (``keep``: kept, and their flags returned third)."""
     K, bf = calib.K, calib.bf
-    p = _project(flow.uv0, flow.d0, T_10, K, bf)
-    # Jacobian of the prediction w.r.t. (u0, v0, d0), by forward differences
-    steps = (0.5, 0.5, 0.05)
-    J = np.empty((len(p), 3, 3))
-    for c, h in enumerate(steps):
-        uv, d = flow.uv0.copy(), flow.d0.copy()
-        if c < 2:
-            uv[:, c] += h
-        else:
-            d = d + h
-        J[:, :, c] = (_project(uv, d, T_10, K, bf) - p) / h
+    # the prediction and its Jacobian w.r.t. (u0, v0, d0) by forward differences: one
+    # projection of the points and of their 3 nudged copies
+    n = len(flow.d0)
+    steps = np.array([0.5, 0.5, 0.05])
+    uvd = np.tile(np.column_stack([flow.uv0, flow.d0]), (4, 1))
+    uvd[n:] += np.repeat(np.eye(3) * steps, n, axis=0)
+    q = _project(uvd[:, :2], uvd[:, 2], T_10, K, bf).reshape(4, n, 3)
+    p = q[0]
+    J = ((q[1:] - p) / steps[:, None, None]).transpose(1, 2, 0)  # (n, 3 outputs, 3 inputs)
     S = np.array([sigma_px**2, sigma_px**2, sigma_d**2])
     C = np.einsum("nij,j,nkj->nik", J, S, J) + np.diag(S)
     r = np.stack([flow.uv1[:, 0], flow.uv1[:, 1], flow.d1], axis=1) - p
@@ -388,6 +386,13 @@ def world_velocity(flow: ObjectFlow, seq: int, poses: dict[int, np.ndarray], cal
     _, v, Cm, n = _object_velocities(V, C, age, X1, np.zeros(len(V), np.int64), 1, poses[seq][:3, :3],
                                      max_points, sigma_rot, sigma_t)
     return v[0], Cm[0], int(n[0])
+
+
+def _median3(v) -> float:
+    """``np.median`` of a few numbers (the last speeds), without numpy's overhead."""
+    v = sorted(v)
+    m = len(v) // 2
+    return float(v[m]) if len(v) % 2 else 0.5 * (v[m - 1] + v[m])
 
 
 @dataclass
@@ -560,7 +565,7 @@ class MotionJudge:
         for o in masks.objects:
             t = self.tracks.get(int(o.track_id)) if o.track_id >= 0 else None
             o.moving = None if t is None else t.moving
-            o.speed_mps = float(np.median(t.speeds)) if t is not None and t.speeds else None
+            o.speed_mps = _median3(t.speeds) if t is not None and t.speeds else None
         stale = [k for k, t in self.tracks.items() if self._n - t.last_seen > 50]
         for k in stale:
             del self.tracks[k]
