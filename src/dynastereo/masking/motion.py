@@ -54,6 +54,8 @@ import numpy as np
 
 from ..config import MotionConfig
 from ..types import StereoCalibration, StereoFrame, StereoMasks
+from .detection.classes import canonical_name
+from .detection.tracking import TrackerParams, box_iou
 
 __all__ = ["FrameFlow", "ObjectFlow", "SceneFlow", "MotionJudge", "ObjectMotion", "static_chi2", "world_velocity"]
 
@@ -62,6 +64,8 @@ _FB_MAX = 1.0  # px, forward-backward error to keep a point
 _MARGIN = 48  # px around the boxes' union that LK works on
 _NEAR = tuple(a.ravel() for a in np.meshgrid(np.arange(-3, 4), np.arange(-3, 4)))  # (dx, dy) offsets
 _MIN_PIXELS = 150  # objects with fewer outline pixels are not followed (they stay undecided: masked)
+# class groups whose names a detector swaps on one object (the box tracker's)
+_GROUP_OF = {canonical_name(n): g for g, names in enumerate(TrackerParams().class_groups) for n in names}
 _NONE2 = np.zeros((0, 2), np.float32)
 _NO_POINTS = (np.zeros((0, 2)), (np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int64)))  # a track's points: none
 
@@ -434,16 +438,35 @@ class MotionJudge:
         t = self.tracks.get(int(track))
         return None if t is None else t.moving
 
+    def verdicts(self, objects: list) -> list[bool | None]:
+        """Per object (``ObjectMask``), its track's verdict; an undecided object that
+        overlaps a judged one of its class group (the box tracker's ``class_groups``) by
+        IoU >= ``duplicate_iou`` is a second detection of that object (a detector names
+        one car ``car`` and ``truck``; the tracker keeps both boxes, the second under a new
+        id every run) and takes its verdict."""
+        v = [self.state(o.track_id) if o.track_id >= 0 else None for o in objects]
+        undecided = [k for k, x in enumerate(v) if x is None]
+        judged = [k for k, x in enumerate(v) if x is not None]
+        if not undecided or not judged:
+            return v
+        iou = box_iou([objects[k].box for k in undecided], [objects[k].box for k in judged])
+        group = [_GROUP_OF.get(canonical_name(o.label), o.label) for o in objects]
+        for a, k in enumerate(undecided):
+            same = [b for b, j in enumerate(judged) if group[j] == group[k] and iou[a, b] >= self.cfg.duplicate_iou]
+            if same:
+                v[k] = v[judged[max(same, key=lambda b: iou[a, b])]]
+        return v
+
     def select(self, masks: StereoMasks | None) -> StereoMasks | None:
         """The masks SLAM gets for this frame: only objects judged moving or not yet judged
-        (``ObjectMask.masked`` / ``moving`` set on ``masks.objects``); ``masks`` itself
-        when every object stays masked."""
+        (``ObjectMask.masked`` / ``moving`` set on ``masks.objects``; :meth:`verdicts`);
+        ``masks`` itself when every object stays masked."""
         if masks is None:
             return None
         self._sync(masks)
         keep = []
-        for i, o in enumerate(masks.objects):
-            o.moving = self.state(o.track_id) if o.track_id >= 0 else None
+        for i, (o, v) in enumerate(zip(masks.objects, self.verdicts(masks.objects))):
+            o.moving = v
             o.masked = o.moving is not False or masks.labels_left is None
             if o.masked:
                 keep.append(i + 1)
@@ -562,9 +585,9 @@ class MotionJudge:
                 del self._poses[k]
         if flow is not None and last is not None and ok and last[0] == flow.seq - 1:
             turned = self._weigh(flow, last[1], T_wc)
-        for o in masks.objects:
+        for o, v in zip(masks.objects, self.verdicts(masks.objects)):
             t = self.tracks.get(int(o.track_id)) if o.track_id >= 0 else None
-            o.moving = None if t is None else t.moving
+            o.moving = v
             o.speed_mps = _median3(t.speeds) if t is not None and t.speeds else None
         stale = [k for k, t in self.tracks.items() if self._n - t.last_seen > 50]
         for k in stale:
