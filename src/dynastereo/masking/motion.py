@@ -46,6 +46,7 @@ objects without a track id (``detector.track: false``) stay undecided (masked).
 
 from __future__ import annotations
 
+import functools
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -68,6 +69,12 @@ _MIN_PIXELS = 150  # objects with fewer outline pixels are not followed (they st
 _GROUP_OF = {canonical_name(n): g for g, names in enumerate(TrackerParams().class_groups) for n in names}
 _NONE2 = np.zeros((0, 2), np.float32)
 _NO_POINTS = (np.zeros((0, 2)), (np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int64)))  # a track's points: none
+
+
+@functools.lru_cache(maxsize=256)
+def _group(label: str):
+    """The class group of a detector label (its own name outside the groups)."""
+    return _GROUP_OF.get(canonical_name(label), label)
 
 
 @dataclass
@@ -124,7 +131,7 @@ def _lookup(img: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     x = np.rint(uv[:, 0]).astype(np.int64)
     y = np.rint(uv[:, 1]).astype(np.int64)
     inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-    return img[np.clip(y, 0, h - 1), np.clip(x, 0, w - 1)], inside
+    return img[np.minimum(np.maximum(y, 0), h - 1), np.minimum(np.maximum(x, 0), w - 1)], inside
 
 
 class SceneFlow:
@@ -160,7 +167,7 @@ class SceneFlow:
         if len(have):  # not within 3 px of a point followed already
             hx = (np.rint(have[:, 0]).astype(np.int64) - x0)[:, None] + _NEAR[0]
             hy = (np.rint(have[:, 1]).astype(np.int64) - y0)[:, None] + _NEAR[1]
-            sel[np.clip(hy, 0, y1 - y0 - 1), np.clip(hx, 0, x1 - x0 - 1)] = False
+            sel[np.minimum(np.maximum(hy, 0), y1 - y0 - 1), np.minimum(np.maximum(hx, 0), x1 - x0 - 1)] = False
         min_dist = max(2.0, min(x1 - x0, y1 - y0) / 12.0)
         c = cv2.goodFeaturesToTrack(prev.gray[y0:y1, x0:x1], n, 0.001, min_dist,
                                     mask=sel.view(np.uint8), blockSize=3)
@@ -455,7 +462,7 @@ class MotionJudge:
         if not undecided or not judged:
             return v
         iou = box_iou([objects[k].box for k in undecided], [objects[k].box for k in judged])
-        group = [_GROUP_OF.get(canonical_name(o.label), o.label) for o in objects]
+        group = [_group(o.label) for o in objects]
         for a, k in enumerate(undecided):
             same = [b for b, j in enumerate(judged) if group[j] == group[k] and iou[a, b] >= self.cfg.duplicate_iou]
             if same:
