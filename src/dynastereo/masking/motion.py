@@ -10,8 +10,9 @@ tracking on a prefetch thread:
   for every object seen in frames k-1 and k under the same track id, the points followed
   into k-1 topped up to ``motion.max_points`` with new corners on its outline at k-1
   (``goodFeaturesToTrack`` on the instance label, where the masker's disparity is
-  valid, 3 px from the points it has) are followed to k by pyramidal Lucas-Kanade on a
-  crop around the object (forward-backward checked, error < 1 px); a point is kept when
+  valid, 3 px from the points it has) are followed to k by pyramidal Lucas-Kanade, ONE
+  forward and one backward call for all objects' points, on the union of their boxes
+  (forward-backward checked, error < 1 px); a point is kept when
   it lands on the same object's outline at k with a valid disparity there.  Each point
   keeps where it was first seen (pixel, disparity, frame), up to ``window_frames`` back.
   Result: a :class:`FrameFlow` of ``(u, v, d)`` at k-1, k and first sight per object.
@@ -37,9 +38,12 @@ tracking on a prefetch thread:
   frame where most objects judged static seem to move gives none (a bad pose).  Speed =
   the velocity's norm / dt (median of the last 3 frames).  ``update`` returns the objects
   that turned moving from static, whose map points :class:`ObjectMotion` removes
-  (``System.forget_region``).
+  (``System.forget_region``).  An undecided object whose box overlaps a judged one of
+  its class group by IoU >= ``duplicate_iou`` is a second detection of it (a detector
+  names one car ``car`` and ``truck``) and takes its verdict (:meth:`MotionJudge.verdicts`).
 
-Everything is vectorized over the points; the per-object work is a few array slices.
+Everything is vectorized over all objects' points at once (grouped medians and sums);
+per object there is only the hysteresis.
 Maskers without instance labels (``seg``) get verdicts but keep every object masked;
 objects without a track id (``detector.track: false``) stay undecided (masked).
 """
