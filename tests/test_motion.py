@@ -72,11 +72,12 @@ def _masks(k: int, flows: list[ObjectFlow]) -> StereoMasks:
     return StereoMasks(m, m.copy(), objs, labels_left=labels, labels_right=labels, flow=FrameFlow(k, DT, flows))
 
 
-def test_known_motions_are_judged_from_geometry() -> None:
+def _judge_known_motions(frames: int = 6) -> tuple[MotionJudge, StereoMasks]:
+    """A judge fed ``frames`` frames of the three objects of :func:`_objects` (noisy)."""
     rng = np.random.default_rng(1)
     judge = MotionJudge(MotionConfig(), CALIB)
     objects = _objects()
-    for k in range(6):
+    for k in range(frames):
         flows = []
         if k > 0:
             for tr, (X, v) in objects.items():
@@ -88,6 +89,11 @@ def test_known_motions_are_judged_from_geometry() -> None:
         if k == 0:  # nothing judged yet: everything masked (the safe default)
             assert slam_masks is masks and all(o.masked and o.moving is None for o in masks.objects)
         judge.update(masks, _camera(k)[:3], ok=True)
+    return judge, masks
+
+
+def test_known_motions_are_judged_from_geometry() -> None:
+    judge, masks = _judge_known_motions()
     assert [o.moving for o in masks.objects] == [False, True, True]
     speeds = [o.speed_mps for o in masks.objects]
     assert speeds[0] < 0.3 and abs(speeds[1] - 1.0) < 0.3 and abs(speeds[2] - 10.0) < 1.0
@@ -96,6 +102,34 @@ def test_known_motions_are_judged_from_geometry() -> None:
     assert [o.masked for o in masks.objects] == [False, True, True]
     assert not out.left[:, :200].any() and not out.right[:, :200].any()
     assert out.left[:, 200:600].all() and out.right[:, 200:600].all()
+
+
+def test_a_second_detection_of_a_judged_object_takes_its_verdict() -> None:
+    """The detector names the parked car 'car' and 'truck' (two boxes, the second under a
+    new track id): the duplicate is left to SLAM with it; a person in the same box, or a
+    vehicle box overlapping less than ``duplicate_iou``, stays undecided (masked)."""
+    judge, masks = _judge_known_motions()
+    assert [o.moving for o in masks.objects] == [False, True, True]
+    labels = masks.labels_left.copy()
+    extra = [  # (box, label, its pixels (rows, cols))
+        ((2.0, 0.0, 200.0, 190.0), "truck", (slice(0, 60), slice(2, 200))),  # the parked car again
+        ((200.0, 4.0, 398.0, 192.0), "bus", (slice(0, 60), slice(200, 400))),  # the crosser again
+        ((0.0, 0.0, 200.0, 192.0), "person", (slice(60, 120), slice(0, 200))),  # another class group
+        ((0.0, 0.0, 120.0, 192.0), "car", (slice(120, 192), slice(0, 100))),  # IoU 0.6 with the parked car
+    ]
+    objs = list(masks.objects)
+    for t, (box, label, (rows, cols)) in enumerate(extra):
+        labels[rows, cols] = len(objs) + 1
+        objs.append(ObjectMask(box, label, 1.0, MaskMethod.OUTLINE, 10.0, 1, 1, 90 + t))
+    m = (labels > 0).astype(np.uint8) * 255
+    dup = StereoMasks(m, m.copy(), objs, labels_left=labels, labels_right=labels, flow=FrameFlow(6, DT, []))
+    out = judge.select(dup)
+    assert [o.moving for o in objs] == [False, True, True, False, True, None, None]
+    assert [o.masked for o in objs] == [False, True, True, False, True, True, True]
+    assert not out.left[:60, 2:200].any()  # the parked car's second box: left to SLAM
+    assert out.left[:60, 200:400].all() and out.left[60:120, :200].all() and out.left[120:, :100].all()
+    judge.update(dup, _camera(6)[:3], ok=True)  # the verdicts reported after the frame agree
+    assert [o.moving for o in objs] == [False, True, True, False, True, None, None]
 
 
 def test_a_parked_object_that_starts_to_move_is_caught_and_reported() -> None:
@@ -143,6 +177,8 @@ def test_motion_config_is_validated() -> None:
         MotionConfig(static_fraction=0.6, moving_fraction=0.5)
     with pytest.raises(ConfigError, match="motion.confirm_frames"):
         MotionConfig(confirm_frames=0)
+    with pytest.raises(ConfigError, match="motion.duplicate_iou"):
+        MotionConfig(duplicate_iou=0.0)
 
 
 # ----------------------------------------------------------------------------- pipeline

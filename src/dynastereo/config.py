@@ -334,7 +334,9 @@ class MotionConfig:
     static one moving (its map points are then removed, ``forget_points``); a moving one
     is judged static again after ``release_frames`` frames of rest in a row.  A frame in
     which at least ``suspect_fraction`` of the objects judged static seem to move gives no
-    evidence (SLAM's pose is suspect)."""
+    evidence (SLAM's pose is suspect).  An undecided object whose box overlaps a judged
+    object of its class group by IoU >= ``duplicate_iou`` is a second detection of it (a
+    detector names one car ``car`` and ``truck``): it takes that object's verdict."""
 
     mode: MotionMode = "moving"
     sigma_px: float = 0.5
@@ -354,6 +356,7 @@ class MotionConfig:
     release_frames: int = 8
     suspect_fraction: float = 0.67
     forget_points: bool = True
+    duplicate_iou: float = 0.7
 
     def __post_init__(self) -> None:
         self.validate()
@@ -382,8 +385,9 @@ class MotionConfig:
         for k in ("sigma_pose_deg", "sigma_pose_m"):
             if not getattr(self, k) >= 0:
                 raise _bad(f"motion.{k}", ">= 0", getattr(self, k))
-        if not 0.0 < self.suspect_fraction <= 1.0:
-            raise _bad("motion.suspect_fraction", "in (0, 1]", self.suspect_fraction)
+        for k in ("suspect_fraction", "duplicate_iou"):
+            if not 0.0 < getattr(self, k) <= 1.0:
+                raise _bad(f"motion.{k}", "in (0, 1]", getattr(self, k))
         for k in ("confirm_frames", "release_frames", "window_frames"):
             if getattr(self, k) < 1:
                 raise _bad(f"motion.{k}", ">= 1", getattr(self, k))

@@ -10,8 +10,9 @@ tracking on a prefetch thread:
   for every object seen in frames k-1 and k under the same track id, the points followed
   into k-1 topped up to ``motion.max_points`` with new corners on its outline at k-1
   (``goodFeaturesToTrack`` on the instance label, where the masker's disparity is
-  valid, 3 px from the points it has) are followed to k by pyramidal Lucas-Kanade on a
-  crop around the object (forward-backward checked, error < 1 px); a point is kept when
+  valid, 3 px from the points it has) are followed to k by pyramidal Lucas-Kanade, ONE
+  forward and one backward call for all objects' points, on the union of their boxes
+  (forward-backward checked, error < 1 px); a point is kept when
   it lands on the same object's outline at k with a valid disparity there.  Each point
   keeps where it was first seen (pixel, disparity, frame), up to ``window_frames`` back.
   Result: a :class:`FrameFlow` of ``(u, v, d)`` at k-1, k and first sight per object.
@@ -37,15 +38,19 @@ tracking on a prefetch thread:
   frame where most objects judged static seem to move gives none (a bad pose).  Speed =
   the velocity's norm / dt (median of the last 3 frames).  ``update`` returns the objects
   that turned moving from static, whose map points :class:`ObjectMotion` removes
-  (``System.forget_region``).
+  (``System.forget_region``).  An undecided object whose box overlaps a judged one of
+  its class group by IoU >= ``duplicate_iou`` is a second detection of it (a detector
+  names one car ``car`` and ``truck``) and takes its verdict (:meth:`MotionJudge.verdicts`).
 
-Everything is vectorized over the points; the per-object work is a few array slices.
+Everything is vectorized over all objects' points at once (grouped medians and sums);
+per object there is only the hysteresis.
 Maskers without instance labels (``seg``) get verdicts but keep every object masked;
 objects without a track id (``detector.track: false``) stay undecided (masked).
 """
 
 from __future__ import annotations
 
+import functools
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -54,6 +59,8 @@ import numpy as np
 
 from ..config import MotionConfig
 from ..types import StereoCalibration, StereoFrame, StereoMasks
+from .detection.classes import canonical_name
+from .detection.tracking import TrackerParams, box_iou
 
 __all__ = ["FrameFlow", "ObjectFlow", "SceneFlow", "MotionJudge", "ObjectMotion", "static_chi2", "world_velocity"]
 
@@ -62,6 +69,16 @@ _FB_MAX = 1.0  # px, forward-backward error to keep a point
 _MARGIN = 48  # px around the boxes' union that LK works on
 _NEAR = tuple(a.ravel() for a in np.meshgrid(np.arange(-3, 4), np.arange(-3, 4)))  # (dx, dy) offsets
 _MIN_PIXELS = 150  # objects with fewer outline pixels are not followed (they stay undecided: masked)
+# class groups whose names a detector swaps on one object (the box tracker's)
+_GROUP_OF = {canonical_name(n): g for g, names in enumerate(TrackerParams().class_groups) for n in names}
+_NONE2 = np.zeros((0, 2), np.float32)
+_NO_POINTS = (np.zeros((0, 2)), (np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int64)))  # a track's points: none
+
+
+@functools.lru_cache(maxsize=256)
+def _group(label: str):
+    """The class group of a detector label (its own name outside the groups)."""
+    return _GROUP_OF.get(canonical_name(label), label)
 
 
 @dataclass
@@ -118,7 +135,7 @@ def _lookup(img: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     x = np.rint(uv[:, 0]).astype(np.int64)
     y = np.rint(uv[:, 1]).astype(np.int64)
     inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-    return img[np.clip(y, 0, h - 1), np.clip(x, 0, w - 1)], inside
+    return img[np.minimum(np.maximum(y, 0), h - 1), np.minimum(np.maximum(x, 0), w - 1)], inside
 
 
 class SceneFlow:
@@ -136,31 +153,31 @@ class SceneFlow:
         self._prev = None
         self.epoch += 1
 
-    def _corners(self, prev: _Prev, i: int, have: np.ndarray | None = None) -> np.ndarray:
+    def _corners(self, prev: _Prev, i: int, have: np.ndarray) -> np.ndarray:
         """Up to ``max_points`` points (n, 2) float32 on object ``i``'s outline at k-1, at
         least 3 px from the points it ``have`` already (and no more than make up the number)."""
+        n = self.cfg.max_points - len(have)
+        if n < max(3, self.cfg.max_points // 4):
+            return _NONE2
         h, w = prev.gray.shape
         x0, y0, x1, y1 = prev.boxes[i]
         x0, y0 = max(int(np.floor(x0)), 0), max(int(np.floor(y0)), 0)
         x1, y1 = min(int(np.ceil(x1)), w), min(int(np.ceil(y1)), h)
         if x1 - x0 < 4 or y1 - y0 < 4:
-            return np.zeros((0, 2), np.float32)
+            return _NONE2
         sel = (prev.labels[y0:y1, x0:x1] == i + 1) & (prev.disparity[y0:y1, x0:x1] > 0)
         if np.count_nonzero(sel) < max(self.cfg.min_points, _MIN_PIXELS):
-            return np.zeros((0, 2), np.float32)
-        n = self.cfg.max_points - (0 if have is None else len(have))
-        if n < max(3, self.cfg.max_points // 4):
-            return np.zeros((0, 2), np.float32)
-        if have is not None and len(have):  # not within 3 px of a point followed already
+            return _NONE2
+        if len(have):  # not within 3 px of a point followed already
             hx = (np.rint(have[:, 0]).astype(np.int64) - x0)[:, None] + _NEAR[0]
             hy = (np.rint(have[:, 1]).astype(np.int64) - y0)[:, None] + _NEAR[1]
-            sel[np.clip(hy, 0, y1 - y0 - 1), np.clip(hx, 0, x1 - x0 - 1)] = False
+            sel[np.minimum(np.maximum(hy, 0), y1 - y0 - 1), np.minimum(np.maximum(hx, 0), x1 - x0 - 1)] = False
         min_dist = max(2.0, min(x1 - x0, y1 - y0) / 12.0)
         c = cv2.goodFeaturesToTrack(prev.gray[y0:y1, x0:x1], n, 0.001, min_dist,
                                     mask=sel.view(np.uint8), blockSize=3)
         if c is None:
-            return np.zeros((0, 2), np.float32)
-        return (c.reshape(-1, 2) + np.float32([x0, y0])).astype(np.float32)
+            return _NONE2
+        return c.reshape(-1, 2) + np.float32([x0, y0])
 
     def measure(self, frame: StereoFrame, masks: StereoMasks | None) -> FrameFlow:
         """The objects' flow from the previous frame measured into this one (empty on the
@@ -186,53 +203,58 @@ class SceneFlow:
         if not pairs:
             return out
         # the points followed into k-1 (anchors kept up to window_frames back), topped up
-        # with new corners on the outline at k-1 (anchored there)
+        # with new corners on the outline at k-1 (anchored there: their disparity at k-1)
         W = self.cfg.window_frames
-        empty2, empty1 = np.zeros((0, 2)), np.zeros(0)
-        p0s, anchors = [], []
+        p0s, uas, das, sas = [], [], [], []
         for i, _ in pairs:
-            uv, (ua, da, sa) = prev.points.get(int(prev.tracks[i]), (empty2, (empty2, empty1, empty1)))
+            uv, (ua, da, sa) = prev.points.get(int(prev.tracks[i]), _NO_POINTS)
             young = seq - sa <= W
             uv, ua, da, sa = uv[young], ua[young], da[young], sa[young]
-            new = self._corners(prev, i, uv).astype(np.float64)
-            dn, _ = _lookup(prev.disparity, new)
-            p0s.append(np.concatenate([uv, new]))
-            anchors.append((np.concatenate([ua, new]), np.concatenate([da, dn]),
-                            np.concatenate([sa, np.full(len(new), seq - 1)])))
-        owner = np.concatenate([np.full(len(p), k) for k, p in enumerate(p0s)])
-        if len(owner) == 0:
+            new = self._corners(prev, i, uv)
+            p0s += (uv, new)
+            uas += (ua, new)
+            das += (da, np.full(len(new), np.nan))
+            sas += (sa, np.full(len(new), seq - 1))
+        counts = np.add.reduceat(np.array([len(p) for p in p0s]), np.arange(0, len(p0s), 2))
+        if counts.sum() == 0:
             return out
+        owner = np.repeat(np.arange(len(pairs)), counts)
         p0 = np.concatenate(p0s).astype(np.float32)
-        ua, da, sa = (np.concatenate([a[c] for a in anchors]) for c in range(3))
-        # LK per object on its boxes (k-1 and k) grown by a margin: small pyramids
-        h, w = gray.shape
-        p1 = np.zeros_like(p0)
-        good = np.zeros(len(p0), bool)
-        for k, (i, j) in enumerate(pairs):
-            s = owner == k
-            if not s.any():
-                continue
-            bx = np.stack([prev.boxes[i], boxes[j]])
-            cx0, cy0 = max(0, int(bx[:, 0].min()) - _MARGIN), max(0, int(bx[:, 1].min()) - _MARGIN)
-            cx1, cy1 = min(w, int(bx[:, 2].max()) + _MARGIN), min(h, int(bx[:, 3].max()) + _MARGIN)
-            off = np.float32([cx0, cy0])
-            a, b = prev.gray[cy0:cy1, cx0:cx1], gray[cy0:cy1, cx0:cx1]
-            q0 = (p0[s] - off).reshape(-1, 1, 2)
-            q1, st1, _ = cv2.calcOpticalFlowPyrLK(a, b, q0, None, **_LK)
-            q0b, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, q1, None, **_LK)
-            p1[s] = q1.reshape(-1, 2) + off
-            fb = np.linalg.norm(q0.reshape(-1, 2) - q0b.reshape(-1, 2), axis=1)
-            good[s] = (st1.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(fb) & (fb < _FB_MAX)
+        ua, da, sa = np.concatenate(uas).astype(np.float64), np.concatenate(das), np.concatenate(sas)
         d0, _ = _lookup(prev.disparity, p0)
+        fresh = np.isnan(da)
+        da[fresh] = d0[fresh]
+        # one forward-backward LK call for every object's points, on the union of their
+        # boxes (k-1 and k) grown by a margin; the crop starts on the coarsest pyramid
+        # level's grid, so its pyramid is the whole image's (a crop origin moving from frame
+        # to frame would move LK's coarse start points, and its result by up to the
+        # convergence bound 0.03 px: much of a far object's 0.15 px of motion a frame)
+        h, w = gray.shape
+        bx = np.concatenate([prev.boxes[[i for i, _ in pairs]], boxes[[j for _, j in pairs]]])
+        grid = 1 << _LK["maxLevel"]
+        cx0 = max(0, int(bx[:, 0].min()) - _MARGIN) // grid * grid
+        cy0 = max(0, int(bx[:, 1].min()) - _MARGIN) // grid * grid
+        cx1, cy1 = min(w, int(bx[:, 2].max()) + _MARGIN), min(h, int(bx[:, 3].max()) + _MARGIN)
+        off = np.float32([cx0, cy0])
+        a, b = prev.gray[cy0:cy1, cx0:cx1], gray[cy0:cy1, cx0:cx1]
+        q0 = (p0 - off).reshape(-1, 1, 2)
+        q1, st1, _ = cv2.calcOpticalFlowPyrLK(a, b, q0, None, **_LK)
+        q0b, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, q1, None, **_LK)
+        p1 = q1.reshape(-1, 2) + off
+        fb = np.linalg.norm(q0.reshape(-1, 2) - q0b.reshape(-1, 2), axis=1)
+        good = (st1.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(fb) & (fb < _FB_MAX)
         d1, in1 = _lookup(masks.box_disparity, p1)
         lab1, _ = _lookup(masks.labels_left, p1)
         cur_label = np.array([j + 1 for _, j in pairs], np.int64)[owner]
         good &= in1 & (d0 > 0) & (d1 > 0) & (da > 0) & (lab1 == cur_label)
-        p0, p1 = p0.astype(np.float64), p1.astype(np.float64)
-        d0, d1 = d0.astype(np.float64), d1.astype(np.float64)
+        keep = np.flatnonzero(good)
+        p0, p1 = p0[keep].astype(np.float64), p1[keep].astype(np.float64)
+        d0, d1 = d0[keep].astype(np.float64), d1[keep].astype(np.float64)
+        ua, da, sa = ua[keep], da[keep], sa[keep]
+        ends = np.searchsorted(owner[keep], np.arange(len(pairs) + 1))
         for k, (_, j) in enumerate(pairs):
-            s = good & (owner == k)
-            if np.any(s):
+            s = slice(ends[k], ends[k + 1])
+            if s.stop > s.start:
                 out.objects.append(ObjectFlow(int(tracks[j]), j, p0[s], d0[s], p1[s], d1[s], ua[s], da[s], sa[s]))
                 self._prev.points[int(tracks[j])] = (p1[s], (ua[s], da[s], sa[s]))
         return out
@@ -263,17 +285,15 @@ def static_residuals(flow: ObjectFlow, T_10: np.ndarray, calib: StereoCalibratio
     its covariance ``(n, 3, 3)``; rows with a prediction behind the camera are dropped
     (``keep``: kept, and their flags returned third)."""
     K, bf = calib.K, calib.bf
-    p = _project(flow.uv0, flow.d0, T_10, K, bf)
-    # Jacobian of the prediction w.r.t. (u0, v0, d0), by forward differences
-    steps = (0.5, 0.5, 0.05)
-    J = np.empty((len(p), 3, 3))
-    for c, h in enumerate(steps):
-        uv, d = flow.uv0.copy(), flow.d0.copy()
-        if c < 2:
-            uv[:, c] += h
-        else:
-            d = d + h
-        J[:, :, c] = (_project(uv, d, T_10, K, bf) - p) / h
+    # the prediction and its Jacobian w.r.t. (u0, v0, d0) by forward differences: one
+    # projection of the points and of their 3 nudged copies
+    n = len(flow.d0)
+    steps = np.array([0.5, 0.5, 0.05])
+    uvd = np.tile(np.column_stack([flow.uv0, flow.d0]), (4, 1))
+    uvd[n:] += np.repeat(np.eye(3) * steps, n, axis=0)
+    q = _project(uvd[:, :2], uvd[:, 2], T_10, K, bf).reshape(4, n, 3)
+    p = q[0]
+    J = ((q[1:] - p) / steps[:, None, None]).transpose(1, 2, 0)  # (n, 3 outputs, 3 inputs)
     S = np.array([sigma_px**2, sigma_px**2, sigma_d**2])
     C = np.einsum("nij,j,nkj->nik", J, S, J) + np.diag(S)
     r = np.stack([flow.uv1[:, 0], flow.uv1[:, 1], flow.d1], axis=1) - p
@@ -332,12 +352,36 @@ def _point_velocities(flow: ObjectFlow, seq: int, poses: dict[int, np.ndarray], 
     return use, V, C, age, X1
 
 
-def _object_velocity(V, C, age, X1, R1, max_points, sigma_rot, sigma_t):
-    n = min(len(V), max_points)
-    X = X1.mean(axis=0)
-    pose = sigma_rot**2 * (X @ X * np.eye(3) - np.outer(X, X)) + sigma_t**2 * np.eye(3)  # camera frame
-    Cm = C.mean(axis=0) * (np.pi / 2) / n + R1 @ pose @ R1.T / float(age.mean())
-    return np.median(V, axis=0), Cm, len(V)
+def _group_median(v: np.ndarray, group: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Per group, the median of the rows ``v`` (m, c) (``np.median``'s value: the mean of
+    the two middle ones for an even count); ``group`` (m,) non-decreasing, ``starts`` /
+    ``counts`` its groups' first rows and sizes (all > 0)."""
+    lo, hi = starts + (counts - 1) // 2, starts + counts // 2
+    out = np.empty((len(counts), v.shape[1]))
+    for c in range(v.shape[1]):
+        sv = v[np.lexsort((v[:, c], group)), c]
+        out[:, c] = 0.5 * (sv[lo] + sv[hi])
+    return out
+
+
+def _object_velocities(V, C, age, X1, group, n_groups, R1, max_points, sigma_rot, sigma_t):
+    """Per object (``group`` (m,) non-decreasing in ``range(n_groups)``: each point's
+    object) with points: (which objects (G,) bool, median velocity (g, 3), its covariance
+    (g, 3, 3), points used (g,)) -- :func:`world_velocity`'s model, for all objects at once."""
+    counts_all = np.bincount(group, minlength=n_groups)
+    has = counts_all > 0
+    counts = counts_all[has]
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    f = counts.astype(np.float64)
+    n = np.minimum(counts, max_points).astype(np.float64)
+    X = np.add.reduceat(X1, starts) / f[:, None]
+    I3 = np.eye(3)
+    pose = (sigma_rot**2 * (np.einsum("gi,gi->g", X, X)[:, None, None] * I3 - X[:, :, None] * X[:, None, :])
+            + sigma_t**2 * I3)  # camera frame
+    mean_age = np.add.reduceat(age, starts) / f
+    Cm = (np.add.reduceat(C, starts) / f[:, None, None] * ((np.pi / 2) / n)[:, None, None]
+          + R1 @ pose @ R1.T / mean_age[:, None, None])
+    return has, _group_median(V, group, starts, counts), Cm, counts
 
 
 def world_velocity(flow: ObjectFlow, seq: int, poses: dict[int, np.ndarray], calib: StereoCalibration,
@@ -359,7 +403,16 @@ def world_velocity(flow: ObjectFlow, seq: int, poses: dict[int, np.ndarray], cal
     use, V, C, age, X1 = _point_velocities(flow, seq, poses, calib, S)
     if not use.any():
         return None
-    return _object_velocity(V, C, age, X1, poses[seq][:3, :3], max_points, sigma_rot, sigma_t)
+    _, v, Cm, n = _object_velocities(V, C, age, X1, np.zeros(len(V), np.int64), 1, poses[seq][:3, :3],
+                                     max_points, sigma_rot, sigma_t)
+    return v[0], Cm[0], int(n[0])
+
+
+def _median3(v) -> float:
+    """``np.median`` of a few numbers (the last speeds), without numpy's overhead."""
+    v = sorted(v)
+    m = len(v) // 2
+    return float(v[m]) if len(v) % 2 else 0.5 * (v[m - 1] + v[m])
 
 
 @dataclass
@@ -401,16 +454,35 @@ class MotionJudge:
         t = self.tracks.get(int(track))
         return None if t is None else t.moving
 
+    def verdicts(self, objects: list) -> list[bool | None]:
+        """Per object (``ObjectMask``), its track's verdict; an undecided object that
+        overlaps a judged one of its class group (the box tracker's ``class_groups``) by
+        IoU >= ``duplicate_iou`` is a second detection of that object (a detector names
+        one car ``car`` and ``truck``; the tracker keeps both boxes, the second under a new
+        id every run) and takes its verdict."""
+        v = [self.state(o.track_id) if o.track_id >= 0 else None for o in objects]
+        undecided = [k for k, x in enumerate(v) if x is None]
+        judged = [k for k, x in enumerate(v) if x is not None]
+        if not undecided or not judged:
+            return v
+        iou = box_iou([objects[k].box for k in undecided], [objects[k].box for k in judged])
+        group = [_group(o.label) for o in objects]
+        for a, k in enumerate(undecided):
+            same = [b for b, j in enumerate(judged) if group[j] == group[k] and iou[a, b] >= self.cfg.duplicate_iou]
+            if same:
+                v[k] = v[judged[max(same, key=lambda b: iou[a, b])]]
+        return v
+
     def select(self, masks: StereoMasks | None) -> StereoMasks | None:
         """The masks SLAM gets for this frame: only objects judged moving or not yet judged
-        (``ObjectMask.masked`` / ``moving`` set on ``masks.objects``); ``masks`` itself
-        when every object stays masked."""
+        (``ObjectMask.masked`` / ``moving`` set on ``masks.objects``; :meth:`verdicts`);
+        ``masks`` itself when every object stays masked."""
         if masks is None:
             return None
         self._sync(masks)
         keep = []
-        for i, o in enumerate(masks.objects):
-            o.moving = self.state(o.track_id) if o.track_id >= 0 else None
+        for i, (o, v) in enumerate(zip(masks.objects, self.verdicts(masks.objects))):
+            o.moving = v
             o.masked = o.moving is not False or masks.labels_left is None
             if o.masked:
                 keep.append(i + 1)
@@ -431,17 +503,16 @@ class MotionJudge:
         return StereoMasks(left, right, masks.objects, masks.detections, masks.disparity, masks.ground,
                            masks.labels_left, masks.labels_right, masks.box_disparity, masks.flow)
 
-    def _evidence(self, chi: np.ndarray, chi_velocity: float) -> bool | None:
-        """This frame's evidence: True motion, False rest, None neither (too few points)."""
+    def _evidence(self, n: np.ndarray, frac: np.ndarray, chi_velocity: np.ndarray) -> list[bool | None]:
+        """Per object, this frame's evidence from its points tested (``n``), the fraction
+        of them over ``chi2`` and its velocity's chi-square: True motion, False rest, None
+        neither (too few points; half of ``min_points`` suffice to keep an object masked)."""
         c = self.cfg
-        if len(chi) < max(3, c.min_points // 2):
-            return None
-        frac = float(np.mean(chi > c.chi2))
-        if frac >= c.moving_fraction or chi_velocity > c.object_chi2:
-            return True  # (half of min_points suffice to keep an object masked)
-        if len(chi) >= c.min_points and frac <= c.static_fraction and chi_velocity <= c.object_chi2_static:
-            return False
-        return None
+        enough = n >= max(3, c.min_points // 2)
+        moving = enough & ((frac >= c.moving_fraction) | (chi_velocity > c.object_chi2))
+        rest = (enough & ~moving & (n >= c.min_points) & (frac <= c.static_fraction)
+                & (chi_velocity <= c.object_chi2_static))
+        return [True if m else (False if r else None) for m, r in zip(moving, rest)]
 
     def _step(self, t: _TrackState, e: bool | None) -> bool:
         """Hysteresis; True when the track turned moving from static."""
@@ -457,54 +528,53 @@ class MotionJudge:
         return was is False and t.moving is True
 
     def _weigh(self, flow: FrameFlow, T0: np.ndarray, T1: np.ndarray) -> list[int]:
-        """The evidence of one frame's flow under the camera motion ``T0`` -> ``T1``."""
+        """The evidence of one frame's flow under the camera motion ``T0`` -> ``T1``: every
+        object's points tested at once, per object only the hysteresis."""
         c = self.cfg
-        T_10 = np.linalg.inv(T1) @ T0
-        rows = []
         objs = flow.objects
         if not objs:
             return []
-        # all objects' points at once, then per object
-        owner = np.concatenate([np.full(len(of), k) for k, of in enumerate(objs)])
+        T_10 = np.linalg.inv(T1) @ T0
+        G = len(objs)
+        owner = np.repeat(np.arange(G), [len(of) for of in objs])
         cat = ObjectFlow(-1, -1, *(np.concatenate([getattr(of, a) for of in objs])
                                    for a in ("uv0", "d0", "uv1", "d1", "uva", "da", "seqa")))
+        # frame to frame: per object, the points tested and the fraction over chi2
         r, C, ok = static_residuals(cat, T_10, self.calib, c.sigma_px, c.sigma_disparity, keep=True)
-        chi_all = np.full(len(owner), np.nan)
+        over = np.zeros(len(owner), bool)
         if ok.any():
-            chi_all[ok] = _mahalanobis(r[ok], C[ok])
-        S = np.array([c.sigma_px**2, c.sigma_px**2, c.sigma_disparity**2])
+            over[ok] = _mahalanobis(r[ok], C[ok]) > c.chi2
+        n = np.bincount(owner[ok], minlength=G)
+        frac = np.bincount(owner[over], minlength=G) / np.maximum(n, 1)
+        # over the window: per object, its world velocity and the chi-square of rest
+        vel = np.zeros((G, 3))
+        nvel = np.zeros(G, np.int64)
+        chi_v = np.zeros(G)
         if flow.seq in self._poses:
+            S = np.array([c.sigma_px**2, c.sigma_px**2, c.sigma_disparity**2])
             use, V, Cv, age, X1 = _point_velocities(cat, flow.seq, self._poses, self.calib, S)
-            vowner = owner[use]
-        else:
-            vowner = np.zeros(0, np.int64)
-        R1 = T1[:3, :3]
-        for k, of in enumerate(objs):
-            t = self.tracks[of.track]
-            chi = chi_all[(owner == k) & ok]
-            sel = vowner == k
-            vel = None
-            if sel.any():
-                vel = _object_velocity(V[sel], Cv[sel], age[sel], X1[sel], R1, c.object_points,
-                                       np.radians(c.sigma_pose_deg), c.sigma_pose_m)
-            chi_v = float(vel[0] @ np.linalg.solve(vel[1], vel[0])) if vel is not None else 0.0
-            rows.append((of, t, chi, chi_v, vel, self._evidence(chi, chi_v)))
+            if use.any():
+                has, vel[has], Cm, nvel[has] = _object_velocities(
+                    V, Cv, age, X1, owner[use], G, T1[:3, :3], c.object_points, np.radians(c.sigma_pose_deg),
+                    c.sigma_pose_m)
+                chi_v[has] = np.einsum("gi,gi->g", vel[has], np.linalg.solve(Cm, vel[has][:, :, None])[:, :, 0])
+        evidence = self._evidence(n, frac, chi_v)
+        states = [self.tracks[of.track] for of in objs]
         # the camera's motion itself is suspect when most objects judged static seem to move
         # at once (a bad pose): no evidence from this frame
-        judged = [r for r in rows if r[1].moving is False and r[5] is not None]
-        if len(judged) >= 2 and sum(r[5] is True for r in judged) >= c.suspect_fraction * len(judged):
-            if self.log is not None:
-                self.log.extend((flow.seq, r[0].track, len(r[2]), -1.0, r[3], None) for r in rows)
+        judged = [e for t, e in zip(states, evidence) if t.moving is False and e is not None]
+        suspect = len(judged) >= 2 and sum(judged) >= c.suspect_fraction * len(judged)
+        if self.log is not None:
+            self.log.extend((flow.seq, of.track, int(n[k]), -1.0 if suspect else float(frac[k]), float(chi_v[k]),
+                             None if suspect else evidence[k]) for k, of in enumerate(objs))
+        if suspect:
             return []
         turned = []
-        for of, t, chi, chi_v, vel, e in rows:
-            if self.log is not None:
-                self.log.append((flow.seq, of.track, len(chi), float(np.mean(chi > c.chi2)) if len(chi) else 0.0,
-                                 chi_v, e))
-            if self._step(t, e):
+        for k, (of, t) in enumerate(zip(objs, states)):
+            if self._step(t, evidence[k]):
                 turned.append(of.index)
-            if vel is not None and vel[2] >= c.min_points:
-                t.speeds.append(float(np.linalg.norm(vel[0])) / flow.dt)
+            if nvel[k] >= c.min_points:
+                t.speeds.append(float(np.linalg.norm(vel[k])) / flow.dt)
         return turned
 
     def update(self, masks: StereoMasks | None, pose: np.ndarray, ok: bool) -> list[int]:
@@ -531,10 +601,10 @@ class MotionJudge:
                 del self._poses[k]
         if flow is not None and last is not None and ok and last[0] == flow.seq - 1:
             turned = self._weigh(flow, last[1], T_wc)
-        for o in masks.objects:
+        for o, v in zip(masks.objects, self.verdicts(masks.objects)):
             t = self.tracks.get(int(o.track_id)) if o.track_id >= 0 else None
-            o.moving = None if t is None else t.moving
-            o.speed_mps = float(np.median(t.speeds)) if t is not None and t.speeds else None
+            o.moving = v
+            o.speed_mps = _median3(t.speeds) if t is not None and t.speeds else None
         stale = [k for k, t in self.tracks.items() if self._n - t.last_seen > 50]
         for k in stale:
             del self.tracks[k]
