@@ -24,6 +24,9 @@ frame) is in the pipeline only.  CPU a frame is counted over the frame loop (fir
 last, the process and its live BA workers): start-up, model and vocabulary loading are
 left out.
 
+Last, ``dynastereo run`` itself (its own process, as a user runs it) with the masker and
+with ``--masker none``: ``summary.fps``, medians over the repeats.
+
 Prints a table per sequence (medians over the repeats) and writes
 benchmarks/results/profile.json.
 """
@@ -35,6 +38,8 @@ import json
 import os
 import platform
 import resource
+import subprocess
+import sys
 import tempfile
 import threading
 from pathlib import Path
@@ -175,6 +180,14 @@ def alone_once(seq: Path, cfg: Config, models: Path | None) -> dict:
     }
 
 
+def cli_fps(seq: Path, masker: str, tmp: Path) -> float:
+    """``summary.fps`` of ``dynastereo run`` as a user runs it (its own process)."""
+    out = tmp / f"cli_{masker}"
+    subprocess.run([str(Path(sys.executable).with_name("dynastereo")), "run", str(seq), "-o", str(out), "--masker",
+                    masker, "--overwrite"], check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return float(json.loads((out / "timing.json").read_text())["summary"]["fps"])
+
+
 def _median_dict(rows: list[dict]) -> dict:
     keys = {k for r in rows for k in r}
     return {k: round(float(np.median([r.get(k, 0.0) for r in rows])), 2) for k in sorted(keys)}
@@ -215,6 +228,10 @@ def main() -> None:
             "fps_over_bound": round(med["fps"] / (cores * 1e3 / a["sum_cpu_ms"]), 2),
             "cpu_over_parts": round(pipe_cpu / a["sum_cpu_ms"], 2),
         }
+        with tempfile.TemporaryDirectory() as tmp:
+            cli = {m: [cli_fps(seq, m, Path(tmp)) for _ in range(args.repeats)] for m in (args.masker, "none")}
+        bound["cli_fps"] = {m: round(float(np.median(v)), 2) for m, v in cli.items()}
+        bound["cli_fps_runs"] = cli
         out["sequences"][name] = {"median": med, "alone": a, "bound": bound, "runs": runs, "alone_runs": alone}
         print(f"KITTI {name}: {runs[0]['frames']} frames, {med['fps']} FPS, wall {med['wall_s']} s, "
               f"{med['cores_used']} of {os.cpu_count()} cores busy")
@@ -227,6 +244,8 @@ def main() -> None:
               f"{bound['bound_fps']} FPS on {cores} cores")
         print(f"  pipeline: {bound['pipeline_cpu_ms']} ms CPU a frame = {bound['cpu_over_parts']}x the parts; "
               f"{med['fps']} FPS = {bound['fps_over_bound']} of the bound")
+        print(f"  dynastereo run (CLI): {bound['cli_fps'][args.masker]} FPS, --masker none "
+              f"{bound['cli_fps']['none']} FPS")
         print("  alone stage medians (ms): " + ", ".join(f"{k} {v}" for k, v in a["stage_median_ms"].items()))
     out["load_after"] = os.getloadavg()[0]
     args.out.parent.mkdir(parents=True, exist_ok=True)
