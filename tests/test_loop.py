@@ -138,7 +138,10 @@ def test_kitti03_map_reuse_localise_only(kitti03: Path, models_dir: Path, tmp_pa
     assert run["stats"]["keyframes_created"] == 0  # no keyframe added
     ate_map = evaluate_files(tmp_path / "map/trajectory.kitti.txt", gt).ape["rmse"]
     ate_loc = evaluate_files(tmp_path / "loc/trajectory.kitti.txt", gt).ape["rmse"]
-    assert ate_loc <= 0.12 and ate_loc <= ate_map + 0.01, (ate_map, ate_loc)
+    # localizing in the saved map is as good as mapping it; the absolute ceiling is loose:
+    # a change that should not matter moves a 99-frame clip's ATE by 10-20 % (README,
+    # "Mask only what moves": 0.0895-0.1104 m over n_features variants)
+    assert ate_loc <= 0.16 and ate_loc <= ate_map + 0.01, (ate_map, ate_loc)
 
 
 def test_map_file_errors_through_the_cli(kitti06: Path, kitti03: Path, models_dir: Path, tmp_path: Path) -> None:
