@@ -71,7 +71,7 @@ def test_discovery_of_real_layouts(data_dir):
     everything = {s.name: s for s in discover(data_dir)}
     assert everything["kitti_odometry/dataset/03"].format == "kitti"
     raw = [s for s in everything.values() if s.format == "kitti_raw"]
-    assert [s.path.name for s in raw] == ["2011_09_26_drive_0001_sync"] and raw[0].ground_truth is None
+    assert [s.path.name for s in raw] == ["2011_09_26_drive_0001_sync"] and raw[0].ground_truth == raw[0].path / "oxts"
     euroc = [s for s in everything.values() if s.format == "euroc"]
     assert [s.name for s in euroc] == ["euroc/V1_01_easy_first40"]
 

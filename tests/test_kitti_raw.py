@@ -314,3 +314,142 @@ def test_detector_sees_colour_slam_gray(tmp_path):
     masks = masker.mask(frame)
     assert seen == [(64, 256, 3)] and masks.left.shape == (64, 256)
     assert masks.disparity is not None and masks.disparity.shape == (64, 256)
+
+
+# --------------------------------------------------------------------------- OXTS ground truth
+
+
+def _independent_oxts_poses(drive: Path) -> np.ndarray:
+    """KITTI raw devkit's convertOxtsToPose + pykitti's camera chain, written out frame by frame
+    with scipy's Euler angles (independent of dynastereo.io.kitti_raw)."""
+    from scipy.spatial.transform import Rotation
+
+    def rigid(path: Path) -> np.ndarray:
+        vals = {ln.split(":")[0]: ln.split(":", 1)[1].split() for ln in path.read_text().splitlines() if ":" in ln}
+        T = np.eye(4)
+        T[:3, :3] = np.array(vals["R"], float).reshape(3, 3)
+        T[:3, 3] = np.array(vals["T"], float)
+        return T
+
+    date = drive.parent
+    cam = {ln.split(":")[0]: ln.split(":", 1)[1].split() for ln in (date / "calib_cam_to_cam.txt").read_text().splitlines()}
+    R_rect = np.eye(4)
+    R_rect[:3, :3] = np.array(cam["R_rect_00"], float).reshape(3, 3)
+    T_imu_to_cam = R_rect @ rigid(date / "calib_velo_to_cam.txt") @ rigid(date / "calib_imu_to_velo.txt")
+    files = sorted((drive / "oxts" / "data").glob("*.txt"))
+    poses, scale, origin = [], None, None
+    for f in files:
+        lat, lon, alt, roll, pitch, yaw = (float(v) for v in f.read_text().split()[:6])
+        if scale is None:
+            scale = np.cos(lat * np.pi / 180.0)
+        t = np.array([scale * lon * np.pi * 6378137.0 / 180.0,
+                      scale * 6378137.0 * np.log(np.tan((90.0 + lat) * np.pi / 360.0)), alt])
+        if origin is None:
+            origin = t
+        T_w_imu = np.eye(4)
+        T_w_imu[:3, :3] = Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_matrix()  # Rz @ Ry @ Rx
+        T_w_imu[:3, 3] = t - origin
+        poses.append(T_w_imu @ np.linalg.inv(T_imu_to_cam))
+    first_inv = np.linalg.inv(poses[0])
+    return np.array([first_inv @ P for P in poses])
+
+
+def test_oxts_ground_truth_real_drive(raw_drive, tmp_path):
+    from dynastereo.api import ground_truth
+    from dynastereo.eval.trajectory import find_ground_truth, read_trajectory
+    from dynastereo.io.kitti_raw import kitti_raw_ground_truth
+
+    g = kitti_raw_ground_truth(raw_drive)
+    ref = _independent_oxts_poses(raw_drive)
+    assert g.poses.shape == (108, 4, 4)
+    assert np.array_equal(g.poses[0], np.eye(4))
+    assert np.abs(g.poses - ref).max() < 1e-9
+    steps = np.linalg.norm(np.diff(g.poses[:, :3, 3], axis=0), axis=1)
+    assert steps.sum() == pytest.approx(107.0, abs=1.0)
+    # camera 0 looks forward: the drive goes along +z, with little sideways or vertical motion
+    end = g.poses[-1, :3, 3]
+    assert end[2] > 100 and abs(end[1]) < 2
+    # speeds agree with the packets' own velocity (vf, vl, vu) over the packets' own stamps
+    t = (g.oxts_stamps_ns - g.oxts_stamps_ns[0]) * 1e-9
+    v_pos = np.linalg.norm(g.poses[2:, :3, 3] - g.poses[:-2, :3, 3], axis=1) / (t[2:] - t[:-2])
+    v_oxts = np.linalg.norm(np.column_stack([g.field("vf"), g.field("vl"), g.field("vu")]), axis=1)[1:-1]
+    assert np.median(np.abs(v_pos - v_oxts)) < 0.1 and np.abs(v_pos - v_oxts).max() < 0.3
+    assert 8 < np.median(v_pos) < 12
+    # the stamps are the frames' (as a run's trajectory.tum.txt), 10 Hz
+    assert g.stamp_source == "image_00/timestamps.txt" and g.timestamps[0] == 0.0
+    assert g.timestamps[1] == pytest.approx(0.103129856) and np.all(np.abs(np.diff(g.timestamps) - 0.1) < 0.02)
+    # found by the one rule, read as a trajectory, and from the API
+    assert find_ground_truth(raw_drive) == raw_drive / "oxts"
+    tr = read_trajectory(raw_drive)
+    assert np.abs(tr.poses - g.poses).max() == 0 and tr.timestamps is not None
+    assert ground_truth(raw_drive).path_length == pytest.approx(steps.sum())
+
+
+def test_gt_command_writes_kitti_and_tum(raw_drive, tmp_path):
+    from typer.testing import CliRunner
+
+    from dynastereo.cli.main import app
+    from dynastereo.eval.trajectory import read_trajectory
+
+    out = tmp_path / "poses.txt"
+    r = CliRunner().invoke(app, ["gt", str(raw_drive), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "108 poses" in r.output
+    k, t = read_trajectory(out), read_trajectory(tmp_path / "poses.tum.txt")
+    assert len(k) == len(t) == 108 and k.timestamps is None and t.timestamps[1] == pytest.approx(0.103129856)
+    assert np.abs(k.poses - t.poses).max() < 1e-6 and k.path_length == pytest.approx(106.9, abs=0.5)
+
+
+def test_bench_and_report_find_oxts(raw_drive):
+    from dynastereo.bench.discover import discover
+    from dynastereo.eval.html_report import default_ground_truth
+
+    seqs = discover(raw_drive.parent.parent)
+    assert [s.ground_truth for s in seqs] == [raw_drive / "oxts"]
+    assert default_ground_truth(raw_drive) == raw_drive / "oxts"
+
+
+def _oxts_drive(tmp_path: Path, n: int = 3) -> Path:
+    d = make_drive(tmp_path, n=n)
+    date = d.parent
+    (date / "calib_cam_to_cam.txt").write_text(_calib_text() + "R_rect_00: 1 0 0 0 1 0 0 0 1\n")
+    (date / "calib_imu_to_velo.txt").write_text("calib_time: x\nR: 1 0 0 0 1 0 0 0 1\nT: -0.8 0.3 -0.8\n")
+    # velodyne (x fwd, y left, z up) -> camera (x right, y down, z fwd)
+    (date / "calib_velo_to_cam.txt").write_text("calib_time: x\nR: 0 -1 0 0 0 -1 1 0 0\nT: 0 -0.07 -0.27\n")
+    (d / "oxts" / "data").mkdir(parents=True)
+    for i in range(n):  # due east at 1 m per frame (yaw 0 = east): camera moves along +z
+        lon = 8.0 + i / (6378137.0 * np.pi / 180.0 * np.cos(np.deg2rad(49.0)))
+        vals = [49.0, lon, 100.0, 0, 0, 0] + [0.0] * 24
+        (d / "oxts" / "data" / f"{i:010d}.txt").write_text(" ".join(map(str, vals)) + "\n")
+    (d / "oxts" / "timestamps.txt").write_text(_stamps(n))
+    return d
+
+
+def test_oxts_synthetic_drive_and_errors(tmp_path):
+    from dynastereo.eval.trajectory import read_trajectory
+    from dynastereo.io.kitti_raw import kitti_raw_ground_truth
+
+    d = _oxts_drive(tmp_path)
+    g = kitti_raw_ground_truth(d)
+    assert np.allclose(g.poses[:, :3, 3], [[0, 0, 0], [0, 0, 1], [0, 0, 2]], atol=1e-6)
+    assert np.allclose(g.poses[:, :3, :3], np.eye(3), atol=1e-9)
+    # a malformed packet names its file
+    bad = d / "oxts" / "data" / "0000000001.txt"
+    bad.write_text("49.0 8.0 oops\n")
+    with pytest.raises(SequenceError, match=r"0000000001\.txt: OXTS packet has 3 numbers, expected 30"):
+        kitti_raw_ground_truth(d)
+    bad.write_text(" ".join(["49.0", "x"] + ["0"] * 28) + "\n")
+    with pytest.raises(SequenceError, match=r"0000000001\.txt: OXTS packet: 'x' is not a number"):
+        read_trajectory(d)
+    # a missing packet: the gap is named
+    bad.unlink()
+    with pytest.raises(SequenceError, match=r"OXTS packet 0000000001\.txt missing"):
+        kitti_raw_ground_truth(d)
+    # a missing calibration file is named
+    d2 = _oxts_drive(tmp_path / "b")
+    (d2.parent / "calib_imu_to_velo.txt").unlink()
+    with pytest.raises(CalibrationError, match=r"calib_imu_to_velo\.txt: calibration file not found"):
+        kitti_raw_ground_truth(d2)
+    (d2.parent / "calib_imu_to_velo.txt").write_text("R: 1 0 0\nT: 0 0 0\n")
+    with pytest.raises(CalibrationError, match=r"calib_imu_to_velo\.txt: row 'R:' has 3 numbers"):
+        kitti_raw_ground_truth(d2)

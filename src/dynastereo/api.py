@@ -65,8 +65,47 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, out: str | Pa
     return build_report(run_dir, gt, out, overlays=overlays, auto_gt=auto_gt)
 
 
+def ground_truth(sequence: str | Path):
+    """The ground truth of a sequence folder as a :class:`~dynastereo.eval.Trajectory`: a
+    KITTI raw drive's OXTS converted to rectified camera-0 poses, or KITTI odometry's
+    ``poses/NN.txt`` (:func:`~dynastereo.eval.trajectory.find_ground_truth`); InputError if none."""
+    from .errors import InputError
+    from .eval.trajectory import find_ground_truth, read_trajectory
+
+    path = find_ground_truth(sequence)
+    if path is None:
+        raise InputError("no ground truth found (KITTI odometry poses/NN.txt beside sequences/NN, or a KITTI raw "
+                         "drive's oxts/)", sequence)
+    return read_trajectory(path, name="ground truth")
+
+
+def write_ground_truth(sequence: str | Path, out: str | Path, fmt: str = "both") -> list[Path]:
+    """Write :func:`ground_truth` to ``out``: ``fmt`` ``"kitti"`` (12 numbers a row), ``"tum"``
+    (``t x y z qx qy qz qw``) or ``"both"`` (KITTI to ``out``, TUM beside it as
+    ``<stem>.tum.txt``).  Returns the files written."""
+    from .errors import InputError
+    from .eval.trajectory import write_kitti, write_tum
+
+    if fmt not in ("kitti", "tum", "both"):
+        raise InputError(f"--format: {fmt!r} is not one of kitti, tum, both")
+    traj = ground_truth(sequence)
+    out = Path(out)
+    check_output_file(out, what="ground-truth file")
+    written = []
+    if fmt in ("kitti", "both"):
+        written.append(write_kitti(out, traj.poses))
+    if fmt == "tum":
+        written.append(write_tum(out, traj.poses, traj.timestamps))
+    elif fmt == "both":
+        tum = out.with_name(out.name.split(".")[0] + ".tum.txt")
+        check_output_file(tum, what="ground-truth file")
+        written.append(write_tum(tum, traj.poses, traj.timestamps))
+    return written
+
+
 def resolve_ground_truth(gt: str | Path | None, sequence) -> Path | None:
-    """``gt``, else the KITTI layout's ``poses/NN.txt`` beside the sequence when it exists."""
+    """``gt``, else the sequence's own ground truth when it has one (KITTI odometry
+    ``poses/NN.txt``, a KITTI raw drive's ``oxts/``)."""
     from .eval.html_report import default_ground_truth
 
     if gt is not None:

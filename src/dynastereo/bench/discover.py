@@ -9,8 +9,9 @@ skipped) and recognizes, with the readers' own detection functions (``dynastereo
   (``REL`` the set's folder relative to ``root``).  A folder of ``dynastereo synth``
   outputs is a folder of such sets (``ROOT/convoy/sequences/00`` -> ``convoy/00``).
 * **KITTI raw** drives (:func:`~dynastereo.io.kitti_raw.is_kitti_raw_drive`); ground
-  truth: a KITTI or TUM trajectory ``groundtruth.txt`` / ``poses.txt`` in the drive folder
-  (KITTI raw ships GPS/IMU, not poses of the left camera).
+  truth: a KITTI or TUM trajectory ``groundtruth.txt`` / ``poses.txt`` in the drive folder,
+  else the drive's ``oxts/`` (GPS/IMU, read as camera-0 poses by
+  :func:`~dynastereo.eval.trajectory.read_trajectory`).
 * **EuRoC** MAV sequences (:func:`~dynastereo.io.euroc.euroc_mav_dir`); ground truth:
   ``groundtruth.txt`` / ``poses.txt`` (KITTI or TUM) in the folder, else EuRoC's own
   ``mav0/state_groundtruth_estimate0/data.csv`` (body poses), converted on demand to TUM
@@ -34,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, SequenceError
+from ..eval.trajectory import find_ground_truth
 from ..io import detect_format
 from ..io.euroc import euroc_mav_dir
 from ..io.kitti_raw import is_kitti_raw_drive
@@ -70,16 +72,14 @@ def _kitti_set(folder: Path, prefix: str) -> list[BenchSequence]:
     out = []
     for s in sorted(p for p in (folder / "sequences").iterdir() if p.is_dir()):
         if _format_or_none(s) == "kitti":
-            gt = folder / "poses" / f"{s.name}.txt"
-            out.append(BenchSequence(f"{prefix}{s.name}", s, "kitti", gt if gt.is_file() else None))
+            out.append(BenchSequence(f"{prefix}{s.name}", s, "kitti", find_ground_truth(s)))
     return out
 
 
 def _single(path: Path, name: str, fmt: str) -> BenchSequence:
     gt = _first_file(path, GT_NAMES)
-    if fmt == "kitti" and gt is None:  # ROOT/sequences/NN given directly: ROOT/poses/NN.txt
-        cand = path.parent.parent / "poses" / f"{path.name}.txt"
-        gt = cand if cand.is_file() else None
+    if fmt in ("kitti", "kitti_raw") and gt is None:  # ROOT/sequences/NN: ROOT/poses/NN.txt; a drive's oxts/
+        gt = find_ground_truth(path)
     if fmt == "euroc" and gt is None:
         mav = euroc_mav_dir(path)
         cand = mav / EUROC_GT_CSV if mav is not None else None

@@ -256,7 +256,7 @@ def run(
 @app.command("report")
 def report_cmd(
     run_dir: Path = typer.Argument(..., help="Output folder of `dynastereo run` (or `mask`)."),
-    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth trajectory, KITTI or TUM (default: poses/NN.txt beside a KITTI-layout sequence, when present)."),
+    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth trajectory, KITTI or TUM (default: poses/NN.txt beside a KITTI-layout sequence, or a KITTI raw drive's oxts/, when present)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="HTML file to write (default: RUN_DIR/report.html)."),
     overlays: int = typer.Option(6, "--overlays", help="Mask overlays at most (first, worst, evenly spaced; needs --save-masks in the run)."),
     no_auto_gt: bool = typer.Option(False, "--no-auto-gt", help="Do not look for the ground truth beside the sequence."),
@@ -269,6 +269,25 @@ def report_cmd(
     except DynastereoError as e:
         _fail(e)
     out_console.print(f"report: {path}", highlight=False)
+
+
+@app.command("gt")
+def gt_cmd(
+    sequence: Path = typer.Argument(..., help="Sequence folder: a KITTI raw drive (its oxts/ GPS/IMU) or a KITTI odometry sequences/NN."),
+    out: Path = typer.Option(..., "--out", "-o", help="Poses file: KITTI rows (with --format both, the TUM file goes beside it as STEM.tum.txt)."),
+    fmt: str = typer.Option("both", "--format", help="kitti | tum | both."),
+) -> None:
+    """Write a sequence's ground truth as camera-0 (rectified) poses in the first frame, KITTI and TUM."""
+    from ..api import ground_truth, write_ground_truth
+
+    try:
+        paths = write_ground_truth(sequence, out, fmt)
+        traj = ground_truth(sequence)
+    except DynastereoError as e:
+        _fail(e)
+    span = f", {traj.timestamps[-1] - traj.timestamps[0]:.2f} s" if traj.timestamps is not None else ""
+    out_console.print(f"{len(traj)} poses, path {traj.path_length:.2f} m{span}: " + ", ".join(map(str, paths)),
+                      highlight=False)
 
 
 @app.command("export-bag")
@@ -481,7 +500,7 @@ def config_cmd(
 @app.command("eval")
 def eval_cmd(
     estimate: Path = typer.Argument(..., help="Estimated trajectory (KITTI 3x4 rows or TUM)."),
-    ground_truth: Path = typer.Argument(..., help="Ground truth (KITTI or TUM); a longer one is cut to the estimate."),
+    ground_truth: Path = typer.Argument(..., help="Ground truth (KITTI or TUM, or a KITTI raw drive folder: its oxts/); a longer one is cut to the estimate."),
     as_json: bool = typer.Option(False, "--json", help="Print the numbers as JSON (keys ape.rmse, ape.mean, ..., drift_percent)."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Trajectory plot PNG (default: beside the estimate)."),
     no_align: bool = typer.Option(False, "--no-align", help="Do not SE(3)-align before APE."),

@@ -37,7 +37,7 @@ from ..errors import InputError
 from .metrics import STAT_KEYS, EvalResult, evaluate_files
 from .plot import plot_ape_over_time, plot_trajectories
 from .report import format_table
-from .trajectory import FRAMES_NAME, KITTI_NAME, read_frame_indices, read_trajectory
+from .trajectory import FRAMES_NAME, KITTI_NAME, find_ground_truth, read_frame_indices, read_trajectory
 
 REPORT_NAME = "report.html"
 SUMMARY_KEYS = ("frames_requested", "frames_done", "frames_tracked", "frames_lost", "keyframes", "map_points",
@@ -91,11 +91,9 @@ def read_run(run_dir: str | Path) -> RunFiles:
 
 
 def default_ground_truth(sequence: str | Path) -> Path | None:
-    """The KITTI odometry layout's ``poses/NN.txt`` beside ``sequences/NN`` (also what
-    ``dynastereo synth`` writes), if it exists."""
-    seq = Path(sequence)
-    gt = seq.parent.parent / "poses" / f"{seq.name}.txt"
-    return gt if seq.name and gt.is_file() else None
+    """The sequence's ground truth if it has one (:func:`~dynastereo.eval.trajectory.find_ground_truth`:
+    KITTI odometry ``poses/NN.txt``, a KITTI raw drive's ``oxts/``)."""
+    return find_ground_truth(sequence)
 
 
 # --------------------------------------------------------------------------- HTML pieces
@@ -435,7 +433,7 @@ def build_report(
     gt_path = Path(gt) if gt is not None else None
     if gt_path is None and auto_gt and rf.run.get("sequence"):
         gt_path = default_ground_truth(rf.run["sequence"])
-    if gt_path is not None and not gt_path.is_file():
+    if gt_path is not None and not gt_path.exists():
         raise InputError("ground truth file not found", gt_path)
     ev = None
     if gt_path is not None and (rf.root / KITTI_NAME).is_file():

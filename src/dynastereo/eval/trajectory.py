@@ -7,6 +7,14 @@ Formats
 * **TUM**: 8 numbers per row, ``t tx ty tz qx qy qz qw`` (camera-to-world, quaternion
   scalar last).
 
+* **KITTI raw OXTS**: a KITTI raw drive folder or its ``oxts/`` folder is read as the
+  drive's ground truth, converted from GPS/IMU to rectified camera-0 poses
+  (:func:`dynastereo.io.kitti_raw.kitti_raw_ground_truth`), with the frames' timestamps.
+
+:func:`find_ground_truth` is the one rule that finds a sequence's ground truth (used by
+``run``, ``report``, ``bench``): the KITTI odometry layout's ``poses/NN.txt`` beside
+``sequences/NN``, else a KITTI raw drive's ``oxts/``.
+
 Blank lines and lines starting with ``#`` are ignored; numbers may be separated by
 spaces, tabs or commas.  A malformed row raises :class:`InputError` naming the file
 and the line.
@@ -129,14 +137,37 @@ def _parse_rows(path: Path, line_numbers: list[int], tokens: list[list[str]], nc
     return rows
 
 
+def find_ground_truth(sequence: str | Path) -> Path | None:
+    """The ground truth of the sequence folder ``sequence``, if it has one: the KITTI
+    odometry layout's ``poses/NN.txt`` beside ``sequences/NN`` (also what ``dynastereo
+    synth`` writes), else a KITTI raw drive's ``oxts/`` folder (read by
+    :func:`read_trajectory`)."""
+    from ..io.kitti_raw import oxts_dir
+
+    seq = Path(sequence)
+    gt = seq.parent.parent / "poses" / f"{seq.name}.txt"
+    if seq.name and gt.is_file():
+        return gt
+    return oxts_dir(seq) if seq.is_dir() else None
+
+
 def read_trajectory(path: str | Path, name: str | None = None) -> Trajectory:
-    """Read a KITTI (12 numbers a row) or TUM (8 numbers a row) trajectory file.
+    """Read a KITTI (12 numbers a row) or TUM (8 numbers a row) trajectory file, or the
+    OXTS ground truth of a KITTI raw drive (its folder or ``oxts/`` folder).
 
     The format is detected from the first data row; every row must have the same
     count.  Raises :class:`InputError` (file and line named) for a missing, empty or
     malformed file.
     """
     path = Path(path)
+    if path.is_dir():
+        from ..io.kitti_raw import kitti_raw_ground_truth, oxts_dir
+
+        if oxts_dir(path) is None:
+            raise InputError("a folder, but not a KITTI raw drive with oxts/ (expected a KITTI or TUM trajectory file)",
+                             path)
+        g = kitti_raw_ground_truth(path)
+        return Trajectory(g.poses, g.timestamps, name or g.drive.name, path)
     try:
         text = path.read_text()
     except FileNotFoundError:

@@ -38,11 +38,30 @@ camera's file, when present, is checked the same way.
 
 **Sizes.**  The rows ``S_rect_0x`` of ``calib_cam_to_cam.txt`` must match the images (an
 unrectified "extract" drive is reported as such).
+
+**Ground truth from ``oxts/``.**  A drive's ``oxts/data/NNNNNNNNNN.txt`` (one GPS/IMU packet
+per frame: lat, lon, alt, roll, pitch, yaw, vn, ve, vf, vl, vu, ... 30 numbers) gives the
+poses of the rectified camera 0 (:func:`kitti_raw_ground_truth`), as KITTI's raw devkit
+(``convertOxtsToPose``) and pykitti compute them:
+
+* IMU pose in the world: Mercator projection with the scale of the *first* packet's latitude
+  (``s = cos(lat0)``, ``x = s·lon·π·r/180``, ``y = s·r·ln tan((90 + lat)·π/360)``,
+  ``z = alt``, ``r = 6378137 m``) and ``R = Rz(yaw)·Ry(pitch)·Rx(roll)``: ``T_w_imu``;
+* IMU -> velodyne -> camera 0 -> rectified camera 0: ``T_c0r_imu = R_rect_00 ·
+  T_velo_to_cam · T_imu_to_velo`` (``calib_imu_to_velo.txt``, ``calib_velo_to_cam.txt``,
+  ``R_rect_00`` of ``calib_cam_to_cam.txt``, all in the date folder);
+* camera pose ``T_w_c = T_w_imu · T_c0r_imu⁻¹``, expressed in the first frame's camera:
+  ``P_i = T_w_c(0)⁻¹ · T_w_c(i)`` (camera-to-world, x right, y down, z forward).
+
+Packet ``i`` belongs to frame ``i`` (the synced download has one per image).  The poses'
+stamps are the frames' (``image_00/timestamps.txt``, seconds since the first image, as a
+run's ``trajectory.tum.txt``), else ``oxts/timestamps.txt``'s since its first stamp.
 """
 
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
@@ -54,7 +73,13 @@ from .images import image_size
 from .sequence import ImagePairSequence, list_image_pairs
 
 CALIB_CAM_TO_CAM = "calib_cam_to_cam.txt"
+CALIB_IMU_TO_VELO = "calib_imu_to_velo.txt"
+CALIB_VELO_TO_CAM = "calib_velo_to_cam.txt"
 TIMESTAMPS = "timestamps.txt"
+OXTS = "oxts"
+OXTS_FIELDS = 30
+OXTS_NAMES = ("lat", "lon", "alt", "roll", "pitch", "yaw", "vn", "ve", "vf", "vl", "vu")
+EARTH_RADIUS = 6378137.0  # metres, as KITTI's devkit
 
 _STAMP = re.compile(r"^(\d{4})-(\d{2})-(\d{2})[ T](\d{2}):(\d{2}):(\d{2})(?:\.(\d{1,9}))?$")
 _EPOCH = datetime(1970, 1, 1)
@@ -253,3 +278,181 @@ class KittiRawSequence(ImagePairSequence):
             right_dir=right_dir,
             timestamp_source="timestamps.txt",
         )
+
+
+# --------------------------------------------------------------------------- OXTS ground truth
+
+
+@dataclass(frozen=True)
+class OxtsGroundTruth:
+    """Poses of a KITTI raw drive's rectified camera 0 from its ``oxts/`` (module doc).
+
+    ``poses``: ``(N, 4, 4)`` camera-to-first-camera; ``timestamps``: ``(N,)`` seconds (the
+    frames' stamps, see ``stamp_source``); ``oxts_stamps_ns``: the packets' own stamps (int64
+    ns since 1970 as written, or None without ``oxts/timestamps.txt``); ``packets``: ``(N, 30)``
+    raw packets; ``T_cam_imu``: the 4x4 IMU -> rectified camera 0 transform; ``drive``.
+    """
+
+    poses: np.ndarray
+    timestamps: np.ndarray
+    stamp_source: str
+    oxts_stamps_ns: np.ndarray | None
+    packets: np.ndarray
+    T_cam_imu: np.ndarray
+    drive: Path
+
+    def field(self, name: str) -> np.ndarray:
+        """One packet column by its dataformat name (``"vf"``, ``"lat"``, ...)."""
+        return self.packets[:, OXTS_NAMES.index(name)]
+
+
+def oxts_dir(path: str | Path) -> Path | None:
+    """The ``oxts/`` folder (with ``data/``) of a drive folder, of its date folder's only drive,
+    or ``path`` itself when it is one; None otherwise."""
+    path = Path(path)
+    if path.name == OXTS and (path / "data").is_dir():
+        return path
+    try:
+        drive = resolve_kitti_raw_drive(path)
+    except SequenceError:
+        return None
+    if drive is not None and (drive / OXTS / "data").is_dir():
+        return drive / OXTS
+    return None
+
+
+def read_oxts_packets(oxts: str | Path) -> np.ndarray:
+    """``(N, 30)`` float64 packets of ``oxts/data/0000000000.txt ...`` (frames 0..N-1, each
+    file one line of 30 numbers).  SequenceError naming the file for a missing, empty or
+    malformed one, or a gap in the numbering."""
+    data = Path(oxts) / "data"
+    files = sorted(data.glob("*.txt")) if data.is_dir() else []
+    if not files:
+        raise SequenceError("no OXTS packets (expected data/0000000000.txt, ...)", Path(oxts))
+    numbers = _frame_numbers(files)
+    gap = np.flatnonzero(numbers != np.arange(len(files)))
+    if gap.size:
+        k = int(gap[0])
+        raise SequenceError(f"OXTS packet {k:010d}.txt missing (packets must be numbered 0..N-1 like the frames)", data)
+    out = np.empty((len(files), OXTS_FIELDS), dtype=np.float64)
+    for k, f in enumerate(files):
+        try:
+            toks = f.read_text(encoding="utf-8", errors="replace").split()
+        except OSError as e:
+            raise SequenceError(f"cannot read OXTS packet: {e.strerror}", f) from None
+        if len(toks) != OXTS_FIELDS:
+            raise SequenceError(f"OXTS packet has {len(toks)} numbers, expected {OXTS_FIELDS} (see dataformat.txt)", f)
+        try:
+            out[k] = [float(t) for t in toks]
+        except ValueError:
+            bad = next(t for t in toks if not _is_number(t))
+            raise SequenceError(f"OXTS packet: {bad[:30]!r} is not a number", f) from None
+        if not np.isfinite(out[k, :6]).all():
+            raise SequenceError("OXTS packet: non-finite position or orientation", f)
+    return out
+
+
+def _is_number(t: str) -> bool:
+    try:
+        float(t)
+        return True
+    except ValueError:
+        return False
+
+
+def oxts_imu_poses(packets: np.ndarray) -> np.ndarray:
+    """``(N, 4, 4)`` IMU-to-world poses ``T_w_imu`` of OXTS packets: Mercator with the first
+    packet's latitude scale, translation relative to the first packet, ``Rz·Ry·Rx``."""
+    p = np.asarray(packets, dtype=np.float64)
+    lat, lon, alt = p[:, 0], p[:, 1], p[:, 2]
+    scale = np.cos(np.deg2rad(lat[0]))
+    t = np.column_stack([scale * lon * np.pi * EARTH_RADIUS / 180.0,
+                         scale * EARTH_RADIUS * np.log(np.tan((90.0 + lat) * np.pi / 360.0)),
+                         alt])
+    cr, sr = np.cos(p[:, 3]), np.sin(p[:, 3])
+    cp, sp = np.cos(p[:, 4]), np.sin(p[:, 4])
+    cy, sy = np.cos(p[:, 5]), np.sin(p[:, 5])
+    R = np.empty((len(p), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    R[:, 1, 0], R[:, 1, 1], R[:, 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    R[:, 2, 0], R[:, 2, 1], R[:, 2, 2] = -sp, cp * sr, cp * cr
+    T = np.broadcast_to(np.eye(4), (len(p), 4, 4)).copy()
+    T[:, :3, :3] = R
+    T[:, :3, 3] = t - t[0]
+    return T
+
+
+def _rigid(path: Path) -> np.ndarray:
+    """The 4x4 transform of a KITTI raw ``R: ...``/``T: ...`` calibration file."""
+    from ..errors import CalibrationError
+    from .calib import read_kitti_calib_rows
+
+    rows = read_kitti_calib_rows(path)
+    T = np.eye(4)
+    for key, n in (("R", 9), ("T", 3)):
+        toks = rows.get(key)
+        if toks is None or len(toks) != n:
+            what = "missing" if toks is None else f"has {len(toks)} numbers"
+            raise CalibrationError(f"row '{key}:' {what}, expected {n} numbers", path)
+        try:
+            v = np.array([float(x) for x in toks])
+        except ValueError:
+            raise CalibrationError(f"row '{key}:' holds a value that is not a number", path) from None
+        if key == "R":
+            T[:3, :3] = v.reshape(3, 3)
+        else:
+            T[:3, 3] = v
+    return T
+
+
+def kitti_raw_cam0_from_imu(date_dir: str | Path) -> np.ndarray:
+    """The 4x4 IMU -> rectified camera 0 transform ``R_rect_00 · T_velo_to_cam · T_imu_to_velo``
+    from the calibration files of a date folder."""
+    from ..errors import CalibrationError
+    from .calib import read_kitti_calib_rows
+
+    d = Path(date_dir)
+    T_velo_imu = _rigid(d / CALIB_IMU_TO_VELO)
+    T_cam_velo = _rigid(d / CALIB_VELO_TO_CAM)
+    path = d / CALIB_CAM_TO_CAM
+    toks = read_kitti_calib_rows(path).get("R_rect_00")
+    if toks is None or len(toks) != 9 or not all(_is_number(t) for t in toks):
+        raise CalibrationError("row 'R_rect_00:' missing or not 9 numbers (needed for OXTS ground truth)", path)
+    R_rect = np.eye(4)
+    R_rect[:3, :3] = np.array([float(t) for t in toks]).reshape(3, 3)
+    return R_rect @ T_cam_velo @ T_velo_imu
+
+
+def kitti_raw_ground_truth(path: str | Path) -> OxtsGroundTruth:
+    """The rectified camera-0 poses of a KITTI raw drive from its ``oxts/`` (module doc).
+
+    ``path``: the drive folder, its date folder (one drive) or the ``oxts/`` folder.
+    SequenceError / CalibrationError naming the file that is missing or malformed.
+    """
+    path = Path(path)
+    ox = oxts_dir(path)
+    if ox is None:
+        raise SequenceError("no KITTI raw OXTS ground truth here (expected a drive folder with oxts/data/)", path)
+    drive = ox.parent
+    packets = read_oxts_packets(ox)
+    T_cam_imu = kitti_raw_cam0_from_imu(drive.parent)
+    T_w_cam = oxts_imu_poses(packets) @ np.linalg.inv(T_cam_imu)
+    poses = np.linalg.inv(T_w_cam[0]) @ T_w_cam
+    poses[:, 3] = (0.0, 0.0, 0.0, 1.0)
+    poses[0] = np.eye(4)
+    n = len(packets)
+    oxts_ns = read_kitti_raw_timestamps(ox / TIMESTAMPS) if (ox / TIMESTAMPS).is_file() else None
+    if oxts_ns is not None and len(oxts_ns) < n:
+        raise SequenceError(f"{len(oxts_ns)} timestamps for {n} OXTS packets", ox / TIMESTAMPS)
+    img_times = drive / f"image_{KITTI_RAW_GRAY_PAIR[0]}" / TIMESTAMPS
+    if not img_times.is_file():
+        img_times = drive / f"image_{KITTI_RAW_COLOUR_PAIR[0]}" / TIMESTAMPS
+    if img_times.is_file() and len(read_kitti_raw_timestamps(img_times)) >= n:
+        ns, source = read_kitti_raw_timestamps(img_times)[:n], str(img_times.relative_to(drive))
+    elif oxts_ns is not None:
+        ns, source = oxts_ns[:n], f"{OXTS}/{TIMESTAMPS}"
+    else:
+        ns, source = np.arange(n, dtype=np.int64) * 100_000_000, "10 Hz (no timestamps.txt)"
+    return OxtsGroundTruth(poses=poses, timestamps=(ns - ns[0]).astype(np.float64) * 1e-9, stamp_source=source,
+                           oxts_stamps_ns=None if oxts_ns is None else oxts_ns[:n], packets=packets,
+                           T_cam_imu=T_cam_imu, drive=drive)
