@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import CalibrationError, SequenceError
 from ..types import StereoCalibration, StereoFrame
-from .calib import RawStereoCalibration
+from .calib import RawStereoCalibration, check_intrinsics
 from .images import image_size, list_images, read_image
 from .rectify import Rectifier
 
@@ -84,6 +84,7 @@ class ImagePairSequence:
             )
 
         self.raw_size = self._check_sizes(ldir, rdir)  # (width, height) of the files
+        check_intrinsics(calibration, self.raw_size, calib_path or getattr(calibration, "source", None))
         self.rectifier: Rectifier | None = None
         if isinstance(calibration, RawStereoCalibration):
             if calibration.size != self.raw_size:

@@ -31,7 +31,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from ..errors import CalibrationError, InputError, SequenceError
-from ..io.calib import RawStereoCalibration, load_stereo_yaml
+from ..io.calib import RawStereoCalibration, check_intrinsics, load_stereo_yaml
 from ..io.euroc import pair_by_timestamp
 from ..io.rectify import Rectifier
 from ..types import StereoCalibration, StereoFrame
@@ -441,6 +441,7 @@ class BagStereoSequence:
                 f"no calibration: no CameraInfo in the bag (looked for {looked}) and no calibration file "
                 "given (--left-info/--right-info, --calib YAML, or an ORB-SLAM2 settings file as --config)",
                 self.path)
+        check_intrinsics(calibration, raw_size, source)
         self.rectifier: Rectifier | None = None
         if isinstance(calibration, RawStereoCalibration):
             if calibration.size != raw_size:
