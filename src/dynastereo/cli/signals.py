@@ -23,6 +23,8 @@ class StopOnSignal:
     def __init__(self) -> None:
         self.received: int | None = None
         self.deferred = False
+        self.stopping = False  # Interrupted was raised: the job is writing its files
+        self.count = 0  # signals received
         self._old: dict[int, Any] = {}
 
     def install(self) -> "StopOnSignal":
@@ -37,13 +39,18 @@ class StopOnSignal:
 
     def _handle(self, signum: int, _frame: Any) -> None:
         first = self.received is None
+        self.count += 1
+        if self.stopping:  # already stopping: the clean-up must run to its end
+            return
         self.received = signum
         if not (first and self.deferred):
+            self.stopping = True
             raise Interrupted(signum)
 
     def check(self) -> None:
         """Raise :class:`Interrupted` if a signal came (call between frames)."""
-        if self.received is not None:
+        if self.received is not None and not self.stopping:
+            self.stopping = True
             raise Interrupted(self.received)
 
     @contextmanager
@@ -51,6 +58,7 @@ class StopOnSignal:
         """Signals wait for the next :meth:`check` inside the block; any signal still
         unchecked at the end of the block is raised there."""
         self.deferred = True
+        self.stopping = False
         try:
             yield self
         finally:
