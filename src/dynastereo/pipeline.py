@@ -389,6 +389,7 @@ def _run_record(sequence: Sequence, masker: Masker | None, motion, frames: list[
                    else {"mode": "all" if masker is not None else "none"}),
         "frames_requested": len(frames),
         "frames_done": n_done,
+        **({"frame_gaps": gaps} if (gaps := list(getattr(sequence, "missing_frames", []) or [])) else {}),
         "frames_tracked": sum(s.status in ("tracked", "init") for s in states),
         "frames_lost": len(lost),
         "lost": [{"position": k, "frame": frames[k], "map_id": states[k].map_id} for k in lost],

@@ -636,7 +636,7 @@ def export_bag(
     fmt = check_format(fmt)
     if encoding not in EXPORT_ENCODINGS:
         raise InputError(f"encoding must be one of {', '.join(EXPORT_ENCODINGS)}, got {encoding!r}")
-    frames = list(range(len(sequence))) if frames is None else list(frames)
+    frames = _all_frames(sequence) if frames is None else list(frames)
     if not frames:
         raise InputError("no frames to export")
     stamps_ns = _export_stamps_ns(sequence, time_offset_s)
@@ -668,6 +668,12 @@ def export_bag(
                 progress(k + 1, len(frames))
         counts = dict(w.counts)
     return ExportResult(out, fmt, len(frames), counts, int(stamps_ns[frames[0]]))
+
+
+def _all_frames(sequence: Any) -> list[int]:
+    """Every frame index that has images (KITTI numbering may have gaps)."""
+    available = getattr(sequence, "available_frames", None)
+    return list(available()) if available is not None else list(range(len(sequence)))
 
 
 def _export_stamps_ns(sequence: Any, time_offset_s: float) -> np.ndarray:
