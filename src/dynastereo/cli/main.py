@@ -298,7 +298,10 @@ def report_cmd(
         path = make_report(run_dir, gt, out, overlays=overlays, auto_gt=not no_auto_gt)
     except DynastereoError as e:
         _fail(e)
-    out_console.print(f"report: {path}", highlight=False)
+    from ..eval.html_report import partial_reason
+
+    why = partial_reason(run_dir)
+    out_console.print(f"report: {path}" + (f" (partial: {why})" if why else ""), highlight=False)
 
 
 @app.command("export-bag")

@@ -437,12 +437,14 @@ def evaluate_files(
     est = read_trajectory(estimate_path)
     gt = read_trajectory(ground_truth_path, name="ground truth")
     how_extra = ""
-    if frame_indices is None and gt.timestamps is None:  # KITTI poses: the sequence's times.txt
-        gt = _with_kitti_times(gt, Path(ground_truth_path))
-        if gt.timestamps is not None:
-            how_extra = f" ({kitti_times_for(Path(ground_truth_path)).name} of the ground truth)"
-    if frame_indices is None and est.timestamps is None and gt.timestamps is not None:
-        est = _with_stamps_beside(est, Path(estimate_path))  # a run's KITTI file: its TUM twin has the stamps
+    if frame_indices is None and gt.timestamps is None:  # KITTI poses: the sequence's times.txt ...
+        stamped = _with_kitti_times(gt, Path(ground_truth_path))
+        if stamped.timestamps is not None:
+            if est.timestamps is None:  # ... for a run's KITTI file: its TUM twin has the stamps
+                est = _with_stamps_beside(est, Path(estimate_path))
+            if est.timestamps is not None:
+                gt = stamped
+                how_extra = f" ({kitti_times_for(Path(ground_truth_path)).name} of the ground truth)"
     if frame_indices is None and use_frames_file and (est.timestamps is None or gt.timestamps is None):
         side = frame_indices_beside(estimate_path)
         if side is not None:
