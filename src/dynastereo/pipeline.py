@@ -199,7 +199,8 @@ def run_mask_job(
                 if save_disparity and masks.disparity is None:
                     raise RuntimeError(f"masker {meta['masker']} produced no full-frame disparity")
                 written: list[Path] = []
-                try:  # a failed write takes this frame's files back out: every output agrees
+                before = len(result.frames_done)
+                try:  # a failed write (or a signal) takes this frame's files back out: every output agrees
                     for d, img in (("left", masks.left), ("right", masks.right)):
                         written.append(dirs[d] / name)
                         _write_png(dirs[d] / name, img)
@@ -210,10 +211,12 @@ def run_mask_job(
                         written.append(dirs["overlays"] / name)
                         _write_png(dirs["overlays"] / name, draw_overlay(frame, masks))
                     objects_log.append(json.dumps(objects_record(idx, masks)) + "\n")
+                    result.frames_done.append(idx)
                 except BaseException:
-                    _unlink_quietly(written)
+                    if len(result.frames_done) == before:  # not done: none of its files stay
+                        objects_log.truncate(before)
+                        _unlink_quietly(written)
                     raise
-                result.frames_done.append(idx)
                 notify(observers, FrameEvent(k, frame, masks, rec["ms"], calibration=sequence.calibration))
                 if progress is not None:
                     progress(k + 1, len(frames), rec)
@@ -471,51 +474,55 @@ def run_slam_job(
             return _masking_step(sequence, masker, frames[k], motion)
         return prefetcher.submit(_masking_step, sequence, masker, frames[k], motion)
 
-    objects_log = RowFile(out / "objects.jsonl") if masker is not None else None
-    # run.json first, with room for the final record: the folder says how the run ended
-    # even when the disk fills up (io.outputs.write_json_reserved), and a run killed
-    # outright (SIGKILL) is known as one ("status": "running", no end).
-    reserve_json(out / "run.json", json.dumps({"status": "running", "frames_requested": len(frames),
-                                               "sequence": str(getattr(sequence, "path", ""))}))
     fallbacks: list[dict] = []
+    writer = objects_log = None
     try:
-        with TrajectoryWriter(out) as writer:
-            pending = submit(0)
-            for k, idx in enumerate(frames):
-                if prefetcher is None:
-                    frame, masks, mask_ms = pending
-                else:
-                    frame, masks, mask_ms = prefetcher.result(pending, k, idx, fallbacks)
-                pending = submit(k + 1)
-                timer.start_frame(idx)
-                for name, ms in mask_ms.items():
-                    if name not in ("total", "mask"):
-                        timer.add(name, ms)
-                slam_masks = motion.select(masks) if motion is not None else masks
-                tracked = system.track(frame, slam_masks, timer)
-                pose = tracked.pose
-                if motion is not None:
-                    with timer.stage("motion"):
-                        motion.update(masks, tracked, system)
-                rec = timer.end_frame(status=tracked.status)
-                writer.append(pose, frame_index=idx, timestamp=float(stamps[idx]))
-                written: list[Path] = []
-                try:  # a failed write takes the frame back out of every output: they agree
-                    if save_masks and slam_masks is not None:
-                        for side, img in (("left", slam_masks.left), ("right", slam_masks.right)):
-                            written.append(out / "masks" / side / frame_name(idx))
-                            _write_png(written[-1], img)
-                    if objects_log is not None:
-                        objects_log.append(json.dumps(objects_record(idx, masks)) + "\n")
-                except BaseException:
-                    writer.truncate(k)
-                    _unlink_quietly(written)
-                    raise
+        # run.json first, with room for the final record: the folder says how the run ended
+        # even when the disk fills up (io.outputs.write_json_reserved), and a run killed
+        # outright (SIGKILL) is known as one ("status": "running", no end).
+        reserve_json(out / "run.json", json.dumps({"status": "running", "frames_requested": len(frames),
+                                                   "sequence": str(getattr(sequence, "path", ""))}))
+        objects_log = RowFile(out / "objects.jsonl") if masker is not None else None
+        writer = TrajectoryWriter(out)
+        pending = submit(0)
+        for k, idx in enumerate(frames):
+            if prefetcher is None:
+                frame, masks, mask_ms = pending
+            else:
+                frame, masks, mask_ms = prefetcher.result(pending, k, idx, fallbacks)
+            pending = submit(k + 1)
+            timer.start_frame(idx)
+            for name, ms in mask_ms.items():
+                if name not in ("total", "mask"):
+                    timer.add(name, ms)
+            slam_masks = motion.select(masks) if motion is not None else masks
+            tracked = system.track(frame, slam_masks, timer)
+            pose = tracked.pose
+            if motion is not None:
+                with timer.stage("motion"):
+                    motion.update(masks, tracked, system)
+            rec = timer.end_frame(status=tracked.status)
+            writer.append(pose, frame_index=idx, timestamp=float(stamps[idx]))
+            written: list[Path] = []
+            try:  # a failed write takes the frame back out of every output: they agree
+                if save_masks and slam_masks is not None:
+                    for side, img in (("left", slam_masks.left), ("right", slam_masks.right)):
+                        written.append(out / "masks" / side / frame_name(idx))
+                        _write_png(written[-1], img)
+                if objects_log is not None:
+                    objects_log.append(json.dumps(objects_record(idx, masks)) + "\n")
                 n_done = k + 1  # its outputs are written: what follows (an observer too) may fail, they stay
-                notify(observers, FrameEvent(k, frame, slam_masks, rec["ms"], pose, tracked.status, system,
-                                             sequence.calibration))
-                if progress is not None:
-                    progress(k + 1, len(frames), dict(rec, fps=n_done / (time.perf_counter() - t0)))
+            except BaseException:
+                if n_done == k:  # not done: none of its outputs stay
+                    writer.truncate(k)
+                    if objects_log is not None:
+                        objects_log.truncate(k)
+                    _unlink_quietly(written)
+                raise
+            notify(observers, FrameEvent(k, frame, slam_masks, rec["ms"], pose, tracked.status, system,
+                                         sequence.calibration))
+            if progress is not None:
+                progress(k + 1, len(frames), dict(rec, fps=n_done / (time.perf_counter() - t0)))
     except BaseException as e:
         error = f"{type(e).__name__}: {e}"
         raise
@@ -524,9 +531,10 @@ def run_slam_job(
         # BA finishes, a full disk): timing.json and run.json are always written last.
         late: BaseException | None = None
         first_error = error
-        if objects_log is not None:
-            objects_log.truncate(n_done)
-            objects_log.close()
+        for rows in (writer, objects_log):  # every row file holds the frames done, no more
+            if rows is not None:
+                rows.truncate(n_done)
+                rows.close()
         try:
             system.shutdown()  # finishes the pending local BA; also stops the worker on an error
         except BaseException as e:  # noqa: BLE001 -- recorded; the files below are still written
@@ -560,7 +568,10 @@ def run_slam_job(
             run["fallbacks"] = fallbacks
         if error:
             run["error"] = error
-        write_json_reserved(out / "run.json", json.dumps(run, indent=1, default=float))
+        try:
+            write_json_reserved(out / "run.json", json.dumps(run, indent=1, default=float))
+        except OutputError as e:
+            late = late or e
         if late is not None and first_error is None:
             raise late
     if "save_error" in map_out:
