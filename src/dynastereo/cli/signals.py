@@ -33,8 +33,11 @@ class StopOnSignal:
         return self
 
     def uninstall(self) -> None:
+        """Restore the earlier handlers -- or, once a signal came, ignore further ones: the
+        process is on its way out, and Python's default handler would print a traceback
+        from the interpreter's own shutdown (joining threads) for the next Ctrl-C."""
         for s, h in self._old.items():
-            signal.signal(s, h)
+            signal.signal(s, signal.SIG_IGN if self.count else h)
         self._old.clear()
 
     def _handle(self, signum: int, _frame: Any) -> None:
