@@ -24,10 +24,8 @@ keeps every row already written.
 from __future__ import annotations
 
 import itertools
-import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
 
 import numpy as np
 from scipy.spatial.transform import Rotation
