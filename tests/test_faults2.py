@@ -211,6 +211,25 @@ def test_signal_handler_is_idempotent_once_stopping() -> None:
             raise Interrupted(signal.SIGINT)
 
 
+def test_a_shutdown_stuck_for_long_can_still_be_broken(monkeypatch) -> None:
+    """The last resort: a signal FORCE_AFTER_S into the shutdown raises again (the job's
+    clean-up catches it around the SLAM's shutdown: test below); outside the job, never."""
+    from dynastereo.cli import signals
+    from dynastereo.errors import Interrupted
+
+    monkeypatch.setattr(signals, "FORCE_AFTER_S", 0.0)
+    s = signals.StopOnSignal()
+    with pytest.raises(Interrupted):
+        with s.job():
+            s._handle(signal.SIGTERM, None)
+            with pytest.raises(Interrupted):
+                s.check()
+            with pytest.raises(Interrupted):
+                s._handle(signal.SIGTERM, None)
+            raise Interrupted(signal.SIGTERM)
+    s._handle(signal.SIGTERM, None)  # the job is over: only counted
+
+
 def test_closing_line_names_only_files_that_exist(tmp_path: Path) -> None:
     from dynastereo.cli.main import _kept_files
 

@@ -535,12 +535,13 @@ def run_slam_job(
             if rows is not None:
                 rows.truncate(n_done)
                 rows.close()
+        map_out = dict(map_info or {})
         try:
             system.shutdown()  # finishes the pending local BA; also stops the worker on an error
-        except BaseException as e:  # noqa: BLE001 -- recorded; the files below are still written
+            map_out = _save_map(system, save_map, sequence, frames[:n_done], map_info)
+        except BaseException as e:  # noqa: BLE001 -- a signal breaking a wait: the files below are still written
             late = e
             error = error or f"{type(e).__name__}: {e}"
-        map_out = _save_map(system, save_map, sequence, frames[:n_done], map_info)
         if prefetcher is not None:
             prefetcher.close()
         wall = time.perf_counter() - t0
