@@ -365,13 +365,22 @@ def small_tmpfs(tmp_path: Path):
         subprocess.run(["umount", str(d)], check=False)
 
 
-def test_disk_full_names_the_file_and_leaves_a_consistent_folder(kitti06: Path, models_dir: Path,
+@pytest.mark.parametrize("command", ["run", "mask"])
+def test_disk_full_names_the_file_and_leaves_a_consistent_folder(command: str, kitti06: Path, models_dir: Path,
                                                                  small_tmpfs: Path, tmp_path: Path) -> None:
     seq = link_copy(kitti06, tmp_path / "seq", range(12))
     out = small_tmpfs / "out"
-    r = cli(["run", seq, "-o", out, "--masker", "box", "--save-masks"], tmp_path, models_dir)
+    extra = ["--save-masks"] if command == "run" else []
+    r = cli([command, seq, "-o", out, "--masker", "box", *extra], tmp_path, models_dir)
     line = assert_one_line(r, 2, "no space left on device", "cannot write", str(out))
-    n = _consistent(out, masks=True)
+    if command == "run":
+        n = _consistent(out, masks=True)
+    else:  # mask: the masks and objects.jsonl agree (timing.json too, when it fit)
+        n = rows(out / "objects.jsonl")
+        for d in ("masks/left", "masks/right"):
+            assert len(list((out / d).iterdir())) == n, d
+        if (out / "timing.json").is_file():
+            assert json.loads((out / "timing.json").read_text())["frames_done"] == n
     assert 0 < n < 12, line
 
 
