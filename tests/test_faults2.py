@@ -384,6 +384,24 @@ def test_disk_full_names_the_file_and_leaves_a_consistent_folder(command: str, k
     assert 0 < n < 12, line
 
 
+@pytest.mark.parametrize("command", ["export-bag.bag", "export-bag.db3", "export-bag.mcap", "synth", "eval-plot"])
+def test_disk_full_other_commands_name_the_file(command: str, kitti06: Path, small_tmpfs: Path,
+                                                tmp_path: Path) -> None:
+    gt = kitti06.parents[1] / "poses" / "06.txt"
+    if command.startswith("export-bag"):
+        target = small_tmpfs / f"x{Path(command).suffix}"
+        args = ["export-bag", link_copy(kitti06, tmp_path / "seq", range(5)), target]
+    elif command == "synth":
+        target = small_tmpfs / "syn"
+        args = ["synth", target, "--frames", 30, "--size", "320x96"]
+    else:
+        target = small_tmpfs / "plot.png"
+        args = ["eval", gt, gt, "--plot", target]
+        (small_tmpfs / "filler").write_bytes(b"\0" * (96 << 10))  # one page left: less than the plot
+    full = "disk is full" if command.endswith("db3") else "no space left on device"
+    assert_one_line(cli(args, tmp_path), 2, str(target), full)
+
+
 SPECIAL = {  # files whose writes fail in the kernel, for root too
     "ENOSPC": Path("/dev/full"),
     "EACCES": Path("/sys/kernel/notes"),

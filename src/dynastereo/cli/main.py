@@ -341,8 +341,15 @@ def export_bag_cmd(
                 prog.update(task, completed=i, total=n)
                 job.tick(i, n)
 
-            r = export_bag(sequence, out, fmt, frames=frames, calib=calib, color=color, encoding=encoding, raw=raw,
-                           time_offset_s=time_offset, overwrite=force, progress=on_frame, rate=rate)
+            try:
+                r = export_bag(sequence, out, fmt, frames=frames, calib=calib, color=color, encoding=encoding,
+                               raw=raw, time_offset_s=time_offset, overwrite=force, progress=on_frame, rate=rate)
+            except OSError as e:  # disk full, no permission, EIO: the bag is named
+                raise DynastereoError(f"{out}: cannot write the bag ({e.strerror or e})") from None
+            except Exception as e:  # sqlite3 (ROS 2 .db3): "database or disk is full"
+                if type(e).__module__.split(".")[0] not in ("sqlite3", "_sqlite3"):
+                    raise
+                raise DynastereoError(f"{out}: cannot write the bag (sqlite: {e})") from None
     out_console.print(f"wrote {r.path} ({r.format}, {r.frames} frames): "
                       + ", ".join(f"{t} {n}" for t, n in r.topics.items()), highlight=False)
     if r.first_stamp_ns is not None and r.first_stamp_ns < UNIX_DATE_MIN_S * 1_000_000_000:
@@ -532,7 +539,10 @@ def eval_cmd(
         if plot is not None or estimate.is_file():
             check_output_file(png, what="plot file")
         r = evaluate_files(estimate, ground_truth, align=not no_align, rpe_delta=rpe_delta)
-        plot_trajectories(r.estimate, r.ground_truth, png, title=f"{estimate.name} vs {ground_truth.name}")
+        try:
+            plot_trajectories(r.estimate, r.ground_truth, png, title=f"{estimate.name} vs {ground_truth.name}")
+        except OSError as e:  # disk full, no permission: the plot is named
+            raise DynastereoError(f"{png}: cannot write the plot ({e.strerror or e})") from None
     except DynastereoError as e:
         _fail(e)
     if as_json:
