@@ -415,6 +415,16 @@ def _wait_rows(path: Path, rows: int, proc: subprocess.Popen, timeout: float = 1
     pytest.fail(f"{path}: not {rows} rows after {timeout} s")
 
 
+def stop_then_signal(p: subprocess.Popen, sig: int, group: bool = False) -> None:
+    """Signal a process that cannot finish meanwhile, however fast the machine: stopped
+    (SIGSTOP) first, then the signal, then continued (SIGCONT) -- the signal lands while
+    the run is still going, not after a sleep that a faster core may outrun."""
+    send = (lambda s: os.killpg(p.pid, s)) if group else p.send_signal
+    send(signal.SIGSTOP)
+    send(sig)
+    send(signal.SIGCONT)
+
+
 @pytest.mark.parametrize("how", ["SIGINT-group", "SIGTERM"])
 def test_run_interrupted(how: str, kitti06: Path, models_dir: Path, tmp_path: Path) -> None:
     """Ctrl-C (SIGINT to the process group, the BA worker included) or SIGTERM mid-run:
@@ -426,7 +436,7 @@ def test_run_interrupted(how: str, kitti06: Path, models_dir: Path, tmp_path: Pa
                          stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         _wait_rows(out / "trajectory.frames.txt", 3, p)
-        os.killpg(p.pid, sig) if how.endswith("group") else p.send_signal(sig)
+        stop_then_signal(p, sig, group=how.endswith("group"))
         _, err = p.communicate(timeout=60)
     finally:
         if p.poll() is None:
@@ -450,7 +460,7 @@ def test_mask_interrupted(kitti06: Path, models_dir: Path, tmp_path: Path) -> No
                          stderr=subprocess.PIPE, text=True)
     try:
         _wait_rows(out / "objects.jsonl", 2, p)
-        p.send_signal(signal.SIGTERM)
+        stop_then_signal(p, signal.SIGTERM)
         _, err = p.communicate(timeout=60)
     finally:
         if p.poll() is None:

@@ -18,7 +18,7 @@ from typing import Callable, Iterator
 from .config import Config
 from .io import open_sequence
 from .io.base import Sequence
-from .io.frames import parse_frame_spec
+from .io.frames import select_frames
 from .io.outputs import check_output_file, prepare_output_dir
 from .io.stereo_check import check_sequence
 from .observers import FrameObserver
@@ -41,7 +41,7 @@ def _checked_inputs(seq: Sequence, cfg: Config, frames, models_dir, ground_truth
     is cleared only once the inputs proved good)."""
     from .masking import build_masker
 
-    indices = parse_frame_spec(frames, len(seq))
+    indices = select_frames(frames, seq)
     if stereo_check:
         check_sequence(seq, indices)
     masker = build_masker(cfg, seq.calibration, models_dir=models_dir, ground_truth=ground_truth)
@@ -381,6 +381,6 @@ def export_bag(
     from .ros.bags import export_bag as _export
 
     seq = load_sequence(sequence, calib, color=color, rate=rate)
-    indices = parse_frame_spec(frames, len(seq))
+    indices = select_frames(frames, seq)
     return _export(seq, out, fmt, frames=indices, encoding=encoding, raw=raw, time_offset_s=time_offset_s,
                    overwrite=overwrite, progress=progress)

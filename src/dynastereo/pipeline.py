@@ -17,7 +17,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
+import queue
+import threading
 import time
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -25,13 +30,17 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from .errors import OutputError
 from .io.base import Sequence
 from .io.images import write_disparity_png
+from .io.outputs import RowFile, atomic_write_text, reserve_json, write_bytes, write_failed, write_json_reserved
 from .masking.base import Masker
 from .masking.maskers import MASK_STAGES
 from .observers import FrameEvent, FrameObserver, notify
 from .timing import StageTimer
 from .types import StereoFrame, StereoMasks
+
+log = logging.getLogger(__name__)
 
 
 
@@ -129,10 +138,22 @@ def objects_record(idx: int, masks: StereoMasks) -> dict:
 
 
 def _write_png(path: Path, img: np.ndarray) -> None:
-    if not cv2.imwrite(str(path), img):
-        from .errors import InputError
+    """PNG-encode ``img`` and write it; a failed write (disk full, no permission, EIO)
+    removes the partial file and raises an OutputError naming it."""
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        from .errors import OutputError
 
-        raise InputError("cannot write image (disk full or no permission?)", path)
+        raise OutputError("cannot encode the image as PNG", path)
+    write_bytes(path, buf.tobytes())
+
+
+def _unlink_quietly(paths: list[Path]) -> None:
+    for p in paths:
+        try:
+            p.unlink(missing_ok=True)
+        except OSError:
+            pass
 
 
 def run_mask_job(
@@ -165,7 +186,7 @@ def run_mask_job(
     t0 = time.perf_counter()
     meta = {"masker": getattr(masker, "name", type(masker).__name__), "sequence": str(sequence.path)}
     try:
-        with open(out / "objects.jsonl", "w") as objects_log:
+        with RowFile(out / "objects.jsonl") as objects_log:
             for k, idx in enumerate(frames):
                 t_read = time.perf_counter()
                 frame = sequence.frame(idx)
@@ -175,18 +196,27 @@ def run_mask_job(
                 masks = masker.mask(frame, timer)
                 rec = timer.end_frame()
                 name = frame_name(idx)
-                _write_png(dirs["left"] / name, masks.left)
-                _write_png(dirs["right"] / name, masks.right)
-                if save_disparity:
-                    if masks.disparity is None:
-                        raise RuntimeError(f"masker {meta['masker']} produced no full-frame disparity")
-                    write_disparity_png(dirs["disparity"] / name, masks.disparity)
-                if overlays:
-                    _write_png(dirs["overlays"] / name, draw_overlay(frame, masks))
-                record = objects_record(idx, masks)
-                objects_log.write(json.dumps(record) + "\n")
-                objects_log.flush()
-                result.frames_done.append(idx)
+                if save_disparity and masks.disparity is None:
+                    raise RuntimeError(f"masker {meta['masker']} produced no full-frame disparity")
+                written: list[Path] = []
+                before = len(result.frames_done)
+                try:  # a failed write (or a signal) takes this frame's files back out: every output agrees
+                    for d, img in (("left", masks.left), ("right", masks.right)):
+                        written.append(dirs[d] / name)
+                        _write_png(dirs[d] / name, img)
+                    if save_disparity:
+                        written.append(dirs["disparity"] / name)
+                        write_disparity_png(dirs["disparity"] / name, masks.disparity)
+                    if overlays:
+                        written.append(dirs["overlays"] / name)
+                        _write_png(dirs["overlays"] / name, draw_overlay(frame, masks))
+                    objects_log.append(json.dumps(objects_record(idx, masks)) + "\n")
+                    result.frames_done.append(idx)
+                except BaseException:
+                    if len(result.frames_done) == before:  # not done: none of its files stay
+                        objects_log.truncate(before)
+                        _unlink_quietly(written)
+                    raise
                 notify(observers, FrameEvent(k, frame, masks, rec["ms"], calibration=sequence.calibration))
                 if progress is not None:
                     progress(k + 1, len(frames), rec)
@@ -195,11 +225,16 @@ def run_mask_job(
         raise
     finally:
         result.wall_s = time.perf_counter() - t0
+        del timer.frames[len(result.frames_done):]  # a frame whose outputs failed is not done
         extra = dict(meta, frames_done=len(result.frames_done), frames_requested=len(frames),
                      wall_s=round(result.wall_s, 3))
         if result.error:
             extra["error"] = result.error
-        timer.write(out / "timing.json", **extra)
+        try:
+            timer.write(out / "timing.json", **extra)
+        except OSError as e:
+            if result.error is None:  # else the first error is the one to report
+                raise write_failed(e, out / "timing.json") from None
     return result
 
 
@@ -249,6 +284,72 @@ def _masking_step(sequence: Sequence, masker: Masker | None, idx: int,
     return frame, masks, t.end_frame()["ms"]
 
 
+#: The longest wait for the prefetch thread's masks of a frame (the first frame's include
+#: loading the detector and compiling kernels): past it the frame is masked inline and
+#: the run goes on without prefetch, recorded in run.json's ``fallbacks``.
+PREFETCH_TIMEOUT_S = 120.0
+
+
+class _Prefetcher:
+    """One daemon thread that reads and masks frame k+1 while frame k is tracked.  The
+    hand-over (:meth:`result`) waits on the frame's future with a bound, never a polling
+    loop; a daemon thread, so a stuck detector cannot keep the process from exiting."""
+
+    def __init__(self, timeout_s: float | None) -> None:
+        self.timeout_s = PREFETCH_TIMEOUT_S if timeout_s is None else float(timeout_s)
+        self.inline = False
+        self._jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._loop, name="prefetch", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while True:
+            item = self._jobs.get()
+            if item is None:
+                return
+            fut, fn, args = item
+            if fut.set_running_or_notify_cancel():
+                try:
+                    fut.set_result(fn(*args))
+                except BaseException as e:  # noqa: BLE001 -- handed over to the main thread
+                    fut.set_exception(e)
+
+    def submit(self, fn, *args) -> Future:
+        fut: Future = Future()
+        fut.call = (fn, args)  # type: ignore[attr-defined]
+        if not self.inline:
+            self._jobs.put((fut, fn, args))
+        return fut
+
+    def result(self, fut: Future, k: int, idx: int, fallbacks: list[dict]):
+        fn, args = fut.call  # type: ignore[attr-defined]
+        if self.inline:
+            return fn(*args)
+        try:
+            return fut.result(timeout=self.timeout_s)
+        except FutureTimeout:
+            fut.cancel()
+            self.inline = True
+            fallbacks.append({"frame": int(idx), "position": int(k), "what": "prefetch",
+                              "action": "masked inline from here on",
+                              "reason": f"no masks from the prefetch thread within {self.timeout_s:g} s"})
+            log.warning("frame %d: no masks from the prefetch thread within %g s; masking inline from here on",
+                        idx, self.timeout_s)
+            return fn(*args)
+
+    def close(self) -> None:
+        self._jobs.put(None)
+
+
+def _status(error: str | None) -> str:
+    """run.json's ``status``: ``done``, ``interrupted: SIGINT`` or ``failed: <reason>``."""
+    if error is None:
+        return "done"
+    if error.startswith("Interrupted: "):
+        return "interrupted: " + error.split(": ", 1)[1].split()[0]
+    return f"failed: {error}"
+
+
 def _save_map(system, save_map: str | Path | None, sequence: Sequence, done: list[int],
               map_info: dict | None) -> dict:
     """The final map into ``save_map`` (when frames were done); the run.json ``map`` entry
@@ -268,9 +369,13 @@ def _write_final_trajectory(out: Path, poses: np.ndarray, stamps: np.ndarray, do
     """The trajectory files again, with the final (bundle-adjusted) poses of the frames done."""
     from .eval.trajectory import FRAMES_NAME, write_kitti, write_tum
 
-    write_kitti(out / "trajectory.kitti.txt", poses)
-    write_tum(out / "trajectory.tum.txt", poses, stamps[done])
-    (out / FRAMES_NAME).write_text("".join(f"{i}\n" for i in done))
+    for path, write in ((out / "trajectory.kitti.txt", lambda p: write_kitti(p, poses)),
+                        (out / "trajectory.tum.txt", lambda p: write_tum(p, poses, stamps[done])),
+                        (out / FRAMES_NAME, lambda p: atomic_write_text(p, "".join(f"{i}\n" for i in done)))):
+        try:
+            write(path)
+        except OSError as e:  # the live rows stay (atomic writes): the files still agree
+            raise write_failed(e, path) from None
 
 
 def _run_record(sequence: Sequence, masker: Masker | None, motion, frames: list[int], n_done: int, system,
@@ -287,6 +392,7 @@ def _run_record(sequence: Sequence, masker: Masker | None, motion, frames: list[
                    else {"mode": "all" if masker is not None else "none"}),
         "frames_requested": len(frames),
         "frames_done": n_done,
+        **({"frame_gaps": gaps} if (gaps := list(getattr(sequence, "missing_frames", []) or [])) else {}),
         "frames_tracked": sum(s.status in ("tracked", "init") for s in states),
         "frames_lost": len(lost),
         "lost": [{"position": k, "frame": frames[k], "map_id": states[k].map_id} for k in lost],
@@ -318,6 +424,7 @@ def run_slam_job(
     map_info: dict | None = None,
     observers: tuple[FrameObserver, ...] = (),
     motion=None,
+    prefetch_timeout_s: float | None = None,
 ) -> SlamJobResult:
     """Feed ``frames`` of ``sequence`` (masked by ``masker``, None = unmasked) to the SLAM
     ``system`` and write, under ``out``:
@@ -345,8 +452,6 @@ def run_slam_job(
     previous frame), and after tracking the verdicts are updated with this frame's
     camera motion (``motion`` stage) -- ``objects.jsonl`` and ``masks/`` show them.
     """
-    from concurrent.futures import ThreadPoolExecutor
-
     from .eval.trajectory import TrajectoryWriter
 
     out = Path(out)
@@ -357,7 +462,7 @@ def run_slam_job(
     timer = StageTimer()
     timer.add_derived("masking", ("detect",) + MASK_STAGES)
     stamps = np.asarray(sequence.timestamps(), dtype=np.float64)
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="prefetch") if prefetch else None
+    prefetcher = _Prefetcher(prefetch_timeout_s) if prefetch else None
     error: str | None = None
     t0 = time.perf_counter()
     n_done = 0
@@ -365,64 +470,111 @@ def run_slam_job(
     def submit(k: int):
         if k >= len(frames):
             return None
-        if pool is None:
+        if prefetcher is None:
             return _masking_step(sequence, masker, frames[k], motion)
-        return pool.submit(_masking_step, sequence, masker, frames[k], motion)
+        return prefetcher.submit(_masking_step, sequence, masker, frames[k], motion)
 
-    objects_log = open(out / "objects.jsonl", "w") if masker is not None else None
+    fallbacks: list[dict] = []
+    writer = objects_log = None
     try:
-        with TrajectoryWriter(out) as writer:
-            pending = submit(0)
-            for k, idx in enumerate(frames):
-                frame, masks, mask_ms = pending if pool is None else pending.result()
-                pending = submit(k + 1)
-                timer.start_frame(idx)
-                for name, ms in mask_ms.items():
-                    if name not in ("total", "mask"):
-                        timer.add(name, ms)
-                slam_masks = motion.select(masks) if motion is not None else masks
-                tracked = system.track(frame, slam_masks, timer)
-                pose = tracked.pose
-                if motion is not None:
-                    with timer.stage("motion"):
-                        motion.update(masks, tracked, system)
-                rec = timer.end_frame(status=tracked.status)
-                writer.append(pose, frame_index=idx, timestamp=float(stamps[idx]))
-                n_done = k + 1  # its row is written: what follows (an observer too) may fail, the row stays
+        # run.json first, with room for the final record: the folder says how the run ended
+        # even when the disk fills up (io.outputs.write_json_reserved), and a run killed
+        # outright (SIGKILL) is known as one ("status": "running", no end).
+        reserve_json(out / "run.json", json.dumps({"status": "running", "frames_requested": len(frames),
+                                                   "sequence": str(getattr(sequence, "path", ""))}))
+        objects_log = RowFile(out / "objects.jsonl") if masker is not None else None
+        writer = TrajectoryWriter(out)
+        pending = submit(0)
+        for k, idx in enumerate(frames):
+            if prefetcher is None:
+                frame, masks, mask_ms = pending
+            else:
+                frame, masks, mask_ms = prefetcher.result(pending, k, idx, fallbacks)
+            pending = submit(k + 1)
+            timer.start_frame(idx)
+            for name, ms in mask_ms.items():
+                if name not in ("total", "mask"):
+                    timer.add(name, ms)
+            slam_masks = motion.select(masks) if motion is not None else masks
+            tracked = system.track(frame, slam_masks, timer)
+            pose = tracked.pose
+            if motion is not None:
+                with timer.stage("motion"):
+                    motion.update(masks, tracked, system)
+            rec = timer.end_frame(status=tracked.status)
+            writer.append(pose, frame_index=idx, timestamp=float(stamps[idx]))
+            written: list[Path] = []
+            try:  # a failed write takes the frame back out of every output: they agree
                 if save_masks and slam_masks is not None:
-                    _write_png(out / "masks" / "left" / frame_name(idx), slam_masks.left)
-                    _write_png(out / "masks" / "right" / frame_name(idx), slam_masks.right)
+                    for side, img in (("left", slam_masks.left), ("right", slam_masks.right)):
+                        written.append(out / "masks" / side / frame_name(idx))
+                        _write_png(written[-1], img)
                 if objects_log is not None:
-                    objects_log.write(json.dumps(objects_record(idx, masks)) + "\n")
-                    objects_log.flush()
-                notify(observers, FrameEvent(k, frame, slam_masks, rec["ms"], pose, tracked.status, system,
-                                             sequence.calibration))
-                if progress is not None:
-                    progress(k + 1, len(frames), dict(rec, fps=n_done / (time.perf_counter() - t0)))
+                    objects_log.append(json.dumps(objects_record(idx, masks)) + "\n")
+                n_done = k + 1  # its outputs are written: what follows (an observer too) may fail, they stay
+            except BaseException:
+                if n_done == k:  # not done: none of its outputs stay
+                    writer.truncate(k)
+                    if objects_log is not None:
+                        objects_log.truncate(k)
+                    _unlink_quietly(written)
+                raise
+            notify(observers, FrameEvent(k, frame, slam_masks, rec["ms"], pose, tracked.status, system,
+                                         sequence.calibration))
+            if progress is not None:
+                progress(k + 1, len(frames), dict(rec, fps=n_done / (time.perf_counter() - t0)))
     except BaseException as e:
         error = f"{type(e).__name__}: {e}"
         raise
     finally:
-        if objects_log is not None:
-            objects_log.close()
-        system.shutdown()  # finishes the pending local BA; also stops the worker on an error
-        map_out = _save_map(system, save_map, sequence, frames[:n_done], map_info)
-        if pool is not None:
-            pool.shutdown(wait=False, cancel_futures=True)
+        # Clean-up in steps that each run whatever happens before them (a signal while the
+        # BA finishes, a full disk): timing.json and run.json are always written last.
+        late: BaseException | None = None
+        first_error = error
+        for rows in (writer, objects_log):  # every row file holds the frames done, no more
+            if rows is not None:
+                rows.truncate(n_done)
+                rows.close()
+        map_out = dict(map_info or {})
+        try:
+            system.shutdown()  # finishes the pending local BA; also stops the worker on an error
+            map_out = _save_map(system, save_map, sequence, frames[:n_done], map_info)
+        except BaseException as e:  # noqa: BLE001 -- a signal breaking a wait: the files below are still written
+            late = e
+            error = error or f"{type(e).__name__}: {e}"
+        if prefetcher is not None:
+            prefetcher.close()
         wall = time.perf_counter() - t0
         fps = n_done / wall if wall > 0 else 0.0
         poses = system.trajectory() if n_done else np.zeros((0, 3, 4))
+        del timer.frames[n_done:]  # a frame whose outputs failed is not done
         if error is None and n_done:
-            _write_final_trajectory(out, poses, stamps, frames[:n_done])
+            try:
+                _write_final_trajectory(out, poses, stamps, frames[:n_done])
+            except OutputError as e:
+                late, error = e, f"{type(e).__name__}: {e}"
         stats = system.stats().to_dict() if n_done else {}
         lost = system.lost_frames() if n_done else []
-        timer.write(out / "timing.json", summary_extra={"fps": round(fps, 3)}, wall_s=round(wall, 3),
-                    frames_done=n_done, local_mapping={k: v for k, v in stats.items() if k.startswith("local_ba")},
-                    **({"error": error} if error else {}))
+        try:
+            timer.write(out / "timing.json", summary_extra={"fps": round(fps, 3)}, wall_s=round(wall, 3),
+                        frames_done=n_done, local_mapping={k: v for k, v in stats.items() if k.startswith("local_ba")},
+                        **({"error": error} if error else {}))
+        except OSError as e:
+            late = late or write_failed(e, out / "timing.json")
+            error = error or f"{type(late).__name__}: {late}"
+            (out / "timing.json.tmp").unlink(missing_ok=True)
         run = _run_record(sequence, masker, motion, frames, n_done, system, stats, map_out, fps, wall, config_dict)
+        run["status"] = _status(error)
+        if fallbacks:
+            run["fallbacks"] = fallbacks
         if error:
             run["error"] = error
-        (out / "run.json").write_text(json.dumps(run, indent=1, default=float))
+        try:
+            write_json_reserved(out / "run.json", json.dumps(run, indent=1, default=float))
+        except OutputError as e:
+            late = late or e
+        if late is not None and first_error is None:
+            raise late
     if "save_error" in map_out:
         from .errors import DynastereoError
 

@@ -70,10 +70,11 @@ def parse_maskers(spec: str | list[str] | tuple[str, ...]) -> list[str]:
 def _frame_count(seq: BenchSequence, frames: str | None) -> int:
     """Frames a job of ``seq`` will feed; 0 when the sequence cannot be opened (its jobs then
     fail with the reader's error, reported like any other failure)."""
-    from ..io import open_sequence, parse_frame_spec
+    from ..io import open_sequence
+    from ..io.frames import select_frames
 
     try:
-        return len(parse_frame_spec(frames, len(open_sequence(seq.path))))
+        return len(select_frames(frames, open_sequence(seq.path)))
     except DynastereoError:
         return 0
 

@@ -7,7 +7,7 @@ import os
 import sys
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import typer
 from rich.console import Console
@@ -38,13 +38,40 @@ def _fail(e: Exception) -> None:
     raise typer.Exit(2)
 
 
+def _check_option(flag: str, value, ok: bool, want: str) -> None:
+    """One line naming the option, what it must be (with its unit) and what it got."""
+    if not ok:
+        _fail(DynastereoError(f"{flag} must be {want}, got {value:g}" if isinstance(value, float)
+                              else f"{flag} must be {want}, got {value}"))
+
+
+def _kept_files(out: Path, names: tuple[str, ...], what: str, extra: tuple[Path, ...] = ()) -> Callable[[], str]:
+    """The closing line's account of an interrupted job, made when it is printed: only
+    the files that exist are named."""
+
+    def kept() -> str:
+        have = [n for n in names if (out / n).exists()]
+        more = [str(p) for p in extra if p.exists()]
+        if not have and not more:
+            return f"nothing was written to {out}"
+        text = f"{', '.join(have)} ({what}) are in {out}" if have else ""
+        return "; ".join([t for t in (text, *(f"{p} was written" for p in more)) if t])
+
+    return kept
+
+
 class _Job:
     """Frames done so far of the running job, for the message when a signal stops it."""
 
-    def __init__(self, kept: str) -> None:
-        self.kept = kept
+    def __init__(self, kept: "str | Callable[[], str]") -> None:
+        self._kept = kept
         self.done = 0
         self.total: int | None = None
+
+    @property
+    def kept(self) -> str:
+        """What the interrupted job left (a callable looks at the files that exist)."""
+        return self._kept() if callable(self._kept) else self._kept
 
     def tick(self, done: int, total: int | None) -> None:
         """Call after each frame: records it, and stops the job there if a signal came."""
@@ -128,7 +155,7 @@ def mask(
     """Mask the dynamic objects of a stereo sequence in BOTH images."""
     from ..api import mask_sequence
 
-    with _job(f"the masks of the frames done and timing.json (with the signal) are in {out}") as job:
+    with _job(_kept_files(out, ("masks", "objects.jsonl", "timing.json"), "the frames done; timing.json with the signal")) as job:
         overrides = {"detector.name": detector, "stereo.algorithm": stereo, "stereo.wls": wls, "masker.kind": masker,
                      "detector.canvas": canvas, "detector.schedule": schedule}
         if save_disparity:
@@ -197,9 +224,11 @@ def run(
         _fail(DynastereoError("--localize-only needs --load-map FILE"))
     if bag is not None and rate is not None:
         _fail(DynastereoError("--rate is for sequence folders; a bag's images carry their stamps"))
+    _check_option("--sync-tolerance", sync_tolerance, sync_tolerance >= 0, "a time >= 0 ms (milliseconds)")
     bag_report = None
-    kept = f"run.json, timing.json (with the signal) and the trajectory of the frames done are in {out}"
-    with _job(kept + (f"; the map of those frames in {save_map}" if save_map else "")) as job:
+    kept = _kept_files(out, ("run.json", "timing.json", "trajectory.kitti.txt", "trajectory.tum.txt"),
+                       "with the signal; the frames done", (save_map,) if save_map else ())
+    with _job(kept) as job:
         overrides = {"detector.name": detector, "stereo.algorithm": stereo, "masker.kind": masker,
                      "detector.canvas": canvas, "detector.schedule": schedule,
                      "slam.loop_closing": False if no_loop_closing else None,
@@ -264,11 +293,15 @@ def report_cmd(
     """One self-contained HTML page of a run: summary, trajectory vs ground truth, APE/RPE/drift, timing, masks, objects."""
     from ..api import make_report
 
+    _check_option("--overlays", overlays, overlays >= 0, "a count of images >= 0")
     try:
         path = make_report(run_dir, gt, out, overlays=overlays, auto_gt=not no_auto_gt)
     except DynastereoError as e:
         _fail(e)
-    out_console.print(f"report: {path}", highlight=False)
+    from ..eval.html_report import partial_reason
+
+    why = partial_reason(run_dir)
+    out_console.print(f"report: {path}" + (f" (partial: {why})" if why else ""), highlight=False)
 
 
 @app.command("gt")
@@ -327,8 +360,15 @@ def export_bag_cmd(
                 prog.update(task, completed=i, total=n)
                 job.tick(i, n)
 
-            r = export_bag(sequence, out, fmt, frames=frames, calib=calib, color=color, encoding=encoding, raw=raw,
-                           time_offset_s=time_offset, overwrite=force, progress=on_frame, rate=rate)
+            try:
+                r = export_bag(sequence, out, fmt, frames=frames, calib=calib, color=color, encoding=encoding,
+                               raw=raw, time_offset_s=time_offset, overwrite=force, progress=on_frame, rate=rate)
+            except OSError as e:  # disk full, no permission, EIO: the bag is named
+                raise DynastereoError(f"{out}: cannot write the bag ({e.strerror or e})") from None
+            except Exception as e:  # sqlite3 (ROS 2 .db3): "database or disk is full"
+                if type(e).__module__.split(".")[0] not in ("sqlite3", "_sqlite3"):
+                    raise
+                raise DynastereoError(f"{out}: cannot write the bag (sqlite: {e})") from None
     out_console.print(f"wrote {r.path} ({r.format}, {r.frames} frames): "
                       + ", ".join(f"{t} {n}" for t, n in r.topics.items()), highlight=False)
     if r.first_stamp_ns is not None and r.first_stamp_ns < UNIX_DATE_MIN_S * 1_000_000_000:
@@ -512,12 +552,16 @@ def eval_cmd(
     from ..eval import evaluate_files, format_table, plot_trajectories, to_json_dict
     from ..io.outputs import check_output_file
 
+    _check_option("--rpe-delta", rpe_delta, rpe_delta >= 1, "a step of >= 1 frames")
     try:
         png = plot or estimate.with_name(estimate.name.split(".")[0] + "_vs_gt.png")
         if plot is not None or estimate.is_file():
             check_output_file(png, what="plot file")
         r = evaluate_files(estimate, ground_truth, align=not no_align, rpe_delta=rpe_delta)
-        plot_trajectories(r.estimate, r.ground_truth, png, title=f"{estimate.name} vs {ground_truth.name}")
+        try:
+            plot_trajectories(r.estimate, r.ground_truth, png, title=f"{estimate.name} vs {ground_truth.name}")
+        except OSError as e:  # disk full, no permission: the plot is named
+            raise DynastereoError(f"{png}: cannot write the plot ({e.strerror or e})") from None
     except DynastereoError as e:
         _fail(e)
     if as_json:
@@ -549,6 +593,9 @@ def bench_cmd(
     """Benchmark a whole dataset: every (sequence, masker, repeat) as a job, in parallel, resumable, with the thesis' tables."""
     from ..api import bench
 
+    _check_option("--repeats", repeats, repeats >= 1, "a number of runs >= 1")
+    _check_option("--workers", workers, workers is None or workers >= 1, "a number of jobs at a time >= 1")
+    _check_option("--threads", threads, threads >= 0, "a number of threads >= 0 (0: the library's default)")
     bar = _progress()
     task = bar.add_task("bench frames", total=None, info="")
 
@@ -595,6 +642,10 @@ def vocab_cmd(
     import time
 
     from ..slam.vocabulary import collect_images, train_from_images
+
+    _check_option("--k", k, k >= 2, "a branching factor >= 2")
+    _check_option("--levels", levels, levels >= 1, "a tree depth >= 1")
+    _check_option("--features", features, features >= 1, "a number of ORB features per image >= 1")
 
     from ..io.outputs import check_output_file
 

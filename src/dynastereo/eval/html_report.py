@@ -56,6 +56,7 @@ class RunFiles:
     timing: dict[str, Any] | None
     objects: list[dict[str, Any]]
     frames: np.ndarray | None  # trajectory row -> frame index
+    partial: str | None = None  # why the run's files are incomplete (an interrupted run), None when whole
 
 
 def _read_json(path: Path) -> dict[str, Any] | None:
@@ -75,8 +76,18 @@ def read_run(run_dir: str | Path) -> RunFiles:
         raise InputError("no such run folder", root)
     run = _read_json(root / "run.json")
     timing = _read_json(root / "timing.json")
+    rows = _row_count(root)
+    partial = None
     if run is None and timing is None:
-        raise InputError("neither run.json nor timing.json: not the output of `dynastereo run` or `mask`", root)
+        if rows is None and not (root / "objects.jsonl").is_file():
+            raise InputError("neither run.json nor timing.json: not the output of `dynastereo run` or `mask`", root)
+        partial = ("the run was interrupted before it wrote run.json and timing.json (killed?): this report is "
+                   f"made from the {rows or 0} trajectory rows and the objects.jsonl lines written")
+        run = {"status": "interrupted", "frames_done": rows or 0}
+    elif run is not None and run.get("status") == "running":
+        partial = ("the run was interrupted before it finished (killed?: run.json still says \"running\"): this "
+                   f"report is made from the {rows or 0} trajectory rows written")
+        run = dict(run, status="interrupted", frames_done=rows or 0)
     objects = []
     obj_path = root / "objects.jsonl"
     if obj_path.is_file():
@@ -87,7 +98,28 @@ def read_run(run_dir: str | Path) -> RunFiles:
                 except json.JSONDecodeError as e:
                     raise InputError(f"line {n}: not valid JSON ({e.msg})", obj_path) from None
     frames = read_frame_indices(root / FRAMES_NAME) if (root / FRAMES_NAME).is_file() else None
-    return RunFiles(root, run or {}, timing, objects, frames)
+    if partial is not None and frames is not None and rows is not None:
+        frames = frames[:rows]  # a row cut by the kill: the files agree on the rows they all hold
+    return RunFiles(root, run or {}, timing, objects, frames, partial)
+
+
+def _row_count(root: Path) -> int | None:
+    """Whole rows in all of the run's trajectory files (the least of them), None without any."""
+    counts = []
+    for name in (KITTI_NAME, "trajectory.tum.txt", FRAMES_NAME):
+        p = root / name
+        if p.is_file():
+            text = p.read_text(errors="replace")
+            counts.append(text.count("\n"))  # a last row without its newline was cut by the kill
+    return min(counts) if counts else None
+
+
+def partial_reason(run_dir: str | Path) -> str | None:
+    """Why a run folder's report is partial (an interrupted run), or None."""
+    try:
+        return read_run(run_dir).partial
+    except InputError:
+        return None
 
 
 def default_ground_truth(sequence: str | Path) -> Path | None:
@@ -189,6 +221,8 @@ def _summary_section(rf: RunFiles) -> str:
         items += [("frames done", rf.timing.get("frames_done"), "frames_done"),
                   ("wall s", rf.timing.get("wall_s"), "wall_s")]
     parts = ["<h2>Summary</h2>", _kv_table(items)]
+    if rf.partial:
+        parts.insert(0, f'<p class="error" data-key="partial">partial report: {_esc(rf.partial)}</p>')
     if run.get("error") or (rf.timing or {}).get("error"):
         parts.append(f'<p class="error">run failed: {_esc(run.get("error") or rf.timing["error"])}</p>')
     if run.get("loops"):
@@ -437,7 +471,15 @@ def build_report(
         raise InputError("ground truth file not found", gt_path)
     ev = None
     if gt_path is not None and (rf.root / KITTI_NAME).is_file():
-        ev = evaluate_files(rf.root / KITTI_NAME, gt_path)
+        if rf.partial is not None and rf.frames is not None:  # the rows all files hold
+            from .metrics import evaluate
+
+            est = read_trajectory(rf.root / KITTI_NAME)
+            n = min(len(est), len(rf.frames))
+            ev = evaluate(est.subset(np.arange(n)), read_trajectory(gt_path, name="ground truth"),
+                          frame_indices=rf.frames[:n])
+        else:
+            ev = evaluate_files(rf.root / KITTI_NAME, gt_path)
     title = f"dynastereo run: {Path(rf.run.get('sequence') or rf.root).name}"
     stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     body = [f"<h1>{_esc(title)}</h1>", f"<p>run folder {_esc(rf.root.resolve())}; report made {stamp}</p>",

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from evo.core import metrics as evo_metrics
@@ -130,11 +131,12 @@ def match_trajectories(
         idx_est, idx_gt = evo_sync.matching_time_indices(
             estimate.timestamps, ground_truth.timestamps, max_diff=max_time_diff
         )
-        if not idx_est:
+        if len(idx_est) < max(1, (n_est + 1) // 2):  # the stamps do not align: no guess by index
             raise InputError(
-                f"no estimated pose has a ground-truth pose within {max_time_diff} s "
-                f"(estimate {estimate.timestamps[0]:.3f}..{estimate.timestamps[-1]:.3f} s, ground truth "
-                f"{ground_truth.timestamps[0]:.3f}..{ground_truth.timestamps[-1]:.3f} s)",
+                "the stamps do not align: "
+                + ("no estimated pose has" if not idx_est else f"only {len(idx_est)} of {n_est} estimated poses have")
+                + f" a ground-truth pose within {max_time_diff} s (estimate {estimate.timestamps[0]:.3f}..{estimate.timestamps[-1]:.3f} s, "
+                f"{gt_label} {ground_truth.timestamps[0]:.3f}..{ground_truth.timestamps[-1]:.3f} s)",
                 estimate.path or estimate.name,
             )
         if len(idx_est) < n_est:
@@ -149,6 +151,17 @@ def match_trajectories(
             )
         return estimate.subset(idx_est), ground_truth.subset(idx_gt), warns, "timestamp"
 
+    if estimate.timestamps is not None and not _rows_are_frames(estimate.timestamps):
+        # A TUM estimate (say of --frames 20-29: its stamps start at 2.08 s) against a
+        # ground truth without stamps: row k is not frame k, and nothing says which it is.
+        raise InputError(
+            f"the estimate has stamps ({estimate.timestamps[0]:.3f}..{estimate.timestamps[-1]:.3f} s, "
+            f"{n_est} poses) but {gt_label} has none ({n_gt} poses) and no times.txt was found for it "
+            "(KITTI layout: sequences/NN/times.txt beside poses/NN.txt): the rows cannot be matched by stamp, "
+            "and matching them by row would guess; give a ground truth with stamps (TUM), or keep the run's "
+            "trajectory.frames.txt beside the estimate",
+            estimate.path or estimate.name,
+        )
     if n_est > n_gt:
         raise InputError(
             f"estimate has {n_est} poses but the ground truth only {n_gt} (row i is frame i)",
@@ -160,6 +173,16 @@ def match_trajectories(
 
 
 # --------------------------------------------------------------------------- pieces
+
+
+def _rows_are_frames(t: np.ndarray) -> bool:
+    """Whether stamps say that row k is frame k: they start at 0 and step evenly (within
+    10 %), as a run from the first frame without gaps writes them."""
+    if len(t) < 2:
+        return len(t) == 0 or abs(float(t[0])) < 1e-9
+    d = np.diff(t)
+    dt = float(np.median(d))
+    return dt > 0 and abs(float(t[0])) <= 0.1 * dt and float(np.max(np.abs(d - dt))) <= 0.1 * dt
 
 
 def umeyama_se3(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -352,6 +375,48 @@ def evaluate(
     )
 
 
+def kitti_times_for(gt_path: Path) -> Path | None:
+    """``sequences/NN/times.txt`` for a ground truth ``poses/NN.txt`` in KITTI's layout."""
+    p = Path(gt_path).resolve()
+    if p.parent.name != "poses":
+        return None
+    t = p.parent.parent / "sequences" / p.stem / "times.txt"
+    return t if t.is_file() else None
+
+
+def _with_kitti_times(gt: Trajectory, gt_path: Path) -> Trajectory:
+    """``gt`` with the stamps of its sequence's ``times.txt`` (KITTI layout); a times.txt
+    shorter than the poses (a copy of the first frames) stamps those rows only."""
+    from ..io.times import read_times
+
+    times_path = kitti_times_for(gt_path)
+    if times_path is None:
+        return gt
+    try:
+        t = read_times(times_path)
+    except Exception:  # noqa: BLE001 -- an unreadable times.txt: matched as before, without stamps
+        return gt
+    n = min(len(t), len(gt))
+    if n < 2:
+        return gt
+    rows = gt.subset(np.arange(n)) if n < len(gt) else gt
+    return Trajectory(rows.poses, t[:n].astype(np.float64), gt.name, gt.path)
+
+
+def _with_stamps_beside(est: Trajectory, est_path: Path) -> Trajectory:
+    """A run's ``<stem>.kitti.txt`` with the stamps of ``<stem>.tum.txt`` beside it (same rows)."""
+    twin = est_path.with_name(est_path.name.split(".")[0] + ".tum.txt")
+    if twin == est_path or not twin.is_file():
+        return est
+    try:
+        tum = read_trajectory(twin)
+    except InputError:
+        return est
+    if tum.timestamps is None or len(tum) != len(est):
+        return est
+    return Trajectory(est.poses, tum.timestamps, est.name, est.path)
+
+
 def evaluate_files(
     estimate_path,
     ground_truth_path,
@@ -372,6 +437,14 @@ def evaluate_files(
     est = read_trajectory(estimate_path)
     gt = read_trajectory(ground_truth_path, name="ground truth")
     how_extra = ""
+    if frame_indices is None and gt.timestamps is None:  # KITTI poses: the sequence's times.txt ...
+        stamped = _with_kitti_times(gt, Path(ground_truth_path))
+        if stamped.timestamps is not None:
+            if est.timestamps is None:  # ... for a run's KITTI file: its TUM twin has the stamps
+                est = _with_stamps_beside(est, Path(estimate_path))
+            if est.timestamps is not None:
+                gt = stamped
+                how_extra = f" ({kitti_times_for(Path(ground_truth_path)).name} of the ground truth)"
     if frame_indices is None and use_frames_file and (est.timestamps is None or gt.timestamps is None):
         side = frame_indices_beside(estimate_path)
         if side is not None:
@@ -380,7 +453,7 @@ def evaluate_files(
                 raise InputError(
                     f"{len(frame_indices)} frame indices but the estimate {estimate_path} has {len(est)} poses", side
                 )
-            how_extra = f" ({side.name})"
+            how_extra += f" ({side.name})"
     result = evaluate(
         est, gt, align=align, rpe_delta=rpe_delta, frame_indices=frame_indices, max_time_diff=max_time_diff
     )

@@ -32,16 +32,14 @@ keeps every row already written.
 from __future__ import annotations
 
 import itertools
-import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import InputError
-from ..io.outputs import atomic_write_text
+from ..io.outputs import RowFile, atomic_write_text
 
 KITTI_COLUMNS = 12
 TUM_COLUMNS = 8
@@ -298,15 +296,18 @@ class TrajectoryWriter:
         self.frames_path = self.out_dir / f"{stem}.frames.txt"
         self.fsync = fsync
         self.n_written = 0
-        self._files: list[IO[str]] = []
+        self._files: list[RowFile] = []
         try:
             for p in (self.kitti_path, self.tum_path, self.frames_path):
-                self._files.append(open(p, "w"))
-        except OSError as e:
+                self._files.append(RowFile(p))
+        except InputError:
             self.close()
-            raise InputError(f"cannot open trajectory output: {e}", self.out_dir) from None
+            raise
 
     def append(self, pose: np.ndarray, frame_index: int | None = None, timestamp: float | None = None) -> None:
+        """One row in each file; a write that fails (disk full, EIO) takes the row back out
+        of the files already written, so they keep agreeing, and raises an OutputError
+        naming the file."""
         if not self._files:
             raise ValueError("TrajectoryWriter is closed")
         pose = np.asarray(pose, dtype=np.float64)
@@ -316,12 +317,19 @@ class TrajectoryWriter:
         ts = float(idx) if timestamp is None else float(timestamp)
         # Format every row first, then write: a formatting error leaves the files consistent.
         rows = (kitti_rows(pose), tum_rows(pose, [ts]), f"{idx}\n")
-        for f, row in zip(self._files, rows):
-            f.write(row)
-            f.flush()
-            if self.fsync:
-                os.fsync(f.fileno())
+        try:
+            for f, row in zip(self._files, rows):
+                f.append(row, self.fsync)
+        except InputError:
+            self.truncate(self.n_written)
+            raise
         self.n_written += 1
+
+    def truncate(self, rows: int) -> None:
+        """Keep the first ``rows`` rows of every file (another output of the frame failed)."""
+        for f in self._files:
+            f.truncate(rows)
+        self.n_written = min(self.n_written, rows)
 
     def close(self) -> None:
         for f in self._files:

@@ -15,9 +15,13 @@ quoting the spec and the sequence length.
 
 from __future__ import annotations
 
+import logging
 import re
+from typing import Any
 
 from ..errors import InputError
+
+log = logging.getLogger(__name__)
 
 _RANGE = re.compile(r"^\s*(\d+)\s*(?:-\s*(\d*)\s*)?$")
 
@@ -73,3 +77,31 @@ def _first(count: int, n: int, shown: str) -> list[int]:
     if count > n:
         raise InputError(f"frame spec {shown}: asks for the first {count} frames, the sequence has only {n}")
     return list(range(count))
+
+
+def select_frames(spec: str | int | None, sequence: Any) -> list[int]:
+    """:func:`parse_frame_spec` over a sequence whose frame indices may have gaps (KITTI
+    images keep their own numbers, ``available_frames``): a count ``N`` (or all) takes
+    the first ``N`` images there are; ranges name frame numbers, the missing ones left
+    out with a warning (an InputError when none is left)."""
+    available = getattr(sequence, "available_frames", None)
+    n = len(sequence)
+    if available is None:
+        return parse_frame_spec(spec, n)
+    have = available()
+    if len(have) == n:
+        return parse_frame_spec(spec, n)
+    text = spec.strip().lower() if isinstance(spec, str) else None
+    if spec is None or (isinstance(spec, int) and not isinstance(spec, bool)) or (
+            text is not None and (text.isdigit() or text in ("all", "*"))):
+        return [have[k] for k in parse_frame_spec(spec, len(have))]
+    wanted = parse_frame_spec(spec, n)
+    present = set(have)
+    keep = [i for i in wanted if i in present]
+    dropped = sorted(set(wanted) - present)
+    if not keep:
+        raise InputError(f"frame spec {spec!r}: no image has any of these numbers (the numbering has gaps)")
+    if dropped:
+        log.warning("frame spec %r: %d frame number(s) have no image and are left out (%s)", spec, len(dropped),
+                    ", ".join(map(str, dropped[:8])) + (", ..." if len(dropped) > 8 else ""))
+    return keep

@@ -89,8 +89,12 @@ def write_disparity_png(path: str | Path, disparity: np.ndarray) -> None:
     q = np.zeros(d.shape, np.uint16)
     q[valid] = np.clip(np.rint(d[valid] * 256.0), 1, 65535).astype(np.uint16)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), q):
-        raise InputError("cannot write disparity PNG", path)
+    ok, buf = cv2.imencode(".png", q)
+    if not ok:
+        raise InputError("cannot encode the disparity PNG", path)
+    from .outputs import write_bytes
+
+    write_bytes(path, buf.tobytes())  # a failed write: OutputError naming the file
 
 
 def read_disparity_png(path: str | Path) -> np.ndarray:

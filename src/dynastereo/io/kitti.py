@@ -13,6 +13,7 @@ Pass the sequence folder itself (``.../sequences/06``).
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +23,8 @@ from .calib import load_kitti_calib, load_stereo_yaml
 from .images import image_size
 from .sequence import ImagePairSequence, list_image_pairs
 from .times import DEFAULT_RATE_HZ, check_rate, read_times
+
+log = logging.getLogger(__name__)
 
 
 def kitti_image_dirs(path: Path, color: bool | None) -> tuple[Path, Path, bool] | None:
@@ -97,7 +100,13 @@ class KittiSequence(ImagePairSequence):
             left_dir=left_dir,
             right_dir=right_dir,
             timestamp_source=source,
+            numbers=numbers,
         )
+        if self.missing_frames:
+            miss = self.missing_frames
+            shown = ", ".join(f"{i:06d}" for i in miss[:5]) + (", ..." if len(miss) > 5 else "")
+            log.warning("%s: the image numbering has %d gap(s) (%s missing): every frame keeps its own number "
+                        "and stamp in the outputs; --frames counts the images there are", left_dir, len(miss), shown)
 
 
 def _frame_numbers(paths: list[Path]) -> np.ndarray:

@@ -128,3 +128,114 @@ def check_output_file(path: str | Path, *, what: str = "output file", overwrite:
     if path.exists() and not os.access(path, os.W_OK):
         raise OutputError(f"{what} is not writable ({os.strerror(errno.EACCES)})", path)
     return path
+
+
+# --------------------------------------------------------------------------- write errors
+
+
+def write_failed(e: OSError, path: str | Path) -> OutputError:
+    """The one-line error of a failed write (ENOSPC, EACCES, EIO, ...) naming ``path``."""
+    return OutputError(f"cannot write ({_reason(e)})", path)
+
+
+class RowFile:
+    """An append-only text file of whole rows (lines): each :meth:`append` is one
+    unbuffered ``write`` -- nothing waits in a buffer, so a crash keeps every row appended
+    -- and a write that fails (disk full, EIO) is rolled back to the last whole row and
+    raised as an :class:`OutputError` naming the file.  :meth:`truncate` drops rows from
+    the end (it needs no free space), so that several files can be made to agree."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            self._f = open(self.path, "wb", buffering=0)
+        except OSError as e:
+            raise write_failed(e, self.path) from None
+        self._ends: list[int] = [0]  # byte offset after each row (index = rows)
+
+    @property
+    def rows(self) -> int:
+        return len(self._ends) - 1
+
+    def append(self, text: str, fsync: bool = False) -> None:
+        data = text.encode()
+        try:
+            n = self._f.write(data)
+            if n is not None and n != len(data):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            if fsync:
+                os.fsync(self._f.fileno())
+        except OSError as e:
+            self._cut(self._ends[-1])
+            raise write_failed(e, self.path) from None
+        self._ends.append(self._ends[-1] + len(data))
+
+    def _cut(self, size: int) -> None:
+        try:
+            self._f.truncate(size)
+            self._f.seek(size)
+        except (OSError, ValueError):
+            pass
+
+    def truncate(self, rows: int) -> None:
+        """Keep the first ``rows`` rows."""
+        if 0 <= rows < self.rows:
+            del self._ends[rows + 1:]
+            self._cut(self._ends[-1])
+
+    def close(self) -> None:
+        self._f.close()
+
+    def __enter__(self) -> "RowFile":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path``; a failure (disk full, no permission) removes the
+    partial file and raises an :class:`OutputError` naming it."""
+    path = Path(path)
+    try:
+        with open(path, "wb") as f:
+            f.write(data)
+    except OSError as e:
+        try:
+            path.unlink(missing_ok=True)
+        except OSError:
+            pass
+        raise write_failed(e, path) from None
+
+
+#: ``run.json`` is written at the start with room for the final record (padding spaces,
+#: which JSON ignores); when the disk is full at the end, the final record is written into
+#: that room in place, so that the folder always says how the run ended.
+RUN_JSON_ROOM = 64 * 1024
+
+
+def write_json_reserved(path: str | Path, text: str, room: int = RUN_JSON_ROOM) -> None:
+    """Write ``text`` (JSON) to ``path`` atomically; when that fails and ``path`` holds
+    room reserved by an earlier call (its size), write it in place into that room.
+    OutputError naming ``path`` when neither works."""
+    path = Path(path)
+    try:
+        atomic_write_text(path, text, fsync=False)
+        return
+    except OSError as e:
+        first = e
+    data = text.encode()
+    try:
+        size = path.stat().st_size
+        if len(data) > size:
+            raise first
+        with open(path, "r+b") as f:  # the blocks exist: overwriting them needs no free space
+            f.write(data + b" " * (size - len(data)))
+    except OSError as e:
+        raise write_failed(e, path) from None
+
+
+def reserve_json(path: str | Path, text: str, room: int = RUN_JSON_ROOM) -> None:
+    """Write ``text`` padded with spaces to ``room`` bytes (see :func:`write_json_reserved`)."""
+    data = text.encode()
+    write_bytes(path, data + b" " * max(0, room - len(data)) + b"\n")

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import CalibrationError, SequenceError
 from ..types import StereoCalibration, StereoFrame
-from .calib import RawStereoCalibration
+from .calib import RawStereoCalibration, check_intrinsics
 from .images import image_size, list_images, read_image
 from .rectify import Rectifier
 
@@ -60,6 +60,7 @@ class ImagePairSequence:
         left_dir: Path | None = None,
         right_dir: Path | None = None,
         timestamp_source: str = "given",
+        numbers: np.ndarray | None = None,
     ) -> None:
         self.name = name
         self.timestamp_source = timestamp_source
@@ -83,7 +84,19 @@ class ImagePairSequence:
                 f"{len(self._timestamps)} timestamps for {len(self.left_paths)} image pairs", self.path
             )
 
+        self._numbers: np.ndarray | None = None  # the images' own numbers, when they have gaps
+        if numbers is not None:
+            nums = np.asarray(numbers, dtype=np.int64).reshape(-1)
+            if len(nums) == len(self.left_paths) and not np.array_equal(nums, np.arange(len(nums))):
+                if np.any(np.diff(nums) <= 0):
+                    raise SequenceError("image numbers are not increasing", ldir)
+                self._numbers = nums
+                self._position = {int(n): k for k, n in enumerate(nums)}
+                full = np.arange(int(nums[-1]) + 1)
+                self._timestamps = np.interp(full, nums, self._timestamps)  # missing numbers: never read
+                self._timestamps[nums] = np.asarray(timestamps, dtype=np.float64).reshape(-1)
         self.raw_size = self._check_sizes(ldir, rdir)  # (width, height) of the files
+        check_intrinsics(calibration, self.raw_size, calib_path or getattr(calibration, "source", None))
         self.rectifier: Rectifier | None = None
         if isinstance(calibration, RawStereoCalibration):
             if calibration.size != self.raw_size:
@@ -123,7 +136,22 @@ class ImagePairSequence:
     # -- protocol -------------------------------------------------------------------------
 
     def __len__(self) -> int:
-        return len(self.left_paths)
+        """Frame indices run 0 .. len-1: the images' own numbers (KITTI's 000123.png is
+        frame 123, through gaps in the numbering), else their positions."""
+        return len(self.left_paths) if self._numbers is None else int(self._numbers[-1]) + 1
+
+    def available_frames(self) -> list[int]:
+        """The frame indices that have images (all of ``range(len(self))`` without gaps)."""
+        return list(range(len(self))) if self._numbers is None else [int(n) for n in self._numbers]
+
+    @property
+    def missing_frames(self) -> list[int]:
+        """Frame numbers below the last that have no image (gaps in the numbering)."""
+        if self._numbers is None:
+            return []
+        have = np.zeros(len(self), dtype=bool)
+        have[self._numbers] = True
+        return [int(i) for i in np.flatnonzero(~have)]
 
     def timestamps(self) -> np.ndarray:
         """Timestamps in seconds, one per frame (a copy)."""
@@ -146,8 +174,14 @@ class ImagePairSequence:
             i += n
         if not 0 <= i < n:
             raise IndexError(f"frame {index} out of range: {self.name} has {n} frames")
-        left = self._read(self.left_paths[i])
-        right = self._read(self.right_paths[i])
+        k = i
+        if self._numbers is not None:
+            k = self._position.get(i, -1)
+            if k < 0:
+                raise SequenceError(f"frame {i}: no image of that number (a gap in the numbering)",
+                                    self.left_paths[0].parent)
+        left = self._read(self.left_paths[k])
+        right = self._read(self.right_paths[k])
         if self.rectifier is not None:
             left, right = self.rectifier.rectify(left, right)
         return StereoFrame(
@@ -155,12 +189,12 @@ class ImagePairSequence:
             timestamp=float(self._timestamps[i]),
             left=left,
             right=right,
-            left_path=self.left_paths[i],
-            right_path=self.right_paths[i],
+            left_path=self.left_paths[k],
+            right_path=self.right_paths[k],
         )
 
     def __iter__(self) -> Iterator[StereoFrame]:
-        for i in range(len(self)):
+        for i in self.available_frames():
             yield self.frame(i)
 
     def frames(self, indices: Iterable[int]) -> Iterator[StereoFrame]:

@@ -31,7 +31,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from ..errors import CalibrationError, InputError, SequenceError
-from ..io.calib import RawStereoCalibration, load_stereo_yaml
+from ..io.calib import RawStereoCalibration, check_intrinsics, load_stereo_yaml
 from ..io.euroc import pair_by_timestamp
 from ..io.rectify import Rectifier
 from ..types import StereoCalibration, StereoFrame
@@ -61,6 +61,25 @@ EXPORT_ENCODINGS = ("auto", "mono8", "mono16", "bgr8", "rgb8", "png", "jpeg")
 # --------------------------------------------------------------------------- formats
 
 
+def _storage_identifier(text: str, meta: Path) -> str | None:
+    """``storage_identifier`` of a ROS 2 bag's ``metadata.yaml``; InputError naming the
+    file and the line for a YAML syntax error."""
+    import yaml
+
+    try:
+        d = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None) or getattr(e, "context_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise InputError(f"YAML syntax error{where}: {problem}", meta) from None
+    info = d.get("rosbag2_bagfile_information", d) if isinstance(d, dict) else None
+    if not isinstance(info, dict):
+        raise InputError("not a ROS 2 bag's metadata (no rosbag2_bagfile_information mapping)", meta)
+    sid = info.get("storage_identifier")
+    return str(sid) if sid is not None else None
+
+
 def bag_format(path: str | Path) -> str:
     """``"ros1"``, ``"ros2"`` (sqlite3) or ``"mcap"`` for a bag path; InputError otherwise."""
     p = Path(path)
@@ -71,11 +90,13 @@ def bag_format(path: str | Path) -> str:
         if not meta.is_file():
             raise InputError("a directory, but not a ROS 2 bag (no metadata.yaml)", p)
         text = meta.read_text(errors="replace")
-        if "storage_identifier: mcap" in text:
+        sid = _storage_identifier(text, meta)
+        if sid == "mcap":
             return "mcap"
-        if "storage_identifier: sqlite3" in text:
+        if sid == "sqlite3":
             return "ros2"
-        raise InputError("ROS 2 bag with an unknown storage_identifier (sqlite3 and mcap are supported)", meta)
+        raise InputError(f"ROS 2 bag with an unknown storage_identifier {sid!r} (sqlite3 and mcap are supported)",
+                         meta)
     suffix = p.suffix.lower()
     for fmt, s in BAG_SUFFIX.items():
         if suffix == s:
@@ -339,7 +360,7 @@ class BagStereoSequence:
         self.format = bag_format(self.path)
         self.name = self.path.stem
         if not tolerance_s >= 0:
-            raise InputError(f"pairing tolerance must be >= 0 s, got {tolerance_s}")
+            raise InputError(f"pairing tolerance (--sync-tolerance, in ms) must be >= 0 ms, got {tolerance_s * 1000:g} ms")
         self._reader = _open_reader(self.path)
         self.decoder = ImageDecoder(mono16_shift)
         try:
@@ -441,6 +462,7 @@ class BagStereoSequence:
                 f"no calibration: no CameraInfo in the bag (looked for {looked}) and no calibration file "
                 "given (--left-info/--right-info, --calib YAML, or an ORB-SLAM2 settings file as --config)",
                 self.path)
+        check_intrinsics(calibration, raw_size, source)
         self.rectifier: Rectifier | None = None
         if isinstance(calibration, RawStereoCalibration):
             if calibration.size != raw_size:
@@ -614,7 +636,7 @@ def export_bag(
     fmt = check_format(fmt)
     if encoding not in EXPORT_ENCODINGS:
         raise InputError(f"encoding must be one of {', '.join(EXPORT_ENCODINGS)}, got {encoding!r}")
-    frames = list(range(len(sequence))) if frames is None else list(frames)
+    frames = _all_frames(sequence) if frames is None else list(frames)
     if not frames:
         raise InputError("no frames to export")
     stamps_ns = _export_stamps_ns(sequence, time_offset_s)
@@ -648,6 +670,12 @@ def export_bag(
     return ExportResult(out, fmt, len(frames), counts, int(stamps_ns[frames[0]]))
 
 
+def _all_frames(sequence: Any) -> list[int]:
+    """Every frame index that has images (KITTI numbering may have gaps)."""
+    available = getattr(sequence, "available_frames", None)
+    return list(available()) if available is not None else list(range(len(sequence)))
+
+
 def _export_stamps_ns(sequence: Any, time_offset_s: float) -> np.ndarray:
     """Every frame's stamp in nanoseconds, shifted by ``time_offset_s`` (exact nanoseconds
     where the sequence keeps them, as EuRoC does); InputError for negative stamps."""
@@ -658,7 +686,8 @@ def _export_stamps_ns(sequence: Any, time_offset_s: float) -> np.ndarray:
         stamps = np.asarray(sequence.timestamps(), dtype=np.float64) + float(time_offset_s)
         stamps_ns = np.round(stamps * 1e9).astype(np.int64)
     if np.any(stamps_ns < 0):
-        raise InputError("timestamps must be >= 0 s (use a time offset)")
+        raise InputError(f"timestamps must be >= 0 s: the time offset (--time-offset, in s) of {float(time_offset_s):g} s "
+                         f"makes the first {float(-stamps_ns.min()) * 1e-9:g} s negative")
     return stamps_ns
 
 

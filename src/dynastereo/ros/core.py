@@ -43,9 +43,10 @@ import logging
 import threading
 import time
 from collections import deque
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Iterator, Protocol
 
 import numpy as np
 
@@ -100,6 +101,14 @@ class NodeSink(Protocol):
     def publish_images(self, result: NodeResult, disparity: DisparityData | None) -> None: ...
 
     def wants_disparity(self) -> bool: ...
+
+
+#: The longest wait for the SLAM held by the tracker thread (stop, save): past it the step
+#: is skipped and recorded as a fallback.
+SLAM_LOCK_TIMEOUT_S = 60.0
+#: Idle waits on the hand-over slot wake at least this often to see a stop (they are
+#: notified at once otherwise: no polling on the hot path).
+IDLE_WAIT_S = 1.0
 
 
 class DropOldestQueue:
@@ -287,6 +296,7 @@ class StereoNodeCore:
         self._pending: tuple[Any, Config] | None = None
         self._param_lock = threading.Lock()
         self._slam_lock = threading.RLock()
+        self.fallbacks: list[dict[str, Any]] = []  # bounded waits that ran out (node.json)
         self._matcher = None  # for published disparity when the masker computed none
         self._matcher_cfg: Any = None
         self._system: Any = None
@@ -443,7 +453,9 @@ class StereoNodeCore:
         return True
 
     def stop(self, timeout: float = 10.0) -> None:
-        """Stop the threads (the pair being processed is finished, waiting ones discarded)."""
+        """Stop the threads (the pair being processed is finished, waiting ones discarded).
+        A thread still busy after ``timeout`` s is left behind (a daemon), recorded in
+        ``fallbacks`` (node.json)."""
         if not self._running:
             return
         self._running = False
@@ -453,14 +465,33 @@ class StereoNodeCore:
         self.stats.discarded_at_stop += n
         for t in self._threads:
             t.join(timeout)
+            if t.is_alive():
+                self._fallback("stop", f"thread {t.name} still busy after {timeout:g} s", "left behind (daemon)")
         self._threads = []
 
     def shutdown(self) -> None:
         """Stop and finish the SLAM (pending local BA; worker process stopped)."""
         self.stop()
-        with self._slam_lock:
-            if self._system is not None:
+        with self._slam_locked("shutdown", "the SLAM's final local BA skipped") as ok:
+            if ok and self._system is not None:
                 self._system.shutdown()
+
+    def _fallback(self, what: str, reason: str, action: str) -> None:
+        self.fallbacks.append({"what": what, "frame": self._position, "reason": reason, "action": action})
+        log.warning("%s: %s; %s", what, reason, action)
+
+    @contextmanager
+    def _slam_locked(self, what: str, action: str) -> Iterator[bool]:
+        """The SLAM lock, waited for at most :data:`SLAM_LOCK_TIMEOUT_S`: yields False (and
+        records the fallback) when the tracker thread holds it longer (stuck)."""
+        ok = self._slam_lock.acquire(timeout=SLAM_LOCK_TIMEOUT_S)
+        if not ok:
+            self._fallback(what, f"the tracker thread held the SLAM for over {SLAM_LOCK_TIMEOUT_S:g} s", action)
+        try:
+            yield ok
+        finally:
+            if ok:
+                self._slam_lock.release()
 
     # ------------------------------------------------------------------ processing
     def _done(self) -> None:
@@ -484,7 +515,7 @@ class StereoNodeCore:
         while True:
             with self._slot_cv:
                 while self._slot and self._running:
-                    self._slot_cv.wait()
+                    self._slot_cv.wait(IDLE_WAIT_S)  # notified at once; the bound only re-checks _running
             inp = self._inq.get()
             if inp is None:
                 with self._slot_cv:
@@ -505,7 +536,10 @@ class StereoNodeCore:
         while True:
             with self._slot_cv:
                 while not self._slot:
-                    self._slot_cv.wait()
+                    if not self._running and not any(t.name == "dynastereo-mask" and t.is_alive()
+                                                     for t in self._threads):
+                        return  # stopped, and no masker left to hand anything over
+                    self._slot_cv.wait(IDLE_WAIT_S)  # notified at once; the bound only re-checks
                 item = self._slot.pop(0)
                 self._slot_cv.notify_all()
             if item is None:
@@ -613,16 +647,17 @@ class StereoNodeCore:
 
     # ------------------------------------------------------------------ results
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(poses (N, 3, 4), stamps ns (N,))``: the current (locally bundle-adjusted) poses."""
-        with self._slam_lock:
-            if self._system is None or not self._stamps:
+        """``(poses (N, 3, 4), stamps ns (N,))``: the current (locally bundle-adjusted) poses
+        (none when the tracker thread is stuck holding the SLAM: a recorded fallback)."""
+        with self._slam_locked("trajectory", "no poses returned") as ok:
+            if not ok or self._system is None or not self._stamps:
                 return np.zeros((0, 3, 4)), np.zeros(0, np.int64)
             return self._system.trajectory(), np.asarray(self._stamps, np.int64)
 
     def status(self) -> dict[str, Any]:
         d = self.stats.summary()
         d.update(queue_size=self.queue_size, queue_high_water=self._inq.high_water, ready=self.ready,
-                 pipelined=self.pipelined, config=to_dict(self.cfg))
+                 pipelined=self.pipelined, config=to_dict(self.cfg), fallbacks=list(self.fallbacks))
         if self.stereo_watch.verdict is not None:
             d["stereo_check"] = self.stereo_watch.verdict.to_dict()
         if self.calibration is not None:
@@ -644,8 +679,9 @@ class StereoNodeCore:
         write_kitti(paths["kitti"], poses)
         write_tum(paths["tum"], poses, stamps.astype(np.float64) * 1e-9)
         _atomic_write(paths["frames"], "".join(f"{i}\n" for i in range(len(stamps))))
-        with self._slam_lock:
-            self.timer.write(paths["timing"], frames_done=len(stamps))
+        with self._slam_locked("save", "timing.json not written") as ok:
+            if ok:
+                self.timer.write(paths["timing"], frames_done=len(stamps))
         st = self.status()
         if self._system is not None:
             st["slam"] = self._system.stats().to_dict()

@@ -58,7 +58,8 @@ class StereoPlayer:
         self.rospy = rospy
         self.b = GenpyBuilder()
         self.seq = sequence
-        self.frames = list(range(len(sequence))) if frames is None else list(frames)
+        self.frames = (sequence.available_frames() if hasattr(sequence, "available_frames")
+                       else list(range(len(sequence)))) if frames is None else list(frames)
         self.seq_stamps = np.round(np.asarray(sequence.timestamps(), np.float64) * 1e9).astype(np.int64)
         # messages without their stamps, prepared once
         self._msgs: dict[int, tuple[Any, Any]] = {}
@@ -123,7 +124,7 @@ class StereoPlayer:
 
 def main(argv: list[str] | None = None) -> int:
     from ..io import open_sequence
-    from ..io.frames import parse_frame_spec
+    from ..io.frames import select_frames
 
     ap = argparse.ArgumentParser(prog="python -m dynastereo.ros.player", description=__doc__.split("\n\n")[0])
     ap.add_argument("sequence")
@@ -136,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     rospy = import_rospy()
     rospy.init_node("dynastereo_player", anonymous=True, disable_signals=True)
     seq = open_sequence(a.sequence)
-    frames = parse_frame_spec(a.frames, len(seq))
+    frames = select_frames(a.frames, seq)
     kw = {"left_info": None, "right_info": None} if a.no_camera_info else {}
     player = StereoPlayer(seq, frames, **kw)
     if not player.wait_for_subscribers(a.wait):

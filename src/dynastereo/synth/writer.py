@@ -204,8 +204,12 @@ class _PngWriter:
         self.params = [cv2.IMWRITE_PNG_COMPRESSION, 1]
 
     def write(self, path: Path, arr: np.ndarray) -> None:
-        if not cv2.imwrite(str(path), arr, self.params):
-            raise InputError("cannot write image", path)
+        ok, buf = cv2.imencode(path.suffix or ".png", arr, self.params)
+        if not ok:
+            raise InputError("cannot encode image", path)
+        from ..io.outputs import write_bytes
+
+        write_bytes(path, buf.tobytes())  # a failed write: OutputError naming the file
 
     def submit(self, path: Path, arr: np.ndarray) -> None:
         if self.pool is None:

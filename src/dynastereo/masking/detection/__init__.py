@@ -106,8 +106,14 @@ def create_detector(cfg: DetectorConfig | None = None, models_dir: Path | str | 
             weights = p.with_suffix(".weights")
             if not weights.is_file():
                 raise ModelError(f"Darknet weights not found beside the cfg (expected {weights.name})", weights)
+            from ...models.sizecheck import check_darknet_weights
+
+            check_darknet_weights(p, weights)  # a truncated file: refused before any warning
             note_unregistered(p, weights)
             return DarknetDetector(p, weights, None, cfg, name=p.stem)
+        from ...models.sizecheck import check_onnx_size
+
+        check_onnx_size(p)
         note_unregistered(p)
         return _onnx_detector(p, cfg, p.stem)
     raise ModelError(f"unknown detector '{name}'; known models: {_known_list()}, or a path to a .cfg or .onnx file")

@@ -116,6 +116,9 @@ class DarknetDetector(YoloDetectorBase):
                 f"detector.input_size must be a positive multiple of 32 for Darknet YOLO, got {self.input_w}x{self.input_h}"
             )
 
+        from ...models.sizecheck import check_darknet_weights
+
+        check_darknet_weights(cfg_path, weights_path)  # a truncated file: one line, before the first frame
         if config.threads and config.threads > 0:
             cv2.setNumThreads(int(config.threads))
         try:

@@ -34,6 +34,10 @@ def make_session(path: Path, threads: int, model_bytes: bytes | None = None) -> 
 
     if model_bytes is None and not Path(path).is_file():
         raise ModelError("ONNX model file not found", path)
+    if model_bytes is None:
+        from ...models.sizecheck import check_onnx_size
+
+        check_onnx_size(path)  # a truncated file: expected and actual size named
     so = ort.SessionOptions()
     if threads and threads > 0:
         so.intra_op_num_threads = int(threads)
