@@ -16,7 +16,8 @@ ORB-SLAM2's schedule (``Optimizer::LocalBundleAdjustment``):
 3. ``n_refine`` iterations without the robust kernel on the rest.
 
 Either stage ends early when an accepted step lowers the cost by less than ``rel_tol`` of
-it (or after 10 rejected damping increases).  ``abort`` (a 1-element int array) is read
+it (or after 10 rejected damping increases).  The damping follows gtsam's defaults
+(``LAMBDA_INITIAL``, ``LAMBDA_FACTOR``).  ``abort`` (a 1-element int array) is read
 between iterations: non-zero stops the solve, leaving the last accepted state.  The
 kernel is one call per problem; everything it needs is allocated once at its start.
 
@@ -36,6 +37,11 @@ from numba import njit
 
 CHI2_MONO = 5.991
 CHI2_STEREO = 7.815
+# Levenberg-Marquardt damping (H + lambda I), gtsam's defaults: start at 1e-5, /10 after an
+# accepted step, x10 after a rejected one.  g2o's start (1e-5 x the largest diagonal entry)
+# damps the points far too much here: camera blocks are ~1e6 times larger than point blocks
+LAMBDA_INITIAL = 1e-5
+LAMBDA_FACTOR = 10.0
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -454,7 +460,6 @@ def ba_solve(Tcw, X, obs_kf, obs_pt, meas, stereo, isig2, fixed, fx, fy, cx, cy,
             continue
         F0 = ba_cost(Tcw, X, obs_kf, obs_pt, meas, stereo, isig2, active, fx, fy, cx, cy, bf, mode, tmp)
         lam = -1.0
-        ni = 2.0
         for it in range(n_it):
             if abort[0] != 0:
                 aborted = True
@@ -463,15 +468,8 @@ def ba_solve(Tcw, X, obs_kf, obs_pt, meas, stereo, isig2, fixed, fx, fy, cx, cy,
             _linearize(Tcw, X, obs_kf, obs_pt, meas, stereo, isig2, active, robust, fx, fy, cx, cy, bf,
                        cam_var, Jc, Jp, E, Wt, tmp)
             _build(obs_kf, obs_pt, cam_var, Jc, Jp, E, Wt, Hcc, bc, Hpp, bp, Hcp)
-            if lam < 0.0:  # g2o: tau * max diagonal, tau = 1e-5
-                mx = 0.0
-                for c in range(nc):
-                    for a in range(6):
-                        mx = max(mx, Hcc[c, a, a])
-                for p in range(P):
-                    for a in range(3):
-                        mx = max(mx, Hpp[p, a, a])
-                lam = 1e-5 * max(mx, 1e-12)
+            if lam < 0.0:
+                lam = LAMBDA_INITIAL
             accepted = False
             F1 = F0
             for _try in range(10):
@@ -504,9 +502,7 @@ def ba_solve(Tcw, X, obs_kf, obs_pt, meas, stereo, isig2, fixed, fx, fy, cx, cy,
                     pred *= 0.5
                     rho = (F0 - F1) / pred if pred > 0.0 else -1.0
                     if F1 < F0 and rho > 0.0 and math.isfinite(F1):
-                        a3 = 2.0 * rho - 1.0
-                        lam *= max(1.0 / 3.0, 1.0 - a3 * a3 * a3)
-                        ni = 2.0
+                        lam = max(lam / LAMBDA_FACTOR, 1e-12)
                         accepted = True
                         break
                     # rejected: back to the state before the step
@@ -517,8 +513,7 @@ def ba_solve(Tcw, X, obs_kf, obs_pt, meas, stereo, isig2, fixed, fx, fy, cx, cy,
                     for p in range(P):
                         for a in range(3):
                             X[p, a] = X_old[p, a]
-                lam *= ni
-                ni *= 2.0
+                lam *= LAMBDA_FACTOR
             if not accepted:
                 break
             dec = F0 - F1
