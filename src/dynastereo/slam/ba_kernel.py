@@ -31,9 +31,37 @@ is unchanged by the solver.
 from __future__ import annotations
 
 import math
+import os
+import tempfile
 
+import numba
 import numpy as np
 from numba import njit
+
+
+def _writable(path: str) -> bool:
+    try:
+        os.makedirs(path, exist_ok=True)
+        tempfile.TemporaryFile(dir=path).close()
+        return True
+    except OSError:
+        return False
+
+
+def _cache_dir() -> None:
+    """numba caches compiled kernels in ``__pycache__`` beside this file, else (a read-only
+    install) in the user's cache (``~/.cache/numba``), or where ``NUMBA_CACHE_DIR`` says.
+    Where none is writable, numba would refuse ``cache=True`` at import: then a folder
+    in the temporary directory."""
+    if numba.config.CACHE_DIR:
+        return
+    here = os.path.join(os.path.dirname(os.path.abspath(__file__)), "__pycache__")
+    user = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "numba")
+    if not (_writable(here) or _writable(user)):
+        numba.config.CACHE_DIR = os.path.join(tempfile.gettempdir(), "dynastereo-numba-cache")
+
+
+_cache_dir()
 
 CHI2_MONO = 5.991
 CHI2_STEREO = 7.815
