@@ -25,6 +25,13 @@ Prints medians; writes benchmarks/results/ba.json.  Run:
 
     DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
         .venv/bin/python benchmarks/bench_ba.py [--problems 20] [--repeats 3] [--save PKL | --load PKL]
+
+``--ate OLD_SRC`` instead measures accuracy, this code against another checkout's
+``src`` (e.g. the code before the kernel): ``run_sequence`` of KITTI 06 (default
+pipeline) and 03 (``masker.kind: none``) at ``slam.n_features`` 2000 / 1950 / 2050 / 2100
+(as ``bench_moving.py`` takes them), each in its own process, the two codes alternated;
+ATE medians over the four and their ratio (target <= 1.10); writes
+benchmarks/results/ba_ate.json.
 """
 
 from __future__ import annotations
@@ -93,6 +100,59 @@ def timed(fn, p, repeats: int):
     return best
 
 
+ATE_SNIPPET = """
+import json, sys
+from pathlib import Path
+import dynastereo
+from dynastereo.api import run_sequence
+from dynastereo.config import Config
+from dynastereo.eval import evaluate_files
+seq, masker, nf, out = Path(sys.argv[1]), sys.argv[2], int(sys.argv[3]), Path(sys.argv[4])
+over = {"slam.n_features": nf}
+if masker == "none":
+    over["masker.kind"] = "none"
+res = run_sequence(seq, out, Config().with_overrides(over), stereo_check=False)
+ev = evaluate_files(out / "trajectory.kitti.txt", seq.parent.parent / "poses" / f"{seq.name}.txt")
+st = json.loads((out / "run.json").read_text())["stats"]
+print(json.dumps({"ate_m": round(float(ev.ape["rmse"]), 4), "lost": len(res.lost), "local_ba_runs": st["local_ba_runs"],
+                  "local_ba_ms_median": round(st["local_ba_ms_median"], 1)}))
+"""
+VARIANTS = (2000, 1950, 2050, 2100)
+
+
+def ate(old_src: str, out_path: Path) -> int:
+    import subprocess
+
+    data = Path(os.environ["DYNASTEREO_DATA"]) / "kitti_odometry" / "dataset" / "sequences"
+    new_src = str(Path(__file__).resolve().parent.parent / "src")
+    runs = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for nf in VARIANTS:
+            for seq, masker in (("06", "default"), ("03", "none")):
+                for code, src in (("old", old_src), ("kernel", new_src)):
+                    env = dict(os.environ, PYTHONPATH=src)
+                    out = Path(tmp) / f"{code}_{seq}_{nf}"
+                    r = subprocess.run([sys.executable, "-c", ATE_SNIPPET, str(data / seq), masker, str(nf), str(out)],
+                                       env=env, capture_output=True, text=True)
+                    if r.returncode:
+                        print(r.stderr[-2000:], file=sys.stderr)
+                        return 1
+                    row = {"code": code, "seq": seq, "masker": masker, "n_features": nf,
+                           **json.loads(r.stdout.strip().splitlines()[-1])}
+                    runs.append(row)
+                    print(f"{code:6s} KITTI {seq} {masker:7s} n_features {nf}: ATE {row['ate_m']:.4f} m, lost {row['lost']}",
+                          flush=True)
+    med = {f"{c}_{s}": _median([r["ate_m"] for r in runs if r["code"] == c and r["seq"] == s])
+           for c in ("old", "kernel") for s in ("06", "03")}
+    res = {"runs": runs, "medians": med, "ratio_06": round(med["kernel_06"] / med["old_06"], 3),
+           "ratio_03": round(med["kernel_03"] / med["old_03"], 3), "target_ratio": 1.10}
+    print(f"ATE medians over n_features {VARIANTS}: 06 old {med['old_06']:.4f} kernel {med['kernel_06']:.4f} "
+          f"({res['ratio_06']}x); 03 old {med['old_03']:.4f} kernel {med['kernel_03']:.4f} ({res['ratio_03']}x)")
+    out_path.write_text(json.dumps(res, indent=1))
+    print(f"written {out_path}")
+    return 0
+
+
 def _median(v):
     return float(np.median(v)) if len(v) else None
 
@@ -104,7 +164,10 @@ def main() -> int:
     ap.add_argument("--save", help="write the captured problems to this pickle")
     ap.add_argument("--load", help="read the problems from this pickle instead of a run")
     ap.add_argument("--out", default=str(OUT))
+    ap.add_argument("--ate", metavar="OLD_SRC", help="measure ATE against the code in OLD_SRC instead (module doc)")
     args = ap.parse_args()
+    if args.ate:
+        return ate(args.ate, OUT.parent / "ba_ate.json")
 
     from dynastereo.slam import ba_kernel
     from dynastereo.slam.optimizer import local_ba, local_ba_gtsam
