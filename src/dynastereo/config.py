@@ -393,7 +393,8 @@ class MotionConfig:
                 raise _bad(f"motion.{k}", ">= 1", getattr(self, k))
 
 
-LocalBAMode = Literal["process", "inline", "off"]
+# "process": the former worker process, now the same as "thread" (old configuration files)
+LocalBAMode = Literal["thread", "inline", "off", "process"]
 LOCAL_BA_MODES: tuple[str, ...] = typing.get_args(LocalBAMode)
 
 
@@ -420,7 +421,7 @@ class SlamConfig:
     # rectification); the start value when self_calibrate
     disparity_offset: float = 0.0
     # estimate the disparity offset when the map has selfcal_keyframes keyframes: BA over
-    # the whole map solved at a few offsets (needs local_ba process / inline), slam/selfcal.py
+    # the whole map solved at a few offsets (needs local_ba thread / inline), slam/selfcal.py
     self_calibrate: bool = True
     selfcal_keyframes: int = 8
     # the estimate is refined over the whole map at 1.5x, 2.25x... selfcal_keyframes
@@ -443,8 +444,13 @@ class SlamConfig:
     max_frames: int = 10  # keyframe at least every max_frames (ORB-SLAM2: camera fps)
     min_frames: int = 0
     # local mapping
-    local_ba: LocalBAMode = "process"  # in a worker process, inline, or none
-    ba_iterations: int = 3  # Levenberg-Marquardt iterations per local BA (converges in 2-3)
+    local_ba: LocalBAMode = "thread"  # in a thread beside tracking, inline, or none
+    ba_iterations: int = 5  # robust (Huber) LM iterations per local BA (ORB-SLAM2: 5)
+    ba_refine_iterations: int = 10  # then outliers dropped, iterations without the kernel (ORB-SLAM2: 10)
+    # bound on the wait for a local BA's result when it is due; past it the BA is aborted
+    # and its result skipped (run.json stats.local_ba_fallbacks).  A local BA takes
+    # ~10-50 ms, the self-calibrating one ~0.1-1 s
+    ba_wait_s: float = 5.0
     ba_max_keyframes: int = 10  # optimized keyframes (current + best covisible)
     ba_max_fixed: int = 10  # fixed keyframes that anchor the local window
     ba_lag_frames: int = 2  # a local BA submitted at frame k is applied after tracking frame k+lag
@@ -463,9 +469,10 @@ class SlamConfig:
     loop_min_close_inliers: int = 20
     loop_max_verify: int = 2  # consistent candidates verified per keyframe, best first
     loop_covis_edge_weight: int = 100  # essential-graph covisibility edges (ORB-SLAM2: 100)
-    loop_full_ba: bool = True  # full bundle adjustment (worker process) after each loop
+    loop_full_ba: bool = True  # full bundle adjustment (BA thread) after each loop
     loop_full_ba_iterations: int = 20
     loop_ba_lag_frames: int = 20  # the full BA is applied this many frames after the loop
+    loop_ba_wait_s: float = 60.0  # bound on the wait for the full BA when due (then skipped)
     threads: int = 2  # threads for feature extraction (left/right in parallel)
 
     def __post_init__(self) -> None:
@@ -494,6 +501,8 @@ class SlamConfig:
                               f"{self.min_th_fast} and {self.ini_th_fast}")
         if not self.oversample >= 1.0:
             raise _bad(key("oversample"), ">= 1", self.oversample)
+        if self.local_ba == "process":  # the old name of "thread"
+            self.local_ba = "thread"
         if self.local_ba not in LOCAL_BA_MODES:
             raise _bad(key("local_ba"), "one of " + ", ".join(LOCAL_BA_MODES), self.local_ba)
         if self.th_depth <= 0:
@@ -523,6 +532,12 @@ class SlamConfig:
                 raise _bad(key(k), ">= 1", getattr(self, k))
         if self.ba_max_fixed < 0:
             raise _bad(key("ba_max_fixed"), ">= 0", self.ba_max_fixed)
+        if self.ba_refine_iterations < 0:
+            raise _bad(key("ba_refine_iterations"), ">= 0", self.ba_refine_iterations)
+        for k in ("ba_wait_s", "loop_ba_wait_s"):
+            v = getattr(self, k)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise _bad(key(k), "a positive number of seconds", v)
 
 
 # ORB-SLAM2 settings-file keys that set SlamConfig fields (Camera.fps -> max_frames too)

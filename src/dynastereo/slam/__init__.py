@@ -7,7 +7,7 @@
     system.stats(); system.results(); system.lost_frames()
     system.loops(); system.recoveries()               # loops closed, frames found again
     system.save_map("m.dsmap"); other.load_map("m.dsmap", localize_only=True)
-    system.shutdown()                                 # finishes the local BA, stops its worker
+    system.shutdown()                                 # applies the pending local BA, stops its thread
 
 Modules follow ORB-SLAM2: ``orb`` (ORBExtractor: masked, grid-bucketed pyramid ORB),
 ``matcher`` (stereo row matching, projection search), ``frame`` / ``keyframe`` / ``map``
@@ -15,7 +15,7 @@ Modules follow ORB-SLAM2: ``orb`` (ORBExtractor: masked, grid-bucketed pyramid O
 and its policy), ``trajectory`` (the per-frame rows), ``selfcal`` (the disparity offset),
 ``active_map`` (the map with its mapper, database and loop closer), ``local_mapping``
 (point creation / culling / fusion, local BA, keyframe culling), ``optimizer`` (numpy
-motion-only BA, gtsam local BA), ``ba_worker`` (local BA process), ``settings``
+motion-only BA, bundle adjustment), ``ba_kernel`` (the compiled BA kernel), ``settings``
 (ORB-SLAM2 settings files), ``vocabulary`` / ``keyframe_database`` (bag of words, place
 recognition), ``loop_closing`` (detection, SE(3) verification, fusion, essential graph,
 full BA), ``map_io`` (map files), ``system``.  Stage times: ``features``, ``stereo``,

@@ -6,11 +6,11 @@
 3. new points by triangulation against the best covisible keyframes (descriptor
    match under the epipolar constraint, parallax / reprojection / scale checks);
 4. fusion of duplicated points with the neighbours (``SearchInNeighbors``);
-5. local bundle adjustment with gtsam -- inline, or in a worker process so that
-   tracking is not blocked (gtsam's ``optimize()`` holds the GIL, a thread would stall
-   tracking).  The result of a job submitted at frame ``k`` is applied right before
-   frame ``k + lag`` is tracked (waiting for it if needed), which keeps a run
-   deterministic whatever the machine's speed;
+5. local bundle adjustment (``optimizer.local_ba``: one compiled kernel, GIL released)
+   in a thread beside tracking (``BARunner``), or inline.  The result of a job submitted
+   at frame ``k`` is applied right before frame ``k + lag`` is tracked (waiting for it,
+   at most ``slam.ba_wait_s``, if needed), which keeps a run deterministic whatever the
+   machine's speed;
 6. keyframe culling (90% of the close points seen at the same or finer scale by at
    least 3 other keyframes).
 """
@@ -18,9 +18,7 @@
 from __future__ import annotations
 
 import logging
-import os
-import subprocess
-import sys
+import threading
 from dataclasses import dataclass, field
 
 import cv2
@@ -38,7 +36,6 @@ from .geometry import (
     triangulate_dlt,
     unique_best,
 )
-from .ipc import read_msg, write_msg
 from .keyframe import KeyFrame
 from .map import Map
 from .matcher import TH_LOW, search_by_projection
@@ -59,99 +56,129 @@ class MappingStats:
     keyframes_culled: int = 0
 
 
-class _Pending:
-    """A local BA running in the worker process."""
+class BAJob:
+    """One bundle adjustment solved in its own daemon thread: the compiled kernel
+    releases the GIL, so tracking runs beside it.  ``abort`` (read by the kernel between
+    iterations) stops it; a daemon thread never keeps the process alive."""
 
-    def __init__(self, runner: "BARunner", problem: LocalBAProblem) -> None:
-        self.runner = runner
+    def __init__(self, problem: LocalBAProblem, ready: threading.Event | None) -> None:
         self.problem = problem
+        self.abort = np.zeros(1, np.int64)
+        self.error: BaseException | None = None
+        self._ready = ready
+        self._res: LocalBAResult | None = None
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="local-ba", daemon=True)
+        self._thread.start()
 
-    def result(self) -> LocalBAResult:
-        return self.runner._receive(self.problem)
+    def _run(self) -> None:
+        try:
+            if self._ready is not None:  # the kernel's compile / cache load at start-up
+                self._ready.wait()
+            if not self.abort[0]:
+                self._res = run_ba(self.problem, self.abort)
+        except BaseException as e:  # noqa: BLE001 -- reported by the thread that collects it
+            self.error = e
+        finally:
+            self._done.set()
+
+    def done(self) -> bool:
+        return self._done.is_set()
+
+    def result(self, timeout: float) -> LocalBAResult | None:
+        """The result, or None when it is not done within ``timeout`` s (the job is then
+        aborted) or failed (``error``)."""
+        if not self._done.wait(timeout):
+            self.abort[0] = 1
+            return None
+        return self._res
 
 
 class BARunner:
-    """Runs local BA problems inline or in one worker process (``ba_worker``)."""
+    """Runs bundle adjustments in threads (``thread``) or inline, for every map of a
+    System (local BAs, self-calibrating BAs, the loops' full BAs).
 
-    def __init__(self, mode: str) -> None:
-        if mode not in ("process", "inline", "off"):
-            raise ValueError(f"slam.local_ba must be process, inline or off, got {mode!r}")
+    Every wait is bounded: ``wait`` gives a job ``wait_s`` seconds (after the kernel's
+    start-up compile / cache load, bounded by ``COMPILE_WAIT_S``); a job not done by then
+    is aborted and its result skipped, and a failed one is skipped too.  Each such
+    fallback is logged and kept in ``fallbacks`` (``run.json``: ``stats.local_ba_fallbacks``)
+    with the frame it happened at."""
+
+    COMPILE_WAIT_S = 600.0
+
+    def __init__(self, mode: str, wait_s: float = 5.0) -> None:
+        if mode == "process":  # the former worker process: now a thread
+            mode = "thread"
+        if mode not in ("thread", "inline", "off"):
+            raise ValueError(f"slam.local_ba must be thread, inline or off, got {mode!r}")
         self.mode = mode
-        self._proc: subprocess.Popen | None = None
-        if mode == "process":
-            self._start()
+        self.wait_s = float(wait_s)
+        self.fallbacks: list[dict] = []
+        self._jobs: list[BAJob] = []
+        self._ready: threading.Event | None = None
 
-    def _start(self) -> None:
-        env = dict(os.environ)
-        env.setdefault("OMP_NUM_THREADS", "1")
-        self._proc = subprocess.Popen(
-            [sys.executable, "-m", "dynastereo.slam.ba_worker"],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            env=env,
-            process_group=0,  # its own group: Ctrl-C / a group SIGTERM stop the parent, which stops it
-        )
-        try:
-            write_msg(self._proc.stdin, "ping")
-            if read_msg(self._proc.stdout) != "pong":
-                raise OSError("no answer")
-        except OSError as e:
-            log.warning("local BA worker process failed to start (%s); running local BA inline", e)
-            self._stop()
-            self.mode = "inline"
-
-    def submit(self, problem: LocalBAProblem) -> _Pending | LocalBAResult:
-        if self.mode == "process" and self._proc is not None:
-            try:
-                write_msg(self._proc.stdin, problem)
-                return _Pending(self, problem)
-            except OSError as e:
-                log.warning("local BA worker process died (%s); running local BA inline", e)
-                self._stop()
-                self.mode = "inline"
-        return run_ba(problem)
-
-    def _receive(self, problem: LocalBAProblem) -> LocalBAResult:
-        res = None
-        if self._proc is not None:
-            try:
-                res = read_msg(self._proc.stdout)
-            except OSError:
-                res = None
-        if isinstance(res, LocalBAResult):
-            return res
-        if isinstance(res, Exception):
-            log.warning("local BA failed in the worker (%s); retrying inline", res)
-        else:
-            log.warning("local BA worker process died; running local BA inline from now on")
-            self._stop()
-            self.mode = "inline"
-        return run_ba(problem)
-
-    def _stop(self) -> None:
-        p = self._proc
-        self._proc = None
-        if p is None:
+    def warm_up(self) -> None:
+        """Compile (first run) or load from numba's cache the BA kernel, in a daemon
+        thread, so that the first local BA does not stall tracking."""
+        if self.mode == "off" or self._ready is not None:
             return
-        try:
-            if p.stdin:
-                p.stdin.close()
-            p.wait(timeout=10)
-        except (OSError, subprocess.TimeoutExpired):
-            p.kill()
-            p.wait()
-        if p.stdout:
-            p.stdout.close()
+        ready = self._ready = threading.Event()
+
+        def run() -> None:
+            try:
+                from .ba_kernel import warm_up
+
+                warm_up()
+            except Exception as e:  # noqa: BLE001 -- the first BA reports it again
+                log.warning("local BA kernel warm-up failed: %s", e)
+            finally:
+                ready.set()
+
+        threading.Thread(target=run, name="local-ba-warmup", daemon=True).start()
+
+    def submit(self, problem: LocalBAProblem) -> BAJob | LocalBAResult:
+        if self.mode == "thread":
+            self._jobs = [j for j in self._jobs if not j.done()]
+            job = BAJob(problem, self._ready)
+            self._jobs.append(job)
+            return job
+        return run_ba(problem)
+
+    def wait(self, job: BAJob | LocalBAResult, frame: int, what: str = "local",
+             wait_s: float | None = None) -> LocalBAResult | None:
+        """The job's result, waiting at most ``wait_s`` (default ``self.wait_s``) once the
+        kernel is ready; None (recorded in ``fallbacks``) when it is skipped."""
+        if isinstance(job, LocalBAResult):
+            return job
+        import time
+
+        t0 = time.perf_counter()
+        if self._ready is not None and not self._ready.wait(self.COMPILE_WAIT_S):
+            log.warning("local BA kernel still compiling after %.0f s", self.COMPILE_WAIT_S)
+        bound = self.wait_s if wait_s is None else float(wait_s)
+        res = job.result(bound)
+        if res is not None:
+            return res
+        if job.error is not None:
+            reason = f"failed: {type(job.error).__name__}: {job.error}"
+        else:
+            reason = f"not done within {bound:g} s: aborted"
+        waited = time.perf_counter() - t0
+        self.fallbacks.append({"frame": int(frame), "ba": what, "reason": reason, "action": "result skipped",
+                               "waited_s": round(waited, 3)})
+        log.warning("frame %d: %s bundle adjustment %s; its result is skipped", frame, what, reason)
+        return None
+
+    def abort(self, job: BAJob | LocalBAResult | None) -> None:
+        """Stop a job whose answer will not be read."""
+        if isinstance(job, BAJob):
+            job.abort[0] = 1
 
     def shutdown(self) -> None:
-        self._stop()
-
-    def abort(self) -> None:
-        """Stop the worker process now, dropping the job it is solving."""
-        p = self._proc
-        if p is not None and p.poll() is None:
-            p.kill()
-        self._stop()
+        """Abort the jobs still running (their daemon threads end at the next iteration)."""
+        for j in self._jobs:
+            j.abort[0] = 1
+        self._jobs = []
 
 
 class LocalMapper:
@@ -169,10 +196,11 @@ class LocalMapper:
         self.selfcal = selfcal
         self.recent = np.zeros(0, np.int64)
         self.stats = MappingStats()
-        self._job: _Pending | LocalBAResult | None = None
+        self._job: BAJob | LocalBAResult | None = None
         self._job_due = 0
         self._job_map = None
         self._pending_kf: KeyFrame | None = None
+        self._last_frame = 0  # the latest frame position collect saw (fallback records)
 
     # ---------------------------------------------------------------- pipeline
     def process(self, kf: KeyFrame, new_points: np.ndarray, frame_index: int) -> None:
@@ -449,7 +477,8 @@ class LocalMapper:
         prob = self._problem(kf, ids[1:], ids[:1], pts, mp.obs.rows_of(pts))
         if prob is not None:
             self.selfcal.prepare(prob)
-            prob.iterations = max(prob.iterations, 5)
+            # robust iterations only: the three solves' costs stay over the same observations
+            prob.iterations, prob.refine_iterations = max(prob.iterations, 5), 0
         return prob
 
     def build_global_problem(self, kf: KeyFrame) -> LocalBAProblem | None:
@@ -460,7 +489,10 @@ class LocalMapper:
         if len(ids) < 3:
             return None
         pts = mp.points_of(ids)
-        return self._problem(kf, ids[1:], ids[:1], pts, mp.obs.rows_of(pts)) if len(pts) else None
+        prob = self._problem(kf, ids[1:], ids[:1], pts, mp.obs.rows_of(pts)) if len(pts) else None
+        if prob is not None:
+            prob.refine_iterations = 0  # robust iterations only (ORB-SLAM2's global BA)
+        return prob
 
     def _problem(
         self, kf: KeyFrame, local: list[int], fixed_ids: list[int], pts: np.ndarray, rows: np.ndarray
@@ -511,6 +543,7 @@ class LocalMapper:
             K=kf.calib.K,
             baseline=kf.calib.baseline,
             iterations=self.cfg.ba_iterations,
+            refine_iterations=self.cfg.ba_refine_iterations,
         )
         return prob
 
@@ -557,16 +590,18 @@ class LocalMapper:
         """Apply the running BA's result if it is due (waits for it)."""
         import time
 
+        self._last_frame = max(self._last_frame, frame_index)
         if self._job is None:
             return
         if not force and frame_index < self._job_due:
             return
         t0 = time.perf_counter()
         job = self._job
-        res = job.result() if isinstance(job, _Pending) else job
+        res = self.runner.wait(job, self._last_frame, "self-calibrating" if job.problem.offset_grid else "local") \
+            if isinstance(job, BAJob) else job
         self.stats.ba_wait_ms.append((time.perf_counter() - t0) * 1e3)
         self._job = None
-        if self._job_map == id(self.mp):
+        if res is not None and self._job_map == id(self.mp):
             self._apply(res)
         pending = self._pending_kf
         self._pending_kf = None

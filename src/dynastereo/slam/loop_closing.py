@@ -21,8 +21,9 @@ For every new keyframe (after its local mapping):
    covisibility edges of weight >= ``covis_edge_weight``, all loop edges; the loop
    keyframe and the map's first keyframe fixed.  Every map point then follows its
    reference keyframe.
-5. **Full bundle adjustment** over the whole map, in a worker process (gtsam holds the
-   GIL), applied ``full_ba_lag_frames`` frames later; keyframes and points made in the
+5. **Full bundle adjustment** over the whole map, in the BA thread (the compiled kernel,
+   GIL released), applied ``loop_ba_lag_frames`` frames later (waiting at most
+   ``loop_ba_wait_s``); keyframes and points made in the
    meantime follow the correction of their neighbours.  A second loop before it is
    applied discards it (ORB-SLAM2 aborts it).
 
@@ -41,7 +42,7 @@ import numpy as np
 from ..config import SlamConfig
 from .geometry import desc_u64, inv_T, orthonormalize
 from .keyframe import KeyFrame
-from .local_mapping import BARunner, LocalMapper
+from .local_mapping import LocalMapper
 from .map import Map
 from .keyframe_database import KeyFrameDatabase
 from .matcher import TH_HIGH, keyframe_point_matches, search_by_projection
@@ -125,8 +126,8 @@ class LoopCloser:
         self.loop_edges: list[tuple[int, int]] = []
         self._groups: list[tuple[set[int], int]] = []
         self._last_loop_kf = -(10**9)
-        self._ba_runner: BARunner | None = None
-        self._ba_job = None  # (pending, problem, due frame, loop count)
+        self._ba_job = None  # (job, problem, due frame, loop count)
+        self._last_frame = 0  # the latest frame position collect saw (fallback records)
 
     # ------------------------------------------------------------- detection
     def detect(self, kf: KeyFrame, bow: BowVector) -> list[int]:
@@ -313,11 +314,10 @@ class LoopCloser:
         is applied; a full BA still running belongs to the map before this loop: dropped."""
         self.mapper.collect(frame_pos, force=True)
         if self._ba_job is not None:
+            job = self._ba_job[0]
             self._ba_job = None
             self.stats.full_ba_discarded += 1
-            if self._ba_runner is not None:  # its answer is never read: stop the worker now
-                self._ba_runner.abort()
-                self._ba_runner = None
+            self.mapper.runner.abort(job)  # its answer is never read: stop it now
 
     def _fuse_loop(self, kf: KeyFrame, loop: KeyFrame, ki: np.ndarray, loop_pts: np.ndarray,
                    connected: list[int]) -> int:
@@ -421,22 +421,21 @@ class LoopCloser:
             return
         prob.iterations = self.cfg.loop_full_ba_iterations
         prob.rel_tol = 1e-5
-        if self._ba_runner is None:
-            mode = self.cfg.local_ba if self.cfg.mapping_on else "inline"
-            self._ba_runner = BARunner(mode)
-        job = self._ba_runner.submit(prob)
+        job = self.mapper.runner.submit(prob)
         self._ba_job = (job, prob, frame_pos + max(0, self.cfg.loop_ba_lag_frames), len(self.events))
 
     def collect(self, frame_pos: int, force: bool = False) -> None:
-        """Apply the full BA when it is due (waits for it)."""
+        """Apply the full BA when it is due (waits for it, at most ``loop_ba_wait_s``)."""
+        self._last_frame = max(self._last_frame, frame_pos)
         if self._ba_job is None:
             return
         job, prob, due, n_loops = self._ba_job
         if not force and frame_pos < due:
             return
         self._ba_job = None
-        res = job if isinstance(job, LocalBAResult) else job.result()
-        self._release_runner()  # the full BA's worker (hundreds of MB on a long map) gives its memory back
+        res = self.mapper.runner.wait(job, self._last_frame, "full (loop)", self.cfg.loop_ba_wait_s)
+        if res is None:
+            return
         if n_loops != len(self.events):
             self.stats.full_ba_discarded += 1
             return
@@ -474,12 +473,6 @@ class LoopCloser:
         self._move_points(ids, M, np.flatnonzero(~mp.points.bad[: mp.points.n] & ~in_prob))
         mp.points.pos[res.pt_ids[ok]] = res.X[ok]
 
-    def _release_runner(self) -> None:
-        if self._ba_runner is not None:
-            self._ba_runner.shutdown()
-            self._ba_runner = None
-
     def shutdown(self) -> None:
         if self._ba_job is not None:
             self.collect(0, force=True)
-        self._release_runner()

@@ -1,4 +1,4 @@
-"""Optimization: motion-only BA (numpy) and local bundle adjustment (gtsam).
+"""Optimization: motion-only BA (numpy) and bundle adjustment (compiled kernel).
 
 Motion-only BA (``optimize_pose``) is ORB-SLAM2's ``Optimizer::PoseOptimization``:
 stereo observations (u, v, u_right) and monocular ones (u, v), information
@@ -9,11 +9,15 @@ SE(3) in numpy, chosen by measurement: 1.7 ms for 800 observations with the whol
 4-round schedule, against 14 ms for a single robust LM pass of a gtsam graph built per
 frame, same pose (``benchmarks/bench_slam.py``, ``pose_optimizer`` in its JSON).
 
-Local BA (``local_ba``) uses gtsam: ``GenericStereoFactor3D`` /
-``GenericProjectionFactorCal3_S2`` with Huber kernels, Levenberg-Marquardt with the
-SEQUENTIAL_CHOLESKY solver on a points-first elimination ordering, fixed keyframes held
-by tight priors.  ``self_calibrating_ba`` also estimates the stereo disparity offset.  It works on plain
-arrays (``LocalBAProblem``) so that it can run in a worker process.
+Bundle adjustment (``local_ba``: the local BA, the self-calibrating BA's solves, the
+loop's full BA and the final BA of a saved map) is one call of the compiled kernel
+:func:`.ba_kernel.ba_solve` (Levenberg-Marquardt, points eliminated by the Schur
+complement, ORB-SLAM2's robust + refine schedule; it releases the GIL, so local mapping
+runs it in a thread).  ``local_ba_gtsam`` is the former gtsam solver
+(``GenericStereoFactor3D`` / ``GenericProjectionFactorCal3_S2`` with Huber kernels, LM
+with SEQUENTIAL_CHOLESKY, fixed keyframes by tight priors), kept as the reference for
+tests and ``benchmarks/bench_ba.py``.  ``self_calibrating_ba`` also estimates the stereo
+disparity offset.  All of them work on plain arrays (``LocalBAProblem``).
 """
 
 from __future__ import annotations
@@ -142,10 +146,10 @@ def optimize_pose(
     return orthonormalize(T), ~out
 
 
-# ---------------------------------------------------------------- local BA (gtsam)
+# ---------------------------------------------------------------- bundle adjustment
 @dataclass
 class LocalBAProblem:
-    """A local bundle adjustment, as plain arrays (picklable for a worker process).
+    """A local bundle adjustment, as plain arrays.
 
     ``kf_ids`` / ``T_wc`` (K, 4, 4) / ``fixed`` (K,) bool; ``pt_ids`` / ``X`` (P, 3);
     observations: ``obs_kf`` / ``obs_pt`` (indices into the above), ``uv`` (M, 2),
@@ -164,8 +168,11 @@ class LocalBAProblem:
     sigma: np.ndarray
     K: np.ndarray
     baseline: float
-    iterations: int = 5
-    rel_tol: float = 1e-3  # LM stops when the relative cost decrease falls below it
+    iterations: int = 5  # LM iterations with Huber kernels (ORB-SLAM2: 5)
+    rel_tol: float = 1e-3  # a stage stops when the relative cost decrease falls below it
+    # then the outliers (chi2 above the 95% bound, behind the camera) are dropped and this
+    # many iterations run without the kernel (ORB-SLAM2: 10); 0: the robust stage only
+    refine_iterations: int = 0
     tag: int = 0
     # self-calibration: also estimate the stereo disparity offset (``self_calibrating_ba``)
     offset_grid: tuple[float, ...] | None = None
@@ -188,6 +195,8 @@ class LocalBAResult:
     offset: float | None = None  # disparity offset (px) the result was computed with
     offset_sigma: float | None = None
     offset_costs: list[float] | None = None
+    inlier: np.ndarray | None = None  # (M,) observations kept by the robust stage (kernel only)
+    aborted: bool = False  # the abort flag stopped the solve (the last accepted state)
 
 
 def shift_disparity(uv_u: np.ndarray, ur: np.ndarray, delta: float) -> np.ndarray:
@@ -198,7 +207,7 @@ def shift_disparity(uv_u: np.ndarray, ur: np.ndarray, delta: float) -> np.ndarra
     return np.where(st, uv_u - disp, ur)
 
 
-def self_calibrating_ba(p: LocalBAProblem) -> LocalBAResult:
+def self_calibrating_ba(p: LocalBAProblem, abort: np.ndarray | None = None) -> LocalBAResult:
     """Bundle adjustment that also estimates a constant disparity offset ``delta`` (px
     added to every measured disparity: a right-camera principal-point error of the
     rectification).  Such an offset is not a change of scale -- it shifts inverse depth,
@@ -218,7 +227,7 @@ def self_calibrating_ba(p: LocalBAProblem) -> LocalBAResult:
     t0 = time.perf_counter()
     grid = np.asarray(p.offset_grid, np.float64)
     sols = [
-        local_ba(dataclasses.replace(p, ur=shift_disparity(p.uv[:, 0], p.ur, float(d)), offset_grid=None))
+        local_ba(dataclasses.replace(p, ur=shift_disparity(p.uv[:, 0], p.ur, float(d)), offset_grid=None), abort)
         for d in grid
     ]
     c = np.array([r.error_after for r in sols])
@@ -244,17 +253,44 @@ def self_calibrating_ba(p: LocalBAProblem) -> LocalBAResult:
             float(sols[i0].error_before), float(a * offset**2 + b * offset + c0), 0.0, p.tag,
         )
     res.offset, res.offset_sigma, res.offset_costs = offset, sigma, [float(x) for x in c]
+    res.aborted = any(r.aborted for r in sols)
     res.ms = (time.perf_counter() - t0) * 1e3  # all the solves
     return res
 
 
-def run_ba(p: LocalBAProblem) -> LocalBAResult:
+def run_ba(p: LocalBAProblem, abort: np.ndarray | None = None) -> LocalBAResult:
     """``self_calibrating_ba`` when the problem asks for it, else ``local_ba``."""
-    return self_calibrating_ba(p) if p.offset_grid else local_ba(p)
+    return self_calibrating_ba(p, abort) if p.offset_grid else local_ba(p, abort)
 
 
-def local_ba(p: LocalBAProblem) -> LocalBAResult:
-    """Run the local BA with gtsam (Levenberg-Marquardt, SEQUENTIAL_CHOLESKY).
+def local_ba(p: LocalBAProblem, abort: np.ndarray | None = None) -> LocalBAResult:
+    """Solve the BA with the compiled kernel (:func:`.ba_kernel.ba_solve`):
+    ``p.iterations`` robust LM iterations, then ``p.refine_iterations`` without the
+    kernel on the inliers.  ``abort``: a 1-element int64 array; set non-zero (by another
+    thread) it stops the solve between iterations.  ``error_before`` / ``error_after``
+    are the Huber cost over all observations (gtsam's ``graph.error`` convention)."""
+    import time
+
+    from .ba_kernel import solve
+
+    t0 = time.perf_counter()
+    T_cw = np.linalg.inv(np.asarray(p.T_wc, np.float64))
+    bf = float(p.K[0, 0]) * float(p.baseline)
+    sig = np.asarray(p.sigma, np.float64)
+    T, X, inl, st = solve(T_cw, p.X, p.obs_kf, p.obs_pt, p.uv, p.ur, 1.0 / (sig * sig), p.fixed, p.K, bf,
+                          p.iterations, p.refine_iterations, p.rel_tol, abort)
+    T_wc = np.linalg.inv(T)
+    T_wc[:, 3, :] = (0.0, 0.0, 0.0, 1.0)
+    fixed = np.asarray(p.fixed, bool)
+    T_wc[fixed] = p.T_wc[fixed]  # exactly as given
+    return LocalBAResult(
+        p.kf_ids, T_wc, p.pt_ids, X, int(st[0]), float(st[1]), float(st[2]), (time.perf_counter() - t0) * 1e3,
+        p.tag, inlier=inl, aborted=bool(st[3]),
+    )
+
+
+def local_ba_gtsam(p: LocalBAProblem) -> LocalBAResult:
+    """The reference solver: the BA with gtsam (Levenberg-Marquardt, SEQUENTIAL_CHOLESKY).
 
     The graph is built with one factor per observation: gtsam's Python API has no
     batch constructor for stereo factors (monocular ones go in per keyframe and level

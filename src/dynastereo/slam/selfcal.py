@@ -5,7 +5,7 @@ error; KITTI's is about 0.15-0.25 px), which biases every depth by ``delta / bf`
 inverse depth -- on KITTI a 0.7 % too long path.  :class:`SelfCalibration` owns all of it:
 
 * **the schedule**: when the map has ``selfcal_keyframes`` keyframes, local mapping
-  solves a BA over the whole map at three offsets (:data:`GRID`) in its worker; the
+  solves a BA over the whole map at three offsets (:data:`GRID`) in its BA thread; the
   parabola of its cost gives the offset (``optimizer.self_calibrating_ba``).  It is refined
   the same way at 1.5x, 2.25x... that many keyframes (``selfcal_rounds`` estimates in
   all).  A new map (re-initialization) starts the schedule again only while no estimate
@@ -28,7 +28,7 @@ from .map import Map
 
 # disparity offsets (px) at which the self-calibrating BA is solved
 GRID = (-0.3, 0.0, 0.3)
-# frames tracked while the self-calibrating BA runs in the worker process
+# frames tracked while the self-calibrating BA runs in the BA thread
 LAG_FRAMES = 8
 # points in the self-calibrating BA
 MAX_POINTS = 6000

@@ -7,7 +7,8 @@
     system.shutdown()
 
 ``System`` is a thin facade (ORB-SLAM2's ``System``): it builds the ORB extractor, the
-self-calibration, the BA worker and the :class:`~.tracking.Tracker`, and wires each new
+self-calibration, the BA runner (bundle adjustments in a thread; its kernel is compiled or
+loaded from cache in the background at start) and the :class:`~.tracking.Tracker`, and wires each new
 map's local mapper, keyframe database and loop closer (:class:`~.active_map.ActiveMap`)
 to it.  The tracking state lives in the tracker, the policy below in ``tracking``.
 
@@ -90,6 +91,9 @@ class SystemStats:
     local_ba_runs: int
     local_ba_ms_median: float
     local_ba_wait_ms_median: float
+    # BA results skipped (not done within slam.ba_wait_s / loop_ba_wait_s, or failed):
+    # {"frame", "ba", "reason", "action", "waited_s"} each
+    local_ba_fallbacks: list[dict]
     points_triangulated: int
     points_fused: int
     points_culled: int
@@ -147,7 +151,8 @@ class System:
         )
         self.selfcal = SelfCalibration(cfg, calibration.bf)
         self._threads = ThreadPoolExecutor(max_workers=2, thread_name_prefix="features") if cfg.threads > 1 else None
-        self.runner = BARunner(cfg.local_ba)
+        self.runner = BARunner(cfg.local_ba, cfg.ba_wait_s)
+        self.runner.warm_up()
         self.timer = StageTimer()
         self.vocab = Vocabulary.load(cfg.vocabulary) if cfg.vocabulary else Vocabulary.default()
         self.tracker = Tracker(cfg, calibration, self.extractor, self.selfcal, self.vocab, seed=self.seed,
@@ -278,6 +283,7 @@ class System:
             local_ba_runs=ms.ba_runs,
             local_ba_ms_median=_median(ms.ba_ms),
             local_ba_wait_ms_median=_median(ms.ba_wait_ms),
+            local_ba_fallbacks=list(self.runner.fallbacks),
             points_triangulated=ms.points_triangulated,
             points_fused=ms.points_fused,
             points_culled=ms.points_culled,
@@ -364,7 +370,7 @@ class System:
         )
 
     def shutdown(self) -> None:
-        """Finish the pending local BA and stop the worker process and threads."""
+        """Apply the pending BAs (each wait bounded) and stop the threads."""
         if self._closed:
             return
         self.active.shutdown()
@@ -379,7 +385,7 @@ class System:
     def __exit__(self, *exc: object) -> None:
         self.shutdown()
 
-    def __del__(self) -> None:  # best effort: never leave a worker process behind
+    def __del__(self) -> None:  # best effort: never leave a BA running
         try:
             if not self._closed:
                 self.shutdown()
