@@ -16,9 +16,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
+from .kernels.hamming import knn_hamming
+from .kernels.stereo import stereo_match_kernel
 from .geometry import CHI2_MONO, CHI2_STEREO, best_two_per_group, desc_u64, expand_ranges, hamming_pairs, rotation_consistent, unique_best
 
 TH_HIGH = 100
@@ -46,7 +47,57 @@ def stereo_match(
     max_disparity: float | None = None,
     th_dist: int = (TH_HIGH + TH_LOW) // 2,
 ) -> StereoResult:
-    """Stereo matches of left keypoints (``Frame::ComputeStereoMatches``, vectorized).
+    """Stereo matches of left keypoints (``Frame::ComputeStereoMatches``), one compiled call.
+
+    Candidates: right keypoints within ``2 * scale[octave]`` rows, at most one octave
+    apart, with disparity in ``[0, max_disparity]`` (default ``fx``: depth >= baseline).
+    The best descriptor match (<= ``th_dist``) is refined by SAD over 11x11 windows
+    along the row of the full-resolution grayscale images ``img_l`` / ``img_r`` and a
+    parabola fit; matches whose SAD exceeds 2.1 x the median are dropped.  The kernel
+    (``kernels.stereo``) gives the same matches as ``_stereo_match_numpy``.
+    """
+    n = len(uv_l)
+    u_right = np.full(n, -1.0)
+    depth = np.full(n, -1.0)
+    if n == 0 or len(uv_r) == 0:
+        return StereoResult(u_right, depth)
+    max_d = float(fx if max_disparity is None else max_disparity)
+    uv_l = np.asarray(uv_l, np.float64)
+    uv_r = np.asarray(uv_r, np.float64)
+    oct_r = np.asarray(oct_r, np.int64)
+    order = np.lexsort((uv_r[:, 1], oct_r))
+    n_oct = max(int(oct_r.max()), int(np.max(oct_l))) + 1
+    oct_start = np.searchsorted(oct_r[order], np.arange(n_oct + 1)).astype(np.int64)
+    stereo_match_kernel(
+        np.ascontiguousarray(uv_l[:, 0]), np.ascontiguousarray(uv_l[:, 1]),
+        np.rint(uv_l[:, 0]).astype(np.int64), np.rint(uv_l[:, 1]).astype(np.int64),
+        np.asarray(oct_l, np.int64), desc_u64(desc_l),
+        np.ascontiguousarray(uv_r[order, 0]), np.ascontiguousarray(uv_r[order, 1]),
+        np.rint(uv_r[order, 0]).astype(np.int64), desc_u64(np.asarray(desc_r)[order]), order.astype(np.int64), oct_start,
+        np.ascontiguousarray(img_l, np.uint8), np.ascontiguousarray(img_r, np.uint8),
+        np.asarray(scales, np.float64),
+        0.0, max_d, int(th_dist), float(bf), u_right, depth,
+    )
+    return StereoResult(u_right, depth)
+
+
+def _stereo_match_numpy(
+    uv_l: np.ndarray,
+    oct_l: np.ndarray,
+    desc_l: np.ndarray,
+    uv_r: np.ndarray,
+    oct_r: np.ndarray,
+    desc_r: np.ndarray,
+    img_l: np.ndarray,
+    img_r: np.ndarray,
+    scales: np.ndarray,
+    fx: float,
+    bf: float,
+    max_disparity: float | None = None,
+    th_dist: int = (TH_HIGH + TH_LOW) // 2,
+) -> StereoResult:
+    """Stereo matches of left keypoints (``Frame::ComputeStereoMatches``), vectorized numpy:
+    the reference of ``stereo_match``.
 
     Candidates: right keypoints within ``2 * scale[octave]`` rows, at most one octave
     apart, with disparity in ``[0, max_disparity]`` (default ``fx``: depth >= baseline).
@@ -289,8 +340,8 @@ def keyframe_point_matches(mp, kf, target) -> tuple[np.ndarray, np.ndarray]:
     """Descriptor matches of keyframe ``kf``'s map points (of map ``mp``) to the keypoints
     of ``target`` (a frame or keyframe): nearest of two (ratio 0.7, <= TH_LOW), one point
     per keypoint, rotation consistency.  ORB-SLAM2 restricts this search with the bag of
-    words' nodes; a brute-force Hamming search (OpenCV, SIMD popcount) over one keyframe's
-    points costs about as much here.  Returns ``(target keypoint idx, point ids)``."""
+    words' nodes; a brute-force Hamming search (one compiled call, ``kernels.hamming``,
+    as cv2.batchDistance) over one keyframe's points costs about as much here.  Returns ``(target keypoint idx, point ids)``."""
     z = np.zeros(0, np.int64)
     kp_kf = np.flatnonzero(kf.point_ids >= 0)
     pts = mp.points.resolve(kf.point_ids[kp_kf])
@@ -298,7 +349,7 @@ def keyframe_point_matches(mp, kf, target) -> tuple[np.ndarray, np.ndarray]:
     kp_kf, pts = kp_kf[ok], pts[ok]
     if len(pts) < 10 or len(target) < 10:
         return z, z
-    dnn, inn = cv2.batchDistance(mp.points.desc[pts], target.desc, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
+    dnn, inn = knn_hamming(mp.points.desc[pts], target.desc, 2)
     b1, b2, best = dnn[:, 0], dnn[:, 1], inn[:, 0]
     good = (best >= 0) & (b1 <= TH_LOW) & (b1 < 0.7 * b2)
     qi, ki = np.flatnonzero(good), best[good]

@@ -1,0 +1,247 @@
+"""The SLAM's compiled kernels against the numpy / OpenCV code they replace.
+
+Part 1, side by side in one run (``--masker none`` on each KITTI clip): every call of a
+replaced stage runs both versions, in alternating order, on the same input -- the
+kernel's result drives the run, the old one is only timed and compared:
+
+* ``stereo``: ``matcher.stereo_match`` (kernel) vs ``matcher._stereo_match_numpy``;
+* ``pose``: ``optimizer.optimize_pose`` (kernel) vs ``optimizer._optimize_pose_numpy``;
+* ``knn``: ``kernels.hamming.knn_hamming`` vs ``cv2.batchDistance`` (the descriptor
+  candidates of ``create_new_points`` and ``keyframe_point_matches``);
+* ``projection``: ``matcher.search_by_projection`` (kernel) vs
+  ``matcher._search_by_projection_numpy`` (tracking's last-frame and local-map searches
+  and local mapping's fusion).
+
+CPU ms a frame (the calling thread's CPU time, summed over the frame's calls; medians
+over the frames) and the agreement: identical matches, the largest pose difference.
+
+Part 2, the whole ``dynastereo run --masker none`` (``api.run_sequence``, its own process
+each time) with the old code (``--old``, default /work/main/src: the numpy versions)
+and this checkout's, alternated, ``--repeats`` times: the frame loop's FPS and the process
+tree's CPU a frame over the frame loop (start-up left out), medians; and the trajectories'
+largest difference between old and new.
+
+Part 3: numba's compile time on a first run (empty cache) and the cached load.
+
+    DYNASTEREO_DATA=... .venv/bin/python benchmarks/bench_kernels.py [--sequences 06,03] \\
+        [--repeats 3] [--old /work/main/src] [--skip-runs]
+
+Prints the tables and writes benchmarks/results/kernels.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = Path(__file__).resolve().parent / "results" / "kernels.json"
+SEQS = {"06": "kitti_odometry/dataset/sequences/06", "03": "kitti_odometry/dataset/sequences/03"}
+
+
+class SideBySide:
+    """Wraps the replaced functions; per frame CPU ms of new and old, and mismatches."""
+
+    def __init__(self) -> None:
+        self.frame = -1
+        self.ms: dict[str, dict[str, defaultdict]] = defaultdict(lambda: {"new": defaultdict(float), "old": defaultdict(float)})
+        self.calls: dict[str, int] = defaultdict(int)
+        self.diff: dict[str, list] = defaultdict(list)
+        self._flip = False
+
+    def _both(self, stage, new, old):
+        """Run ``new`` and ``old`` (alternating which goes first); returns both results."""
+        self._flip = not self._flip
+        order = (("new", new), ("old", old)) if self._flip else (("old", old), ("new", new))
+        out = {}
+        for name, fn in order:
+            t = time.thread_time()
+            out[name] = fn()
+            self.ms[stage][name][self.frame] += (time.thread_time() - t) * 1e3
+        self.calls[stage] += 1
+        return out["new"], out["old"]
+
+    def install(self) -> None:
+        from dynastereo.slam import local_mapping, loop_closing, matcher, optimizer, tracking
+
+        sbs = self
+        new_stereo, old_stereo = matcher.stereo_match, matcher._stereo_match_numpy
+
+        def stereo(*a, **k):
+            sbs.frame += 1
+            n, o = sbs._both("stereo", lambda: new_stereo(*a, **k), lambda: old_stereo(*a, **k))
+            same = np.array_equal(n.u_right, o.u_right) and np.array_equal(n.depth, o.depth)
+            sbs.diff["stereo"].append(dict(same=same, matches=int((n.depth > 0).sum()),
+                                           differ=int((n.u_right != o.u_right).sum())))
+            return n
+
+        tracking.stereo_match = stereo
+
+        new_pose, old_pose = optimizer.optimize_pose, optimizer._optimize_pose_numpy
+
+        def pose(*a, **k):
+            (Tn, inn), (To, ino) = sbs._both("pose", lambda: new_pose(*a, **k), lambda: old_pose(*a, **k))
+            sbs.diff["pose"].append(dict(dT=float(np.abs(Tn - To).max()), inliers_differ=int((inn != ino).sum()), n=len(inn)))
+            return Tn, inn
+
+        tracking.optimize_pose = pose
+        loop_closing.optimize_pose = pose
+
+        from dynastereo.slam.kernels import hamming
+
+        def knn(a, b, k):
+            (dn, iN), (do, io) = sbs._both(
+                "knn", lambda: hamming.knn_hamming(a, b, k),
+                lambda: cv2.batchDistance(a, b, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=min(k, len(b))))
+            sbs.diff["knn"].append(dict(same=bool(np.array_equal(dn, do) and np.array_equal(iN, io))))
+            return dn, iN
+
+        local_mapping.knn_hamming = knn
+        matcher.knn_hamming = knn
+
+        if hasattr(matcher, "_search_by_projection_numpy"):
+            new_sp, old_sp = matcher.search_by_projection, matcher._search_by_projection_numpy
+
+            def sp(*a, **k):
+                n, o = sbs._both("projection", lambda: new_sp(*a, **k), lambda: old_sp(*a, **k))
+                same = all(np.array_equal(getattr(n, f), getattr(o, f)) for f in ("query", "kp", "dist"))
+                sbs.diff["projection"].append(dict(same=same, matches=len(n.query)))
+                return n
+
+            for mod in (tracking, local_mapping, loop_closing):
+                mod.search_by_projection = sp
+
+    def summary(self, n_frames: int) -> dict:
+        out = {}
+        for stage, d in self.ms.items():
+            row = {}
+            for ver in ("new", "old"):
+                per = np.zeros(n_frames)
+                for f, v in d[ver].items():
+                    if 0 <= f < n_frames:
+                        per[f] += v
+                row[f"{ver}_ms_median"] = round(float(np.median(per)), 3)
+                row[f"{ver}_ms_mean"] = round(float(per.mean()), 3)
+            row["speedup_mean"] = round(row["old_ms_mean"] / max(row["new_ms_mean"], 1e-9), 1)
+            row["calls_per_frame"] = round(self.calls[stage] / n_frames, 2)
+            diffs = self.diff[stage]
+            if stage == "pose":
+                row["max_pose_diff"] = float(max((x["dT"] for x in diffs), default=0.0))
+                row["calls_inliers_differ"] = sum(x["inliers_differ"] > 0 for x in diffs)
+            else:
+                row["calls_identical"] = sum(bool(x["same"]) for x in diffs)
+            row["calls"] = len(diffs)
+            out[stage] = row
+        return out
+
+
+def side_by_side(seq: Path) -> dict:
+    from dynastereo.api import run_sequence
+    from dynastereo.config import Config
+
+    cfg = Config().with_overrides({"masker.kind": "none"})
+    sbs = SideBySide()
+    sbs.install()
+    with tempfile.TemporaryDirectory() as tmp:
+        res = run_sequence(seq, Path(tmp) / "run", cfg)
+    n = sbs.frame + 1
+    return {"frames": n, "lost": len(res.lost), "stages": sbs.summary(n)}
+
+
+DRIVER = r"""
+import json, sys, tempfile
+from pathlib import Path
+sys.path.insert(0, sys.argv[3])
+from bench_profile import LoopCpu
+from dynastereo.api import run_sequence
+from dynastereo.config import Config
+cfg = Config().with_overrides({"masker.kind": "none"})
+loop = LoopCpu()
+out = Path(sys.argv[2])
+run_sequence(Path(sys.argv[1]), out, cfg, observers=(loop,))
+t = json.loads((out / "timing.json").read_text())
+print(json.dumps({"fps": t["summary"]["fps"], "cpu_ms": loop.ms_per_frame}))
+"""
+
+
+def whole_run(seq: Path, src: Path, out: Path) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(src))
+    r = subprocess.run([sys.executable, "-c", DRIVER, str(seq), str(out), str(ROOT / "benchmarks")],
+                       env=env, capture_output=True, text=True, check=True)
+    d = json.loads(r.stdout.strip().splitlines()[-1])
+    d["traj"] = np.loadtxt(out / "trajectory.kitti.txt").reshape(-1, 3, 4)
+    return d
+
+
+def compile_times() -> dict:
+    """numba: first run with an empty cache (compile) and the cached load, each in a fresh process."""
+    code = ("import time; t=time.perf_counter(); "
+            "from tests.test_kernels import warm_all; warm_all(); print(time.perf_counter()-t)")
+    with tempfile.TemporaryDirectory() as d:
+        env = dict(os.environ, NUMBA_CACHE_DIR=d, PYTHONPATH=f"{ROOT / 'src'}:{ROOT}")
+        first = float(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                                     check=True, cwd=ROOT).stdout.split()[-1])
+        cached = float(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                                      check=True, cwd=ROOT).stdout.split()[-1])
+    return {"first_run_s": round(first, 2), "cached_s": round(cached, 2)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--sequences", default="06,03")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--old", default="/work/main/src")
+    ap.add_argument("--skip-runs", action="store_true", help="only the side-by-side stages")
+    ap.add_argument("--skip-compile", action="store_true")
+    args = ap.parse_args()
+    data = Path(os.environ.get("DYNASTEREO_DATA", ROOT.parent / "shared" / "data"))
+    res: dict = {"sequences": {}}
+    if not args.skip_compile:
+        res["numba"] = compile_times()
+        print(f"numba: first run (compile) {res['numba']['first_run_s']} s, cached load {res['numba']['cached_s']} s")
+    for name in args.sequences.split(","):
+        seq = data / SEQS[name]
+        r = {"side_by_side": side_by_side(seq)}
+        print(f"KITTI {name}: {r['side_by_side']['frames']} frames, CPU ms a frame (median / mean), new vs old, same run")
+        for st, row in r["side_by_side"]["stages"].items():
+            agree = (f"max pose diff {row['max_pose_diff']:.1e}, {row['calls_inliers_differ']} calls with other inliers"
+                     if st == "pose" else f"{row['calls_identical']}/{row['calls']} calls identical")
+            print(f"  {st:11s} {row['new_ms_median']:7.2f} / {row['new_ms_mean']:7.2f}  vs {row['old_ms_median']:7.2f} / "
+                  f"{row['old_ms_mean']:7.2f}  (x{row['speedup_mean']}, {row['calls_per_frame']} calls a frame; {agree})")
+        if not args.skip_runs:
+            runs: dict[str, list] = {"old": [], "new": []}
+            with tempfile.TemporaryDirectory() as tmp:
+                for k in range(args.repeats):
+                    for ver, src in (("old", Path(args.old)), ("new", ROOT / "src")):
+                        runs[ver].append(whole_run(seq, src, Path(tmp) / f"{ver}{k}"))
+            whole = {}
+            for ver, rs in runs.items():
+                whole[ver] = {"fps": round(float(np.median([x["fps"] for x in rs])), 2),
+                              "cpu_ms_per_frame": round(float(np.median([x["cpu_ms"] for x in rs])), 1),
+                              "fps_runs": [x["fps"] for x in rs], "cpu_runs": [round(x["cpu_ms"], 1) for x in rs]}
+            dt = [float(np.abs(a["traj"][:, :, 3] - b["traj"][:, :, 3]).max()) for a in runs["new"] for b in runs["old"]]
+            same_new = all(np.array_equal(runs["new"][0]["traj"], x["traj"]) for x in runs["new"][1:])
+            whole["max_position_diff_new_vs_old_m"] = round(max(dt), 6)
+            whole["new_runs_identical"] = bool(same_new)
+            r["whole_run"] = whole
+            print(f"  dynastereo run --masker none: old {whole['old']['fps']} FPS, {whole['old']['cpu_ms_per_frame']} ms CPU a frame; "
+                  f"new {whole['new']['fps']} FPS, {whole['new']['cpu_ms_per_frame']} ms; trajectories differ by at most "
+                  f"{whole['max_position_diff_new_vs_old_m']} m; new runs identical: {same_new}")
+        res["sequences"][name] = r
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(res, indent=1))
+    print(f"-> {RESULTS}")
+
+
+if __name__ == "__main__":
+    main()
