@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .kernels.hamming import knn_hamming
+from .kernels.projection import search_by_projection_kernel
 from .kernels.stereo import stereo_match_kernel
 from .geometry import CHI2_MONO, CHI2_STEREO, best_two_per_group, desc_u64, expand_ranges, hamming_pairs, rotation_consistent, unique_best
 
@@ -271,7 +272,70 @@ def search_by_projection(
     angle_check: tuple[np.ndarray, np.ndarray] | None = None,
     reproj_check: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> ProjectionMatches:
-    """Match projected points to keypoints within their windows.
+    """Match projected points to keypoints within their windows (one compiled call,
+    ``kernels.projection``; ``_search_by_projection_numpy`` is the numpy reference).
+
+    ``u_right``: the projected right-image u; keypoints with a stereo match must agree
+    within the radius.  ``ratio``: best/second-best distance ratio test (by default
+    only when both are on the same level, as ORB-SLAM2 does in local-map search).
+    ``angle_check``: (query keypoint angles, frame keypoint angles) for the
+    rotation-histogram consistency check.  ``reproj_check``: (keypoint uv, keypoint
+    1/sigma^2) -- candidates must lie within the chi2 95% bound of the projection
+    (stereo when the keypoint has a right match and ``u_right`` is given; ``Fuse``).
+    Each keypoint gets at most one point; matches come ordered by keypoint.
+    """
+    nq = len(u)
+    f64 = np.float64
+    zf, zi, zb = np.zeros(1, f64), np.zeros(1, np.int64), np.zeros(1, bool)
+    nk = len(grid.uv)
+    out_q = np.empty(min(nq, nk), np.int64)
+    out_k = np.empty(min(nq, nk), np.int64)
+    out_d = np.empty(min(nq, nk), np.int32)
+    if nq == 0 or nk == 0:
+        return ProjectionMatches(out_q, out_k, out_d)
+    kis2 = reproj_check[1] if reproj_check is not None else zf
+    n = search_by_projection_kernel(
+        np.asarray(grid.uv, f64), grid.order, grid.start, grid.ncx, grid.ncy, grid.cell,
+        np.asarray(kp_octave, np.int64), kp_desc64,
+        np.asarray(kp_uR, f64) if kp_uR is not None else zf, kp_uR is not None,
+        np.asarray(kp_available, bool) if kp_available is not None else zb, kp_available is not None,
+        np.asarray(u, f64), np.asarray(v, f64), np.broadcast_to(np.asarray(radius, f64), (nq,)), np.ascontiguousarray(q_desc64),
+        np.asarray(min_level, np.int64) if min_level is not None else zi, min_level is not None,
+        np.asarray(max_level, np.int64) if max_level is not None else zi, max_level is not None,
+        np.asarray(u_right, f64) if u_right is not None else zf, u_right is not None,
+        np.asarray(kis2, f64), reproj_check is not None,
+        int(th_dist), float(ratio) if ratio is not None else 0.0, ratio is not None, bool(ratio_same_level_only),
+        CHI2_MONO, CHI2_STEREO, out_q, out_k, out_d,
+    )
+    qm, km, dm = out_q[:n], out_k[:n], out_d[:n]
+    if angle_check is not None and len(qm):
+        qa, ka = angle_check
+        ok = rotation_consistent(qa[qm] - ka[km])
+        qm, km, dm = qm[ok], km[ok], dm[ok]
+    return ProjectionMatches(qm, km, dm)
+
+
+def _search_by_projection_numpy(
+    grid: KeypointGrid,
+    kp_octave: np.ndarray,
+    kp_desc64: np.ndarray,
+    kp_uR: np.ndarray | None,
+    kp_available: np.ndarray | None,
+    u: np.ndarray,
+    v: np.ndarray,
+    radius: np.ndarray,
+    q_desc64: np.ndarray,
+    min_level: np.ndarray | None = None,
+    max_level: np.ndarray | None = None,
+    u_right: np.ndarray | None = None,
+    th_dist: int = TH_HIGH,
+    ratio: float | None = None,
+    ratio_same_level_only: bool = True,
+    angle_check: tuple[np.ndarray, np.ndarray] | None = None,
+    reproj_check: tuple[np.ndarray, np.ndarray] | None = None,
+) -> ProjectionMatches:
+    """Match projected points to keypoints within their windows (vectorized numpy: the
+    reference of ``search_by_projection``).
 
     ``u_right``: the projected right-image u; keypoints with a stereo match must agree
     within the radius.  ``ratio``: best/second-best distance ratio test (by default
