@@ -22,25 +22,23 @@ def desc_words(desc: np.ndarray) -> np.ndarray:
 
 
 @jit
-def hamming64(a, i, b, j):
-    """Hamming distance of rows ``a[i]`` and ``b[j]`` (uint64 words)."""
-    s = 0
-    for w in range(a.shape[1]):
-        s += popcount64(a[i, w] ^ b[j, w])
-    return s
-
-
-@jit
-def _knn(a, b, k, dist, idx):
-    na, nb = a.shape[0], b.shape[0]
+def _knn(a, bt, k, dist, idx):
+    """k nearest columns of ``bt`` ((4, Nb) words: the loop over them vectorizes) for each row of ``a``."""
+    na = a.shape[0]
+    nb = bt.shape[1]
+    buf = np.empty(nb, np.int32)
+    b0, b1, b2, b3 = bt[0], bt[1], bt[2], bt[3]
     for i in range(na):
+        a0, a1, a2, a3 = a[i, 0], a[i, 1], a[i, 2], a[i, 3]
+        for j in range(nb):
+            buf[j] = np.int32(popcount64(a0 ^ b0[j]) + popcount64(a1 ^ b1[j]) + popcount64(a2 ^ b2[j]) + popcount64(a3 ^ b3[j]))
         for t in range(k):
             dist[i, t] = INT_MAX
             idx[i, t] = -1
-        a0, a1, a2, a3 = a[i, 0], a[i, 1], a[i, 2], a[i, 3]
-        for j in range(nb):
-            d = np.int32(popcount64(a0 ^ b[j, 0]) + popcount64(a1 ^ b[j, 1]) + popcount64(a2 ^ b[j, 2]) + popcount64(a3 ^ b[j, 3]))
-            if d < dist[i, k - 1]:
+        worst = INT_MAX
+        for j in range(nb):  # OpenCV's insertion: strict <, ties keep the lower index
+            d = buf[j]
+            if d < worst:
                 t = k - 2
                 while t >= 0 and dist[i, t] > d:
                     dist[i, t + 1] = dist[i, t]
@@ -48,6 +46,7 @@ def _knn(a, b, k, dist, idx):
                     t -= 1
                 dist[i, t + 1] = d
                 idx[i, t + 1] = j
+                worst = dist[i, k - 1]
 
 
 def knn_hamming(a: np.ndarray, b: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -58,5 +57,5 @@ def knn_hamming(a: np.ndarray, b: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
     dist = np.empty((len(a64), k), np.int32)
     idx = np.empty((len(a64), k), np.int32)
     if k > 0 and len(a64):
-        _knn(a64, b64, k, dist, idx)
+        _knn(a64, np.ascontiguousarray(b64.T), k, dist, idx)
     return dist, idx
