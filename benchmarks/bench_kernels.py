@@ -184,12 +184,39 @@ def whole_run(seq: Path, src: Path, out: Path) -> dict:
     return d
 
 
+def warm_all() -> None:
+    """One small call of every kernel, with the argument types of a real run."""
+    from dynastereo.slam.geometry import desc_u64
+    from dynastereo.slam.kernels.hamming import knn_hamming
+    from dynastereo.slam.matcher import KeypointGrid, search_by_projection, stereo_match
+    from dynastereo.slam.optimizer import optimize_pose
+
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (60, 120), dtype=np.uint8)
+    uv = np.c_[rng.uniform(20, 100, 30), rng.uniform(10, 50, 30)]
+    octv = np.zeros(30, np.int32)
+    desc = rng.integers(0, 255, (30, 32), dtype=np.uint8)
+    scales = 1.2 ** np.arange(8)
+    stereo_match(uv, octv, desc, uv - [5.0, 0.0], octv, desc, img, img, scales, 100.0, 50.0)
+    K = np.array([[100.0, 0, 60], [0, 100.0, 30], [0, 0, 1]])
+    X = np.c_[rng.uniform(-1, 1, (30, 2)), rng.uniform(4, 8, 30)]
+    optimize_pose(np.eye(4), X, uv, uv[:, 0] - 5, np.ones(30), K, 50.0)
+    knn_hamming(desc, desc, 2)
+    g = KeypointGrid(uv, 120, 60)
+    d64 = desc_u64(desc)
+    search_by_projection(g, octv, d64, uv[:, 0] - 5, np.ones(30, bool), uv[:, 0], uv[:, 1], np.full(30, 4.0), d64,
+                         min_level=np.zeros(30, np.int64), max_level=np.ones(30, np.int64), u_right=uv[:, 0] - 5,
+                         ratio=0.8, reproj_check=(uv, np.ones(30)))
+    search_by_projection(g, octv, d64, uv[:, 0] - 5, None, uv[:, 0], uv[:, 1], np.full(30, 4.0), d64)
+
+
 def compile_times() -> dict:
-    """numba: first run with an empty cache (compile) and the cached load, each in a fresh process."""
-    code = ("import time; t=time.perf_counter(); "
-            "from tests.test_kernels import warm_all; warm_all(); print(time.perf_counter()-t)")
+    """numba: first run with an empty cache (compile) and the cached load, each in a fresh process
+    (numba's import included; the kernels' modules are imported by the timed code)."""
+    code = ("import sys, time; t=time.perf_counter(); sys.path.insert(0, 'benchmarks'); "
+            "from bench_kernels import warm_all; warm_all(); print(time.perf_counter()-t)")
     with tempfile.TemporaryDirectory() as d:
-        env = dict(os.environ, NUMBA_CACHE_DIR=d, PYTHONPATH=f"{ROOT / 'src'}:{ROOT}")
+        env = dict(os.environ, NUMBA_CACHE_DIR=d, PYTHONPATH=str(ROOT / "src"))
         first = float(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                                      check=True, cwd=ROOT).stdout.split()[-1])
         cached = float(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,

@@ -72,11 +72,11 @@ def stereo_match(
     stereo_match_kernel(
         np.ascontiguousarray(uv_l[:, 0]), np.ascontiguousarray(uv_l[:, 1]),
         np.rint(uv_l[:, 0]).astype(np.int64), np.rint(uv_l[:, 1]).astype(np.int64),
-        np.asarray(oct_l, np.int64), desc_u64(desc_l),
+        np.ascontiguousarray(oct_l, np.int64), desc_u64(desc_l),
         np.ascontiguousarray(uv_r[order, 0]), np.ascontiguousarray(uv_r[order, 1]),
-        np.rint(uv_r[order, 0]).astype(np.int64), desc_u64(np.asarray(desc_r)[order]), order.astype(np.int64), oct_start,
+        np.rint(uv_r[order, 0]).astype(np.int64), desc_u64(np.asarray(desc_r)[order]), oct_start,
         np.ascontiguousarray(img_l, np.uint8), np.ascontiguousarray(img_r, np.uint8),
-        np.asarray(scales, np.float64),
+        np.ascontiguousarray(scales, np.float64),
         0.0, max_d, int(th_dist), float(bf), u_right, depth,
     )
     return StereoResult(u_right, depth)
@@ -293,17 +293,20 @@ def search_by_projection(
     out_d = np.empty(min(nq, nk), np.int32)
     if nq == 0 or nk == 0:
         return ProjectionMatches(out_q, out_k, out_d)
-    kis2 = reproj_check[1] if reproj_check is not None else zf
+    r = np.empty(nq)
+    r[:] = radius
+
+    def c(x, dt, default):  # contiguous arrays of one dtype: one compiled specialization
+        return default if x is None else np.ascontiguousarray(x, dt)
+
     n = search_by_projection_kernel(
-        np.asarray(grid.uv, f64), grid.order, grid.start, grid.ncx, grid.ncy, grid.cell,
-        np.asarray(kp_octave, np.int64), kp_desc64,
-        np.asarray(kp_uR, f64) if kp_uR is not None else zf, kp_uR is not None,
-        np.asarray(kp_available, bool) if kp_available is not None else zb, kp_available is not None,
-        np.asarray(u, f64), np.asarray(v, f64), np.broadcast_to(np.asarray(radius, f64), (nq,)), np.ascontiguousarray(q_desc64),
-        np.asarray(min_level, np.int64) if min_level is not None else zi, min_level is not None,
-        np.asarray(max_level, np.int64) if max_level is not None else zi, max_level is not None,
-        np.asarray(u_right, f64) if u_right is not None else zf, u_right is not None,
-        np.asarray(kis2, f64), reproj_check is not None,
+        c(grid.uv, f64, None), grid.order, grid.start, grid.ncx, grid.ncy, grid.cell,
+        c(kp_octave, np.int64, None), c(kp_desc64, np.uint64, None),
+        c(kp_uR, f64, zf), kp_uR is not None, c(kp_available, bool, zb), kp_available is not None,
+        c(u, f64, None), c(v, f64, None), r, c(q_desc64, np.uint64, None),
+        c(min_level, np.int64, zi), min_level is not None, c(max_level, np.int64, zi), max_level is not None,
+        c(u_right, f64, zf), u_right is not None,
+        c(reproj_check[1] if reproj_check is not None else None, f64, zf), reproj_check is not None,
         int(th_dist), float(ratio) if ratio is not None else 0.0, ratio is not None, bool(ratio_same_level_only),
         CHI2_MONO, CHI2_STEREO, out_q, out_k, out_d,
     )

@@ -25,13 +25,13 @@ from ._numba import jit, popcount64
 
 
 @jit
-def stereo_match_kernel(u_l, v_l, ul_i, vl_i, oct_l, d_l, u_r_s, v_r_s, ur_i_s, d_r_s, idx_r_s, oct_start,
+def stereo_match_kernel(u_l, v_l, ul_i, vl_i, oct_l, d_l, u_r_s, v_r_s, ur_i_s, d_r_s, oct_start,
                         img_l, img_r, scales, min_d, max_d, th_dist, bf, u_right, depth):
     """Fill ``u_right`` / ``depth`` (preset to -1) for the left keypoints.
 
     Left keypoints: ``u_l``/``v_l`` (float), ``ul_i``/``vl_i`` (rounded), ``oct_l``, ``d_l``
     ((N, 4) uint64 descriptor words).  Right keypoints sorted by (octave, row): ``u_r_s``,
-    ``v_r_s``, ``ur_i_s`` (rounded u), ``d_r_s``, ``idx_r_s`` (original index);
+    ``v_r_s``, ``ur_i_s`` (rounded u), ``d_r_s``;
     ``oct_start[o]:oct_start[o+1]`` is octave ``o``.  Returns the number of matches.
     """
     n = u_l.shape[0]
