@@ -19,38 +19,37 @@ from ._numba import jit
 
 
 @jit
-def se3_exp_left(xi, T, out):
-    """``out = exp(xi) @ T`` for a twist ``xi = (omega, rho)`` (``geometry.se3_exp``)."""
+def se3_exp_left(xi, T, E, out):
+    """``out = exp(xi) @ T`` for a twist ``xi = (omega, rho)`` (``geometry.se3_exp`` term by
+    term, in scalar code; ``E`` is a 4x4 work array)."""
     wx, wy, wz = xi[0], xi[1], xi[2]
     th = math.sqrt(wx * wx + wy * wy + wz * wz)
-    W = np.zeros((3, 3))
-    W[0, 1] = -wz
-    W[0, 2] = wy
-    W[1, 0] = wz
-    W[1, 2] = -wx
-    W[2, 0] = -wy
-    W[2, 1] = wx
-    R = np.eye(3)
-    V = np.eye(3)
-    if th < 1e-10:
-        for i in range(3):
-            for j in range(3):
-                R[i, j] += W[i, j]
-                V[i, j] += 0.5 * W[i, j]
-    else:
-        W2 = W @ W
+    small = th < 1e-10
+    a = b = c = 0.0
+    if not small:
         a = math.sin(th) / th
         b = (1.0 - math.cos(th)) / th**2
         c = (th - math.sin(th)) / th**3
-        for i in range(3):
-            for j in range(3):
-                R[i, j] = (R[i, j] + a * W[i, j]) + b * W2[i, j]
-                V[i, j] = (V[i, j] + b * W[i, j]) + c * W2[i, j]
-    E = np.eye(4)
     for i in range(3):
+        acc = 0.0
         for j in range(3):
-            E[i, j] = R[i, j]
-        E[i, 3] = V[i, 0] * xi[3] + V[i, 1] * xi[4] + V[i, 2] * xi[5]
+            # W = skew(w) and (W @ W)[i, j]
+            wij = _skew(wx, wy, wz, i, j)
+            w2 = _skew(wx, wy, wz, i, 0) * _skew(wx, wy, wz, 0, j) + _skew(wx, wy, wz, i, 1) * _skew(wx, wy, wz, 1, j) \
+                + _skew(wx, wy, wz, i, 2) * _skew(wx, wy, wz, 2, j)
+            e = 1.0 if i == j else 0.0
+            if small:
+                E[i, j] = e + wij
+                v = e + 0.5 * wij
+            else:
+                E[i, j] = (e + a * wij) + b * w2
+                v = (e + b * wij) + c * w2
+            acc += v * xi[3 + j]  # V @ rho
+        E[i, 3] = acc
+    E[3, 0] = 0.0
+    E[3, 1] = 0.0
+    E[3, 2] = 0.0
+    E[3, 3] = 1.0
     for i in range(4):
         for j in range(4):
             s = 0.0
@@ -60,12 +59,26 @@ def se3_exp_left(xi, T, out):
 
 
 @jit
+def _skew(wx, wy, wz, i, j):
+    """Element (i, j) of the skew matrix of (wx, wy, wz)."""
+    if i == 0:
+        return 0.0 if j == 0 else (-wz if j == 1 else wy)
+    if i == 1:
+        return wz if j == 0 else (0.0 if j == 1 else -wx)
+    return -wy if j == 0 else (wx if j == 1 else 0.0)
+
+
+@jit
 def solve_spd6(H, b, x):
     """Solve the 6x6 system ``H x = b`` by Gaussian elimination with partial pivoting;
     False when singular."""
     n = 6
-    A = H.copy()
-    y = b.copy()
+    A = np.empty((6, 6))
+    y = np.empty(6)
+    for r in range(n):
+        y[r] = b[r]
+        for k in range(n):
+            A[r, k] = H[r, k]
     for c in range(n):
         p = c
         best = abs(A[c, c])
@@ -73,7 +86,7 @@ def solve_spd6(H, b, x):
             if abs(A[r, c]) > best:
                 best = abs(A[r, c])
                 p = r
-        if best == 0.0 or not np.isfinite(best):
+        if not (best > 0.0) or best == np.inf:
             return False
         if p != c:
             for k in range(n):
@@ -123,9 +136,15 @@ def optimize_pose_kernel(T0, X, uv, ur_obs, inv_sigma2, fx, fy, cx, cy, bf, roun
                          chi2_mono, chi2_stereo):
     """The whole pose optimization; returns ``(T, outlier)`` (T not yet orthonormalized)."""
     n = X.shape[0]
-    T = T0.copy()
+    T = np.empty((4, 4))
+    for i in range(4):
+        for j in range(4):
+            T[i, j] = T0[i, j]
     Tn = np.empty((4, 4))
-    out = outlier.copy()
+    E = np.empty((4, 4))
+    out = np.empty(n, np.bool_)
+    for i in range(n):
+        out[i] = outlier[i]
     d_mono = math.sqrt(chi2_mono)
     d_stereo = math.sqrt(chi2_stereo)
     H = np.zeros((6, 6))
@@ -144,8 +163,10 @@ def optimize_pose_kernel(T0, X, uv, ur_obs, inv_sigma2, fx, fy, cx, cy, bf, roun
         if na < 3:
             break
         for _it in range(iterations):
-            H[:, :] = 0.0
-            g[:] = 0.0
+            for p in range(6):
+                g[p] = 0.0
+                for q in range(6):
+                    H[p, q] = 0.0
             for i in range(n):
                 if out[i]:
                     continue
@@ -214,8 +235,10 @@ def optimize_pose_kernel(T0, X, uv, ur_obs, inv_sigma2, fx, fy, cx, cy, bf, roun
                 H[p, p] += 1e-9 + 1e-6 * H[p, p]
             if not solve_spd6(H, g, dx):
                 break
-            se3_exp_left(dx, T, Tn)
-            T[:, :] = Tn
+            se3_exp_left(dx, T, E, Tn)
+            for p in range(4):
+                for q in range(4):
+                    T[p, q] = Tn[p, q]
             nrm = 0.0
             for p in range(6):
                 nrm += dx[p] * dx[p]
