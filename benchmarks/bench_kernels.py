@@ -13,7 +13,8 @@ kernel's result drives the run, the old one is only timed and compared:
   and local mapping's fusion).
 
 CPU ms a frame (the calling thread's CPU time, summed over the frame's calls; medians
-over the frames after the first, whose calls load the compiled code) and the agreement: identical matches, the largest pose difference.
+over the frames after the first, whose calls load the compiled code), the Python-level
+calls a frame (counted on frames 1-10 in an extra, untimed call) and the agreement: identical matches, the largest pose difference.
 
 Part 2, the whole ``dynastereo run --masker none`` (``api.run_sequence``, its own process
 each time) with the old code (``--old``, default /work/main/src: the numpy versions)
@@ -58,9 +59,31 @@ class SideBySide:
         self.calls: dict[str, int] = defaultdict(int)
         self.diff: dict[str, list] = defaultdict(list)
         self._flip = False
+        self.pycalls: dict[str, dict[str, list]] = defaultdict(lambda: {"new": [], "old": []})
+
+    @staticmethod
+    def _count_calls(fn) -> int:
+        """Python-level calls (Python functions and C functions called from Python) of ``fn()``."""
+        n = 0
+
+        def prof(frame, event, arg):
+            nonlocal n
+            if event in ("call", "c_call"):
+                n += 1
+
+        sys.setprofile(prof)
+        try:
+            fn()
+        finally:
+            sys.setprofile(None)
+        return n
 
     def _both(self, stage, new, old):
-        """Run ``new`` and ``old`` (alternating which goes first); returns both results."""
+        """Run ``new`` and ``old`` (alternating which goes first); returns both results.  On
+        frames 1-10 both also run once more, untimed, to count their Python-level calls."""
+        if 1 <= self.frame <= 10:
+            for name, fn in (("new", new), ("old", old)):
+                self.pycalls[stage][name].append(self._count_calls(fn))
         self._flip = not self._flip
         order = (("new", new), ("old", old)) if self._flip else (("old", old), ("new", new))
         out = {}
@@ -135,6 +158,9 @@ class SideBySide:
                 row[f"{ver}_ms_first_frame"] = round(float(per[0]), 3)
             row["speedup_mean"] = round(row["old_ms_mean"] / max(row["new_ms_mean"], 1e-9), 1)
             row["calls_per_frame"] = round(self.calls[stage] / n_frames, 2)
+            for ver in ("new", "old"):
+                c = self.pycalls[stage][ver]
+                row[f"{ver}_py_calls_per_frame"] = round(float(np.mean(c)) * row["calls_per_frame"]) if c else None
             diffs = self.diff[stage]
             if stage == "pose":
                 row["max_pose_diff"] = float(max((x["dT"] for x in diffs), default=0.0))
@@ -245,7 +271,8 @@ def main() -> None:
             agree = (f"max pose diff {row['max_pose_diff']:.1e}, {row['calls_inliers_differ']} calls with other inliers"
                      if st == "pose" else f"{row['calls_identical']}/{row['calls']} calls identical")
             print(f"  {st:11s} {row['new_ms_median']:7.2f} / {row['new_ms_mean']:7.2f}  vs {row['old_ms_median']:7.2f} / "
-                  f"{row['old_ms_mean']:7.2f}  (x{row['speedup_mean']}, {row['calls_per_frame']} calls a frame; {agree})")
+                  f"{row['old_ms_mean']:7.2f}  (x{row['speedup_mean']}, {row['calls_per_frame']} calls a frame; Python calls a "
+                  f"frame {row['new_py_calls_per_frame']} vs {row['old_py_calls_per_frame']}; {agree})")
         if not args.skip_runs:
             runs: dict[str, list] = {"old": [], "new": []}
             with tempfile.TemporaryDirectory() as tmp:
