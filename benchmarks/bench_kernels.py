@@ -14,7 +14,7 @@ kernel's result drives the run, the old one is only timed and compared:
 
 CPU ms a frame (the calling thread's CPU time, summed over the frame's calls; medians
 over the frames after the first, whose calls load the compiled code), the Python-level
-calls a frame (counted on frames 1-10 in an extra, untimed call) and the agreement: identical matches, the largest pose difference.
+calls a frame (counted on frames 1-10 in an extra, untimed call; median per call x calls a frame) and the agreement: identical matches, the largest pose difference.
 
 Part 2, the whole ``dynastereo run --masker none`` (``api.run_sequence``, its own process
 each time) with the old code (``--old``, default /work/main/src: the numpy versions)
@@ -160,7 +160,8 @@ class SideBySide:
             row["calls_per_frame"] = round(self.calls[stage] / n_frames, 2)
             for ver in ("new", "old"):
                 c = self.pycalls[stage][ver]
-                row[f"{ver}_py_calls_per_frame"] = round(float(np.mean(c)) * row["calls_per_frame"]) if c else None
+                # median over the calls: a kernel's first call also runs numba's (Python) cache loader
+                row[f"{ver}_py_calls_per_frame"] = round(float(np.median(c)) * row["calls_per_frame"]) if c else None
             diffs = self.diff[stage]
             if stage == "pose":
                 row["max_pose_diff"] = float(max((x["dT"] for x in diffs), default=0.0))
@@ -259,7 +260,11 @@ def main() -> None:
     ap.add_argument("--skip-compile", action="store_true")
     args = ap.parse_args()
     data = Path(os.environ.get("DYNASTEREO_DATA", ROOT.parent / "shared" / "data"))
+    # parts skipped this time keep their figures from the last full run
+    old = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
     res: dict = {"sequences": {}}
+    if args.skip_compile and "numba" in old:
+        res["numba"] = old["numba"]
     if not args.skip_compile:
         res["numba"] = compile_times()
         print(f"numba: first run (compile) {res['numba']['first_run_s']} s, cached load {res['numba']['cached_s']} s")
@@ -292,6 +297,8 @@ def main() -> None:
             print(f"  dynastereo run --masker none: old {whole['old']['fps']} FPS, {whole['old']['cpu_ms_per_frame']} ms CPU a frame; "
                   f"new {whole['new']['fps']} FPS, {whole['new']['cpu_ms_per_frame']} ms; trajectories differ by at most "
                   f"{whole['max_position_diff_new_vs_old_m']} m; new runs identical: {same_new}")
+        elif "whole_run" in old.get("sequences", {}).get(name, {}):
+            r["whole_run"] = old["sequences"][name]["whole_run"]
         res["sequences"][name] = r
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(res, indent=1))
