@@ -22,7 +22,8 @@ and this checkout's, alternated, ``--repeats`` times: the frame loop's FPS and t
 tree's CPU a frame over the frame loop (start-up left out), medians; and the trajectories'
 largest difference between old and new.
 
-Part 3: numba's compile time on a first run (empty cache) and the cached load.
+Part 0 (first): numba's compile time on a first run (empty cache), the cached load, and the
+import time of the SLAM against the old code's.
 
     DYNASTEREO_DATA=... .venv/bin/python benchmarks/bench_kernels.py [--sequences 06,03] \\
         [--repeats 3] [--old /work/main/src] [--skip-runs]
@@ -237,18 +238,27 @@ def warm_all() -> None:
     search_by_projection(g, octv, d64, uv[:, 0] - 5, None, uv[:, 0], uv[:, 1], np.full(30, 4.0), d64)
 
 
-def compile_times() -> dict:
-    """numba: first run with an empty cache (compile) and the cached load, each in a fresh process
-    (numba's import included; the kernels' modules are imported by the timed code)."""
-    code = ("import sys, time; t=time.perf_counter(); sys.path.insert(0, 'benchmarks'); "
-            "from bench_kernels import warm_all; warm_all(); print(time.perf_counter()-t)")
+def compile_times(old_src: Path) -> dict:
+    """numba, each in a fresh process: the SLAM's import (numba's included; the old code's
+    beside it), then the first call of every kernel with an empty cache (compile) and with
+    the cache filled (load)."""
+    code = ("import sys, time; t0=time.perf_counter(); import dynastereo.slam.tracking, dynastereo.slam.local_mapping; "
+            "t1=time.perf_counter(); sys.path.insert(0, 'benchmarks'); from bench_kernels import warm_all; "
+            "t2=time.perf_counter(); warm_all(); print(t1-t0, time.perf_counter()-t2)")
+
+    def once(env):
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True, cwd=ROOT)
+        return [float(x) for x in out.stdout.split()[-2:]]
+
     with tempfile.TemporaryDirectory() as d:
         env = dict(os.environ, NUMBA_CACHE_DIR=d, PYTHONPATH=str(ROOT / "src"))
-        first = float(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                                     check=True, cwd=ROOT).stdout.split()[-1])
-        cached = float(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                                      check=True, cwd=ROOT).stdout.split()[-1])
-    return {"first_run_s": round(first, 2), "cached_s": round(cached, 2)}
+        imp1, first = once(env)
+        imp2, cached = once(env)
+    old_code = "import time; t0=time.perf_counter(); import dynastereo.slam.tracking, dynastereo.slam.local_mapping; print(time.perf_counter()-t0)"
+    old_imp = float(subprocess.run([sys.executable, "-c", old_code], env=dict(os.environ, PYTHONPATH=str(old_src)),
+                                   capture_output=True, text=True, check=True).stdout.split()[-1])
+    return {"first_call_compile_s": round(first, 2), "first_call_cached_s": round(cached, 2),
+            "import_s": round(min(imp1, imp2), 2), "import_old_s": round(old_imp, 2)}
 
 
 def main() -> None:
@@ -266,8 +276,9 @@ def main() -> None:
     if args.skip_compile and "numba" in old:
         res["numba"] = old["numba"]
     if not args.skip_compile:
-        res["numba"] = compile_times()
-        print(f"numba: first run (compile) {res['numba']['first_run_s']} s, cached load {res['numba']['cached_s']} s")
+        res["numba"] = c = compile_times(Path(args.old))
+        print(f"numba: the kernels' first calls {c['first_call_compile_s']} s with an empty cache (compile), "
+              f"{c['first_call_cached_s']} s from the cache; the SLAM's import {c['import_s']} s (old code {c['import_old_s']} s)")
     for name in args.sequences.split(","):
         seq = data / SEQS[name]
         r = {"side_by_side": side_by_side(seq)}

@@ -1,13 +1,14 @@
 """Optimization: motion-only BA (numpy) and local bundle adjustment (gtsam).
 
-Motion-only BA (``optimize_pose``, one numba kernel: ``kernels/pose.py``) is ORB-SLAM2's ``Optimizer::PoseOptimization``:
+Motion-only BA (``optimize_pose``; numba kernel ``kernels/pose.py``) is ORB-SLAM2's ``Optimizer::PoseOptimization``:
 stereo observations (u, v, u_right) and monocular ones (u, v), information
 ``1 / sigma^2`` of the keypoint's level, Huber kernel (delta = sqrt(chi2 95%)),
 4 rounds of 10 Gauss-Newton iterations with outliers re-classified by chi2 after each
-round and the kernel dropped in the last rounds.  It is a vectorized Gauss-Newton on
-SE(3) in numpy, chosen by measurement: 1.7 ms for 800 observations with the whole
-4-round schedule, against 14 ms for a single robust LM pass of a gtsam graph built per
-frame, same pose (``benchmarks/bench_slam.py``, ``pose_optimizer`` in its JSON).
+round and the kernel dropped in the last rounds.  It is a Gauss-Newton on SE(3) in one
+compiled call (about 0.5 ms a frame's call); its vectorized numpy form
+(``_optimize_pose_numpy``, the tests' reference) was chosen over gtsam by measurement: 1.7 ms
+for 800 observations with the whole 4-round schedule, against 14 ms for a single robust LM
+pass of a gtsam graph built per frame, same pose (``benchmarks/bench_slam.py``).
 
 Local BA (``local_ba``) uses gtsam: ``GenericStereoFactor3D`` /
 ``GenericProjectionFactorCal3_S2`` with Huber kernels, Levenberg-Marquardt with the
@@ -24,7 +25,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import CHI2_MONO, CHI2_STEREO, orthonormalize, se3_exp
-from .kernels.pose import optimize_pose_kernel
 
 DELTA_MONO = float(np.sqrt(CHI2_MONO))
 DELTA_STEREO = float(np.sqrt(CHI2_STEREO))
@@ -80,6 +80,9 @@ def optimize_pose(
     out = np.zeros(n, bool) if outlier is None else np.asarray(outlier, bool)
     if n < 3:
         return T.copy(), ~out
+    # imported here: the local-BA worker process imports this module but never needs numba
+    from .kernels.pose import optimize_pose_kernel
+
     T, out = optimize_pose_kernel(
         T, np.ascontiguousarray(X, np.float64), np.ascontiguousarray(uv, np.float64),
         np.ascontiguousarray(ur_obs, np.float64), np.ascontiguousarray(inv_sigma2, np.float64),

@@ -61,15 +61,22 @@ def jit(fn=None, **kw):
     return numba.njit(**opts)(fn)
 
 
-@intrinsic
-def popcount64(typingctx, x):
-    """Number of set bits of a uint64 (LLVM ``ctpop``: one POPCNT instruction where the CPU has it)."""
-    if not isinstance(x, types.Integer):
-        return None
-    sig = types.uint64(types.uint64)
+if _config.DISABLE_JIT:  # NUMBA_DISABLE_JIT=1 (debugging): the kernels run as plain Python
 
-    def codegen(context, builder, signature, args):
-        v = context.cast(builder, args[0], signature.args[0], types.uint64)
-        return builder.ctpop(v)
+    def popcount64(x):
+        return int(x).bit_count()
 
-    return sig, codegen
+else:
+
+    @intrinsic
+    def popcount64(typingctx, x):
+        """Number of set bits of a uint64 (LLVM ``ctpop``: one POPCNT instruction where the CPU has it)."""
+        if not isinstance(x, types.Integer):
+            return None
+        sig = types.uint64(types.uint64)
+
+        def codegen(context, builder, signature, args):
+            v = context.cast(builder, args[0], signature.args[0], types.uint64)
+            return builder.ctpop(v)
+
+        return sig, codegen
