@@ -1,4 +1,4 @@
-"""Descriptor matching, vectorized (ORB-SLAM2's ORBmatcher).
+"""Descriptor matching (ORB-SLAM2's ORBmatcher): one compiled call per search.
 
 * ``stereo_match``: left/right keypoints along the rectified rows by descriptor
   distance, then SAD block matching at full resolution with parabola sub-pixel
@@ -8,8 +8,11 @@
 * ``search_by_projection``: best keypoint for each projected map point inside its
   window, with level / stereo / ratio / distance checks and one point per keypoint.
 
-Candidate pairs are generated with ``expand_ranges`` over sorted arrays and
-Hamming distances computed with ``np.bitwise_count`` on descriptors viewed as uint64.
+``stereo_match`` and ``search_by_projection`` run as numba kernels (``kernels/stereo.py``,
+``kernels/projection.py``) on descriptors viewed as (N, 4) uint64; the vectorized numpy
+versions they replace stay as ``_stereo_match_numpy`` / ``_search_by_projection_numpy``
+(candidate pairs from ``expand_ranges`` over sorted arrays, ``np.bitwise_count``), the
+references the kernels are tested against: the same matches, in the same order.
 """
 
 from __future__ import annotations
