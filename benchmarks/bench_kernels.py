@@ -244,20 +244,22 @@ def compile_times(old_src: Path) -> dict:
     the cache filled (load)."""
     code = ("import sys, time; t0=time.perf_counter(); import dynastereo.slam.tracking, dynastereo.slam.local_mapping; "
             "t1=time.perf_counter(); sys.path.insert(0, 'benchmarks'); from bench_kernels import warm_all; "
-            "t2=time.perf_counter(); warm_all(); print(t1-t0, time.perf_counter()-t2)")
+            "t2=time.perf_counter(); c2=time.process_time(); warm_all(); "
+            "print(t1-t0, time.perf_counter()-t2, time.process_time()-c2)")
 
     def once(env):
         out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True, cwd=ROOT)
-        return [float(x) for x in out.stdout.split()[-2:]]
+        return [float(x) for x in out.stdout.split()[-3:]]
 
     with tempfile.TemporaryDirectory() as d:
         env = dict(os.environ, NUMBA_CACHE_DIR=d, PYTHONPATH=str(ROOT / "src"))
-        imp1, first = once(env)
-        imp2, cached = once(env)
+        imp1, first, first_cpu = once(env)
+        imp2, cached, cached_cpu = once(env)
     old_code = "import time; t0=time.perf_counter(); import dynastereo.slam.tracking, dynastereo.slam.local_mapping; print(time.perf_counter()-t0)"
     old_imp = float(subprocess.run([sys.executable, "-c", old_code], env=dict(os.environ, PYTHONPATH=str(old_src)),
                                    capture_output=True, text=True, check=True).stdout.split()[-1])
     return {"first_call_compile_s": round(first, 2), "first_call_cached_s": round(cached, 2),
+            "first_call_compile_cpu_s": round(first_cpu, 2), "first_call_cached_cpu_s": round(cached_cpu, 2),
             "import_s": round(min(imp1, imp2), 2), "import_old_s": round(old_imp, 2)}
 
 
@@ -277,9 +279,9 @@ def main() -> None:
         res["numba"] = old["numba"]
     if not args.skip_compile:
         res["numba"] = c = compile_times(Path(args.old))
-        print(f"numba: the kernels' first calls {c['first_call_compile_s']} s with an empty cache (compile), "
-              f"{c['first_call_cached_s']} s from the cache; the SLAM's import {c['import_s']} s (old code {c['import_old_s']} s)")
-    for name in args.sequences.split(","):
+        print(f"numba: the kernels' first calls {c['first_call_compile_s']} s ({c['first_call_compile_cpu_s']} s CPU) with an "
+              f"empty cache (compile), {c['first_call_cached_s']} s ({c['first_call_cached_cpu_s']} s CPU) from the cache; the SLAM's import {c['import_s']} s (old code {c['import_old_s']} s)")
+    for name in filter(None, args.sequences.split(",")):
         seq = data / SEQS[name]
         r = {"side_by_side": side_by_side(seq)}
         print(f"KITTI {name}: {r['side_by_side']['frames']} frames, CPU ms a frame (median / mean), new vs old, same run")
@@ -303,6 +305,8 @@ def main() -> None:
             dt = [float(np.abs(a["traj"][:, :, 3] - b["traj"][:, :, 3]).max()) for a in runs["new"] for b in runs["old"]]
             same_new = all(np.array_equal(runs["new"][0]["traj"], x["traj"]) for x in runs["new"][1:])
             whole["max_position_diff_new_vs_old_m"] = round(max(dt), 6)
+            whole["max_pose_entry_diff_new_vs_old"] = max(float(np.abs(a["traj"] - b["traj"]).max())
+                                                          for a in runs["new"] for b in runs["old"])
             whole["new_runs_identical"] = bool(same_new)
             r["whole_run"] = whole
             print(f"  dynastereo run --masker none: old {whole['old']['fps']} FPS, {whole['old']['cpu_ms_per_frame']} ms CPU a frame; "
