@@ -21,7 +21,6 @@ import logging
 import threading
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from ..config import SlamConfig
@@ -38,6 +37,7 @@ from .geometry import (
 )
 from .keyframe import KeyFrame
 from .map import Map
+from .kernels.hamming import knn_hamming
 from .matcher import TH_LOW, search_by_projection
 from .optimizer import LocalBAProblem, LocalBAResult, reprojection_chi2, run_ba
 from .orb import ORBExtractor
@@ -256,12 +256,11 @@ class LocalMapper:
             i2 = np.flatnonzero(kf2.point_ids < 0)
             if len(i1) == 0 or len(i2) == 0:
                 continue
-            # the K nearest descriptors of each kf1 keypoint (OpenCV, SIMD popcount) are
-            # the candidates (ORB-SLAM2 takes those sharing a vocabulary node)
+            # the K nearest descriptors of each kf1 keypoint (one compiled brute-force
+            # call, as cv2.batchDistance) are the candidates (ORB-SLAM2 takes those
+            # sharing a vocabulary node)
             K_nn = min(4, len(i2))
-            dnn, inn = cv2.batchDistance(
-                kf1.desc[i1], kf2.desc[i2], cv2.CV_32S, normType=cv2.NORM_HAMMING, K=K_nn
-            )
+            dnn, inn = knn_hamming(kf1.desc[i1], kf2.desc[i2], K_nn)
             a = np.repeat(np.arange(len(i1)), K_nn)
             bb = inn.reshape(-1)
             dist = dnn.reshape(-1)

@@ -1,13 +1,14 @@
 """Optimization: motion-only BA (numpy) and bundle adjustment (compiled kernel).
 
-Motion-only BA (``optimize_pose``) is ORB-SLAM2's ``Optimizer::PoseOptimization``:
+Motion-only BA (``optimize_pose``; numba kernel ``kernels/pose.py``) is ORB-SLAM2's ``Optimizer::PoseOptimization``:
 stereo observations (u, v, u_right) and monocular ones (u, v), information
 ``1 / sigma^2`` of the keypoint's level, Huber kernel (delta = sqrt(chi2 95%)),
 4 rounds of 10 Gauss-Newton iterations with outliers re-classified by chi2 after each
-round and the kernel dropped in the last rounds.  It is a vectorized Gauss-Newton on
-SE(3) in numpy, chosen by measurement: 1.7 ms for 800 observations with the whole
-4-round schedule, against 14 ms for a single robust LM pass of a gtsam graph built per
-frame, same pose (``benchmarks/bench_slam.py``, ``pose_optimizer`` in its JSON).
+round and the kernel dropped in the last rounds.  It is a Gauss-Newton on SE(3) in one
+compiled call (about 0.5 ms a frame's call); its vectorized numpy form
+(``_optimize_pose_numpy``, the tests' reference) was chosen over gtsam by measurement: 1.7 ms
+for 800 observations with the whole 4-round schedule, against 14 ms for a single robust LM
+pass of a gtsam graph built per frame, same pose (``benchmarks/bench_slam.py``).
 
 Bundle adjustment (``local_ba``: the local BA, the self-calibrating BA's solves, the
 loop's full BA and the final BA of a saved map) is one call of the compiled kernel
@@ -74,7 +75,40 @@ def optimize_pose(
     iterations: int = 10,
     outlier: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Motion-only BA.  Returns ``(T_cw, inlier)``."""
+    """Motion-only BA.  Returns ``(T_cw, inlier)``.
+
+    One compiled call (``kernels.pose.optimize_pose_kernel``); ``_optimize_pose_numpy``
+    is the vectorized numpy version it replaces, kept as the reference of the tests."""
+    n = len(X)
+    T = np.ascontiguousarray(T_cw, dtype=np.float64)
+    out = np.zeros(n, bool) if outlier is None else np.asarray(outlier, bool)
+    if n < 3:
+        return T.copy(), ~out
+    # imported here: the local-BA worker process imports this module but never needs numba
+    from .kernels.pose import optimize_pose_kernel
+
+    T, out = optimize_pose_kernel(
+        T, np.ascontiguousarray(X, np.float64), np.ascontiguousarray(uv, np.float64),
+        np.ascontiguousarray(ur_obs, np.float64), np.ascontiguousarray(inv_sigma2, np.float64),
+        float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(bf),
+        int(rounds), int(iterations), out, CHI2_MONO, CHI2_STEREO,
+    )
+    return orthonormalize(T), ~out
+
+
+def _optimize_pose_numpy(
+    T_cw: np.ndarray,
+    X: np.ndarray,
+    uv: np.ndarray,
+    ur_obs: np.ndarray,
+    inv_sigma2: np.ndarray,
+    K: np.ndarray,
+    bf: float,
+    rounds: int = 4,
+    iterations: int = 10,
+    outlier: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Motion-only BA in vectorized numpy (the reference of ``optimize_pose``)."""
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     n = len(X)
     T = T_cw.copy()

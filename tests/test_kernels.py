@@ -1,0 +1,219 @@
+"""The SLAM's compiled kernels (slam/kernels): known answers, and agreement with the numpy /
+OpenCV code they replace (kept as ``_..._numpy`` references) on random problems."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from dynastereo.slam.geometry import desc_u64, se3_exp
+from dynastereo.slam.kernels import _numba
+from dynastereo.slam.kernels.hamming import knn_hamming
+from dynastereo.slam.matcher import (
+    KeypointGrid,
+    _search_by_projection_numpy,
+    _stereo_match_numpy,
+    search_by_projection,
+    stereo_match,
+)
+from dynastereo.slam.optimizer import _optimize_pose_numpy, optimize_pose
+from dynastereo.slam.orb import ORBExtractor
+
+K = np.array([[718.856, 0.0, 607.19], [0.0, 718.856, 185.22], [0.0, 0.0, 1.0]])
+BF = 0.5372 * K[0, 0]
+
+
+def _scene(rng, n, T, stereo_frac=0.7, noise=0.0):
+    X = np.c_[rng.uniform(-12, 12, n), rng.uniform(-3, 2, n), rng.uniform(4, 45, n)]
+    Xc = X @ T[:3, :3].T + T[:3, 3]
+    u = K[0, 0] * Xc[:, 0] / Xc[:, 2] + K[0, 2]
+    v = K[1, 1] * Xc[:, 1] / Xc[:, 2] + K[1, 2]
+    ur = u - BF / Xc[:, 2]
+    uv = np.c_[u, v] + rng.normal(0, noise, (n, 2)) if noise else np.c_[u, v]
+    ur = ur + (rng.normal(0, noise, n) if noise else 0.0)
+    ur[rng.random(n) > stereo_frac] = -1.0
+    inv_sigma2 = 1.0 / 1.2 ** (2 * rng.integers(0, 8, n))
+    return X, uv, ur, inv_sigma2
+
+
+# ------------------------------------------------------------------------------ pose
+def test_pose_from_exact_stereo_correspondences():
+    rng = np.random.default_rng(3)
+    T_true = se3_exp(np.array([0.02, -0.05, 0.01, 0.3, -0.1, 1.2]))
+    X, uv, ur, isg = _scene(rng, 300, T_true, stereo_frac=1.0)
+    T0 = se3_exp(np.array([0.0, -0.03, 0.0, 0.1, 0.0, 0.8]))  # 0.4 m and 2 degrees off
+    T, inl = optimize_pose(T0, X, uv, ur, isg, K, BF)
+    assert inl.all()
+    assert np.abs(T - T_true).max() < 1e-6
+
+
+def test_pose_rejects_outliers_and_agrees_with_numpy():
+    rng = np.random.default_rng(4)
+    for trial in range(6):
+        T_true = se3_exp(rng.normal(0, 0.05, 6))
+        X, uv, ur, isg = _scene(rng, 400 + 50 * trial, T_true, noise=0.7)
+        bad = rng.random(len(X)) < 0.1
+        uv[bad] += rng.normal(0, 40, (bad.sum(), 2))
+        out0 = rng.random(len(X)) < 0.05 if trial % 2 else None
+        Tk, ik = optimize_pose(np.eye(4), X, uv, ur, isg, K, BF, outlier=out0)
+        Tn, inn = _optimize_pose_numpy(np.eye(4), X, uv, ur, isg, K, BF, outlier=out0)
+        assert np.abs(Tk - Tn).max() < 1e-9
+        assert np.array_equal(ik, inn)
+        assert (~ik[bad]).mean() > 0.9  # the gross outliers found
+        assert np.abs(Tk[:3, 3] - T_true[:3, 3]).max() < 0.05
+
+
+def test_pose_few_observations_unchanged():
+    T0 = se3_exp(np.array([0.1, 0, 0, 1, 0, 0]))
+    T, inl = optimize_pose(T0, np.zeros((2, 3)), np.zeros((2, 2)), -np.ones(2), np.ones(2), K, BF)
+    assert np.array_equal(T, T0) and inl.all()
+
+
+# ---------------------------------------------------------------------------- hamming
+def _brute_knn(a, b, k):
+    """Plain reference: all distances, stable sort (ties: lower index first)."""
+    d = np.unpackbits(a[:, None, :] ^ b[None, :, :], axis=2).sum(axis=2)
+    idx = np.argsort(d, axis=1, kind="stable")[:, :k]
+    return np.take_along_axis(d, idx, axis=1), idx
+
+
+@pytest.mark.parametrize("na,nb,k", [(300, 500, 4), (40, 3, 4), (200, 250, 2), (10, 1, 1), (0, 5, 2)])
+def test_knn_hamming_matches_opencv_and_brute_force(na, nb, k):
+    rng = np.random.default_rng(na + nb)
+    a = rng.integers(0, 256, (na, 32), dtype=np.uint8)
+    b = rng.integers(0, 256, (nb, 32), dtype=np.uint8)
+    if nb > 7:
+        b[::7] = b[0]  # exact ties
+        a[: min(na, 5)] = b[0]
+    d, i = knn_hamming(a, b, k)
+    dr, ir = _brute_knn(a, b, min(k, nb))
+    assert np.array_equal(d, dr) and np.array_equal(i, ir)
+    if na:
+        dc, ic = cv2.batchDistance(a, b, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=min(k, nb))
+        assert np.array_equal(d, dc) and np.array_equal(i, ic)
+
+
+# ----------------------------------------------------------------------------- stereo
+def _textured_pair(disp, H=240, W=480, seed=0):
+    """A smooth random texture and its right view: right(x) = left(x + disp(x, y)) (cubic resampling)."""
+    rng = np.random.default_rng(seed)
+    base = cv2.resize(rng.uniform(0, 255, (H // 4, W // 4 + 40)).astype(np.float32), (W + 160, H),
+                      interpolation=cv2.INTER_CUBIC)
+    fine = cv2.GaussianBlur(rng.uniform(0, 255, (H, W + 160)).astype(np.float32), (0, 0), 1.2)
+    tex = 0.6 * base + 0.4 * fine
+    tex = (tex - tex.min()) / (tex.max() - tex.min()) * 235 + 10
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float32)
+    left = cv2.remap(tex, xs + 80, ys, cv2.INTER_CUBIC)
+    right = cv2.remap(tex, xs + 80 + disp(xs, ys).astype(np.float32), ys, cv2.INTER_CUBIC)
+    return np.clip(left, 0, 255).astype(np.uint8), np.clip(right, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("kind", ["constant", "planar"])
+def test_stereo_known_disparity(kind):
+    disp = (lambda x, y: np.full_like(x, 23.4)) if kind == "constant" else (lambda x, y: 12.3 + 0.02 * x + 0.03 * y)
+    left, right = _textured_pair(disp, seed=1 if kind == "constant" else 2)
+    orb = ORBExtractor(n_features=1500)
+    fl, fr = orb.extract(left), orb.extract(right)
+    st = stereo_match(fl.uv, fl.octave, fl.desc, fr.uv, fr.octave, fr.desc, left, right, orb.scales, K[0, 0], BF)
+    ok = st.depth > 0
+    assert ok.sum() > 0.3 * len(fl.uv)
+    # the right image at x shows the left one at x + disp(x): the true disparity d of a left
+    # keypoint at x_l solves d = disp(x_l - d)
+    xl, yl = fl.uv[ok, 0], fl.uv[ok, 1]
+    truth = disp(xl, yl)
+    for _ in range(30):
+        truth = disp(xl - truth, yl)
+    err = np.abs((fl.uv[ok, 0] - st.u_right[ok]) - truth)
+    assert np.median(err) < 0.1
+    assert np.mean(err < 0.25) > 0.9
+    np.testing.assert_allclose(st.depth[ok], BF / (fl.uv[ok, 0] - st.u_right[ok]))
+    ref = _stereo_match_numpy(fl.uv, fl.octave, fl.desc, fr.uv, fr.octave, fr.desc, left, right, orb.scales, K[0, 0], BF)
+    assert np.array_equal(st.u_right, ref.u_right) and np.array_equal(st.depth, ref.depth)
+
+
+def test_stereo_agrees_with_numpy_on_random_keypoints():
+    rng = np.random.default_rng(7)
+    left, right = _textured_pair(lambda x, y: 8.0 + 0.05 * x, seed=3)
+    H, W = left.shape
+    scales = 1.2 ** np.arange(8)
+    for trial in range(5):
+        n_l, n_r = 400, 450
+        uv_l = np.c_[rng.uniform(0, W, n_l), rng.uniform(0, H, n_l)]
+        uv_r = np.c_[rng.uniform(0, W, n_r), rng.uniform(0, H, n_r)]
+        uv_r[:200] = uv_l[:200] - [[20.0, 0.0]] + rng.normal(0, 0.8, (200, 2))
+        oct_l = rng.integers(0, 8, n_l).astype(np.int32)
+        oct_r = rng.integers(0, 8, n_r).astype(np.int32)
+        oct_r[:200] = oct_l[:200]
+        d_l = rng.integers(0, 256, (n_l, 32), dtype=np.uint8)
+        d_r = rng.integers(0, 256, (n_r, 32), dtype=np.uint8)
+        d_r[:200] = d_l[:200] ^ (rng.random((200, 32)) < 0.05 * trial).astype(np.uint8) * 8
+        d_r[200:220] = d_r[0]  # ties
+        a = stereo_match(uv_l, oct_l, d_l, uv_r, oct_r, d_r, left, right, scales, K[0, 0], BF)
+        b = _stereo_match_numpy(uv_l, oct_l, d_l, uv_r, oct_r, d_r, left, right, scales, K[0, 0], BF)
+        assert (a.depth > 0).sum() > 20
+        assert np.array_equal(a.u_right, b.u_right) and np.array_equal(a.depth, b.depth)
+
+
+# ------------------------------------------------------------------------- projection
+@pytest.mark.parametrize("variant", ["track", "local_map", "fuse", "ratio_any_level"])
+def test_search_by_projection_agrees_with_numpy(variant):
+    rng = np.random.default_rng(hash(variant) % 1000)
+    W, H = 640, 360
+    for trial in range(4):
+        n_kp, n_q = 900, 500
+        kuv = np.c_[rng.uniform(0, W, n_kp), rng.uniform(0, H, n_kp)]
+        kuv[100:150] = kuv[50:100].round()  # keypoints on cell borders and duplicates
+        koct = rng.integers(0, 8, n_kp)
+        kdesc = rng.integers(0, 256, (n_kp, 32), dtype=np.uint8)
+        kdesc[::11] = kdesc[0]
+        kuR = np.where(rng.random(n_kp) < 0.6, kuv[:, 0] - rng.uniform(1, 60, n_kp), -1.0)
+        grid = KeypointGrid(kuv, W, H)
+        src = rng.integers(0, n_kp, n_q)
+        u = kuv[src, 0] + rng.normal(0, 3, n_q)
+        v = kuv[src, 1] + rng.normal(0, 3, n_q)
+        ur = kuR[src] + rng.normal(0, 2, n_q)
+        qdesc = kdesc[src] ^ (rng.random((n_q, 32)) < 0.08).astype(np.uint8)
+        lev = koct[src]
+        radius = 1.2 ** lev * rng.choice([2.5, 4.0, 7.0], n_q)
+        kw: dict = dict(u_right=ur, min_level=lev - 1, max_level=lev)
+        avail = None
+        if variant == "track":
+            kw.update(th_dist=100, angle_check=(rng.uniform(0, 360, n_q), rng.uniform(0, 360, n_kp)))
+            kw.update(min_level=np.maximum(lev - 1, 0), max_level=lev + 1)
+        elif variant == "local_map":
+            kw.update(th_dist=100, ratio=0.8)
+            avail = rng.random(n_kp) < 0.8
+        elif variant == "fuse":
+            kw.update(th_dist=50, reproj_check=(kuv, 1.0 / 1.44 ** koct))
+        else:
+            kw.update(th_dist=100, ratio=0.9, ratio_same_level_only=False)
+            kw.pop("u_right")
+        args = (grid, koct, desc_u64(kdesc), kuR, avail, u, v, radius, desc_u64(qdesc))
+        a = search_by_projection(*args, **kw)
+        b = _search_by_projection_numpy(*args, **kw)
+        assert len(a.query) > 30
+        for f in ("query", "kp", "dist"):
+            assert np.array_equal(getattr(a, f), getattr(b, f)), f
+        assert len(np.unique(a.kp)) == len(a.kp)
+
+
+def test_search_by_projection_empty():
+    grid = KeypointGrid(np.zeros((0, 2)), 100, 100)
+    z = np.zeros(0)
+    m = search_by_projection(grid, np.zeros(0, int), np.zeros((0, 4), np.uint64), None, None, z, z, z,
+                             np.zeros((0, 4), np.uint64))
+    assert len(m.query) == len(m.kp) == len(m.dist) == 0
+
+
+# ------------------------------------------------------------------------------ cache
+def test_numba_cache_falls_back_when_nothing_is_writable(monkeypatch, tmp_path):
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    monkeypatch.setattr(_numba._config, "CACHE_DIR", "")
+    monkeypatch.setattr(_numba, "_writable", lambda d: False)
+    monkeypatch.setattr(_numba.tempfile, "gettempdir", lambda: str(tmp_path))
+    d = _numba.cache_dir_fallback()
+    assert d is not None and d.startswith(str(tmp_path)) and _numba._config.CACHE_DIR == d
+    monkeypatch.setattr(_numba, "_writable", lambda d: True)
+    monkeypatch.setattr(_numba._config, "CACHE_DIR", "")
+    assert _numba.cache_dir_fallback() is None
