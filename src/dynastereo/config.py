@@ -110,6 +110,10 @@ DetectorContrast = Literal["clahe", "none"]
 DETECTOR_CANVASES: tuple[str, ...] = typing.get_args(DetectorCanvas)
 DETECTOR_SCHEDULES: tuple[str, ...] = typing.get_args(DetectorSchedule)
 DETECTOR_CONTRASTS: tuple[str, ...] = typing.get_args(DetectorContrast)
+DetectorRuntime = Literal["auto", "onnxruntime", "openvino"]
+DetectorPrecision = Literal["auto", "f32", "bf16"]
+DETECTOR_RUNTIMES: tuple[str, ...] = typing.get_args(DetectorRuntime)
+DETECTOR_PRECISIONS: tuple[str, ...] = typing.get_args(DetectorPrecision)
 
 
 @dataclass
@@ -144,6 +148,11 @@ class DetectorConfig:
     interval: int = 2
     track: bool = True  # carry boxes between frames (optical flow), with track ids
     max_carry: int = 2  # detector runs a box is carried without a confirming detection
+    # The ONNX runtime (masking/detection/runtime.py): "auto" = OpenVINO when installed
+    # (the extra dynastereo[openvino]), else onnxruntime; precision "auto" = bf16 where the
+    # CPU computes in bf16 (OpenVINO only), else f32
+    runtime: DetectorRuntime = "auto"
+    precision: DetectorPrecision = "auto"
 
     def __post_init__(self) -> None:
         self.validate()
@@ -157,6 +166,10 @@ class DetectorConfig:
             raise bad("canvas", "one of " + ", ".join(DETECTOR_CANVASES), self.canvas)
         if self.schedule not in DETECTOR_SCHEDULES:
             raise bad("schedule", "one of " + ", ".join(DETECTOR_SCHEDULES), self.schedule)
+        if self.runtime not in DETECTOR_RUNTIMES:
+            raise bad("runtime", "one of " + ", ".join(DETECTOR_RUNTIMES), self.runtime)
+        if self.precision not in DETECTOR_PRECISIONS:
+            raise bad("precision", "one of " + ", ".join(DETECTOR_PRECISIONS), self.precision)
         if self.contrast not in DETECTOR_CONTRASTS:
             raise bad("contrast", "one of " + ", ".join(DETECTOR_CONTRASTS), self.contrast)
         if not (0.1 <= self.scale <= 4.0):
