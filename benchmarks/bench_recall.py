@@ -90,6 +90,15 @@ ROWS: dict[str, dict] = {
     "ov f32 1t": {"runtime": "openvino", "precision": "f32", "threads": 1},
     "ov bf16 1t": {"runtime": "openvino", "precision": "bf16", "threads": 1},
     "ov bf16 2t": {"runtime": "openvino", "precision": "bf16", "threads": 2},
+    # the schedule and the canvas (bf16, 1 thread)
+    "ov bf16 1t interval 3": {"runtime": "openvino", "precision": "bf16", "threads": 1, "interval": 3},
+    "ov bf16 1t band .25": {"runtime": "openvino", "precision": "bf16", "threads": 1, "band_top": 0.25},
+    "ov bf16 1t band .25 interval 3": {"runtime": "openvino", "precision": "bf16", "threads": 1,
+                                       "band_top": 0.25, "interval": 3},
+    "ort f32 1t band .25": {"runtime": "onnxruntime", "threads": 1, "band_top": 0.25},
+    "ov bf16 1t band .25 carry/2": {"runtime": "openvino", "precision": "bf16", "threads": 1, "band_top": 0.25,
+                                    "carry_downscale": 2},
+    "ov bf16 1t carry/2": {"runtime": "openvino", "precision": "bf16", "threads": 1, "carry_downscale": 2},
 }
 QUICK = ["shipped-0.1 yolox-nano", "yolox frame", "yolox frame clahe .15", "default"]
 

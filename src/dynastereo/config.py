@@ -141,6 +141,7 @@ class DetectorConfig:
     scale: float = 1.0
     tiles: int = 3
     tile_overlap: float = 0.2  # share of a tile's width overlapping each neighbour
+    band_top: float = 0.0  # canvas frame/tiles: the top fraction of the frame left out (sky)
     contrast: DetectorContrast = "clahe"  # the detector's input only
     # When the network runs: "every" frame, every `interval`-th frame ("interval"), or
     # one tile per frame in turn ("rotate", canvas "tiles"); boxes are carried between
@@ -148,6 +149,7 @@ class DetectorConfig:
     interval: int = 2
     track: bool = True  # carry boxes between frames (optical flow), with track ids
     max_carry: int = 2  # detector runs a box is carried without a confirming detection
+    carry_downscale: int = 1  # the carrying's optical flow on the image shrunk 1x or 2x
     # The ONNX runtime (masking/detection/runtime.py): "auto" = OpenVINO when installed
     # (the extra dynastereo[openvino]), else onnxruntime; precision "auto" = bf16 where the
     # CPU computes in bf16 (OpenVINO only), else f32
@@ -178,10 +180,14 @@ class DetectorConfig:
             raise bad("tiles", ">= 1", self.tiles)
         if not (0.0 <= self.tile_overlap < 1.0):
             raise bad("tile_overlap", "in [0, 1)", self.tile_overlap)
+        if not (0.0 <= self.band_top < 0.9):
+            raise bad("band_top", "in [0, 0.9)", self.band_top)
         if self.interval < 1:
             raise bad("interval", ">= 1", self.interval)
         if self.max_carry < 0:
             raise bad("max_carry", ">= 0", self.max_carry)
+        if self.carry_downscale not in (1, 2):
+            raise bad("carry_downscale", "1 or 2", self.carry_downscale)
         if not (0.0 <= self.score_threshold < 1.0):
             raise bad("score_threshold", "in [0, 1)", self.score_threshold)
         if not (0.0 < self.nms_threshold <= 1.0):
