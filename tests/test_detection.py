@@ -504,3 +504,18 @@ def test_openvino_matches_onnxruntime_on_kitti_frames(models_dir, kitti06):
     # bf16: a box near the score threshold may come or go (2 of 18 here: sequence recall
     # is unchanged, bench_recall.py); the rest agree
     assert (bf16 >= 0.5).mean() >= 0.85 and np.median(bf16) >= 0.95, bf16
+
+
+@pytest.mark.realdata
+def test_yolox_grey_input_blob_equals_the_bgr_one(models_dir, kitti06):
+    """A grey frame is letterboxed once and copied to the 3 channels: the same network
+    input, bit for bit, as the colour path (grey -> BGR, letterbox, blobFromImage)."""
+    require(models_dir / "yolox-nano", "model yolox-nano")
+    det = create_detector(DetectorConfig(name="yolox-nano", runtime="onnxruntime"), models_dir)
+    img = cv2.imread(str(require(kitti06 / "image_0/000010.png")), cv2.IMREAD_GRAYSCALE)
+    for d in (det, det.with_canvas(1248, 384)):
+        grey, (tg, sg, _) = d._prepare(img)
+        bgr, (tb, sb, _) = d._prepare(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+        assert np.array_equal(grey, bgr) and sg == sb and tg == tb
+        grey1, _ = d._prepare(img[:, :, None])
+        assert np.array_equal(grey1, bgr)

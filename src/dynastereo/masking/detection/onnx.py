@@ -62,6 +62,18 @@ def make_session(path: Path, threads: int, model_bytes: bytes | None = None,
         raise ModelError(f"onnxruntime cannot load the model: {e}", path) from None
 
 
+def _grey_view(image: np.ndarray) -> np.ndarray | None:
+    """The (H, W) uint8 image of a grey input (H x W or H x W x 1), else None."""
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        return None
+    if img.ndim == 2:
+        return img
+    if img.ndim == 3 and img.shape[2] == 1:
+        return img[:, :, 0]
+    return None
+
+
 def runtime_of(config: DetectorConfig) -> RuntimeChoice:
     """The runtime ``config`` asks for, resolved on this machine (:func:`.runtime.resolve_runtime`)."""
     return resolve_runtime(config.runtime, config.precision)
@@ -229,6 +241,17 @@ class YoloxDetector(OnnxDetectorBase):
         return c - 5
 
     def _prepare(self, image: np.ndarray) -> tuple[np.ndarray, tuple[BoxTransform, tuple[int, int], dict]]:
+        grey = _grey_view(image)
+        if grey is not None:  # a grey frame: letterboxed once, not three times (the same blob)
+            h, w = grey.shape
+            tw, th = self.input_w, self.input_h
+            r = min(tw / w, th / h)  # as letterbox()
+            nw, nh = min(tw, int(round(w * r))), min(th, int(round(h * r)))
+            blob = np.full((1, 3, th, tw), 114.0, np.float32)
+            blob[0, 0, :nh, :nw] = cv2.resize(grey, (nw, nh), interpolation=cv2.INTER_LINEAR)
+            blob[0, 1] = blob[0, 0]
+            blob[0, 2] = blob[0, 0]
+            return blob, (BoxTransform(1.0 / r, 1.0 / r, 0.0, 0.0, w, h), (h, w), {})
         img = to_bgr(image)
         h, w = img.shape[:2]
         padded, r, _ = letterbox(img, (self.input_w, self.input_h), 114, center=False)
