@@ -519,3 +519,19 @@ def test_yolox_grey_input_blob_equals_the_bgr_one(models_dir, kitti06):
         assert np.array_equal(grey, bgr) and sg == sb and tg == tb
         grey1, _ = d._prepare(img[:, :, None])
         assert np.array_equal(grey1, bgr)
+
+
+@pytest.mark.realdata
+def test_openvino_session_threads_and_streams(models_dir):
+    """OpenVINO is set up like onnxruntime (tests/test_realtime.py): a fixed thread count,
+    one stream, no pinning -- the detector leaves the tracking its core."""
+    from dynastereo.masking.detection import OpenVinoSession, openvino_available
+
+    if not openvino_available():
+        pytest.skip("OpenVINO is not installed (pip install 'dynastereo[openvino]')")
+    model = require(models_dir / "yolox-nano" / "yolox_nano.onnx", "YOLOX-nano model")
+    s = OpenVinoSession(model, 1, "f32")
+    assert int(s.compiled.get_property("INFERENCE_NUM_THREADS")) == 1
+    assert int(s.compiled.get_property("NUM_STREAMS")) == 1
+    assert str(s.compiled.get_property("ENABLE_CPU_PINNING")).lower() in ("false", "no")
+    assert [o.name for o in s.get_inputs()] and len(s.get_outputs()) == 1

@@ -130,7 +130,7 @@ class DetectorConfig:
     nms_threshold: float = 0.45
     input_size: int | None = None  # canvas "model" only; None: the model's native size
     dynamic_classes: list[str] = field(default_factory=lambda: list(DEFAULT_DYNAMIC_CLASSES))
-    threads: int = 2
+    threads: int = 1  # 1: the least CPU a run (bench_detect.py --runtimes); 2: less wall time
     min_box_size: float = 4.0  # boxes thinner than this (pixels) are dropped
     # How the frame meets the network: "frame" = one canvas of the frame's aspect at
     # `scale` (the ONNX graph rewritten exactly / Darknet at a rectangular blob); "tiles" =
@@ -141,7 +141,7 @@ class DetectorConfig:
     scale: float = 1.0
     tiles: int = 3
     tile_overlap: float = 0.2  # share of a tile's width overlapping each neighbour
-    band_top: float = 0.0  # canvas frame/tiles: the top fraction of the frame left out (sky)
+    band_top: float = 0.25  # canvas frame/tiles: the top fraction of the frame left out (sky)
     contrast: DetectorContrast = "clahe"  # the detector's input only
     # When the network runs: "every" frame, every `interval`-th frame ("interval"), or
     # one tile per frame in turn ("rotate", canvas "tiles"); boxes are carried between
@@ -149,7 +149,7 @@ class DetectorConfig:
     interval: int = 2
     track: bool = True  # carry boxes between frames (optical flow), with track ids
     max_carry: int = 2  # detector runs a box is carried without a confirming detection
-    carry_downscale: int = 1  # the carrying's optical flow on the image shrunk 1x or 2x
+    carry_downscale: int = 2  # the carrying's optical flow on the image shrunk 1x or 2x
     # The ONNX runtime (masking/detection/runtime.py): "auto" = OpenVINO when installed
     # (the extra dynastereo[openvino]), else onnxruntime; precision "auto" = bf16 where the
     # CPU computes in bf16 (OpenVINO only), else f32
