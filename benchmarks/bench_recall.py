@@ -252,7 +252,7 @@ def main() -> None:
             print(f"{name:42s} {sname:8s} veh {f(r['recall_vehicles'])}  riders {f(r['recall_riders'])}  "
                   f"false/frame {f(r['false_boxes_per_frame'], '.1f')}  IoU outline {f(r['mask_iou_outline'], '.3f')} "
                   f"box {f(r['mask_iou_box'], '.3f')}  CPU {r['cpu_ms']['mean']:.1f} ms/pair "
-                  f"(network {r['network_cpu_ms'].get('mean', 0):.1f} on its frames)  wall detect "
+                  f"(network {r['network_cpu_ms'].get('mean', 0):.1f} on its frames)  CPU detect "
                   f"{r['detect_ms']['mean']:.1f} / mask {r['mask_ms']['mean']:.1f}  [{r['runtime']}]", flush=True)
             print("    stages (CPU ms, mean over all frames): "
                   + "  ".join(f"{k} {v:.1f}" for k, v in r["stage_ms"].items()), flush=True)

@@ -81,9 +81,14 @@ def plan_regions(
     if not rects:
         return []
 
+    memo: dict[tuple[int, int, int, int], int] = {}  # the greedy asks for the same regions again
+
     def cost(rc: tuple[int, int, int, int]) -> int:
-        cy0, cy1, cx0, cx1 = matcher.band_crop(shape, *rc, scale=scale)
-        return (cy1 - cy0) * (cx1 - cx0) + 4000 * scale * scale  # + per-call overhead
+        c = memo.get(rc)
+        if c is None:
+            cy0, cy1, cx0, cx1 = matcher.band_crop(shape, *rc, scale=scale)
+            c = memo[rc] = (cy1 - cy0) * (cx1 - cx0) + 4000 * scale * scale  # + per-call overhead
+        return c
 
     def union(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
         return (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
