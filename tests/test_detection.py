@@ -441,7 +441,10 @@ def test_runtime_resolution_and_fallback_line(caplog, monkeypatch):
     caplog.set_level("WARNING", logger="dynastereo.detector")
     # auto: OpenVINO where installed, bf16 only where the CPU computes in bf16
     assert rt.resolve_runtime("auto", "auto", have_openvino=True, caps=("FP32", "BF16")).label == "openvino/bf16"
-    assert rt.resolve_runtime("auto", "auto", have_openvino=True, caps=("FP32",)).label == "openvino/f32"
+    # ... and onnxruntime elsewhere (OpenVINO's f32 costs more CPU than onnxruntime's)
+    assert rt.resolve_runtime("auto", "auto", have_openvino=True, caps=("FP32",)).label == "onnxruntime/f32"
+    assert rt.resolve_runtime("auto", "f32", have_openvino=True, caps=("BF16",)).label == "onnxruntime/f32"
+    assert rt.resolve_runtime("openvino", "auto", have_openvino=True, caps=("FP32",)).label == "openvino/f32"
     assert rt.resolve_runtime("auto", "auto", have_openvino=False).label == "onnxruntime/f32"
     assert rt.resolve_runtime("onnxruntime", "auto", have_openvino=True, caps=("BF16",)).label == "onnxruntime/f32"
     assert not caplog.records  # nothing asked for that could not be had

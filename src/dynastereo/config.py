@@ -150,9 +150,9 @@ class DetectorConfig:
     track: bool = True  # carry boxes between frames (optical flow), with track ids
     max_carry: int = 2  # detector runs a box is carried without a confirming detection
     carry_downscale: int = 2  # the carrying's optical flow on the image shrunk 1x or 2x
-    # The ONNX runtime (masking/detection/runtime.py): "auto" = OpenVINO when installed
-    # (the extra dynastereo[openvino]), else onnxruntime; precision "auto" = bf16 where the
-    # CPU computes in bf16 (OpenVINO only), else f32
+    # The ONNX runtime (masking/detection/runtime.py): "auto" = OpenVINO in bf16 when it is
+    # installed (the extra dynastereo[openvino]) and the CPU computes in bf16, else
+    # onnxruntime f32; precision "auto" = bf16 where available (OpenVINO only), else f32
     runtime: DetectorRuntime = "auto"
     precision: DetectorPrecision = "auto"
 

@@ -1,8 +1,9 @@
 """The inference runtime of an ONNX detector: onnxruntime or OpenVINO, and its precision.
 
 ``detector.runtime``: ``onnxruntime`` (always installed), ``openvino`` (the optional extra
-``pip install 'dynastereo[openvino]'``) or ``auto`` (OpenVINO when it is installed, else
-onnxruntime).  ``detector.precision``: ``auto`` (bf16 on a CPU that computes in bf16 --
+``pip install 'dynastereo[openvino]'``) or ``auto`` (OpenVINO in bf16 when it is installed
+and the CPU computes in bf16, else onnxruntime f32: OpenVINO's f32 costs more CPU than
+onnxruntime's on the measured machine, ``benchmarks/bench_detect.py --runtimes``).  ``detector.precision``: ``auto`` (bf16 on a CPU that computes in bf16 --
 OpenVINO's ``OPTIMIZATION_CAPABILITIES`` lists ``BF16``: AVX512-BF16 / AMX x86, some ARM
 -- f32 elsewhere and always on onnxruntime), ``f32`` or ``bf16`` (OpenVINO only; on a CPU
 without it: f32 with one line saying so).  Asking for OpenVINO where it is not installed
@@ -91,6 +92,14 @@ def resolve_runtime(runtime: str = "auto", precision: str = "auto", *, have_open
     have = openvino_available() if have_openvino is None else have_openvino
     note = ""
     rt = runtime
+    if runtime == "auto" and have and precision != "f32":
+        # OpenVINO only where it computes in bf16: its f32 costs 1.3-1.5x onnxruntime's CPU
+        # (benchmarks/bench_detect.py --runtimes)
+        caps = cpu_capabilities() if caps is None else caps
+        if "BF16" not in caps:
+            return _finish(RuntimeChoice("onnxruntime", "f32", ""))
+    elif runtime == "auto" and precision == "f32":
+        return _finish(RuntimeChoice("onnxruntime", "f32", ""))
     if runtime in ("auto", "openvino"):
         if have:
             rt = "openvino"
