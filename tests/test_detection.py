@@ -538,3 +538,30 @@ def test_openvino_session_threads_and_streams(models_dir):
     assert int(s.compiled.get_property("NUM_STREAMS")) == 1
     assert str(s.compiled.get_property("ENABLE_CPU_PINNING")).lower() in ("false", "no")
     assert [o.name for o in s.get_inputs()] and len(s.get_outputs()) == 1
+
+
+@pytest.mark.realdata
+def test_quantize_writes_a_qdq_graph_with_an_f32_head(models_dir, kitti03, tmp_path):
+    """models/quantize.py (the INT8 measurement, README "Runtime and precision"): a QDQ
+    copy calibrated on unscored frames, its head left in f32, readable by onnxruntime."""
+    import onnx
+    import onnxruntime as ort
+
+    from dynastereo.models.quantize import quantize_detector
+
+    require(models_dir / "yolox-nano", "model yolox-nano")
+    images = sorted((kitti03 / "image_0").glob("*.png"))[:2]
+    out = quantize_detector(str(models_dir / "yolox-nano/yolox_nano.onnx"), images, tmp_path / "q.onnx",
+                            canvas=(320, 96))
+    g = onnx.load(str(out)).graph
+    ops = [n.op_type for n in g.node]
+    assert "QuantizeLinear" in ops and "DequantizeLinear" in ops
+    dims = [d.dim_value for d in g.input[0].type.tensor_type.shape.dim]
+    assert dims == [1, 3, 96, 320]
+    # the head's last convolutions take f32 weights (no DequantizeLinear in front)
+    deq = {o for n in g.node if n.op_type == "DequantizeLinear" for o in n.output}
+    preds = [n for n in g.node if n.op_type == "Conv" and "_preds" in "".join(n.input)]
+    assert len(preds) == 9 and not any(n.input[1] in deq for n in preds)
+    s = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    y = s.run(None, {s.get_inputs()[0].name: np.zeros((1, 3, 96, 320), np.float32)})[0]
+    assert y.shape[-1] == 85
