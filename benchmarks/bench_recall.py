@@ -102,6 +102,7 @@ ROWS: dict[str, dict] = {
     "ort f32 1t band .25": {"runtime": "onnxruntime", "threads": 1, "band_top": 0.25},
     "ov bf16 1t band .25 carry/2": {"runtime": "openvino", "precision": "bf16", "threads": 1, "band_top": 0.25,
                                     "carry_downscale": 2},
+    "default carry-outline": {"masker.outline.carry_outline": True},
     "ov bf16 1t carry/2": {"runtime": "openvino", "precision": "bf16", "threads": 1, "carry_downscale": 2},
 }
 QUICK = ["shipped-0.1 yolox-nano", "yolox frame", "yolox frame clahe .15", "default"]

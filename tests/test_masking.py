@@ -1074,3 +1074,44 @@ def test_mask_runs_are_byte_identical(kitti06, models_dir, tmp_path):
     for f in files:
         assert (outs[0] / f).read_bytes() == (outs[1] / f).read_bytes(), f
     assert (outs[0] / "objects.jsonl").read_text() == (outs[1] / "objects.jsonl").read_text()
+
+
+def _tracked(box, carried: bool) -> Detections:
+    d = dets(box)
+    d.track_ids = np.array([0], np.int64)
+    d.carried = np.array([carried])
+    return d
+
+
+@pytest.mark.parametrize("d1, kept", [(30, True), (18, False)], ids=["same depth", "disparity peak changed"])
+def test_carried_box_keeps_its_outline(d1, kept):
+    """masker.outline.carry_outline: a carried box that moved little keeps its previous
+    outline moved by the box's shift (no new outline) -- unless the disparity under it is no
+    longer its peak's; the result matches a fresh outline either way."""
+    from dynastereo.config import OutlineConfig
+
+    blob0 = ellipse_mask(260, 130, 70, 45)
+    blob1 = ellipse_mask(264, 131, 70, 45)  # the car moved 4 px right, 1 px down
+    l0, r0, _ = layered_pair(8, [(blob0, 30)])
+    l1, r1, (blob1_r,) = layered_pair(8, [(blob1, d1)])
+    f0 = StereoFrame(index=0, timestamp=0.0, left=l0, right=r0)
+    f1 = StereoFrame(index=1, timestamp=0.1, left=l1, right=r1)
+    carry = OutlineMasker(FakeDetector(dets(box_of(blob0))), StereoMatcher(STEREO), OutlineConfig(carry_outline=True))
+    fresh = OutlineMasker(FakeDetector(dets(box_of(blob0))), StereoMatcher(STEREO))
+    m0, lab0, _ = carry.mask_labels(f0, _tracked(box_of(blob0), False))
+    calls = []
+    orig = carry._carried_outlines
+    carry._carried_outlines = lambda *a: calls.append(r := orig(*a)) or r
+    m1, lab1, _ = carry.mask_labels(f1, _tracked(box_of(blob1), True))
+    ref = fresh.mask_detections(f1, _tracked(box_of(blob1), True))
+    assert bool(calls[0]) == kept
+    if kept:  # exactly the previous outline, moved by the box's shift
+        np.testing.assert_array_equal(lab1[:, 4:] > 0, np.roll(lab0 > 0, 1, axis=0)[:, :-4])
+        assert abs(m1.objects[0].disparity - 30) < 0.5
+    assert iou(m1.left, ref.left) > 0.95 and iou(m1.right, ref.right) > 0.9
+    assert iou(m1.left, blob1) > 0.9 and iou(m1.right, blob1_r) > 0.85
+    # a frame that does not follow the kept one (a jump): outlined anew
+    f3 = StereoFrame(index=3, timestamp=0.3, left=l1, right=r1)
+    calls.clear()
+    carry.mask_labels(f3, _tracked(box_of(blob1), True))
+    assert calls == [{}]

@@ -237,6 +237,14 @@ class OutlineConfig:
     # How a left mask moves to the right image: "affine" (d = a + b x + c y fitted per
     # object, rigid when the fit is poor) or "rigid" (shift by the object's disparity).
     transfer: TransferMode = "affine"
+    # Carried boxes keep their outline (masking/maskers.py): a box carried from the previous
+    # frame whose scale changed by at most carry_max_scale and whose centre moved by at most
+    # carry_max_shift of its size, and whose disparity under the moved mask is still its
+    # peak's (within the peak tolerance), gets its previous outline moved by the box's flow
+    # (scale + shift) instead of a new one; the right mask follows by its disparity.
+    carry_outline: bool = False
+    carry_max_scale: float = 0.05
+    carry_max_shift: float = 0.25
     # An object partly hidden behind a nearer one in the left image also gets, in the right
     # image, the band the right camera sees past the nearer object's right edge.
     transfer_occluded: bool = True
@@ -289,6 +297,9 @@ class OutlineConfig:
             )
         if not (0.0 <= self.ground_rows_from < 1.0):
             raise _bad(key("ground_rows_from"), "in [0, 1)", self.ground_rows_from)
+        if not (0.0 <= self.carry_max_scale < 1.0) or self.carry_max_shift < 0:
+            raise _bad(key("carry_max_scale / carry_max_shift"), "in [0, 1) / >= 0",
+                       (self.carry_max_scale, self.carry_max_shift))
         for k in ("overlap_weight", "claim_fraction", "ground_max_fraction", "min_outline_fraction",
                   "min_valid_fraction", "near_peak_ratio", "peak_extend_ratio"):
             v = getattr(self, k)
