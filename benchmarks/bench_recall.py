@@ -103,6 +103,8 @@ ROWS: dict[str, dict] = {
     "ov bf16 1t band .25 carry/2": {"runtime": "openvino", "precision": "bf16", "threads": 1, "band_top": 0.25,
                                     "carry_downscale": 2},
     "default carry-outline": {"masker.outline.carry_outline": True},
+    "default band .15": {"band_top": 0.15},
+    "default no band": {"band_top": 0.0},
     "ov bf16 1t carry/2": {"runtime": "openvino", "precision": "bf16", "threads": 1, "carry_downscale": 2},
 }
 QUICK = ["shipped-0.1 yolox-nano", "yolox frame", "yolox frame clahe .15", "default"]
