@@ -6,9 +6,16 @@
 2. Post-processing of the SAME raw YOLOv3-tiny output: array-wise (thesis Algorithm 2)
    vs the per-row Python loop (thesis Algorithm 1; thesis 4.2: 4 ms vs 27.9 ms for YOLOv3).
 
+3. ``--runtimes`` (issue 24): yolox-nano as the masking runs it (the frame's canvas at
+   scale 1, 1248x384 on KITTI, and its band without the top quarter, 1248x288) on each
+   runtime / precision / thread count (onnxruntime f32; OpenVINO f32 and bf16 where the
+   CPU has it): wall ms and CPU ms (process time, all threads) per call, medians; the
+   configurations are interleaved frame by frame so a busy machine slows them alike.
+   Writes benchmarks/results/detect_runtime.json.
+
 Prints a table; writes benchmarks/results/detect.json.
 Run: DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \
-     .venv/bin/python benchmarks/bench_detect.py [--frames 20] [--threads 2] [--repeats 2]
+     .venv/bin/python benchmarks/bench_detect.py [--frames 20] [--threads 2] [--repeats 2] [--runtimes]
 """
 
 from __future__ import annotations
@@ -114,6 +121,52 @@ def bench_postprocess(name: str, frames, repeats: int, models_dir: Path, input_s
             "speedup": round(sl["median"] / max(sa["median"], 1e-9), 1), "same_boxes": same}
 
 
+RUNTIME_ROWS = [("onnxruntime", "f32", 1), ("onnxruntime", "f32", 2), ("openvino", "f32", 1),
+                ("openvino", "bf16", 1), ("openvino", "bf16", 2)]
+
+
+def bench_runtimes(frames, repeats: int, models_dir: Path, out: Path) -> None:
+    """Section 3 of the docstring."""
+    from dynastereo.masking.detection import ScaledDetector, resolve_runtime
+    from dynastereo.masking.detection.stage import Contrast
+
+    clahe = Contrast()
+    imgs = [clahe(img) for _, img in frames]
+    dets = {}
+    for rt, prec, th in RUNTIME_ROWS:
+        if resolve_runtime(rt, prec).label != f"{rt}/{prec}":
+            print(f"  skip {rt}/{prec}: not available here")
+            continue
+        for band in (0.0, 0.25):
+            base = create_detector(DetectorConfig(runtime=rt, precision=prec, threads=th), models_dir)
+            d = ScaledDetector(base, "frame", 1.0, band_top=band)
+            d.detect(imgs[0])  # compile + warm-up
+            dets[(rt, prec, th, band)] = d
+    wall: dict = {k: [] for k in dets}
+    cpu: dict = {k: [] for k in dets}
+    for _ in range(repeats):
+        for img in imgs:
+            for k, d in dets.items():
+                t0, c0 = time.perf_counter(), time.process_time()
+                d.detect(img)
+                wall[k].append((time.perf_counter() - t0) * 1e3)
+                cpu[k].append((time.process_time() - c0) * 1e3)
+    rows = []
+    print(f"\n{'runtime':<13}{'prec':>6}{'threads':>8}{'canvas':>10}{'wall ms':>9}{'CPU ms':>8}")
+    for k, d in dets.items():
+        rt, prec, th, band = k
+        cw, ch = d.canvas_size
+        r = {"runtime": rt, "precision": prec, "threads": th, "band_top": band, "canvas": [cw, ch],
+             "wall_ms": stats(wall[k]), "cpu_ms": stats(cpu[k])}
+        rows.append(r)
+        print(f"{rt:<13}{prec:>6}{th:>8}{f'{cw}x{ch}':>10}{r['wall_ms']['median']:>9.1f}{r['cpu_ms']['median']:>8.1f}")
+    doc = {"frames": [f for f, _ in frames], "repeats": repeats, "cpus": os.cpu_count(),
+           "platform": platform.platform(), "rows": rows}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=1))
+    print(f"wrote {out}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int, default=20, help="frames per sequence (06 and 03)")
@@ -121,6 +174,7 @@ def main() -> None:
                     help="detector threads to measure (DetectorConfig.threads; default config: 2)")
     ap.add_argument("--repeats", type=int, default=2, help="passes over the frames")
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--runtimes", action="store_true", help="only section 3: runtimes x precision x threads")
     args = ap.parse_args()
 
     data = Path(os.environ.get("DYNASTEREO_DATA", ""))
@@ -130,6 +184,9 @@ def main() -> None:
     frames = load_frames(data, args.frames)
     print(f"{len(frames)} KITTI frames ({frames[0][1].shape[1]}x{frames[0][1].shape[0]} gray), "
           f"models in {models_dir}, {os.cpu_count()} CPUs, repeats {args.repeats}")
+    if args.runtimes:
+        bench_runtimes(frames, args.repeats, models_dir, args.out.with_name("detect_runtime.json"))
+        return
 
     results: list[dict] = []
     if verify("yolov3", models_dir):

@@ -11,7 +11,18 @@ scored exactly as ``shared/tools/score_masks.py`` does (``dynastereo.eval.refmas
   the reference box grown by 10 %, a missed vehicle scoring 0); both maskers mask the SAME
   detections of each frame;
 * detection ms (``detect`` + the stage's ``contrast`` and ``carry``) and masking ms
-  (disparity, outline, transfer) per stereo pair, mean over the sequence and median.
+  (disparity, outline, transfer) per stereo pair (CPU), mean over the sequence and median;
+* **CPU ms a stereo pair** (issue 24's yardstick): the process time (all threads) of the
+  detection stage plus the outline masker, mean over ALL frames (the detector's runs
+  included; the network is made at its canvas -- graph rewrite, compilation -- before
+  the first frame, as a long-running process would have it), and the detector's own process time on the frames it runs; the CPU ms of
+  every stage (``stage_ms``: process time, mean over all frames; ``detect_ms`` and
+  ``mask_ms`` are the same process times summed);
+* which runtime ran the network (``detector.runtime`` / ``detector.precision``).
+
+Rows may set any configuration key with a dotted name (``masker.outline.dilate``); plain
+names are ``detector.`` keys.  A sequence without references (KITTI 03 without ``--ref03``
+references) still gets its CPU figures, with no recall.
 
 Every frame of each sequence is processed in order (the schedule and the carried boxes
 need the sequence), with the masker ``dynastereo mask`` builds (``build_masker``).
@@ -30,7 +41,9 @@ import platform
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -75,6 +88,24 @@ ROWS: dict[str, dict] = {
     "default .1": {"score_threshold": 0.1},
     "default every": {"schedule": "every"},
     "default": {},
+    # issue 24: the runtime and precision of the network (the default schedule otherwise)
+    "ort f32 2t": {"runtime": "onnxruntime", "threads": 2},
+    "ort f32 1t": {"runtime": "onnxruntime", "threads": 1},
+    "ov f32 1t": {"runtime": "openvino", "precision": "f32", "threads": 1},
+    "ov bf16 1t": {"runtime": "openvino", "precision": "bf16", "threads": 1},
+    "ov bf16 2t": {"runtime": "openvino", "precision": "bf16", "threads": 2},
+    # the schedule and the canvas (bf16, 1 thread)
+    "ov bf16 1t interval 3": {"runtime": "openvino", "precision": "bf16", "threads": 1, "interval": 3},
+    "ov bf16 1t band .25": {"runtime": "openvino", "precision": "bf16", "threads": 1, "band_top": 0.25},
+    "ov bf16 1t band .25 interval 3": {"runtime": "openvino", "precision": "bf16", "threads": 1,
+                                       "band_top": 0.25, "interval": 3},
+    "ort f32 1t band .25": {"runtime": "onnxruntime", "threads": 1, "band_top": 0.25},
+    "ov bf16 1t band .25 carry/2": {"runtime": "openvino", "precision": "bf16", "threads": 1, "band_top": 0.25,
+                                    "carry_downscale": 2},
+    "default carry-outline": {"masker.outline.carry_outline": True},
+    "default band .15": {"band_top": 0.15},
+    "default no band": {"band_top": 0.0},
+    "ov bf16 1t carry/2": {"runtime": "openvino", "precision": "bf16", "threads": 1, "carry_downscale": 2},
 }
 QUICK = ["shipped-0.1 yolox-nano", "yolox frame", "yolox frame clahe .15", "default"]
 
@@ -90,6 +121,11 @@ def sequences(data: Path, ref03: Path | None) -> list[tuple[str, Path, Path]]:
     return out
 
 
+def sequences_cpu03(data: Path) -> list[tuple[str, Path, Path | None]]:
+    """KITTI 03 without references: CPU figures only."""
+    return [("03", data / "kitti_odometry/dataset/sequences/03", None)]
+
+
 def make_ref03(data: Path, models: Path, out: Path) -> None:
     """References for KITTI 03 with the shared tool (about 1.2 s a frame)."""
     tool = data.parent / "tools/refmasks.py"
@@ -99,26 +135,48 @@ def make_ref03(data: Path, models: Path, out: Path) -> None:
                     "--out", str(out), "--images", *map(str, images)], check=True)
 
 
+class CpuStageTimer(StageTimer):
+    """A StageTimer whose stages are PROCESS time (all threads), not wall time: on a busy
+    two-core machine wall time mostly measures the other processes."""
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        c0 = time.process_time()
+        try:
+            yield
+        finally:
+            self.add(name, (time.process_time() - c0) * 1000.0)
+
+
 def stats(v: list[float]) -> dict[str, float]:
     a = np.asarray(v, np.float64)
     return {"mean": round(float(a.mean()), 2), "median": round(float(np.median(a)), 2)} if a.size else {}
 
 
-def run_row(overrides: dict, seq_dir: Path, ref_dir: Path, models: Path, step: int) -> dict:
-    cfg = Config().with_overrides({f"detector.{k}": v for k, v in overrides.items()})
+def run_row(overrides: dict, seq_dir: Path, ref_dir: Path | None, models: Path, step: int) -> dict:
+    cfg = Config().with_overrides({(k if "." in k else f"detector.{k}"): v for k, v in overrides.items()})
     seq = open_sequence(seq_dir)
     outline = build_masker(cfg, seq.calibration, models_dir=models)
     box = BoxMasker(outline.detector, outline.matcher, cfg.masker.outline)
-    refs = {r.index: r for r in load_references(ref_dir)}
-    timer, btimer = StageTimer(), StageTimer()
+    refs = {r.index: r for r in load_references(ref_dir)} if ref_dir is not None and ref_dir.is_dir() else {}
+    timer, btimer = CpuStageTimer(), StageTimer()
     so = sb = None
-    detect_ms, mask_ms = [], []
+    detect_ms, mask_ms, cpu_ms, net_cpu_ms = [], [], [], []
+    det0 = outline.detector.detector
+    if hasattr(det0, "plan"):  # the network at its canvas is made (compiled) before the clock runs
+        det0.plan(*seq.frame(0).left.shape[1::-1])
     for i in range(0, len(seq), step):
         frame = seq.frame(i)
+        frame.left_gray, frame.right_gray  # noqa: B018 - the image read is not masking
         timer.start_frame(i)
+        c0 = time.process_time()
         dets = outline.detector.detect_frame(frame, timer)  # the DetectionStage
+        c1 = time.process_time()
         m = outline.mask_detections(frame, dets, timer)
+        cpu_ms.append((time.process_time() - c0) * 1000.0)
         rec = timer.end_frame()["ms"]
+        if "detect" in rec:
+            net_cpu_ms.append((c1 - c0) * 1000.0)
         btimer.start_frame(i)
         mb = box.mask_detections(frame, dets, btimer)
         btimer.end_frame()
@@ -129,17 +187,28 @@ def run_row(overrides: dict, seq_dir: Path, ref_dir: Path, models: Path, step: i
             sb = score_frame(refs[i], dets.boxes, mb.left, sb)
     det = outline.detector.detector
     total = [a + b for a, b in zip(detect_ms, mask_ms)]
+    base = getattr(det, "base", det)
+    rt = getattr(base, "runtime", None)
+    n = len(timer.frames)
+    stage_ms = {k: round(sum(f["ms"].get(k, 0.0) for f in timer.frames) / n, 2)
+                for k in timer.stage_names() if k != "total"}
     return {
         "detector": cfg.detector.name,
         "settings": overrides,
+        "runtime": rt.label if rt is not None else None,
+        "threads": cfg.detector.threads,
         "canvas": list(det.canvas_size) if getattr(det, "canvas_size", None) else None,
         "frames": len(detect_ms),
-        **so.to_dict(),
-        "mask_iou_outline": round(so.mask_iou_vehicles, 4),
-        "mask_iou_box": round(sb.mask_iou_vehicles, 4),
+        **(so.to_dict() if so is not None else {"recall_vehicles": None, "recall_riders": None,
+                                                "false_boxes_per_frame": None}),
+        "mask_iou_outline": round(so.mask_iou_vehicles, 4) if so is not None else None,
+        "mask_iou_box": round(sb.mask_iou_vehicles, 4) if sb is not None else None,
         "detect_ms": stats(detect_ms),
         "mask_ms": stats(mask_ms),
         "detect_plus_mask_ms": stats(total),
+        "cpu_ms": stats(cpu_ms),
+        "network_cpu_ms": stats(net_cpu_ms),
+        "stage_ms": stage_ms,
     }
 
 
@@ -149,6 +218,8 @@ def main() -> None:
     ap.add_argument("--step", type=int, default=1, help="every step-th frame (default all; schedules assume 1)")
     ap.add_argument("--ref03", type=Path, default=None, help="KITTI 03 reference folder (made when missing)")
     ap.add_argument("--no-03", action="store_true", help="only 06 and raw 0001")
+    ap.add_argument("--cpu-03", action="store_true", help="KITTI 03 for its CPU figures only (no references made)")
+    ap.add_argument("--seqs", default="", help="comma-separated subset of 06,raw0001,03")
     ap.add_argument("--out", type=Path, default=OUT)
     a = ap.parse_args()
     data = Path(os.environ.get("DYNASTEREO_DATA", "")).expanduser()
@@ -156,7 +227,7 @@ def main() -> None:
     if not (data / "kitti_odometry").is_dir() or not models.is_dir():
         sys.exit("set DYNASTEREO_DATA and DYNASTEREO_MODELS (see the docstring)")
     ref03 = None
-    if not a.no_03:
+    if not a.no_03 and not a.cpu_03:
         ref03 = a.ref03 or Path.home() / ".cache/dynastereo/refmasks/seq03"
         if not any(ref03.glob("*.json")):
             make_ref03(data, models, ref03)
@@ -165,6 +236,10 @@ def main() -> None:
     if unknown:
         sys.exit(f"unknown rows {unknown}; known: {', '.join(ROWS)}")
     seqs = sequences(data, ref03)
+    if a.cpu_03 and ref03 is None:
+        seqs += sequences_cpu03(data)
+    if a.seqs:
+        seqs = [s for s in seqs if s[0] in a.seqs.split(",")]
     results: dict[str, dict] = {}
     for name in names:
         results[name] = {}
@@ -178,10 +253,16 @@ def main() -> None:
                 break
             r["wall_s"] = round(time.perf_counter() - t0, 1)
             results[name][sname] = r
-            print(f"{name:42s} {sname:8s} veh {r['recall_vehicles']:.2f}  riders {r['recall_riders']:.2f}  "
-                  f"false/frame {r['false_boxes_per_frame']:.1f}  IoU outline {r['mask_iou_outline']:.3f} "
-                  f"box {r['mask_iou_box']:.3f}  detect {r['detect_ms']['mean']:.1f} / mask {r['mask_ms']['mean']:.1f} "
-                  f"ms (mean; median {r['detect_ms']['median']:.1f} / {r['mask_ms']['median']:.1f})", flush=True)
+            def f(v: float | None, fmt: str = ".2f") -> str:
+                return "  -  " if v is None else format(v, fmt)
+
+            print(f"{name:42s} {sname:8s} veh {f(r['recall_vehicles'])}  riders {f(r['recall_riders'])}  "
+                  f"false/frame {f(r['false_boxes_per_frame'], '.1f')}  IoU outline {f(r['mask_iou_outline'], '.3f')} "
+                  f"box {f(r['mask_iou_box'], '.3f')}  CPU {r['cpu_ms']['mean']:.1f} ms/pair "
+                  f"(network {r['network_cpu_ms'].get('mean', 0):.1f} on its frames)  CPU detect "
+                  f"{r['detect_ms']['mean']:.1f} / mask {r['mask_ms']['mean']:.1f}  [{r['runtime']}]", flush=True)
+            print("    stages (CPU ms, mean over all frames): "
+                  + "  ".join(f"{k} {v:.1f}" for k, v in r["stage_ms"].items()), flush=True)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     doc = {"machine": platform.platform(), "cpus": os.cpu_count(), "rows": results,
            "default": Config().detector.__dict__}

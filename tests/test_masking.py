@@ -1054,3 +1054,64 @@ def test_object_method_and_source_are_enums_written_as_their_strings() -> None:
                                         "moving": None, "masked": True, "speed_mps": None})
     with pytest.raises(ValueError):
         ObjectMask((0.0, 0.0, 1.0, 1.0), "car", 0.5, "bogus", 0.0, 0, 0)
+
+
+@pytest.mark.realdata
+def test_mask_runs_are_byte_identical(kitti06, models_dir, tmp_path):
+    """Two `dynastereo mask` runs of the same frames with the defaults (the runtime
+    `auto` picks: OpenVINO bf16 here when installed; the schedule and the carried boxes
+    included) write the same masks, byte for byte, and the same objects."""
+    from dynastereo.api import mask_sequence
+    from dynastereo.config import Config
+
+    outs = []
+    for k in range(2):
+        out = tmp_path / f"run{k}"
+        mask_sequence(kitti06, out, Config(), frames="0-5", models_dir=models_dir)
+        outs.append(out)
+    files = sorted(p.relative_to(outs[0]) for p in (outs[0] / "masks").rglob("*.png"))
+    assert len(files) >= 12  # 6 frames, left and right
+    for f in files:
+        assert (outs[0] / f).read_bytes() == (outs[1] / f).read_bytes(), f
+    assert (outs[0] / "objects.jsonl").read_text() == (outs[1] / "objects.jsonl").read_text()
+
+
+def _tracked(box, carried: bool) -> Detections:
+    d = dets(box)
+    d.track_ids = np.array([0], np.int64)
+    d.carried = np.array([carried])
+    return d
+
+
+@pytest.mark.parametrize("d1, kept", [(30, True), (18, False)], ids=["same depth", "disparity peak changed"])
+def test_carried_box_keeps_its_outline(d1, kept):
+    """masker.outline.carry_outline: a carried box that moved little keeps its previous
+    outline moved by the box's shift (no new outline) -- unless the disparity under it is no
+    longer its peak's; the result matches a fresh outline either way."""
+    from dynastereo.config import OutlineConfig
+
+    blob0 = ellipse_mask(260, 130, 70, 45)
+    blob1 = ellipse_mask(264, 131, 70, 45)  # the car moved 4 px right, 1 px down
+    l0, r0, _ = layered_pair(8, [(blob0, 30)])
+    l1, r1, (blob1_r,) = layered_pair(8, [(blob1, d1)])
+    f0 = StereoFrame(index=0, timestamp=0.0, left=l0, right=r0)
+    f1 = StereoFrame(index=1, timestamp=0.1, left=l1, right=r1)
+    carry = OutlineMasker(FakeDetector(dets(box_of(blob0))), StereoMatcher(STEREO), OutlineConfig(carry_outline=True))
+    fresh = OutlineMasker(FakeDetector(dets(box_of(blob0))), StereoMatcher(STEREO))
+    m0, lab0, _ = carry.mask_labels(f0, _tracked(box_of(blob0), False))
+    calls = []
+    orig = carry._carried_outlines
+    carry._carried_outlines = lambda *a: calls.append(r := orig(*a)) or r
+    m1, lab1, _ = carry.mask_labels(f1, _tracked(box_of(blob1), True))
+    ref = fresh.mask_detections(f1, _tracked(box_of(blob1), True))
+    assert bool(calls[0]) == kept
+    if kept:  # exactly the previous outline, moved by the box's shift
+        np.testing.assert_array_equal(lab1[:, 4:] > 0, np.roll(lab0 > 0, 1, axis=0)[:, :-4])
+        assert abs(m1.objects[0].disparity - 30) < 0.5
+    assert iou(m1.left, ref.left) > 0.95 and iou(m1.right, ref.right) > 0.9
+    assert iou(m1.left, blob1) > 0.9 and iou(m1.right, blob1_r) > 0.85
+    # a frame that does not follow the kept one (a jump): outlined anew
+    f3 = StereoFrame(index=3, timestamp=0.3, left=l1, right=r1)
+    calls.clear()
+    carry.mask_labels(f3, _tracked(box_of(blob1), True))
+    assert calls == [{}]

@@ -236,3 +236,26 @@ def test_rotate_needs_tiles_and_skipping_needs_tracking(tmp_path):
         load_config(p)
     with pytest.raises(ConfigError, match="track: true"):
         DetectorConfig(schedule="interval", track=False)
+
+
+@pytest.mark.parametrize("canvas", ["frame", "tiles"])
+def test_band_top_leaves_the_sky_out_and_keeps_frame_coordinates(canvas):
+    """``detector.band_top``: the network sees the frame below its top quarter only (a
+    smaller canvas), and the boxes come back in frame coordinates."""
+    frame = np.zeros((376, 1241), np.uint8)
+    box = [300.0, 150.0, 600.0, 300.0]
+    base = PartsDetector(frame, [(box, CAR)])
+    seen = []
+    detect = base.detect
+
+    def spy(img):
+        seen.append((base._origin(img), img.shape))
+        return detect(img)
+
+    base.detect = spy
+    det = ScaledDetector(base, canvas, 1.0, 3, 0.2, band_top=0.25)
+    out = det.detect(frame)
+    assert seen and all(o[1] == 94 and s[0] == 376 - 94 for o, s in seen)  # rows 94.. only
+    assert max(iou(b, box) for b in out.boxes) > 0.99
+    with pytest.raises(ConfigError, match="band_top"):
+        DetectorConfig(band_top=0.95)

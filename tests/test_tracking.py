@@ -79,9 +79,11 @@ def corner_error(a, b) -> float:
     [((2.3, 0.7), 1.0), ((-1.4, -3.6), 1.0), ((0.8, 1.5), 1.05)],  # last: an approaching car
     ids=["subpixel", "pixel", "scaling"],
 )
-def test_carried_box_follows_the_object(velocity, scale):
+@pytest.mark.parametrize("downscale", [1, 2], ids=["full", "half-size flow"])
+def test_carried_box_follows_the_object(velocity, scale, downscale):
     sc = Scene([((60, 100), (200, 120), velocity, scale)])
-    tr = BoxTracker()
+    tr = BoxTracker(TrackerParams(lk_downscale=downscale, lk_win=15 if downscale == 1 else 11,
+                                  lk_levels=3 if downscale == 1 else 2))
     out = tr.update(sc.frame(0), dets(sc.box(0)))
     assert len(out) == 1 and out.track_ids.tolist() == [0] and out.carried.tolist() == [False]
     errs = []
@@ -93,7 +95,7 @@ def test_carried_box_follows_the_object(velocity, scale):
         assert out.scores[0] == pytest.approx(0.9 * 0.9**k, rel=1e-5)
         assert out.labels() == ["car"]
         errs.append(corner_error(out.boxes[0], sc.box(k)))
-    assert max(errs) < 1.0, errs  # (measured: < 0.2 px; the issue asks for 2 px)
+    assert max(errs) < 1.0, errs  # (measured: < 0.2 px full size; the issue asks for 2 px)
     # and it really moved: standing still would be far off
     assert corner_error(sc.box(0), sc.box(5)) > 6.0
     if scale != 1.0:

@@ -110,6 +110,10 @@ DetectorContrast = Literal["clahe", "none"]
 DETECTOR_CANVASES: tuple[str, ...] = typing.get_args(DetectorCanvas)
 DETECTOR_SCHEDULES: tuple[str, ...] = typing.get_args(DetectorSchedule)
 DETECTOR_CONTRASTS: tuple[str, ...] = typing.get_args(DetectorContrast)
+DetectorRuntime = Literal["auto", "onnxruntime", "openvino"]
+DetectorPrecision = Literal["auto", "f32", "bf16"]
+DETECTOR_RUNTIMES: tuple[str, ...] = typing.get_args(DetectorRuntime)
+DETECTOR_PRECISIONS: tuple[str, ...] = typing.get_args(DetectorPrecision)
 
 
 @dataclass
@@ -126,7 +130,7 @@ class DetectorConfig:
     nms_threshold: float = 0.45
     input_size: int | None = None  # canvas "model" only; None: the model's native size
     dynamic_classes: list[str] = field(default_factory=lambda: list(DEFAULT_DYNAMIC_CLASSES))
-    threads: int = 2
+    threads: int = 1  # 1: the least CPU a run (bench_detect.py --runtimes); 2: less wall time
     min_box_size: float = 4.0  # boxes thinner than this (pixels) are dropped
     # How the frame meets the network: "frame" = one canvas of the frame's aspect at
     # `scale` (the ONNX graph rewritten exactly / Darknet at a rectangular blob); "tiles" =
@@ -137,6 +141,7 @@ class DetectorConfig:
     scale: float = 1.0
     tiles: int = 3
     tile_overlap: float = 0.2  # share of a tile's width overlapping each neighbour
+    band_top: float = 0.25  # canvas frame/tiles: the top fraction of the frame left out (sky)
     contrast: DetectorContrast = "clahe"  # the detector's input only
     # When the network runs: "every" frame, every `interval`-th frame ("interval"), or
     # one tile per frame in turn ("rotate", canvas "tiles"); boxes are carried between
@@ -144,6 +149,12 @@ class DetectorConfig:
     interval: int = 2
     track: bool = True  # carry boxes between frames (optical flow), with track ids
     max_carry: int = 2  # detector runs a box is carried without a confirming detection
+    carry_downscale: int = 2  # the carrying's optical flow on the image shrunk 1x or 2x
+    # The ONNX runtime (masking/detection/runtime.py): "auto" = OpenVINO in bf16 when it is
+    # installed (the extra dynastereo[openvino]) and the CPU computes in bf16, else
+    # onnxruntime f32; precision "auto" = bf16 where available (OpenVINO only), else f32
+    runtime: DetectorRuntime = "auto"
+    precision: DetectorPrecision = "auto"
 
     def __post_init__(self) -> None:
         self.validate()
@@ -157,6 +168,10 @@ class DetectorConfig:
             raise bad("canvas", "one of " + ", ".join(DETECTOR_CANVASES), self.canvas)
         if self.schedule not in DETECTOR_SCHEDULES:
             raise bad("schedule", "one of " + ", ".join(DETECTOR_SCHEDULES), self.schedule)
+        if self.runtime not in DETECTOR_RUNTIMES:
+            raise bad("runtime", "one of " + ", ".join(DETECTOR_RUNTIMES), self.runtime)
+        if self.precision not in DETECTOR_PRECISIONS:
+            raise bad("precision", "one of " + ", ".join(DETECTOR_PRECISIONS), self.precision)
         if self.contrast not in DETECTOR_CONTRASTS:
             raise bad("contrast", "one of " + ", ".join(DETECTOR_CONTRASTS), self.contrast)
         if not (0.1 <= self.scale <= 4.0):
@@ -165,10 +180,14 @@ class DetectorConfig:
             raise bad("tiles", ">= 1", self.tiles)
         if not (0.0 <= self.tile_overlap < 1.0):
             raise bad("tile_overlap", "in [0, 1)", self.tile_overlap)
+        if not (0.0 <= self.band_top < 0.9):
+            raise bad("band_top", "in [0, 0.9)", self.band_top)
         if self.interval < 1:
             raise bad("interval", ">= 1", self.interval)
         if self.max_carry < 0:
             raise bad("max_carry", ">= 0", self.max_carry)
+        if self.carry_downscale not in (1, 2):
+            raise bad("carry_downscale", "1 or 2", self.carry_downscale)
         if not (0.0 <= self.score_threshold < 1.0):
             raise bad("score_threshold", "in [0, 1)", self.score_threshold)
         if not (0.0 < self.nms_threshold <= 1.0):
@@ -218,6 +237,14 @@ class OutlineConfig:
     # How a left mask moves to the right image: "affine" (d = a + b x + c y fitted per
     # object, rigid when the fit is poor) or "rigid" (shift by the object's disparity).
     transfer: TransferMode = "affine"
+    # Carried boxes keep their outline (masking/maskers.py): a box carried from the previous
+    # frame whose scale changed by at most carry_max_scale and whose centre moved by at most
+    # carry_max_shift of its size, and whose disparity under the moved mask is still its
+    # peak's (within the peak tolerance), gets its previous outline moved by the box's flow
+    # (scale + shift) instead of a new one; the right mask follows by its disparity.
+    carry_outline: bool = False
+    carry_max_scale: float = 0.05
+    carry_max_shift: float = 0.25
     # An object partly hidden behind a nearer one in the left image also gets, in the right
     # image, the band the right camera sees past the nearer object's right edge.
     transfer_occluded: bool = True
@@ -270,6 +297,9 @@ class OutlineConfig:
             )
         if not (0.0 <= self.ground_rows_from < 1.0):
             raise _bad(key("ground_rows_from"), "in [0, 1)", self.ground_rows_from)
+        if not (0.0 <= self.carry_max_scale < 1.0) or self.carry_max_shift < 0:
+            raise _bad(key("carry_max_scale / carry_max_shift"), "in [0, 1) / >= 0",
+                       (self.carry_max_scale, self.carry_max_shift))
         for k in ("overlap_weight", "claim_fraction", "ground_max_fraction", "min_outline_fraction",
                   "min_valid_fraction", "near_peak_ratio", "peak_extend_ratio"):
             v = getattr(self, k)

@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Any
 
+import cv2
 import numpy as np
 
 from ..config import OutlineConfig, StereoConfig
@@ -36,6 +37,7 @@ from .outline import (
     dominant_disparity,
     outline_objects,
     roi_disparity,
+    tolerance,
 )
 from .transfer import transfer_labels
 
@@ -81,9 +83,14 @@ def plan_regions(
     if not rects:
         return []
 
+    memo: dict[tuple[int, int, int, int], int] = {}  # the greedy asks for the same regions again
+
     def cost(rc: tuple[int, int, int, int]) -> int:
-        cy0, cy1, cx0, cx1 = matcher.band_crop(shape, *rc, scale=scale)
-        return (cy1 - cy0) * (cx1 - cx0) + 4000 * scale * scale  # + per-call overhead
+        c = memo.get(rc)
+        if c is None:
+            cy0, cy1, cx0, cx1 = matcher.band_crop(shape, *rc, scale=scale)
+            c = memo[rc] = (cy1 - cy0) * (cx1 - cx0) + 4000 * scale * scale  # + per-call overhead
+        return c
 
     def union(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
         return (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
@@ -202,6 +209,30 @@ class _DisparityMasker:
         return (float(max(self.stereo.min_disparity, 0)), self.matcher.max_disparity)
 
 
+def _compose_outlines(sub: OutlineResult, fresh: list[int], reuse: dict, rois: np.ndarray,
+                      shape: tuple[int, int], ground: GroundLine | None) -> OutlineResult:
+    """All objects' outline result: ``sub`` (the outlines of the boxes ``fresh``) and the
+    carried outlines ``reuse`` painted far to near (nearer objects win shared pixels)."""
+    n = len(fresh) + len(reuse)
+    disparity = np.zeros(n, np.float32)
+    methods: list[MaskMethod] = [MaskMethod.OUTLINE] * n
+    ranges: list[tuple[float, float]] = [(0.0, 0.0)] * n
+    for j, k in enumerate(fresh):
+        disparity[k], methods[k], ranges[k] = sub.disparity[j], sub.methods[j], sub.ranges[j]
+    for k, (_, d, r, m) in reuse.items():
+        disparity[k], methods[k], ranges[k] = d, m, r
+    rois = np.asarray(rois, np.int32).reshape(-1, 4)
+    labels = np.zeros(shape, np.int32)
+    sub_of = {k: j + 1 for j, k in enumerate(fresh)}
+    for k in sorted(range(n), key=lambda i: (float(disparity[i]), i)):  # a handful of boxes
+        x0, y0, x1, y1 = (int(v) for v in rois[k])
+        sel = reuse[k][0] if k in reuse else sub.labels[y0:y1, x0:x1] == sub_of[k]
+        labels[y0:y1, x0:x1][sel] = k + 1
+    pixels = np.array([np.count_nonzero(labels[r[1]:r[3], r[0]:r[2]] == k + 1) for k, r in enumerate(rois)],
+                      np.int64)
+    return OutlineResult(labels, disparity, methods, rois, pixels, ranges, ground)
+
+
 class OutlineMasker(_DisparityMasker):
     """Outlines from the dominant disparity peak per box, moved to the right image.
 
@@ -227,6 +258,8 @@ class OutlineMasker(_DisparityMasker):
         self.cfg = cfg or OutlineConfig()
         self.cfg.validate()  # (a configuration changed after it was made)
         self.baseline = float(baseline) if baseline else None
+        self._kept: dict = {}  # track id -> its outline of the previous frame (cfg.carry_outline)
+        self._kept_index = -2
 
     def ground_slopes(self) -> tuple[float, float]:
         """Plausible road slopes (disparity px per image row) for this rig."""
@@ -242,6 +275,61 @@ class OutlineMasker(_DisparityMasker):
         line = fit_ground_line(rows, vals, self.ground_slopes(), frame.shape[0], tolerance=c.ground_fit_tolerance,
                                min_inliers=c.ground_min_inliers)
         return replace(line, baseline=self.cfg.ground_baseline or self.baseline or DEFAULT_BASELINE)
+
+    # -- carried boxes keep their outline (cfg.carry_outline) ------------------------
+    def _carried_outlines(self, frame: StereoFrame, dets: Detections, disp: np.ndarray,
+                          rois: np.ndarray) -> dict[int, tuple[np.ndarray, float, tuple[float, float], MaskMethod]]:
+        """Per detection index that keeps its outline: (its mask in its ROI, disparity,
+        range, method) -- the previous frame's outline of its track moved by the box's
+        scale and shift, when the box moved little and the disparity under the moved mask
+        is still its peak's."""
+        kept = self._kept
+        if (not kept or dets.track_ids is None or dets.carried is None
+                or frame.index != self._kept_index + 1):
+            return {}
+        c = self.cfg
+        out = {}
+        for k in np.flatnonzero(dets.carried):
+            st = kept.get(int(dets.track_ids[k]))
+            if st is None:
+                continue
+            b0, b1 = st[0], dets.boxes[k].astype(np.float64)
+            w0, h0, w1, h1 = b0[2] - b0[0], b0[3] - b0[1], b1[2] - b1[0], b1[3] - b1[1]
+            if min(w0, h0, w1, h1) <= 0:
+                continue
+            s = 0.5 * (w1 / w0 + h1 / h0)
+            shift = float(np.hypot(*((b1[:2] + b1[2:]) / 2 - (b0[:2] + b0[2:]) / 2)))
+            if abs(s - 1.0) > c.carry_max_scale or shift > c.carry_max_shift * max(w0, h0):
+                continue
+            x0, y0, x1, y1 = (int(v) for v in rois[k])
+            if x1 - x0 < c.min_box_side or y1 - y0 < c.min_box_side:
+                continue
+            patch, (px0, py0) = st[1], st[2]
+            tx, ty = b1[0] - s * b0[0], b1[1] - s * b0[1]
+            M = np.array([[s, 0.0, s * px0 + tx - x0], [0.0, s, s * py0 + ty - y0]])
+            moved = cv2.warpAffine(patch.view(np.uint8), M, (x1 - x0, y1 - y0), flags=cv2.INTER_NEAREST) > 0
+            if np.count_nonzero(moved) < c.min_box_pixels:
+                continue
+            d = disp[y0:y1, x0:x1][moved]
+            d = d[d > 0]
+            want = st[3] * s
+            if d.size < max(c.min_valid_fraction * moved.size, 20) or abs(float(np.median(d)) - want) > tolerance(want, c):
+                continue  # its disparity peak changed: outlined again
+            out[int(k)] = (moved, want, (st[4][0] * s, st[4][1] * s), st[5])
+        return out
+
+    def _keep_outlines(self, frame: StereoFrame, dets: Detections, o: OutlineResult) -> None:
+        """Each tracked object's outline of this frame, for the next one (true outlines only)."""
+        self._kept = {}
+        self._kept_index = frame.index
+        if dets.track_ids is None:
+            return
+        for k, tid in enumerate(dets.track_ids):
+            if tid < 0 or o.methods[k] != MaskMethod.OUTLINE:
+                continue
+            x0, y0, x1, y1 = (int(v) for v in o.rois[k])
+            self._kept[int(tid)] = (dets.boxes[k].astype(np.float64), o.labels[y0:y1, x0:x1] == k + 1, (x0, y0),
+                                    float(o.disparity[k]), tuple(o.ranges[k]), o.methods[k])
 
     def mask_labels(
         self, frame: StereoFrame, dets: Detections, timer: StageTimer | None = None
@@ -263,8 +351,17 @@ class OutlineMasker(_DisparityMasker):
             with _stage(timer, "disparity"):  # the road's disparity is disparity work too
                 ground = self.fit_ground(frame)
         with _stage(timer, "outline"):
-            o: OutlineResult = outline_objects(disp, dets.boxes, shape, self.cfg, ground=ground,
-                                               max_disparity=self.matcher.max_disparity)
+            reuse = self._carried_outlines(frame, dets, disp, rois) if self.cfg.carry_outline else {}
+            if reuse:
+                fresh = [k for k in range(len(dets)) if k not in reuse]
+                sub = outline_objects(disp, dets.boxes[fresh], shape, self.cfg, ground=ground,
+                                      max_disparity=self.matcher.max_disparity)
+                o = _compose_outlines(sub, fresh, reuse, rois, shape, ground)
+            else:
+                o = outline_objects(disp, dets.boxes, shape, self.cfg, ground=ground,
+                                    max_disparity=self.matcher.max_disparity)
+            if self.cfg.carry_outline:
+                self._keep_outlines(frame, dets, o)
             left = _to_mask(o.labels)
         with _stage(timer, "transfer"):
             t = transfer_labels(

@@ -26,7 +26,9 @@ from .onnx import (
     YoloxDetector,
     detect_onnx_layout,
     make_session,
+    runtime_of,
 )
+from .runtime import PRECISIONS, RUNTIMES, OpenVinoSession, RuntimeChoice, openvino_available, resolve_runtime
 from .scale import CANVAS_MODES, ScaledDetector, Tile, merge_tile_boxes, tile_windows
 from .stage import Contrast, DetectionStage
 from .tracking import BoxTracker, TrackerParams
@@ -73,7 +75,7 @@ def _installed_files(spec: ModelSpec, models_dir: Path | str | None) -> Path:
 
 
 def _onnx_detector(path: Path, cfg: DetectorConfig, name: str | None, want_layout: str | None = None) -> YoloDetectorBase:
-    session = make_session(path, cfg.threads)
+    session = make_session(path, cfg.threads, choice=runtime_of(cfg))
     layout = detect_onnx_layout(session, path)
     if want_layout is not None and layout != want_layout:
         raise ModelError(f"expected a '{want_layout}' model, but the outputs look like '{layout}'", path)
@@ -147,6 +149,13 @@ def create_seg_model(
 
 __all__ = [
     "BoxTracker",
+    "OpenVinoSession",
+    "PRECISIONS",
+    "RUNTIMES",
+    "RuntimeChoice",
+    "openvino_available",
+    "resolve_runtime",
+    "runtime_of",
     "BoxTransform",
     "CANVAS_MODES",
     "Contrast",

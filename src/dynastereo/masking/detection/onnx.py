@@ -20,24 +20,36 @@ from ...types import Detections
 from .classes import resolve_class_names
 from .common import BoxTransform, RawOutput, YoloDetectorBase, letterbox, to_bgr
 from .postprocess import ULTRALYTICS_LAYOUT, YOLOX_LAYOUT, PostResult
+from .runtime import OpenVinoSession, RuntimeChoice, _note_once, resolve_runtime
 
 STRIDES = (8, 16, 32)
 
 
-def make_session(path: Path, threads: int, model_bytes: bytes | None = None) -> Any:
-    """An onnxruntime CPU session with ``threads`` intra-op threads (1 inter-op thread)
+def make_session(path: Path, threads: int, model_bytes: bytes | None = None,
+                 choice: RuntimeChoice | None = None) -> Any:
+    """A CPU inference session of ``choice``'s runtime (:mod:`.runtime`; default
+    onnxruntime f32).  OpenVINO: :class:`~.runtime.OpenVinoSession`; a graph it cannot
+    read or compile (the dynamic-int8 Ultralytics models) runs on onnxruntime, with one
+    line saying so.
+
+    An onnxruntime CPU session with ``threads`` intra-op threads (1 inter-op thread)
     that do not spin: onnxruntime's workers busy-wait between ops by default, and on two
     cores that spinning takes the core the tracking needs (KITTI 03 with the default
     settings: 7.9 FPS spinning, 9.9 FPS not; ~30 ms of CPU a frame).
     ``model_bytes``: a rewritten graph of ``path`` (:mod:`.rewrite`) instead of the file."""
-    import onnxruntime as ort
-
     if model_bytes is None and not Path(path).is_file():
         raise ModelError("ONNX model file not found", path)
     if model_bytes is None:
         from ...models.sizecheck import check_onnx_size
 
         check_onnx_size(path)  # a truncated file: expected and actual size named
+    if choice is not None and choice.runtime == "openvino":
+        try:
+            return OpenVinoSession(Path(path), threads, choice.precision, model_bytes)
+        except ModelError as e:
+            _note_once(f"{Path(path).name}: {e.args[0] if e.args else e}; running it on onnxruntime")
+    import onnxruntime as ort
+
     so = ort.SessionOptions()
     if threads and threads > 0:
         so.intra_op_num_threads = int(threads)
@@ -52,6 +64,23 @@ def make_session(path: Path, threads: int, model_bytes: bytes | None = None) -> 
         return ort.InferenceSession(src, sess_options=so, providers=["CPUExecutionProvider"])
     except Exception as e:  # onnxruntime raises its own exception types (InvalidProtobuf, Fail, ...)
         raise ModelError(f"onnxruntime cannot load the model: {e}", path) from None
+
+
+def _grey_view(image: np.ndarray) -> np.ndarray | None:
+    """The (H, W) uint8 image of a grey input (H x W or H x W x 1), else None."""
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        return None
+    if img.ndim == 2:
+        return img
+    if img.ndim == 3 and img.shape[2] == 1:
+        return img[:, :, 0]
+    return None
+
+
+def runtime_of(config: DetectorConfig) -> RuntimeChoice:
+    """The runtime ``config`` asks for, resolved on this machine (:func:`.runtime.resolve_runtime`)."""
+    return resolve_runtime(config.runtime, config.precision)
 
 
 def _dims(shape: list[Any]) -> list[int | None]:
@@ -104,7 +133,8 @@ class OnnxDetectorBase(YoloDetectorBase):
     ) -> None:
         self.onnx_path = Path(onnx_path)
         config = config or DetectorConfig()
-        self.session = session if session is not None else make_session(self.onnx_path, config.threads)
+        self.session = (session if session is not None
+                        else make_session(self.onnx_path, config.threads, choice=runtime_of(config)))
         inp = self.session.get_inputs()[0]
         self.input_name = inp.name
         shape = _dims(inp.shape)
@@ -129,6 +159,13 @@ class OnnxDetectorBase(YoloDetectorBase):
     def _num_classes(self) -> int:
         raise NotImplementedError
 
+    @property
+    def runtime(self) -> RuntimeChoice:
+        """What runs this detector's graph (runtime, precision)."""
+        if isinstance(self.session, OpenVinoSession):
+            return RuntimeChoice("openvino", self.session.precision)
+        return RuntimeChoice("onnxruntime", "f32")
+
     def _run(self, blob: np.ndarray) -> list[np.ndarray]:
         return self.session.run(None, {self.input_name: blob})
 
@@ -146,7 +183,7 @@ class OnnxDetectorBase(YoloDetectorBase):
         if not self.can_rewrite:
             raise ModelError(f"{type(self).__name__} cannot run at another canvas", self.onnx_path)
         data = rewrite(self.onnx_path, self.onnx_layout, width, height, batch)
-        session = make_session(self.onnx_path, self.config.threads, data)
+        session = make_session(self.onnx_path, self.config.threads, data, choice=self.runtime)
         cfg = replace(self.config, input_size=None)
         return type(self)(self.onnx_path, cfg, name=self.name, session=session, **self._native_kw())
 
@@ -208,6 +245,17 @@ class YoloxDetector(OnnxDetectorBase):
         return c - 5
 
     def _prepare(self, image: np.ndarray) -> tuple[np.ndarray, tuple[BoxTransform, tuple[int, int], dict]]:
+        grey = _grey_view(image)
+        if grey is not None:  # a grey frame: letterboxed once, not three times (the same blob)
+            h, w = grey.shape
+            tw, th = self.input_w, self.input_h
+            r = min(tw / w, th / h)  # as letterbox()
+            nw, nh = min(tw, int(round(w * r))), min(th, int(round(h * r)))
+            blob = np.full((1, 3, th, tw), 114.0, np.float32)
+            blob[0, 0, :nh, :nw] = cv2.resize(grey, (nw, nh), interpolation=cv2.INTER_LINEAR)
+            blob[0, 1] = blob[0, 0]
+            blob[0, 2] = blob[0, 0]
+            return blob, (BoxTransform(1.0 / r, 1.0 / r, 0.0, 0.0, w, h), (h, w), {})
         img = to_bgr(image)
         h, w = img.shape[:2]
         padded, r, _ = letterbox(img, (self.input_w, self.input_h), 114, center=False)

@@ -69,12 +69,15 @@ class DetectionStage:
         # (the synthetic oracle, test doubles) is used as it is
         self.network = hasattr(detector, "detect_batch") or isinstance(detector, ScaledDetector)
         if self.network and not isinstance(detector, ScaledDetector):
-            detector = ScaledDetector(detector, cfg.canvas, cfg.scale, cfg.tiles, cfg.tile_overlap)
+            detector = ScaledDetector(detector, cfg.canvas, cfg.scale, cfg.tiles, cfg.tile_overlap, cfg.band_top)
         self.detector = detector
         self.name = getattr(detector, "name", type(detector).__name__)
         self.class_names = tuple(getattr(detector, "class_names", ()))
         self.contrast = Contrast() if cfg.contrast == "clahe" and self.network else None
-        self.tracker = (BoxTracker(TrackerParams(max_carry=int(cfg.max_carry), min_hits=2))
+        half = cfg.carry_downscale == 2  # the flow on the half-size image: a smaller window, one level less
+        self.tracker = (BoxTracker(TrackerParams(max_carry=int(cfg.max_carry), min_hits=2,
+                                                 lk_downscale=int(cfg.carry_downscale),
+                                                 lk_win=11 if half else 15, lk_levels=2 if half else 3))
                         if cfg.track and self.network else None)
         self._count = 0
 

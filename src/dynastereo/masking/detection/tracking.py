@@ -8,7 +8,9 @@ that frame, or ``None`` when the detector did not run on it.
 
 Method
 ------
-*Propagation* (every frame that has a previous frame of the same size).  Each track's
+*Propagation* (every frame that has a previous frame of the same size; with
+``lk_downscale`` 2 the flow is measured on both images shrunk to half by ``cv2.pyrDown``,
+the forward-backward bound counted in the small image's pixels).  Each track's
 box is moved from the previous image to this one by sparse optical flow, median-flow
 style: ``cv2.goodFeaturesToTrack`` picks up to ``max_points`` corners in the *inner*
 part of the box on the previous image (a margin of ``inner_margin`` of the box size on
@@ -102,6 +104,10 @@ class TrackerParams:
     # LK runs on the union of the boxes grown by this many px, not the whole image (its
     # pyramids are most of the cost); larger motions are beyond a 3-level pyramid anyway
     search_margin: int = 64
+    # LK on the image shrunk by this factor (1 or 2; cv2.pyrDown once per frame): a box's
+    # motion needs no sub-pixel accuracy, and LK's pyramids -- most of the carrying's CPU --
+    # have a quarter of the pixels at 2 (lk_win and lk_levels then apply to the small image)
+    lk_downscale: int = 1
     # pairs of points closer than this (px, previous frame) are not used for the scale
     min_pair_dist: float = 4.0
     # the per-frame scale is clamped to [1 / max_scale_change, max_scale_change]
@@ -128,6 +134,8 @@ class TrackerParams:
             raise ValueError(f"max_scale_change must be >= 1, got {self.max_scale_change}")
         if self.lk_win < 3 or self.lk_levels < 0:
             raise ValueError("lk_win must be >= 3 and lk_levels >= 0")
+        if self.lk_downscale not in (1, 2):
+            raise ValueError(f"lk_downscale must be 1 or 2, got {self.lk_downscale}")
 
 
 @dataclass
@@ -177,6 +185,7 @@ class BoxTracker:
         self._tracks: list[_Track] = []
         self._next_id = 0
         self._prev: np.ndarray | None = None
+        self._prev_small: np.ndarray | None = None  # _prev shrunk by lk_downscale (None: not made)
         self._class_names: tuple[str, ...] = ()
 
     @property
@@ -210,7 +219,11 @@ class BoxTracker:
             pts = np.concatenate([pts, np.stack([gx.ravel(), gy.ravel()], 1)]).astype(np.float32)
         return pts
 
-    def _propagate(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _small(self, gray: np.ndarray) -> np.ndarray:
+        """The image LK runs on (``lk_downscale``)."""
+        return gray if self.params.lk_downscale == 1 else cv2.pyrDown(gray)
+
+    def _propagate(self, gray: np.ndarray, small: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Propagated boxes (T, 4), ok flags (T,), affine (T, 3) = (s, tx, ty) per track."""
         p = self.params
         T = len(self._tracks)
@@ -221,19 +234,23 @@ class BoxTracker:
         owner = np.concatenate([np.full(len(q), i) for i, q in enumerate(pts_list)]) if T else np.zeros(0, int)
         if len(owner) == 0:
             return boxes, ok, aff
-        h, w = gray.shape
-        m = p.search_margin
-        cx0, cy0 = (max(0, int(np.floor(v)) - m) for v in boxes[:, :2].min(axis=0))
-        cx1, cy1 = min(w, int(np.ceil(boxes[:, 2].max())) + m), min(h, int(np.ceil(boxes[:, 3].max())) + m)
-        prev_c, cur_c = self._prev[cy0:cy1, cx0:cx1], gray[cy0:cy1, cx0:cx1]
+        k = p.lk_downscale
+        h, w = small.shape
+        m = p.search_margin // k
+        cx0, cy0 = (max(0, int(np.floor(v / k)) - m) for v in boxes[:, :2].min(axis=0))
+        cx1 = min(w, int(np.ceil(boxes[:, 2].max() / k)) + m)
+        cy1 = min(h, int(np.ceil(boxes[:, 3].max() / k)) + m)
+        prev_small = self._prev_small if self._prev_small is not None else self._small(self._prev)
+        prev_c, cur_c = prev_small[cy0:cy1, cx0:cx1], small[cy0:cy1, cx0:cx1]
         off = np.float32([cx0, cy0])
-        p0 = (np.concatenate(pts_list) - off).astype(np.float32).reshape(-1, 1, 2)
+        # pixel centres: x_small = (x + 0.5) / k - 0.5
+        p0 = ((np.concatenate(pts_list) + 0.5) / k - 0.5 - off).astype(np.float32).reshape(-1, 1, 2)
         # (the Python binding takes images only, not prebuilt pyramids: 2 builds per call)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev_c, cur_c, p0, None, **self._lk_kw)
         p0b, st2, _ = cv2.calcOpticalFlowPyrLK(cur_c, prev_c, p1, None, **self._lk_kw)
-        p0, p1, p0b = p0.reshape(-1, 2) + off, p1.reshape(-1, 2) + off, p0b.reshape(-1, 2) + off
+        p0, p1, p0b = ((q.reshape(-1, 2) + off + 0.5) * k - 0.5 for q in (p0, p1, p0b))
         fb = np.linalg.norm(p0 - p0b, axis=1)
-        good = (st1.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(fb) & (fb < p.fb_max_error)
+        good = (st1.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(fb) & (fb < p.fb_max_error * k)
         lo, hi = 1.0 / p.max_scale_change, p.max_scale_change
         for i in range(T):
             sel = good & (owner == i)
@@ -313,14 +330,16 @@ class BoxTracker:
         h, w = gray.shape
         if self._prev is not None and self._prev.shape != gray.shape:
             self._tracks = []  # cannot propagate across a change of image size
-            self._prev = None
+            self._prev = self._prev_small = None
         if detections is not None:
             self._remap_classes(tuple(detections.class_names))
         names = self._class_names
 
         # 1. propagate every track into this frame
+        small = None
         if self._tracks and self._prev is not None:
-            boxes, ok, aff = self._propagate(gray)
+            small = self._small(gray)
+            boxes, ok, aff = self._propagate(gray, small)
         else:
             boxes = np.array([t.box for t in self._tracks], np.float64).reshape(-1, 4)
             ok = np.zeros(len(self._tracks), bool)
@@ -403,6 +422,7 @@ class BoxTracker:
 
         self._tracks = out_tracks + carried_tracks
         self._prev = gray
+        self._prev_small = small  # None: made from _prev when the next frame needs it
 
         # 5. output
         n = len(self._tracks)
