@@ -303,6 +303,17 @@ def _run_record(sequence: Sequence, masker: Masker | None, motion, frames: list[
     }
 
 
+def _world_objects(sequence: Sequence, masker: Masker | None, motion, out: Path):
+    """The objects' world tracker and its ``objects_tracks.csv`` for a masked run (slam.objects)."""
+    if masker is None or getattr(sequence, "calibration", None) is None:
+        return None, None
+    from .slam.objects import TRACKS_NAME, TrackWriter, WorldObjects
+
+    mc = getattr(motion, "cfg", None)
+    kw = {"sigma_disparity": mc.sigma_disparity, "sigma_px": mc.sigma_px} if mc is not None else {}
+    return WorldObjects(sequence.calibration, **kw), TrackWriter(out / TRACKS_NAME)
+
+
 def run_slam_job(
     sequence: Sequence,
     masker: Masker | None,
@@ -318,6 +329,7 @@ def run_slam_job(
     map_info: dict | None = None,
     observers: tuple[FrameObserver, ...] = (),
     motion=None,
+    save_cloud: str | Path | None = None,
 ) -> SlamJobResult:
     """Feed ``frames`` of ``sequence`` (masked by ``masker``, None = unmasked) to the SLAM
     ``system`` and write, under ``out``:
@@ -325,7 +337,9 @@ def run_slam_job(
     * ``trajectory.kitti.txt`` / ``trajectory.tum.txt`` / ``trajectory.frames.txt``: one
       row per frame fed, in order; appended live (a crash keeps every row written), then
       rewritten at the end with the final, bundle-adjusted poses;
-    * ``objects.jsonl`` (masked runs): one line per frame, as from ``run_mask_job``;
+    * ``objects.jsonl`` (masked runs): one line per frame, as from ``run_mask_job``, each
+      object with its place in the world (``world``, ``velocity``, ``speed``, ``extent``:
+      :mod:`dynastereo.slam.objects`), and ``objects_tracks.csv`` (one row per object and frame);
     * ``timing.json``: per frame ms for ``masking`` (= ``detect`` + ``mask``), ``features``,
       ``stereo``, ``track``; ``local_mapping`` separately; ``summary.fps`` end to end;
     * ``run.json``: configuration, versions, frames tracked / lost, keyframes, map points,
@@ -333,6 +347,8 @@ def run_slam_job(
       ``map`` (the map file loaded / saved);
     * ``save_map``: the final map (``System.save_map``), also after an error mid-sequence
       (the map of the frames done);
+    * ``save_cloud``: the final map's points as PLY, less any inside a box an object judged
+      moving or undecided had (``slam.objects.WorldObjects.outside_movers``);
     * and whatever the ``observers`` write (a bag's writer, a viewer): each gets a
       :class:`~dynastereo.observers.FrameEvent` per frame once it is tracked.
 
@@ -370,6 +386,7 @@ def run_slam_job(
         return pool.submit(_masking_step, sequence, masker, frames[k], motion)
 
     objects_log = open(out / "objects.jsonl", "w") if masker is not None else None
+    world, tracks = _world_objects(sequence, masker, motion, out)
     try:
         with TrajectoryWriter(out) as writer:
             pending = submit(0)
@@ -386,6 +403,10 @@ def run_slam_job(
                 if motion is not None:
                     with timer.stage("motion"):
                         motion.update(masks, tracked, system)
+                if world is not None:
+                    with timer.stage("objects"):
+                        world.update(masks, pose, str(tracked.status) in ("tracked", "init"), float(stamps[idx]))
+                        tracks.write(idx, float(stamps[idx]), masks)
                 rec = timer.end_frame(status=tracked.status)
                 writer.append(pose, frame_index=idx, timestamp=float(stamps[idx]))
                 n_done = k + 1  # its row is written: what follows (an observer too) may fail, the row stays
@@ -405,8 +426,15 @@ def run_slam_job(
     finally:
         if objects_log is not None:
             objects_log.close()
+        if tracks is not None:
+            tracks.close()
         system.shutdown()  # finishes the pending local BA; also stops the worker on an error
         map_out = _save_map(system, save_map, sequence, frames[:n_done], map_info)
+        if save_cloud is not None and n_done:
+            from .io.outputs import write_ply
+
+            pts = system.map_points()
+            write_ply(save_cloud, pts[world.outside_movers(pts)] if world is not None else pts)
         if pool is not None:
             pool.shutdown(wait=False, cancel_futures=True)
         wall = time.perf_counter() - t0

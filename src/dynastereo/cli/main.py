@@ -173,9 +173,10 @@ def run(
     right_info: str = typer.Option("auto", "--right-info", help="[--bag] Right CameraInfo topic (auto / none / a topic)."),
     sync_tolerance: float = typer.Option(5.0, "--sync-tolerance", help="[--bag] Largest left/right stamp difference of a pair, ms."),
     rectify: str = typer.Option("auto", "--rectify", help="[--bag] Rectify with CameraInfo: auto (unless already rectified) | yes | no."),
-    bag_outputs: str = typer.Option("all", "--bag-outputs", help="[--bag] Output bag content: all, or a comma list of odometry,tf,masked,masks,disparity,path,map_points."),
+    bag_outputs: str = typer.Option("all", "--bag-outputs", help="[--bag] Output bag content: all, or a comma list of odometry,tf,masked,masks,disparity,path,map_points,objects."),
     save_map: Optional[Path] = typer.Option(None, "--save-map", help="Write the final map to FILE (docs/map_format.md)."),
     load_map: Optional[Path] = typer.Option(None, "--load-map", help="Start from the map in FILE (from --save-map)."),
+    save_cloud: Optional[Path] = typer.Option(None, "--save-cloud", help="Write the final map's points as a PLY point cloud (none on a moving object)."),
     localize_only: bool = typer.Option(False, "--localize-only", help="With --load-map: localize in the map, add no keyframes."),
     no_loop_closing: bool = typer.Option(False, "--no-loop-closing", help="Turn loop closing off (slam.loop_closing: false)."),
     vocabulary: Optional[Path] = typer.Option(None, "--vocabulary", help="ORB vocabulary file from `dynastereo vocab` (default: the built-in one)."),
@@ -221,13 +222,14 @@ def run(
                              tolerance_s=sync_tolerance / 1000.0, rectify=rectify, frames=frames,
                              models_dir=models_dir, save_masks=save_masks, outputs=bag_outputs, progress=on_frame,
                              overwrite=overwrite, stereo_check=not no_stereo_check, report=report, gt=gt,
-                             viewer=viewer, rrd=rrd)
+                             viewer=viewer, rrd=rrd, save_cloud=save_cloud)
                 result, bag_report = br.slam, br.report
             else:
                 result = run_sequence(sequence, out, cfg, frames=frames, calib=calib, rate=rate, models_dir=models_dir,
                                       save_masks=save_masks, progress=on_frame, save_map=save_map,
                                       load_map=load_map, localize_only=localize_only, overwrite=overwrite,
-                                      stereo_check=not no_stereo_check, report=report, gt=gt, viewer=viewer, rrd=rrd)
+                                      stereo_check=not no_stereo_check, report=report, gt=gt, viewer=viewer, rrd=rrd,
+                                      save_cloud=save_cloud)
     out_console.print(timing_table(result.summary, "timing (ms per frame)"))
     st = result.stats
     out_console.print(
@@ -239,6 +241,8 @@ def run(
                           f"{st.get('recoveries', 0)} (details in run.json)")
     if save_map:
         out_console.print(f"map saved to {save_map}")
+    if save_cloud:
+        out_console.print(f"static map points saved to {save_cloud}")
     if bag_report is not None:
         r = bag_report
         out_console.print(

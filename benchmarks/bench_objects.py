@@ -1,0 +1,332 @@
+"""Benchmark every object's track in the world (``slam/objects.py``) and the motion test on real movers.
+
+Two parts, each from ``dynastereo.api.run_sequence`` runs of the whole pipeline:
+
+* **Synthetic** scenes with exact object trajectories (``gt/objects.json``: ``position``,
+  the centre of the object's 3-D box in the first camera's frame, and ``speed``):
+  ``--scenarios`` (default mixed, crossing, convoy) on ``--seeds`` (default 1,2,3; the
+  objects module was developed on seed 10 only), ground-truth **oracle** boxes (track id =
+  GT id).  Per object-frame with an estimate: the position error in the frame's camera
+  (``objects.jsonl`` ``camera`` against ``position_cam``: what the objects module measures;
+  the error of ``world`` against ``position``, which adds SLAM's drift, is reported beside)
+  and, for movers (GT ``moving``), the speed error (``speed`` against GT ``speed``) after
+  the track's first 5 frames (the filter's start).  Medians by distance band
+  (< 15, 15-30, 30-50 m) and for all objects within 30 m.
+* **KITTI raw drive 0001** (an oncoming tram, cyclists, a passing car, parked cars), the
+  default detector: the motion test's verdicts (``objects.jsonl`` of a default run)
+  against the reference labels ``tests/data/raw0001_motion_labels.json`` (made by
+  ``make_labels`` below from the reference masks, the stereo disparity inside them and the
+  OXTS ground truth; checked by eye), for reference objects >= 300 px: object-frames
+  right / undecided / wrong, movers masked within 3 frames of their first appearance,
+  statics left unmasked.  And the ATE (APE RMSE, SE(3)-aligned) and end-point drift of the
+  default run, ``--masker none`` and ``--mask-all`` against the OXTS ground truth, each
+  run once per ``slam.n_features`` variant (2000, 1950, 2050, 2100; see
+  ``bench_moving.py``: a short clip's ATE moves with such small changes), medians.
+
+Targets (issue 26): position error median <= 0.3 m (objects within 30 m); speed error
+median <= 0.3 m/s (movers); raw 0001 verdicts right >= 90 % of the decided object-frames;
+default ATE median <= none's and <= 0.058 m; drift <= 0.25 %; the objects stage <= 1 ms
+per frame.
+
+Prints tables of medians; writes benchmarks/results/objects.json.  Run:
+
+    DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
+        .venv/bin/python benchmarks/bench_objects.py [--seeds 1,2,3] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_synth_slam import sequence  # noqa: E402  (the cached synthetic sequences)
+
+from dynastereo.api import run_sequence  # noqa: E402
+from dynastereo.config import Config  # noqa: E402
+from dynastereo.eval import evaluate_files  # noqa: E402
+from dynastereo.synth import read_objects  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+OUT = ROOT / "benchmarks" / "results" / "objects.json"
+LABELS = ROOT / "tests" / "data" / "raw0001_motion_labels.json"
+DRIVE = Path("kitti_raw") / "2011_09_26" / "2011_09_26_drive_0001_sync"
+BANDS = ((0.0, 15.0), (15.0, 30.0), (30.0, 50.0))
+NEAR = 30.0
+SPEED_SKIP = 5
+TARGETS = {"position_m": 0.3, "speed_mps": 0.3, "verdicts_right": 0.90, "ate_m": 0.058, "drift_percent": 0.25,
+           "objects_ms": 1.0}
+MODES = {"default": {}, "none": {"masker.kind": "none"}, "mask_all": {"motion.mode": "all"}}
+
+
+def _median(v):
+    v = [x for x in v if x is not None and np.isfinite(x)]
+    return float(np.median(v)) if v else None
+
+
+def _objects_lines(run_dir: Path):
+    for line in (run_dir / "objects.jsonl").read_text().splitlines():
+        if line.strip():
+            yield json.loads(line)
+
+
+def synth_errors(run_dir: Path, seq_dir: Path) -> dict:
+    """Position and speed errors of ``run_dir/objects.jsonl`` against ``gt/objects.json`` (module doc)."""
+    gt = read_objects(seq_dir)
+    rows = []  # (distance, position error, speed error or nan, moving)
+    seen: dict[int, int] = {}
+    for rec in _objects_lines(run_dir):
+        f = int(rec["frame"])
+        g = {o.id: o for o in gt.frame(f)}
+        for o in rec["objects"]:
+            go = g.get(int(o["track"]))
+            if go is None or "world" not in o:
+                continue
+            seen[go.id] = seen.get(go.id, 0) + 1
+            err = float(np.linalg.norm(np.subtract(o["camera"], go.position_cam)))
+            werr = float(np.linalg.norm(np.subtract(o["world"], go.position)))
+            sp = o.get("speed")
+            serr = abs(sp - go.speed) if (go.moving and sp is not None and seen[go.id] > SPEED_SKIP) else np.nan
+            rows.append((go.distance, err, serr, go.moving, werr))
+    a = np.array(rows, float).reshape(-1, 5)
+    out = {"object_frames": len(a)}
+    for lo, hi in BANDS:
+        m = (a[:, 0] >= lo) & (a[:, 0] < hi)
+        out[f"position_m_{lo:.0f}_{hi:.0f}"] = _median(a[m, 1])
+        out[f"n_{lo:.0f}_{hi:.0f}"] = int(m.sum())
+    near = a[:, 0] < NEAR
+    out["position_m_near"] = _median(a[near, 1])
+    out["position_m_p90_near"] = float(np.percentile(a[near, 1], 90)) if near.any() else None
+    out["world_position_m_near"] = _median(a[near, 4])  # through SLAM's own poses: its drift included
+    out["speed_mps_movers"] = _median(a[:, 2])
+    out["speed_mps_movers_near"] = _median(a[near, 2])
+    out["speed_frames"] = int(np.isfinite(a[:, 2]).sum())
+    return out
+
+
+def objects_ms(run_dir: Path) -> float | None:
+    s = json.loads((run_dir / "timing.json").read_text())["summary"]
+    return s.get("objects", {}).get("median")
+
+
+REUSE = False  # --reuse: a finished run folder (run.json without an error) is read, not run again
+
+
+def run(seq_dir: Path, out: Path, detector: str | None = None, **settings) -> dict:
+    done = out / "run.json"
+    if REUSE and done.is_file():
+        r = json.loads(done.read_text())
+        if "error" not in r:
+            return {"frames": r.get("frames_done"), "lost": r.get("frames_lost"),
+                    "wall_s": r.get("wall_s"), "reused": True}
+    over = dict(settings)
+    if detector:
+        over["detector.name"] = detector
+    cfg = Config().with_overrides(over)
+    t0 = time.perf_counter()
+    res = run_sequence(seq_dir, out, cfg, stereo_check=False)
+    return {"frames": len(res.frames), "lost": len(res.lost), "wall_s": round(time.perf_counter() - t0, 2)}
+
+
+def accuracy(run_dir: Path, gt: Path) -> dict:
+    ev = evaluate_files(run_dir / "trajectory.kitti.txt", gt)
+    return {"ate_m": round(float(ev.ape["rmse"]), 4), "drift_percent": round(float(ev.drift_percent), 3)}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenarios", default="mixed,crossing,convoy")
+    ap.add_argument("--seeds", default="1,2,3", help="seeds for the synthetic part (10 was developed on)")
+    ap.add_argument("--frames", type=int, default=150, help="frames per synthetic sequence")
+    ap.add_argument("--size", default="640x192")
+    ap.add_argument("--raw", type=int, default=1, help="1: also the KITTI raw 0001 part")
+    ap.add_argument("--variants", default="2000,1950,2050,2100", help="slam.n_features per raw 0001 run")
+    ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "dynastereo_bench_synth")
+    ap.add_argument("--work", type=Path, default=None, help="run folders (default: a new temporary folder)")
+    ap.add_argument("--quick", action="store_true", help="one seed, mixed only, one raw variant")
+    ap.add_argument("--reuse", action="store_true", help="reuse finished runs in --work (e.g. after an interruption)")
+    ap.add_argument("--out", type=Path, default=OUT)
+    args = ap.parse_args()
+    if args.quick:
+        args.seeds, args.scenarios, args.variants = "1", "mixed", "2000"
+    global REUSE
+    REUSE = args.reuse
+    logging.basicConfig(level=logging.ERROR)
+    logging.getLogger("dynastereo").setLevel(logging.ERROR)
+    size = tuple(int(v) for v in args.size.split("x"))
+    args.cache.mkdir(parents=True, exist_ok=True)
+    work = args.work or Path(tempfile.mkdtemp(prefix="bench_objects_"))
+    work.mkdir(parents=True, exist_ok=True)
+    seeds = [int(s) for s in args.seeds.split(",") if s]
+
+    synth = []
+    for sc in [s for s in args.scenarios.split(",") if s]:
+        for seed in seeds:
+            seq, _ = sequence(args.cache, sc, args.frames, seed, size)
+            out = work / f"{sc}_s{seed}"
+            row = {"scenario": sc, "seed": seed, **run(seq, out, "oracle"), **synth_errors(out, seq),
+                   "objects_ms": objects_ms(out)}
+            synth.append(row)
+            print(f"{sc:9s} seed {seed}: position {row['position_m_near']:.3f} m (< {NEAR:.0f} m, "
+                  f"{row['n_0_15'] + row['n_15_30']} object-frames), speed {row['speed_mps_movers']} m/s "
+                  f"({row['speed_frames']} mover-frames); objects stage {row['objects_ms']} ms/frame", flush=True)
+
+    raw = None
+    data = os.environ.get("DYNASTEREO_DATA")
+    if data and args.raw:
+        raw = raw_part(Path(data) / DRIVE, work, [int(v) for v in args.variants.split(",") if v])
+
+    pos = _median([r["position_m_near"] for r in synth])
+    spd = _median([r["speed_mps_movers"] for r in synth])
+    ms = [r["objects_ms"] for r in synth] + ([raw["objects_ms"]] if raw else [])
+    ms_worst = max((m for m in ms if m is not None), default=None)
+    targets = {
+        "position_m": {"value": pos, "target": TARGETS["position_m"], "met": pos is not None and pos <= 0.3},
+        "speed_mps": {"value": spd, "target": TARGETS["speed_mps"], "met": spd is not None and spd <= 0.3},
+        "objects_ms": {"value": ms_worst, "target": 1.0, "met": ms_worst is not None and ms_worst <= 1.0},
+    }
+    if raw and raw["verdicts"]:
+        v = raw["verdicts"]
+        targets["verdicts_right"] = {"value": v["right_of_decided"], "target": 0.9,
+                                     "met": v["right_of_decided"] is not None and v["right_of_decided"] >= 0.9}
+        targets["movers_masked_within_3"] = {"value": v["movers_masked_within_3"], "target": v["movers"],
+                                             "met": v["movers_masked_within_3"] == v["movers"]}
+    if raw:
+        d, n = raw["accuracy"]["default"], raw["accuracy"]["none"]
+        targets["ate_default_le_none"] = {"value": [d["ate_m"], n["ate_m"]], "met": d["ate_m"] <= n["ate_m"]}
+        targets["ate_m"] = {"value": d["ate_m"], "target": 0.058, "met": d["ate_m"] <= 0.058}
+        targets["drift_percent"] = {"value": d["drift_percent"], "target": 0.25, "met": d["drift_percent"] <= 0.25}
+
+    print(f"\nsynthetic, oracle boxes, seeds {args.seeds}: medians over the seeds")
+    print(f"{'scenario':10s} {'<15 m':>7s} {'15-30 m':>8s} {'30-50 m':>8s} {'<30 m':>7s} {'speed':>7s} {'ms':>6s}")
+    for sc in dict.fromkeys(r["scenario"] for r in synth):
+        rs = [r for r in synth if r["scenario"] == sc]
+        cells = [_median([r[k] for r in rs]) for k in ("position_m_0_15", "position_m_15_30", "position_m_30_50",
+                                                          "position_m_near", "speed_mps_movers", "objects_ms")]
+        print(f"{sc:10s} " + " ".join(f"{'-' if c is None else f'{c:.3f}':>7s}" for c in cells))
+    if raw:
+        print_raw(raw)
+    for k, t in targets.items():
+        print(f"target {k}: {'met' if t['met'] else 'NOT met'} ({t})")
+    result = {
+        "benchmark": "objects",
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+                    "loadavg_at_end": list(os.getloadavg())},
+        "config": {"frames": args.frames, "size": args.size, "seeds": seeds, "developed_on_seed": 10,
+                   "n_features": args.variants},
+        "synthetic": synth,
+        "synthetic_medians": {"position_m_near": pos, "speed_mps_movers": spd},
+        "kitti_raw_0001": raw,
+        "targets": targets,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1, default=float))
+    print(f"-> {args.out}")
+    return 0
+
+
+# ------------------------------------------------------------------ KITTI raw 0001
+
+
+def raw_part(drive: Path, work: Path, variants: list[int]) -> dict:
+    """The verdicts of the default run (first variant) against the reference labels, and
+    ATE / drift of default, none and mask-all per ``slam.n_features`` variant (module doc)."""
+    from dynastereo.eval.trajectory import find_ground_truth
+
+    gt = find_ground_truth(drive)
+    runs: dict[str, list[dict]] = {m: [] for m in MODES}
+    for nf in variants:
+        for mode, over in MODES.items():
+            out = work / f"raw0001_{mode}_nf{nf}"
+            r = {"n_features": nf, **run(drive, out, None, **over, **{"slam.n_features": nf}), **accuracy(out, gt)}
+            if mode == "default":
+                r["objects_ms"] = objects_ms(out)
+            runs[mode].append(r)
+            print(f"raw 0001 {mode:8s} n_features {nf}: ATE {r['ate_m']:.4f} m, drift {r['drift_percent']:.3f} %",
+                  flush=True)
+    acc = {m: {"ate_m": _median([r["ate_m"] for r in rs]), "drift_percent": _median([r["drift_percent"] for r in rs]),
+               "ate_range": [min(r["ate_m"] for r in rs), max(r["ate_m"] for r in rs)],
+               "drift_range": [min(r["drift_percent"] for r in rs), max(r["drift_percent"] for r in rs)]}
+           for m, rs in runs.items()}
+    first = work / f"raw0001_default_nf{variants[0]}"
+    verdicts = score_verdicts(first, LABELS) if LABELS.is_file() else None
+    return {"runs": runs, "accuracy": acc, "verdicts": verdicts,
+            "objects_ms": runs["default"][0]["objects_ms"]}
+
+
+def print_raw(raw: dict) -> None:
+    v = raw["verdicts"]
+    if v:
+        print("\nKITTI raw 0001: the motion test's verdicts (default run) against the reference labels, "
+              "objects >= 300 px")
+        print(f"object-frames {v['object_frames']}: right {v['right']}, undecided {v['undecided']}, wrong "
+              f"{v['wrong']}; right of decided {v['right_of_decided']:.3f}")
+        print(f"movers masked within 3 frames of first appearance: {v['movers_masked_within_3']} of {v['movers']}; "
+              f"static object-frames left unmasked: {v['static_unmasked']} of {v['static_frames']}")
+        print("by label:", json.dumps(v["by_label"]))
+    print("\nKITTI raw 0001 vs OXTS: medians over the n_features variants (range)")
+    for m, a in raw["accuracy"].items():
+        print(f"  {m:9s} ATE {a['ate_m']:.4f} m ({a['ate_range'][0]:.4f}-{a['ate_range'][1]:.4f})  drift "
+              f"{a['drift_percent']:.3f} % ({a['drift_range'][0]:.3f}-{a['drift_range'][1]:.3f})")
+
+
+def score_verdicts(run_dir: Path, labels_path: Path) -> dict:
+    """The motion test's verdicts in ``run_dir/objects.jsonl`` against the reference labels
+    (``labels_path``): per reference object-frame (>= 300 px, labelled moving or static),
+    the run's object matched by box IoU >= 0.5 (the best); right / undecided / wrong
+    (an unmatched reference object is not counted); movers masked within 3 frames of
+    their first appearance; static object-frames left unmasked."""
+    from dynastereo.masking.detection.tracking import box_iou
+
+    lab = json.loads(labels_path.read_text())
+    by_frame: dict[int, list] = {}
+    for o in lab["objects"]:
+        for f, box, px in zip(o["frames"], o["boxes"], o["pixels"]):
+            by_frame.setdefault(int(f), []).append((o["id"], o["label"], o["moving"], box, px))
+    counts = {"right": 0, "undecided": 0, "wrong": 0}
+    per_label: dict[str, dict[str, int]] = {}
+    masked_at: dict[int, list[int]] = {}
+    static_frames = static_unmasked = 0
+    for rec in _objects_lines(run_dir):
+        f = int(rec["frame"])
+        refs = by_frame.get(f, [])
+        objs = rec["objects"]
+        if not refs or not objs:
+            continue
+        iou = box_iou([r[3] for r in refs], [o["box"] for o in objs])
+        for i, (rid, label, moving, box, px) in enumerate(refs):
+            j = int(np.argmax(iou[i]))
+            if iou[i, j] < 0.5:
+                continue
+            o = objs[j]
+            if moving and o.get("masked", True):
+                masked_at.setdefault(rid, []).append(f)
+            if px < 300 or moving is None:
+                continue
+            v = o.get("moving")
+            k = "undecided" if v is None else ("right" if bool(v) == bool(moving) else "wrong")
+            counts[k] += 1
+            per_label.setdefault(label, {"right": 0, "undecided": 0, "wrong": 0})[k] += 1
+            if not moving:
+                static_frames += 1
+                static_unmasked += not o.get("masked", True)
+    movers = [o for o in lab["objects"] if o["moving"] and max(o["pixels"]) >= 300]
+    within = sum(1 for o in movers if any(f - o["frames"][0] <= 3 for f in masked_at.get(o["id"], [])))
+    decided = counts["right"] + counts["wrong"]
+    return {"object_frames": sum(counts.values()), **counts,
+            "right_of_decided": counts["right"] / decided if decided else None,
+            "movers": len(movers), "movers_masked_within_3": within,
+            "static_frames": static_frames, "static_unmasked": static_unmasked, "by_label": per_label}
+
+
+if __name__ == "__main__":
+    sys.exit(main())
