@@ -328,5 +328,161 @@ def score_verdicts(run_dir: Path, labels_path: Path) -> dict:
             "static_frames": static_frames, "static_unmasked": static_unmasked, "by_label": per_label}
 
 
+# ------------------------------------------------------------------ the reference labels
+
+
+LABEL_CLASSES = {"car", "truck", "bus", "person", "bicycle", "motorcycle", "train"}
+SIGMA_D = 0.5  # px, the disparity's noise for the labels' depth uncertainty
+MOVING_MPS = 2.0  # a track faster than this (and 3 sigma) is moving
+
+
+def _ref_frame(ref_dir: Path, f: int):
+    import cv2
+
+    ids = cv2.imread(str(ref_dir / f"{f:06d}.png"), cv2.IMREAD_UNCHANGED)
+    meta = json.loads((ref_dir / f"{f:06d}.json").read_text())
+    return ids, meta["instances"]
+
+
+def make_labels(drive: Path, ref_dir: Path, out: Path, overlays: Path | None = None) -> dict:
+    """The reference labels of raw 0001 (module doc): per reference instance (vehicles,
+    persons, bikes) and frame, its world position from its mask (median disparity of a
+    plain SGBM inside it -> depth, mask centroid -> ray) and the OXTS pose; instances
+    associated across frames by box IoU >= 0.3 with the last box of a track of the same
+    class group seen within 2 frames (greedy, best IoU first); each track labelled from a
+    least-squares line through its world positions in the frames where its box is clear of
+    the image's sides (horizontal speed, its sigma from the depth noise ``SIGMA_D`` and 0.3 m
+    of centroid wander): moving when faster than ``MOVING_MPS`` and 3 sigma, static when
+    ``MOVING_MPS`` is more than 2 sigma above its speed, else undecided (not scored)."""
+    import cv2
+
+    from dynastereo.io import open_sequence
+    from dynastereo.masking.detection.tracking import box_iou
+    from dynastereo.masking.motion import _group
+
+    seq = open_sequence(drive)
+    c = seq.calibration
+    gt = __import__("dynastereo.eval.trajectory", fromlist=["read_trajectory"]).read_trajectory(drive)
+    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=128, blockSize=5, P1=8 * 25, P2=32 * 25,
+                                 uniquenessRatio=10, speckleWindowSize=100, speckleRange=2,
+                                 mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    tracks: list[dict] = []
+    for f in range(len(seq)):
+        fr = seq.frame(f)
+        disp = sgbm.compute(fr.left_gray, fr.right_gray).astype(np.float32) / 16.0
+        ids, inst = _ref_frame(ref_dir, f)
+        T = gt.poses[f]
+        dets = []
+        for o in inst:
+            if o["class"] not in LABEL_CLASSES:
+                continue
+            m = ids == o["id"]
+            d = disp[m & (disp > 0.5)]
+            if d.size < 10:
+                continue
+            dm = float(np.median(d))
+            ys, xs = np.nonzero(m)
+            z = c.bf / dm
+            X = np.array([(xs.mean() - c.cx) * z / c.fx, (ys.mean() - c.cy) * z / c.fy, z])
+            sz = z * SIGMA_D / dm
+            dets.append({"box": o["box"], "label": o["class"], "px": int(m.sum()), "cam": X,
+                         "world": T[:3, :3] @ X + T[:3, 3], "sigma_z": sz, "R": T[:3, :3]})
+        live = [t for t in tracks if f - t["frames"][-1] <= 2]
+        used_t, used_d = set(), set()
+        if live and dets:
+            iou = box_iou([t["boxes"][-1] for t in live], [d["box"] for d in dets])
+            for a, b in sorted(np.argwhere(iou >= 0.3).tolist(), key=lambda ab: -iou[ab[0], ab[1]]):
+                if a in used_t or b in used_d or _group(live[a]["label"]) != _group(dets[b]["label"]):
+                    continue
+                used_t.add(a)
+                used_d.add(b)
+                t, d = live[a], dets[b]
+                t["frames"].append(f)
+                for k, v in (("boxes", d["box"]), ("pixels", d["px"]), ("world", d["world"]),
+                             ("sigma_z", d["sigma_z"]), ("ray", d["R"] @ (d["cam"] / np.linalg.norm(d["cam"])))):
+                    t[k].append(v)
+        for b, d in enumerate(dets):
+            if b not in used_d:
+                tracks.append({"id": len(tracks) + 1, "label": d["label"], "frames": [f], "boxes": [d["box"]],
+                               "pixels": [d["px"]], "world": [d["world"]], "sigma_z": [d["sigma_z"]],
+                               "ray": [d["R"] @ (d["cam"] / np.linalg.norm(d["cam"]))]})
+    stamps = seq.timestamps()
+    objects = []
+    for t in tracks:
+        # the fit leaves out the frames where the box touches the image's side (a cut view:
+        # its centroid wanders along the body)
+        whole = np.array([b[0] > 2 and b[2] < c.width - 2 for b in t["boxes"]])
+        W = np.array(t["world"])[whole]
+        ts = stamps[np.array(t["frames"])][whole]
+        t["sigma_z"] = list(np.array(t["sigma_z"])[whole])
+        rec = {"id": t["id"], "label": t["label"], "frames": t["frames"],
+               "boxes": [[round(float(v), 1) for v in b] for b in t["boxes"]], "pixels": t["pixels"]}
+        if len(W) >= 3 and ts[-1] - ts[0] >= 0.25:
+            # least squares x(t), z(t); the position's sigma along each frame's ray -> per-axis weights
+            A = np.column_stack([np.ones_like(ts), ts - ts.mean()])
+            sig = np.array(t["sigma_z"]) + 0.3  # + the centroid's wander on the body (metres)
+            v, sv = np.zeros(2), np.zeros(2)
+            for j, ax in enumerate((0, 2)):
+                w = 1.0 / sig**2
+                cov = np.linalg.inv(A.T @ (A * w[:, None]))
+                coef = cov @ (A.T @ (w * W[:, ax]))
+                v[j], sv[j] = coef[1], np.sqrt(cov[1, 1])
+            speed = float(np.hypot(*v))
+            s_sig = float(np.hypot(*(sv * np.abs(v))) / speed) if speed > 1e-6 else float(sv.max())
+            moving = (True if speed > MOVING_MPS and speed > 3 * s_sig
+                      else (False if speed + 2 * s_sig < MOVING_MPS else None))
+            rec.update(speed=round(speed, 2), speed_sigma=round(s_sig, 2), moving=moving,
+                       moved_m=round(float(np.linalg.norm(W[-1, [0, 2]] - W[0, [0, 2]])), 2))
+        else:
+            rec.update(speed=None, speed_sigma=None, moving=None, moved_m=None)
+        objects.append(rec)
+    labels = {"drive": drive.name, "reference": str(ref_dir.name), "made_by": "benchmarks/bench_objects.py --make-labels",
+              "method": make_labels.__doc__.split("\n\n")[0] if make_labels.__doc__ else "",
+              "thresholds": {"moving_mps": MOVING_MPS, "sigma_disparity_px": SIGMA_D},
+              "classes": sorted(LABEL_CLASSES), "objects": objects}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(labels, indent=None, separators=(",", ":")) + "\n")
+    if overlays is not None:
+        draw_label_overlays(seq, labels, overlays)
+    return labels
+
+
+def draw_label_overlays(seq, labels: dict, folder: Path, frames=(10, 30, 45, 60, 75, 90, 105)) -> list[Path]:
+    """Frames with each labelled reference object's box in its label's colour (red moving,
+    green static, orange undecided) and ``#id label speed``, to check by eye."""
+    import cv2
+
+    from dynastereo.pipeline import VERDICT_COLOURS
+
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for f in frames:
+        img = cv2.cvtColor(seq.frame(f).left_gray, cv2.COLOR_GRAY2BGR)
+        for o in labels["objects"]:
+            if f not in o["frames"]:
+                continue
+            b = o["boxes"][o["frames"].index(f)]
+            col = VERDICT_COLOURS[o["moving"]]
+            cv2.rectangle(img, (int(b[0]), int(b[1])), (int(b[2]), int(b[3])), col, 2)
+            sp = "" if o["speed"] is None else f" {o['speed']:.1f}"
+            cv2.putText(img, f"#{o['id']} {o['label']}{sp}", (int(b[0]), max(int(b[1]) - 3, 10)),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.45, col, 1, cv2.LINE_AA)
+        p = folder / f"labels_raw0001_{f:03d}.png"
+        cv2.imwrite(str(p), img)
+        out.append(p)
+    return out
+
+
 if __name__ == "__main__":
+    if "--make-labels" in sys.argv:
+        data = Path(os.environ["DYNASTEREO_DATA"])
+        ref = data.parent / "reference" / "refmasks" / "raw_0001"
+        ov = Path(sys.argv[sys.argv.index("--make-labels") + 1]) if len(sys.argv) > sys.argv.index("--make-labels") + 1 \
+            else None
+        lab = make_labels(data / DRIVE, ref, LABELS, ov)
+        for o in lab["objects"]:
+            if max(o["pixels"]) >= 300 and len(o["frames"]) >= 3:
+                print(o["id"], o["label"], o["frames"][0], "-", o["frames"][-1], "px max", max(o["pixels"]),
+                      "speed", o["speed"], "+-", o["speed_sigma"], "moved", o["moved_m"], "->", o["moving"])
+        sys.exit(0)
     sys.exit(main())
