@@ -121,6 +121,43 @@ def objects_ms(run_dir: Path) -> float | None:
 REUSE = False  # --reuse: a finished run folder (run.json without an error) is read, not run again
 
 
+def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int = 60, repeats: int = 3) -> dict:
+    """The objects stage alone (the pipeline's own stage times include the waits of a
+    masking thread on shared cores): the masks of the first ``frames`` frames made once
+    (with the run's motion verdicts and speeds from its ``objects.jsonl``), then
+    ``WorldObjects.update`` with the run's poses timed ``repeats`` times; per frame the
+    fastest repeat, then ms per frame (median, p90) over the frames."""
+    from dynastereo.eval.trajectory import read_trajectory
+    from dynastereo.io import open_sequence
+    from dynastereo.masking import build_masker
+    from dynastereo.slam.objects import WorldObjects
+
+    cfg = Config().with_overrides({"detector.name": detector} if detector else {})
+    seq = open_sequence(seq_dir)
+    masker = build_masker(cfg, seq.calibration, models_dir=os.environ.get("DYNASTEREO_MODELS"), ground_truth=seq_dir)
+    poses = read_trajectory(run_dir / "trajectory.kitti.txt").poses
+    recs = {r["frame"]: r["objects"] for r in _objects_lines(run_dir)}
+    n = min(frames, len(seq), len(poses))
+    data = []
+    for i in range(n):
+        m = masker.mask(seq.frame(i))
+        for o, r in zip(m.objects, recs.get(i, [])):
+            o.moving, o.speed_mps = r.get("moving"), r.get("speed_mps")
+        data.append(m)
+    stamps = seq.timestamps()
+    times = np.zeros((repeats, n))
+    for r in range(repeats):
+        wo = WorldObjects(seq.calibration, sigma_disparity=cfg.motion.sigma_disparity, sigma_px=cfg.motion.sigma_px)
+        for i, m in enumerate(data):
+            t0 = time.perf_counter()
+            wo.update(m, poses[i], True, float(stamps[i]))
+            times[r, i] = (time.perf_counter() - t0) * 1e3
+    best = times.min(axis=0)
+    return {"frames": n, "repeats": repeats, "objects_median": float(np.median([len(m.objects) for m in data])),
+            "ms_median": round(float(np.median(best)), 3), "ms_p90": round(float(np.percentile(best, 90)), 3),
+            "loadavg": round(os.getloadavg()[0], 2)}
+
+
 def run(seq_dir: Path, out: Path, detector: str | None = None, **settings) -> dict:
     done = out / "run.json"
     if REUSE and done.is_file():
