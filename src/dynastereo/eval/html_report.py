@@ -402,6 +402,9 @@ def _objects_section(rf: RunFiles) -> str:
             + _table([[k, v] for k, v in methods.most_common()], ["mask method", "objects"]))
 
 
+VIEW_MARGIN = 40.0  # m around the camera path in the objects' top view
+
+
 def _object_paths_section(rf: RunFiles) -> str:
     """Top view of the camera path with every object's path (``objects_tracks.csv``,
     coloured by the track's verdict: moving when the motion test said so in most of its
@@ -438,7 +441,11 @@ def _object_paths_section(rf: RunFiles) -> str:
     ax.plot([], [], color=np.array(verdict_rgb(True)) / 255, label="object, moving")
     ax.plot([], [], color=np.array(verdict_rgb(False)) / 255, label="object, static")
     ax.plot([], [], color=np.array(verdict_rgb(None)) / 255, label="object, undecided")
-    ax.set_aspect("equal", adjustable="datalim")
+    if cam is not None:  # the camera's surroundings: far objects' paths would shrink the view
+        lo, hi = cam[:, [0, 2]].min(axis=0) - VIEW_MARGIN, cam[:, [0, 2]].max(axis=0) + VIEW_MARGIN
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal", adjustable="box")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("z (m), forward at the start")
     ax.set_title("top view: the camera and the objects' paths (the trajectory's frame)")
@@ -451,11 +458,12 @@ def _object_paths_section(rf: RunFiles) -> str:
     if movers:
         fig = _figure((9.0, 3.6))
         ax = fig.subplots()
-        for k, t in movers.items():
-            ax.plot(t["stamp"], t["speed"], "-", lw=1.4, label=f"#{k} {t['label']}")
+        for k, t in movers.items():  # where the filter has settled (speed sigma <= 1.5 m/s)
+            sp = np.where(t["speed_sigma"] <= 1.5, t["speed"], np.nan)
+            ax.plot(t["stamp"], sp, ".-", lw=1.4, ms=3, label=f"#{k} {t['label']}")
         ax.set_xlabel("time (s)")
         ax.set_ylabel("speed (m/s)")
-        ax.set_title("speed over time, moving objects")
+        ax.set_title("speed over time, moving objects (where its sigma <= 1.5 m/s)")
         ax.grid(True, alpha=0.3)
         ax.legend(loc="best", fontsize=7, ncols=3)
         rows = [[f"#{k}", t["label"], len(t["frame"]), f"{t['frame'][0]}-{t['frame'][-1]}",

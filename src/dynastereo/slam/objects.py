@@ -541,15 +541,17 @@ class TrackWriter:
 
 
 def read_tracks(path: str | Path) -> dict[int, dict[str, np.ndarray]]:
-    """``objects_tracks.csv`` as ``{track: {"frame", "stamp", "xyz" (n, 3), "speed", "moving", "label"}}``."""
+    """``objects_tracks.csv`` as ``{track: {"frame", "stamp", "xyz" (n, 3), "speed", "speed_sigma", "moving"
+    (1, 0, -1 undecided), "label"}}``."""
     out: dict[int, dict[str, list]] = {}
     with open(path, newline="") as fh:
         for row in csv.DictReader(fh):
             t = out.setdefault(int(row["track_id"]), {"frame": [], "stamp": [], "xyz": [], "speed": [],
-                                                       "moving": [], "label": row["label"]})
+                                                       "speed_sigma": [], "moving": [], "label": row["label"]})
             t["frame"].append(int(row["frame"]))
             t["stamp"].append(float(row["stamp"]))
             t["xyz"].append([float(row["x"]), float(row["y"]), float(row["z"])])
             t["speed"].append(float(row["speed"]) if row["speed"] else np.nan)
+            t["speed_sigma"].append(float(row["speed_sigma"]) if row["speed_sigma"] else np.nan)
             t["moving"].append({"": -1, "0": 0, "1": 1}[row["moving"]])
     return {k: {kk: (np.asarray(vv) if kk != "label" else vv) for kk, vv in v.items()} for k, v in out.items()}
