@@ -221,15 +221,29 @@ def main() -> int:
     data = os.environ.get("DYNASTEREO_DATA")
     if data and args.raw:
         raw = raw_part(Path(data) / DRIVE, work, [int(v) for v in args.variants.split(",") if v])
+    # the objects stage alone, replayed (the in-pipeline stage times include a busy masking thread's waits)
+    replays = {}
+    if synth:
+        first = synth[0]
+        seq, _ = sequence(args.cache, first["scenario"], args.frames, first["seed"], size)
+        replays[f"synth {first['scenario']} seed {first['seed']}"] = replay_cost(
+            seq, work / f"{first['scenario']}_s{first['seed']}", "oracle")
+    if raw:
+        nf = raw["runs"]["default"][0]["n_features"]
+        replays["KITTI raw 0001"] = replay_cost(Path(data) / DRIVE, work / f"raw0001_default_nf{nf}", None)
+    for k, v in replays.items():
+        print(f"objects stage alone, {k}: {v['ms_median']} ms/frame median (p90 {v['ms_p90']}), "
+              f"{v['objects_median']:.0f} objects a frame", flush=True)
 
     pos = _median([r["position_m_near"] for r in synth])
     spd = _median([r["speed_mps_movers"] for r in synth])
-    ms = [r["objects_ms"] for r in synth] + ([raw["objects_ms"]] if raw else [])
-    ms_worst = max((m for m in ms if m is not None), default=None)
+    ms_worst = max((v["ms_median"] for v in replays.values()), default=None)
+    ms_pipeline = [r["objects_ms"] for r in synth] + ([raw["objects_ms"]] if raw else [])
     targets = {
         "position_m": {"value": pos, "target": TARGETS["position_m"], "met": pos is not None and pos <= 0.3},
         "speed_mps": {"value": spd, "target": TARGETS["speed_mps"], "met": spd is not None and spd <= 0.3},
-        "objects_ms": {"value": ms_worst, "target": 1.0, "met": ms_worst is not None and ms_worst <= 1.0},
+        "objects_ms": {"value": ms_worst, "target": 1.0, "met": ms_worst is not None and ms_worst <= 1.0,
+                       "in_pipeline_medians": ms_pipeline},
     }
     if raw and raw["verdicts"]:
         v = raw["verdicts"]
@@ -261,7 +275,9 @@ def main() -> int:
         "config": {"frames": args.frames, "size": args.size, "seeds": seeds, "developed_on_seed": 10,
                    "n_features": args.variants},
         "synthetic": synth,
-        "synthetic_medians": {"position_m_near": pos, "speed_mps_movers": spd},
+        "synthetic_medians": {"position_m_near": pos, "speed_mps_movers": spd,
+                              "world_position_m_near": _median([r["world_position_m_near"] for r in synth])},
+        "replay_cost": replays,
         "kitti_raw_0001": raw,
         "targets": targets,
     }
@@ -473,7 +489,8 @@ def make_labels(drive: Path, ref_dir: Path, out: Path, overlays: Path | None = N
         else:
             rec.update(speed=None, speed_sigma=None, moving=None, moved_m=None)
         objects.append(rec)
-    labels = {"drive": drive.name, "reference": str(ref_dir.name), "made_by": "benchmarks/bench_objects.py --make-labels",
+    labels = {"drive": drive.name, "reference": str(ref_dir.name),
+              "made_by": "benchmarks/bench_objects.py --make-labels",
               "method": make_labels.__doc__.split("\n\n")[0] if make_labels.__doc__ else "",
               "thresholds": {"moving_mps": MOVING_MPS, "sigma_disparity_px": SIGMA_D},
               "classes": sorted(LABEL_CLASSES), "objects": objects}
@@ -514,8 +531,8 @@ if __name__ == "__main__":
     if "--make-labels" in sys.argv:
         data = Path(os.environ["DYNASTEREO_DATA"])
         ref = data.parent / "reference" / "refmasks" / "raw_0001"
-        ov = Path(sys.argv[sys.argv.index("--make-labels") + 1]) if len(sys.argv) > sys.argv.index("--make-labels") + 1 \
-            else None
+        i = sys.argv.index("--make-labels") + 1
+        ov = Path(sys.argv[i]) if len(sys.argv) > i else None
         lab = make_labels(data / DRIVE, ref, LABELS, ov)
         for o in lab["objects"]:
             if max(o["pixels"]) >= 300 and len(o["frames"]) >= 3:

@@ -332,7 +332,8 @@ def _independent_oxts_poses(drive: Path) -> np.ndarray:
         return T
 
     date = drive.parent
-    cam = {ln.split(":")[0]: ln.split(":", 1)[1].split() for ln in (date / "calib_cam_to_cam.txt").read_text().splitlines()}
+    cam_text = (date / "calib_cam_to_cam.txt").read_text().splitlines()
+    cam = {ln.split(":")[0]: ln.split(":", 1)[1].split() for ln in cam_text}
     R_rect = np.eye(4)
     R_rect[:3, :3] = np.array(cam["R_rect_00"], float).reshape(3, 3)
     T_imu_to_cam = R_rect @ rigid(date / "calib_velo_to_cam.txt") @ rigid(date / "calib_imu_to_velo.txt")

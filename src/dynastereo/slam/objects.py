@@ -8,23 +8,30 @@ the trajectory's frame (the first camera's: x right, y down, z forward):
 * **Measurement** (one compiled pass over the objects' boxes, :func:`_object_stats`): the
   disparities of the object's own outline pixels (with a box masker: the box's pixels
   within 15 % of the object's peak disparity) go into a histogram of 1/16 px bins, giving
-  the median and the 10th / 90th percentiles; the box centre gives the viewing ray.
-* **Centre, not surface.**  Stereo sees the near surface; the object's centre lies
-  behind it.  With a class footprint (``CLASS_SIZE``: width, height, length) and a heading
-  (the track's velocity when it moves faster than 1 m/s, else the camera's forward axis:
-  parked cars line the road), the box's extent along the ray is ``e = l|cos φ| + w|sin φ|``;
-  the visible surface's median range lies half its depth spread ``s`` (p90 - p10, less
-  the spread the disparity noise alone makes) behind the nearest point, so the centre is
-  at ``r_median + (e - s) / 2`` (clipped to ``[0, e/2]``).
+  the median and the 10th / 90th percentiles.
+* **Centre, not surface.**  Stereo sees the near surface; the object's centre lies behind
+  it.  With a class footprint (``CLASS_SIZE``: width, height, length) and a heading (the
+  track's velocity when it moves faster than 1 m/s, else the camera's forward axis: parked
+  cars line the road), the box's extent along the view ray through the box centre is
+  ``e = l|cos φ| + w|sin φ|``, and the centre is at the nearest point (the 90th percentile
+  disparity's range) plus ``e / 2``.  An object cut by the image's side (its box centre is
+  not its centre) and a person (no length to speak of) are placed from a second pass
+  over their pixels instead: the 10th / 90th percentiles of their top-view coordinates
+  along and across the heading; per axis the face toward the camera plus half the
+  footprint (both ends' middle when the camera is within the object's span).
 * **Uncertainty.**  Along the ray ``σ_r = r σ_d / d`` (the disparity's noise,
   ``motion.sigma_disparity``, shared by the pixels: not divided by their number) plus a
-  quarter of the centre correction; across it ``r σ_px / f`` with ``σ_px`` a twentieth of
-  the box width (at least 1 px).  The 3x3 covariance is rotated into the world with the pose.
-* **Velocity** (:meth:`WorldObjects.update`): a constant-velocity Kalman filter per
-  track id in the world frame (state ``[p, v]``, white acceleration noise
-  ``accel_noise`` m²/s³), all tracks of the frame at once (stacked matrices).  An
-  innovation over chi-square ``GATE`` (the tracker gave the id to another object)
-  restarts the track.  Speed = ``|v|`` with ``σ = sqrt(vᵀ P_v v) / |v|``.
+  tenth of the class length; across it ``r σ_px / f`` with ``σ_px`` a twentieth of the box
+  width (at least 1 px) plus a tenth of the class width.  The 3x3 covariance is rotated into
+  the world with the pose.
+* **Velocity** (:meth:`WorldObjects.update`): a constant-velocity Kalman filter per track
+  id in the world frame (state ``[p, v]``, white acceleration noise ``accel_noise``
+  m²/s³, a thousandth of it vertically: objects keep to the ground), all tracks of the
+  frame at once (stacked matrices).  After the position, the motion test's own speed
+  (``ObjectMask.speed_mps``, from its points' flow) updates the speed along the filter's
+  direction, and an object the motion test judged static gets ``v = 0`` (σ 0.1 m/s).  An
+  innovation over chi-square ``GATE`` (the tracker gave the id to another object) restarts
+  the track.  Speed = ``|v|`` with ``σ = sqrt(vᵀ P_v v) / |v|``.
 * **Extent**: the box's width and height at the centre's depth, and the class length.
 
 Frames whose pose was lost are skipped (the filter only predicts over the gap).  Objects
@@ -63,10 +70,10 @@ AB_STEP = 0.02  # m, top-view histogram bin
 AB_BINS = 2500  # +-25 m around the median point
 GATE = 40.0  # chi-square (3 dof) of an innovation that restarts the track
 VERTICAL = np.diag([1.0, 1e-3, 1.0])  # the filter's acceleration noise per world axis (y: down)
-MOVING_HEADING_SPEED = 1.0
+MOVING_HEADING_SPEED = 1.0  # m/s: above it, the velocity gives the heading
 SPEED_DIRECTION = 0.3  # m/s: the filter's velocity gives a direction for the motion test's speed above it
 SPEED_SIGMA = 0.3  # m/s, the motion test's speed (plus 10 %)
-STILL_SIGMA = 0.1  # m/s, the velocity of an object the motion test judged static  # m/s: above it, the velocity gives the heading
+STILL_SIGMA = 0.1  # m/s, the velocity of an object the motion test judged static
 
 
 @njit(nogil=True, cache=True)
