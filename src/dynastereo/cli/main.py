@@ -501,10 +501,26 @@ def config_cmd(
     print(dump_config(cfg), end="")
 
 
+def _run_ground_truth(estimate: Path) -> Path:
+    """The ground truth of the sequence a run's ``run.json`` (beside ``estimate``) names."""
+    import json
+
+    from ..errors import InputError
+    from ..eval.trajectory import find_ground_truth
+
+    run = estimate.parent / "run.json"
+    seq = json.loads(run.read_text()).get("sequence") if run.is_file() else None
+    gt = find_ground_truth(seq) if seq else None
+    if gt is None:
+        raise InputError("no ground truth given, and none found for the run's sequence (run.json beside the "
+                         "estimate: KITTI poses/NN.txt, a KITTI raw drive's oxts/)", estimate)
+    return gt
+
+
 @app.command("eval")
 def eval_cmd(
     estimate: Path = typer.Argument(..., help="Estimated trajectory (KITTI 3x4 rows or TUM)."),
-    ground_truth: Path = typer.Argument(..., help="Ground truth (KITTI or TUM, or a KITTI raw drive folder: its oxts/); a longer one is cut to the estimate."),
+    ground_truth: Optional[Path] = typer.Argument(None, help="Ground truth (KITTI or TUM, or a KITTI raw drive folder: its oxts/); a longer one is cut to the estimate. Default: the run's sequence's own (run.json beside the estimate: KITTI poses/NN.txt, a raw drive's oxts/)."),
     as_json: bool = typer.Option(False, "--json", help="Print the numbers as JSON (keys ape.rmse, ape.mean, ..., drift_percent)."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Trajectory plot PNG (default: beside the estimate)."),
     no_align: bool = typer.Option(False, "--no-align", help="Do not SE(3)-align before APE."),
@@ -517,6 +533,8 @@ def eval_cmd(
     from ..io.outputs import check_output_file
 
     try:
+        if ground_truth is None:
+            ground_truth = _run_ground_truth(estimate)
         png = plot or estimate.with_name(estimate.name.split(".")[0] + "_vs_gt.png")
         if plot is not None or estimate.is_file():
             check_output_file(png, what="plot file")
