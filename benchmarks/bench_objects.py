@@ -223,8 +223,7 @@ def main() -> int:
         raw = raw_part(Path(data) / DRIVE, work, [int(v) for v in args.variants.split(",") if v])
     # the objects stage alone, replayed (the in-pipeline stage times include a busy masking thread's waits)
     replays = {}
-    if synth:
-        first = synth[0]
+    for first in [r for r in synth if r["seed"] == seeds[0]]:  # each scenario's first seed
         seq, _ = sequence(args.cache, first["scenario"], args.frames, first["seed"], size)
         replays[f"synth {first['scenario']} seed {first['seed']}"] = replay_cost(
             seq, work / f"{first['scenario']}_s{first['seed']}", "oracle")
