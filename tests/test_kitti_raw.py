@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
@@ -332,7 +333,8 @@ def _independent_oxts_poses(drive: Path) -> np.ndarray:
         return T
 
     date = drive.parent
-    cam = {ln.split(":")[0]: ln.split(":", 1)[1].split() for ln in (date / "calib_cam_to_cam.txt").read_text().splitlines()}
+    cam_text = (date / "calib_cam_to_cam.txt").read_text().splitlines()
+    cam = {ln.split(":")[0]: ln.split(":", 1)[1].split() for ln in cam_text}
     R_rect = np.eye(4)
     R_rect[:3, :3] = np.array(cam["R_rect_00"], float).reshape(3, 3)
     T_imu_to_cam = R_rect @ rigid(date / "calib_velo_to_cam.txt") @ rigid(date / "calib_imu_to_velo.txt")
@@ -398,6 +400,15 @@ def test_gt_command_writes_kitti_and_tum(raw_drive, tmp_path):
     k, t = read_trajectory(out), read_trajectory(tmp_path / "poses.tum.txt")
     assert len(k) == len(t) == 108 and k.timestamps is None and t.timestamps[1] == pytest.approx(0.103129856)
     assert np.abs(k.poses - t.poses).max() < 1e-6 and k.path_length == pytest.approx(106.9, abs=0.5)
+    # `eval` without a ground truth finds the run's sequence's own (run.json beside the estimate)
+    (tmp_path / "run.json").write_text(json.dumps({"sequence": str(raw_drive)}))
+    r = CliRunner().invoke(app, ["eval", str(out), "--json"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.output[r.output.index("{"):])
+    assert d["ape.rmse"] < 1e-6 and d["drift_percent"] < 1e-6
+    (tmp_path / "run.json").write_text(json.dumps({"sequence": str(tmp_path)}))
+    r = CliRunner().invoke(app, ["eval", str(out)])
+    assert r.exit_code == 2 and "no ground truth given, and none found" in r.output
 
 
 def test_bench_and_report_find_oxts(raw_drive):

@@ -186,6 +186,7 @@ def test_ros1_bags_read_with_rospy_and_rosbag(kitti06: Path, tmp_path: Path) -> 
     import sensor_msgs.msg
     import stereo_msgs.msg
     import tf2_msgs.msg
+    import visualization_msgs.msg
     from rosbags.highlevel import AnyReader
 
     from dynastereo.ros import export_bag
@@ -200,7 +201,8 @@ def test_ros1_bags_read_with_rospy_and_rosbag(kitti06: Path, tmp_path: Path) -> 
     want = {"sensor_msgs/msg/Image": sensor_msgs.msg.Image, "sensor_msgs/msg/CameraInfo": sensor_msgs.msg.CameraInfo,
             "nav_msgs/msg/Odometry": nav_msgs.msg.Odometry, "tf2_msgs/msg/TFMessage": tf2_msgs.msg.TFMessage,
             "stereo_msgs/msg/DisparityImage": stereo_msgs.msg.DisparityImage,
-            "nav_msgs/msg/Path": nav_msgs.msg.Path, "sensor_msgs/msg/PointCloud2": sensor_msgs.msg.PointCloud2}
+            "nav_msgs/msg/Path": nav_msgs.msg.Path, "sensor_msgs/msg/PointCloud2": sensor_msgs.msg.PointCloud2,
+            "visualization_msgs/msg/MarkerArray": visualization_msgs.msg.MarkerArray}
     seen = set()
     for p in (bag, tmp_path / "o.bag"):
         with AnyReader([p]) as r:
@@ -230,7 +232,7 @@ def test_ros1_bags_read_with_rospy_and_rosbag(kitti06: Path, tmp_path: Path) -> 
                       "/camera/right/camera_info": 1, "/dynastereo/odometry": 1, "/tf": 1,
                       "/dynastereo/left/masked": 1, "/dynastereo/right/masked": 1, "/dynastereo/left/mask": 1,
                       "/dynastereo/right/mask": 1, "/dynastereo/disparity": 1, "/dynastereo/path": 1,
-                      "/dynastereo/map_points": 1}
+                      "/dynastereo/map_points": 1, "/dynastereo/objects": 1}
     assert read_odometry(tmp_path / "o.bag")[0].tolist() == [5]
 
 

@@ -191,6 +191,7 @@ def run_sequence(
     observers: tuple[FrameObserver, ...] = (),
     viewer: bool = False,
     rrd: str | Path | None = None,
+    save_cloud: str | Path | None = None,
 ) -> SlamJobResult:
     """Mask and track ``sequence`` with the stereo SLAM; see ``pipeline.run_slam_job``.
 
@@ -203,7 +204,8 @@ def run_sequence(
     ``rrd``: show the run in the rerun viewer / record it to an ``.rrd`` file
     (:func:`viewers`).  ``gt``: ground truth for both (default: ``poses/NN.txt`` of a KITTI
     layout, when present).  ``rate``: as for :func:`mask_sequence`; where the stamps came
-    from is ``run.json``'s ``timestamps``.
+    from is ``run.json``'s ``timestamps``.  ``save_cloud``: write the final map's points as
+    PLY, none on an object judged moving or undecided.
     """
     cfg = cfg or Config()
     seq = load_sequence(sequence, calib, rate=rate)
@@ -211,7 +213,8 @@ def run_sequence(
     with viewers(observers, viewer=viewer, rrd=rrd, gt=gt, name="dynastereo run") as obs:
         res = slam_job(seq, out, cfg, frames=frames, models_dir=models_dir, ground_truth=getattr(seq, "path", None),
                        observers=obs, save_masks=save_masks, progress=progress, save_map=save_map,
-                       load_map=load_map, localize_only=localize_only, overwrite=overwrite, stereo_check=stereo_check)
+                       load_map=load_map, localize_only=localize_only, overwrite=overwrite, stereo_check=stereo_check,
+                       save_cloud=save_cloud)
     if report:
         res.report = make_report(out, gt)
     return res
@@ -234,6 +237,7 @@ def slam_job(
     localize_only: bool = False,
     overwrite: bool = True,
     stereo_check: bool = True,
+    save_cloud: str | Path | None = None,
 ) -> SlamJobResult:
     """The one place that assembles reader -> masker -> SLAM -> writers, for a folder, a
     bag or anything else that is a :class:`~dynastereo.io.base.Sequence`: the inputs checked
@@ -251,6 +255,8 @@ def slam_job(
         raise ConfigError("localization only needs a map: give load_map (--load-map FILE)")
     if save_map is not None:
         check_output_file(save_map, what="map file")
+    if save_cloud is not None:
+        check_output_file(save_cloud, what="point cloud file")
     indices, masker = _checked_inputs(seq, cfg, frames, models_dir, ground_truth, out=out, overwrite=overwrite,
                                       stereo_check=stereo_check)
     observers = (*observers, *_stereo_watch(seq, stereo_check))
@@ -269,7 +275,7 @@ def slam_job(
 
     return run_slam_job(seq, masker, system, out, indices, config_dict=to_dict(cfg), save_masks=save_masks,
                         progress=progress, save_map=save_map, map_info=info, observers=observers,
-                        motion=build_motion(cfg, seq.calibration, masker))
+                        motion=build_motion(cfg, seq.calibration, masker), save_cloud=save_cloud)
 
 
 # --------------------------------------------------------------------------- benchmarks
@@ -333,6 +339,7 @@ def run_bag(
     observers: tuple[FrameObserver, ...] = (),
     viewer: bool = False,
     rrd: str | Path | None = None,
+    save_cloud: str | Path | None = None,
 ):
     """Mask and track a stereo bag (ROS 1 .bag, ROS 2 .db3, .mcap); results as for
     :func:`run_sequence` plus ``out/output.<fmt>`` and ``out/bag.json``.  Calibration:
@@ -353,7 +360,8 @@ def run_bag(
                        right_topic=right_topic or DEFAULT_RIGHT_TOPIC, left_info=left_info, right_info=right_info,
                        calib=calib, fallback_calib=fallback, tolerance_s=tolerance_s, rectify=rectify,
                        frames=frames, models_dir=models_dir, save_masks=save_masks, outputs=outputs,
-                       progress=progress, overwrite=overwrite, stereo_check=stereo_check, observers=obs)
+                       progress=progress, overwrite=overwrite, stereo_check=stereo_check, observers=obs,
+                       save_cloud=save_cloud)
     if report:
         res.slam.report = make_report(out, gt)
     return res

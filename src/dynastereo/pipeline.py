@@ -33,7 +33,7 @@ import numpy as np
 from .errors import OutputError
 from .io.base import Sequence
 from .io.images import write_disparity_png
-from .io.outputs import RowFile, atomic_write_text, reserve_json, write_bytes, write_failed, write_json_reserved
+from .io.outputs import RowFile, atomic_write_text, reserve_json, write_bytes, write_failed, write_json_reserved, write_ply
 from .masking.base import Masker
 from .masking.maskers import MASK_STAGES
 from .observers import FrameEvent, FrameObserver, notify
@@ -409,6 +409,17 @@ def _run_record(sequence: Sequence, masker: Masker | None, motion, frames: list[
     }
 
 
+def _world_objects(sequence: Sequence, masker: Masker | None, motion, out: Path):
+    """The objects' world tracker and its ``objects_tracks.csv`` for a masked run (slam.objects)."""
+    if masker is None or getattr(sequence, "calibration", None) is None:
+        return None, None
+    from .slam.objects import TRACKS_NAME, TrackWriter, WorldObjects
+
+    mc = getattr(motion, "cfg", None)
+    kw = {"sigma_disparity": mc.sigma_disparity, "sigma_px": mc.sigma_px} if mc is not None else {}
+    return WorldObjects(sequence.calibration, **kw), TrackWriter(out / TRACKS_NAME)
+
+
 def run_slam_job(
     sequence: Sequence,
     masker: Masker | None,
@@ -425,6 +436,7 @@ def run_slam_job(
     observers: tuple[FrameObserver, ...] = (),
     motion=None,
     prefetch_timeout_s: float | None = None,
+    save_cloud: str | Path | None = None,
 ) -> SlamJobResult:
     """Feed ``frames`` of ``sequence`` (masked by ``masker``, None = unmasked) to the SLAM
     ``system`` and write, under ``out``:
@@ -432,7 +444,9 @@ def run_slam_job(
     * ``trajectory.kitti.txt`` / ``trajectory.tum.txt`` / ``trajectory.frames.txt``: one
       row per frame fed, in order; appended live (a crash keeps every row written), then
       rewritten at the end with the final, bundle-adjusted poses;
-    * ``objects.jsonl`` (masked runs): one line per frame, as from ``run_mask_job``;
+    * ``objects.jsonl`` (masked runs): one line per frame, as from ``run_mask_job``, each
+      object with its place in the world (``world``, ``velocity``, ``speed``, ``extent``:
+      :mod:`dynastereo.slam.objects`), and ``objects_tracks.csv`` (one row per object and frame);
     * ``timing.json``: per frame ms for ``masking`` (= ``detect`` + ``mask``), ``features``,
       ``stereo``, ``track``; ``local_mapping`` separately; ``summary.fps`` end to end;
     * ``run.json``: configuration, versions, frames tracked / lost, keyframes, map points,
@@ -440,6 +454,8 @@ def run_slam_job(
       ``map`` (the map file loaded / saved);
     * ``save_map``: the final map (``System.save_map``), also after an error mid-sequence
       (the map of the frames done);
+    * ``save_cloud``: the final map's points as PLY, less any inside a box an object judged
+      moving or undecided had (``slam.objects.WorldObjects.outside_movers``);
     * and whatever the ``observers`` write (a bag's writer, a viewer): each gets a
       :class:`~dynastereo.observers.FrameEvent` per frame once it is tracked.
 
@@ -475,7 +491,7 @@ def run_slam_job(
         return prefetcher.submit(_masking_step, sequence, masker, frames[k], motion)
 
     fallbacks: list[dict] = []
-    writer = objects_log = None
+    writer = objects_log = world = tracks = None
     try:
         # run.json first, with room for the final record: the folder says how the run ended
         # even when the disk fills up (io.outputs.write_json_reserved), and a run killed
@@ -483,6 +499,7 @@ def run_slam_job(
         reserve_json(out / "run.json", json.dumps({"status": "running", "frames_requested": len(frames),
                                                    "sequence": str(getattr(sequence, "path", ""))}))
         objects_log = RowFile(out / "objects.jsonl") if masker is not None else None
+        world, tracks = _world_objects(sequence, masker, motion, out)
         writer = TrajectoryWriter(out)
         pending = submit(0)
         for k, idx in enumerate(frames):
@@ -501,6 +518,10 @@ def run_slam_job(
             if motion is not None:
                 with timer.stage("motion"):
                     motion.update(masks, tracked, system)
+            if world is not None:
+                with timer.stage("objects"):
+                    world.update(masks, pose, str(tracked.status) in ("tracked", "init"), float(stamps[idx]))
+                    tracks.write(idx, float(stamps[idx]), masks)
             rec = timer.end_frame(status=tracked.status)
             writer.append(pose, frame_index=idx, timestamp=float(stamps[idx]))
             written: list[Path] = []
@@ -535,10 +556,15 @@ def run_slam_job(
             if rows is not None:
                 rows.truncate(n_done)
                 rows.close()
+        if tracks is not None:
+            tracks.close()
         map_out = dict(map_info or {})
         try:
             system.shutdown()  # finishes the pending local BA; also stops the worker on an error
             map_out = _save_map(system, save_map, sequence, frames[:n_done], map_info)
+            if save_cloud is not None and n_done:
+                pts = system.map_points()
+                write_ply(save_cloud, pts[world.outside_movers(pts)] if world is not None else pts)
         except BaseException as e:  # noqa: BLE001 -- a signal breaking a wait: the files below are still written
             late = e
             error = error or f"{type(e).__name__}: {e}"

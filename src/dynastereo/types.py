@@ -241,6 +241,8 @@ class ObjectMask:
     moving: bool | None = None
     masked: bool = True
     speed_mps: float | None = None
+    # where it is in the world and how fast it goes (slam.objects.ObjectState), once tracked
+    world: Any = None
 
     def __post_init__(self) -> None:
         self.method = MaskMethod(self.method)
@@ -261,6 +263,7 @@ class ObjectMask:
             "moving": None if self.moving is None else bool(self.moving),
             "masked": bool(self.masked),
             "speed_mps": None if self.speed_mps is None else round(float(self.speed_mps), 3),
+            **(self.world.to_dict() if self.world is not None else {}),
         }
 
 

@@ -200,9 +200,10 @@ def run(
     right_info: str = typer.Option("auto", "--right-info", help="[--bag] Right CameraInfo topic (auto / none / a topic)."),
     sync_tolerance: float = typer.Option(5.0, "--sync-tolerance", help="[--bag] Largest left/right stamp difference of a pair, ms."),
     rectify: str = typer.Option("auto", "--rectify", help="[--bag] Rectify with CameraInfo: auto (unless already rectified) | yes | no."),
-    bag_outputs: str = typer.Option("all", "--bag-outputs", help="[--bag] Output bag content: all, or a comma list of odometry,tf,masked,masks,disparity,path,map_points."),
+    bag_outputs: str = typer.Option("all", "--bag-outputs", help="[--bag] Output bag content: all, or a comma list of odometry,tf,masked,masks,disparity,path,map_points,objects."),
     save_map: Optional[Path] = typer.Option(None, "--save-map", help="Write the final map to FILE (docs/map_format.md)."),
     load_map: Optional[Path] = typer.Option(None, "--load-map", help="Start from the map in FILE (from --save-map)."),
+    save_cloud: Optional[Path] = typer.Option(None, "--save-cloud", help="Write the final map's points as a PLY point cloud (none on a moving object)."),
     localize_only: bool = typer.Option(False, "--localize-only", help="With --load-map: localize in the map, add no keyframes."),
     no_loop_closing: bool = typer.Option(False, "--no-loop-closing", help="Turn loop closing off (slam.loop_closing: false)."),
     vocabulary: Optional[Path] = typer.Option(None, "--vocabulary", help="ORB vocabulary file from `dynastereo vocab` (default: the built-in one)."),
@@ -250,13 +251,14 @@ def run(
                              tolerance_s=sync_tolerance / 1000.0, rectify=rectify, frames=frames,
                              models_dir=models_dir, save_masks=save_masks, outputs=bag_outputs, progress=on_frame,
                              overwrite=overwrite, stereo_check=not no_stereo_check, report=report, gt=gt,
-                             viewer=viewer, rrd=rrd)
+                             viewer=viewer, rrd=rrd, save_cloud=save_cloud)
                 result, bag_report = br.slam, br.report
             else:
                 result = run_sequence(sequence, out, cfg, frames=frames, calib=calib, rate=rate, models_dir=models_dir,
                                       save_masks=save_masks, progress=on_frame, save_map=save_map,
                                       load_map=load_map, localize_only=localize_only, overwrite=overwrite,
-                                      stereo_check=not no_stereo_check, report=report, gt=gt, viewer=viewer, rrd=rrd)
+                                      stereo_check=not no_stereo_check, report=report, gt=gt, viewer=viewer, rrd=rrd,
+                                      save_cloud=save_cloud)
     out_console.print(timing_table(result.summary, "timing (ms per frame)"))
     st = result.stats
     out_console.print(
@@ -268,6 +270,8 @@ def run(
                           f"{st.get('recoveries', 0)} (details in run.json)")
     if save_map:
         out_console.print(f"map saved to {save_map}")
+    if save_cloud:
+        out_console.print(f"static map points saved to {save_cloud}")
     if bag_report is not None:
         r = bag_report
         out_console.print(
@@ -537,10 +541,26 @@ def config_cmd(
     print(dump_config(cfg), end="")
 
 
+def _run_ground_truth(estimate: Path) -> Path:
+    """The ground truth of the sequence a run's ``run.json`` (beside ``estimate``) names."""
+    import json
+
+    from ..errors import InputError
+    from ..eval.trajectory import find_ground_truth
+
+    run = estimate.parent / "run.json"
+    seq = json.loads(run.read_text()).get("sequence") if run.is_file() else None
+    gt = find_ground_truth(seq) if seq else None
+    if gt is None:
+        raise InputError("no ground truth given, and none found for the run's sequence (run.json beside the "
+                         "estimate: KITTI poses/NN.txt, a KITTI raw drive's oxts/)", estimate)
+    return gt
+
+
 @app.command("eval")
 def eval_cmd(
     estimate: Path = typer.Argument(..., help="Estimated trajectory (KITTI 3x4 rows or TUM)."),
-    ground_truth: Path = typer.Argument(..., help="Ground truth (KITTI or TUM, or a KITTI raw drive folder: its oxts/); a longer one is cut to the estimate."),
+    ground_truth: Optional[Path] = typer.Argument(None, help="Ground truth (KITTI or TUM, or a KITTI raw drive folder: its oxts/); a longer one is cut to the estimate. Default: the run's sequence's own (run.json beside the estimate: KITTI poses/NN.txt, a raw drive's oxts/)."),
     as_json: bool = typer.Option(False, "--json", help="Print the numbers as JSON (keys ape.rmse, ape.mean, ..., drift_percent)."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Trajectory plot PNG (default: beside the estimate)."),
     no_align: bool = typer.Option(False, "--no-align", help="Do not SE(3)-align before APE."),
@@ -554,6 +574,8 @@ def eval_cmd(
 
     _check_option("--rpe-delta", rpe_delta, rpe_delta >= 1, "a step of >= 1 frames")
     try:
+        if ground_truth is None:
+            ground_truth = _run_ground_truth(estimate)
         png = plot or estimate.with_name(estimate.name.split(".")[0] + "_vs_gt.png")
         if plot is not None or estimate.is_file():
             check_output_file(png, what="plot file")

@@ -436,6 +436,78 @@ def _objects_section(rf: RunFiles) -> str:
             + _table([[k, v] for k, v in methods.most_common()], ["mask method", "objects"]))
 
 
+VIEW_MARGIN = 40.0  # m around the camera path in the objects' top view
+
+
+def _object_paths_section(rf: RunFiles) -> str:
+    """Top view of the camera path with every object's path (``objects_tracks.csv``,
+    coloured by the track's verdict: moving when the motion test said so in most of its
+    frames), and speed over time per moving object."""
+    from ..slam.objects import TRACKS_NAME, read_tracks, verdict_rgb
+
+    path = rf.root / TRACKS_NAME
+    if not path.is_file():
+        return ""
+    tracks = read_tracks(path)
+    if not tracks:
+        return ""
+    cam = read_trajectory(rf.root / KITTI_NAME).positions if (rf.root / KITTI_NAME).is_file() else None
+
+    def verdict(t):
+        m = t["moving"]
+        dec = m[m >= 0]
+        return None if not len(dec) else bool((dec == 1).mean() > 0.5)
+
+    movers = {k: t for k, t in tracks.items() if verdict(t) is True and len(t["frame"]) >= 3}
+    fig = _figure((9.0, 6.0))
+    ax = fig.subplots()
+    for k, t in tracks.items():
+        if len(t["frame"]) < 2:
+            continue
+        c = np.array(verdict_rgb(verdict(t))) / 255.0
+        ax.plot(t["xyz"][:, 0], t["xyz"][:, 2], "-", color=c, lw=1.6 if k in movers else 0.9,
+                alpha=0.9 if k in movers else 0.6)
+        if k in movers:
+            ax.annotate(f"#{k} {t['label']}", t["xyz"][-1, [0, 2]], fontsize=7, color=c)
+    if cam is not None:
+        ax.plot(cam[:, 0], cam[:, 2], "-", color="tab:blue", lw=2.2, label="camera")
+        ax.plot(cam[:1, 0], cam[:1, 2], "o", color="tab:blue")
+    ax.plot([], [], color=np.array(verdict_rgb(True)) / 255, label="object, moving")
+    ax.plot([], [], color=np.array(verdict_rgb(False)) / 255, label="object, static")
+    ax.plot([], [], color=np.array(verdict_rgb(None)) / 255, label="object, undecided")
+    if cam is not None:  # the camera's surroundings: far objects' paths would shrink the view
+        lo, hi = cam[:, [0, 2]].min(axis=0) - VIEW_MARGIN, cam[:, [0, 2]].max(axis=0) + VIEW_MARGIN
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("z (m), forward at the start")
+    ax.set_title("top view: the camera and the objects' paths (the trajectory's frame)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    html = ["<h2>Objects in the world</h2>",
+            f"<p>{len(tracks)} tracked objects, {len(movers)} judged moving; positions and velocities from "
+            f"<code>{TRACKS_NAME}</code> (<code>objects.jsonl</code>: <code>world</code>, <code>velocity</code>, "
+            "<code>speed</code>)</p>", _img(_png_of(fig), "objects' paths, top view")]
+    if movers:
+        fig = _figure((9.0, 3.6))
+        ax = fig.subplots()
+        for k, t in movers.items():  # where the filter has settled (speed sigma <= 1.5 m/s)
+            sp = np.where(t["speed_sigma"] <= 1.5, t["speed"], np.nan)
+            ax.plot(t["stamp"], sp, ".-", lw=1.4, ms=3, label=f"#{k} {t['label']}")
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("speed (m/s)")
+        ax.set_title("speed over time, moving objects (where its sigma <= 1.5 m/s)")
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc="best", fontsize=7, ncols=3)
+        rows = [[f"#{k}", t["label"], len(t["frame"]), f"{t['frame'][0]}-{t['frame'][-1]}",
+                 _fmt(float(np.nanmedian(t["speed"]))) if np.isfinite(t["speed"]).any() else "-",
+                 _fmt(float(np.linalg.norm(t["xyz"][-1] - t["xyz"][0])))] for k, t in movers.items()]
+        html += [_img(_png_of(fig), "speed over time"),
+                 _table(rows, ["track", "class", "frames", "frame range", "median speed (m/s)", "moved (m)"])]
+    return "".join(html)
+
+
 STYLE = """
 body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:1.5em auto;max-width:1100px;
 color:#222;background:#fff;padding:0 1em}
@@ -484,7 +556,8 @@ def build_report(
     stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     body = [f"<h1>{_esc(title)}</h1>", f"<p>run folder {_esc(rf.root.resolve())}; report made {stamp}</p>",
             _summary_section(rf), _trajectory_section(rf, ev, gt_path), _accuracy_section(ev),
-            _timing_section(rf.timing), _overlay_section(rf, ev, overlays), _objects_section(rf)]
+            _timing_section(rf.timing), _overlay_section(rf, ev, overlays), _objects_section(rf),
+            _object_paths_section(rf)]
     page = (f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8"><title>{_esc(title)}</title>'
             f'<meta name="viewport" content="width=device-width,initial-scale=1"><link rel="icon" href="data:,"><style>{STYLE}</style></head>'
             f'<body>{"".join(b for b in body if b)}</body></html>\n')

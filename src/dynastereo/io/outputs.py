@@ -20,11 +20,13 @@ import tempfile
 from pathlib import Path
 from typing import Iterable
 
+import numpy as np
+
 from ..errors import OutputError
 
 # Everything `dynastereo mask` / `run` (folder or bag) write into their output folder.
 RUN_OUTPUTS = (
-    "masks", "disparity", "overlays", "objects.jsonl", "timing.json", "run.json", "bag.json",
+    "masks", "disparity", "overlays", "objects.jsonl", "objects_tracks.csv", "timing.json", "run.json", "bag.json",
     "trajectory.kitti.txt", "trajectory.tum.txt", "trajectory.frames.txt",
     "output.bag", "output.db3", "output.mcap",
 )
@@ -239,3 +241,23 @@ def reserve_json(path: str | Path, text: str, room: int = RUN_JSON_ROOM) -> None
     """Write ``text`` padded with spaces to ``room`` bytes (see :func:`write_json_reserved`)."""
     data = text.encode()
     write_bytes(path, data + b" " * max(0, room - len(data)) + b"\n")
+
+
+def write_ply(path: str | Path, points: np.ndarray) -> Path:
+    """Write ``points`` (N, 3) as a binary little-endian PLY point cloud (float32 x, y, z),
+    atomically; readable by any point-cloud tool (CloudCompare, MeshLab, Open3D)."""
+    P = np.ascontiguousarray(np.asarray(points, dtype="<f4").reshape(-1, 3))
+    head = ("ply\nformat binary_little_endian 1.0\ncomment dynastereo static map points\n"
+            f"element vertex {len(P)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}")
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(head.encode("ascii"))
+            fh.write(P.tobytes())
+        tmp.replace(path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        raise OutputError(f"cannot write the point cloud: {e.strerror}", path) from None
+    return path

@@ -30,12 +30,12 @@ from .core import disparity_data
 from .messages import (DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC, MAP_EVERY, ODOM_FRAME, OUTPUT_TOPICS, OUTPUT_TYPES,
                        OdometryData)
 
-ALL_OUTPUTS = ("odometry", "tf", "masked", "masks", "disparity", "path", "map_points")
+ALL_OUTPUTS = ("odometry", "tf", "masked", "masks", "disparity", "path", "map_points", "objects")
 
 
 def parse_outputs(spec: str | list[str] | tuple[str, ...] | None) -> tuple[str, ...]:
     """``"all"`` / None -> every output; else a comma list of odometry, tf, masked, masks, disparity,
-    path, map_points."""
+    path, map_points, objects."""
     if spec is None:
         return ALL_OUTPUTS
     items = [s.strip() for s in (spec.split(",") if isinstance(spec, str) else spec) if s.strip()]
@@ -62,6 +62,9 @@ class BagOutput:
         self._matcher = None
         self._prev: tuple[np.ndarray, int] | None = None
         self._path: tuple[list[np.ndarray], list[int]] = ([], [])
+        from ..slam.objects import ObjectPaths
+
+        self._object_paths = ObjectPaths()
         self._system: Any = None  # the SLAM system of the frames written (for the final map)
         self._last: tuple[int, int] = (0, 0)  # stamp and count of the frames written
         keys = [k for k in OUTPUT_TOPICS if self._key_on(k)]
@@ -112,6 +115,11 @@ class BagOutput:
         if "masks" in self.outputs:
             w.write(OUTPUT_TOPICS["left_mask"], stamp_ns, b.image(ml, stamp_ns, cf, "mono8", seq=seq_pos))
             w.write(OUTPUT_TOPICS["right_mask"], stamp_ns, b.image(mr, stamp_ns, cf, "mono8", seq=seq_pos))
+        if "objects" in self.outputs:
+            objs = masks.objects if masks is not None else []
+            self._object_paths.add(objs)
+            w.write(OUTPUT_TOPICS["objects"], stamp_ns,
+                    b.object_markers(objs, stamp_ns, ODOM_FRAME, seq_pos, self._object_paths.paths()))
         if "disparity" in self.outputs:
             if masks is not None and masks.disparity is not None:
                 d = masks.disparity
@@ -165,6 +173,7 @@ def run_bag(
     overwrite: bool = True,
     stereo_check: bool = True,
     observers: tuple = (),
+    save_cloud: str | Path | None = None,
 ) -> BagRunResult:
     """Run masking + SLAM on a stereo bag (module doc); see :class:`BagStereoSequence` for
     the topic, calibration and pairing arguments (``fallback_calib``: used only when the bag
@@ -192,7 +201,7 @@ def run_bag(
         try:  # a bag has no synthetic ground truth: detector 'oracle' is refused by the masker factory
             res = slam_job(seq, out, cfg, frames=frames, models_dir=models_dir, observers=observers,
                            open_observers=open_writer, save_masks=save_masks, progress=progress,
-                           overwrite=overwrite, stereo_check=stereo_check)
+                           overwrite=overwrite, stereo_check=stereo_check, save_cloud=save_cloud)
         finally:
             for w in writers:
                 w.close()

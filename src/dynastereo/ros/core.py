@@ -301,6 +301,7 @@ class StereoNodeCore:
         self._matcher_cfg: Any = None
         self._system: Any = None
         self._motion: Any = None  # masking.motion.ObjectMotion (motion.mode: moving), once calibrated
+        self._world: Any = None  # slam.objects.WorldObjects: the objects in the world, once calibrated
         self._calib_in: StereoCalibration | RawStereoCalibration | None = None
         self.rectifier: Rectifier | None = None
         self._stamps: list[int] = []
@@ -350,6 +351,10 @@ class StereoNodeCore:
             from ..masking.motion import build_motion
 
             self._motion = build_motion(self.cfg, self.calibration, self._masker)
+            from ..slam.objects import WorldObjects
+
+            self._world = WorldObjects(self.calibration, sigma_disparity=self.cfg.motion.sigma_disparity,
+                                       sigma_px=self.cfg.motion.sigma_px)
             self._calib_in = calibration
             return True
 
@@ -601,6 +606,9 @@ class StereoNodeCore:
             if motion is not None:
                 with self.timer.stage("motion"):
                     motion.update(judged, tracked, self._system)
+            if masks is not None and self._world is not None:
+                with self.timer.stage("objects"):
+                    self._world.update(masks, pose, str(status) in ("tracked", "init"), inp.stamp_ns * 1e-9)
             self._position += 1
             self._stamps.append(int(inp.stamp_ns))
         pose_time = time.time()

@@ -26,10 +26,15 @@ topic                          type                       content
 ``/dynastereo/map_points``     sensor_msgs/PointCloud2    the map points (x, y, z float32)
                                                           in ``odom``, every ``MAP_EVERY``-th
                                                           frame and (bags) after the final BA
+``/dynastereo/objects``        visualization_msgs/        the objects in ``odom``: a box (ns
+                               MarkerArray                ``objects``), a label with the speed
+                                                          (``labels``) and the path so far
+                                                          (``paths``) per track; moving red,
+                                                          static green, undecided orange
 =============================  =========================  ==============================
 
 In rviz: Fixed Frame ``odom``; add *Path* on ``/dynastereo/path``, *PointCloud2* on
-``/dynastereo/map_points``, *Odometry*, *TF*, *Image* on the masked images.
+``/dynastereo/map_points``, *MarkerArray* on ``/dynastereo/objects``, *Odometry*, *TF*, *Image* on the masked images.
 
 ``odom`` is the first frame's (rectified) left camera: the KITTI convention, camera axes
 x right, y down, z forward.  The odometry of frame k is the pose tracking returned for
@@ -64,6 +69,7 @@ OUTPUT_TOPICS: dict[str, str] = {
     "disparity": "/dynastereo/disparity",
     "path": "/dynastereo/path",
     "map_points": "/dynastereo/map_points",
+    "objects": "/dynastereo/objects",
 }
 OUTPUT_TYPES: dict[str, str] = {
     "odometry": "nav_msgs/Odometry",
@@ -75,6 +81,7 @@ OUTPUT_TYPES: dict[str, str] = {
     "disparity": "stereo_msgs/DisparityImage",
     "path": "nav_msgs/Path",
     "map_points": "sensor_msgs/PointCloud2",
+    "objects": "visualization_msgs/MarkerArray",
 }
 MAP_EVERY = 10  # frames between two map point clouds (the whole map each time)
 
@@ -124,6 +131,9 @@ class MessageBuilder:
 
     def floats(self, values: Any) -> Any:
         """A float64[] field value."""
+        raise NotImplementedError
+
+    def duration(self, ns: int) -> Any:
         raise NotImplementedError
 
     def blob(self, data: np.ndarray) -> Any:
@@ -219,6 +229,60 @@ class MessageBuilder:
                          width=len(xyz), fields=fields, is_bigendian=False, point_step=12, row_step=12 * len(xyz),
                          data=self.blob(xyz.view(np.uint8).reshape(-1)), is_dense=True)
 
+    def _marker(self, stamp_ns: int, frame_id: str, ns: str, mid: int, mtype: int, action: int = 0, *,
+                pos=(0.0, 0.0, 0.0), quat=(0.0, 0.0, 0.0, 1.0), scale=(1.0, 1.0, 1.0), rgba=(1.0, 1.0, 1.0, 1.0),
+                points=(), text: str = "", lifetime_ns: int = 0, seq: int = 0) -> Any:
+        c = self.cls("visualization_msgs/Marker")
+        extra = {}
+        names = self.fields(c)
+        if "texture" in names:  # ROS 2 (Humble+): the texture and mesh fields, empty
+            extra = dict(texture_resource="", uv_coordinates=[],
+                         texture=self.make("sensor_msgs/CompressedImage", header=self.header(0, ""), format="",
+                                           data=self.blob(np.zeros(0, np.uint8))),
+                         mesh_file=self.make("visualization_msgs/MeshFile", filename="",
+                                             data=self.blob(np.zeros(0, np.uint8))))
+        return self.make(
+            "visualization_msgs/Marker", header=self.header(stamp_ns, frame_id, seq), ns=ns, id=int(mid),
+            type=int(mtype), action=int(action),
+            pose=self.make("geometry_msgs/Pose", position=self._vec3("geometry_msgs/Point", pos),
+                           orientation=self._quat(quat)),
+            scale=self._vec3("geometry_msgs/Vector3", scale),
+            color=self.make("std_msgs/ColorRGBA", r=float(rgba[0]), g=float(rgba[1]), b=float(rgba[2]),
+                            a=float(rgba[3])),
+            lifetime=self.duration(lifetime_ns), frame_locked=False,
+            points=[self._vec3("geometry_msgs/Point", p) for p in points], colors=[], text=text, mesh_resource="",
+            mesh_use_embedded_materials=False, **extra)
+
+    def object_markers(self, objects: list, stamp_ns: int, frame_id: str, seq: int = 0,
+                       paths: list | None = None) -> Any:
+        """``visualization_msgs/MarkerArray`` of the objects with a world state
+        (``ObjectMask.world``, :mod:`dynastereo.slam.objects`): first a DELETEALL (objects
+        gone from view vanish), then per object a CUBE (ns ``objects``, id = track id), a
+        TEXT_VIEW_FACING label (``labels``: class, id, speed) and, from ``paths`` (``[(track,
+        (n, 3), moving)]``, :class:`~dynastereo.slam.objects.ObjectPaths`), a LINE_STRIP (``paths``)."""
+        from ..slam.objects import verdict_rgb
+
+        CUBE, LINE_STRIP, TEXT, DELETEALL = 1, 4, 9, 3
+        rgba = lambda moving: (*(v / 255.0 for v in verdict_rgb(moving)), 0.8)  # noqa: E731
+        ms = [self._marker(stamp_ns, frame_id, "", 0, CUBE, DELETEALL, seq=seq)]
+        for k, o in enumerate(objects):
+            s = getattr(o, "world", None)
+            if s is None:
+                continue
+            mid = int(o.track_id) if o.track_id >= 0 else 1_000_000 + k
+            yaw = float(np.arctan2(s.heading[0], s.heading[2]))
+            q = (0.0, np.sin(yaw / 2), 0.0, np.cos(yaw / 2))  # about y (down): z -> the heading
+            ms.append(self._marker(stamp_ns, frame_id, "objects", mid, CUBE, pos=s.world, quat=q, scale=s.extent,
+                                   rgba=rgba(o.moving), seq=seq))
+            sp = f" {s.speed:.1f} m/s" if s.speed is not None else ""
+            top = np.asarray(s.world, float) - (0.0, 0.5 * float(s.extent[1]) + 0.6, 0.0)
+            ms.append(self._marker(stamp_ns, frame_id, "labels", mid, TEXT, pos=top, scale=(0.0, 0.0, 0.8),
+                                   rgba=(1.0, 1.0, 1.0, 1.0), text=f"{o.label} #{o.track_id}{sp}", seq=seq))
+        for t, pts, moving in paths or []:
+            ms.append(self._marker(stamp_ns, frame_id, "paths", int(t), LINE_STRIP, scale=(0.15, 0.0, 0.0),
+                                   rgba=rgba(moving), points=pts, seq=seq))
+        return self.make("visualization_msgs/MarkerArray", markers=ms)
+
     def disparity(self, d: DisparityData, stamp_ns: int, frame_id: str, seq: int = 0) -> Any:
         img = d.ros_image()
         h, w = img.shape
@@ -276,6 +340,10 @@ class RosbagsBuilder(MessageBuilder):
 
     def blob(self, data: np.ndarray) -> Any:
         return np.ascontiguousarray(data, dtype=np.uint8).reshape(-1)
+
+    def duration(self, ns: int) -> Any:
+        sec, nsec = stamp_split(ns)
+        return self.make("builtin_interfaces/Duration", sec=sec, nanosec=nsec)
 
     def serialize(self, msg: Any) -> bytes:
         t = msg.__msgtype__

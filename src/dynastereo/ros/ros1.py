@@ -20,6 +20,8 @@ Publishes
     moving red, undecided orange, static green), ``~disparity``
     (stereo_msgs/DisparityImage), ``~path`` (nav_msgs/Path, the trajectory so far, latched),
     ``~map_points`` (sensor_msgs/PointCloud2, the map every ``MAP_EVERY``-th frame, latched),
+    ``~objects`` (visualization_msgs/MarkerArray: each object's box, label with its speed
+    and path in ``odom``, in the verdict's colour; ``slam.objects``),
     ``~ready`` (std_msgs/Bool, latched: true once the SLAM has its calibration).  Images,
     disparity, path and map are computed and sent only while someone subscribes.
 
@@ -123,6 +125,12 @@ class GenpyBuilder(MessageBuilder):
     def blob(self, data: np.ndarray) -> Any:
         return np.ascontiguousarray(data, dtype=np.uint8).tobytes()
 
+    def duration(self, ns: int) -> Any:
+        import rospy
+
+        s, n = stamp_split(ns)
+        return rospy.Duration(s, n)
+
 
 def stamp_ns_of(msg: Any) -> int:
     st = msg.header.stamp
@@ -210,6 +218,12 @@ class Ros1Node:
         self.pub_disp = rospy.Publisher("~disparity", DisparityImage, queue_size=2)
         self.pub_path = rospy.Publisher("~path", PathMsg, queue_size=1, latch=True)
         self.pub_map = rospy.Publisher("~map_points", PointCloud2, queue_size=1, latch=True)
+        from visualization_msgs.msg import MarkerArray
+
+        from ..slam.objects import ObjectPaths
+
+        self.pub_objects = rospy.Publisher("~objects", MarkerArray, queue_size=2)
+        self._object_paths = ObjectPaths()
         self._path: tuple[list[np.ndarray], list[int]] = ([], [])
         self.pub_ready = rospy.Publisher("~ready", Bool, queue_size=1, latch=True)
         self._Bool = Bool
@@ -342,6 +356,11 @@ class Ros1Node:
         self._path[1].append(r.stamp_ns)
         if self.pub_path.get_num_connections() > 0:
             self.pub_path.publish(self.b.path(*self._path, odom, seq=r.position))
+        objs = masks.objects if masks is not None else []
+        self._object_paths.add(objs)
+        if self.pub_objects.get_num_connections() > 0:
+            self.pub_objects.publish(self.b.object_markers(objs, r.stamp_ns, odom, r.position,
+                                                           self._object_paths.paths()))
         if r.position % MAP_EVERY == 0 and self.pub_map.get_num_connections() > 0:
             self.pub_map.publish(self.b.point_cloud(self.core.map_points(), r.stamp_ns, odom, seq=r.position))
 

@@ -12,6 +12,9 @@ position in the order fed) and ``time`` (the sequence's timestamps, seconds):
 ``world/trajectory``                  the estimated camera path so far (``LineStrips3D``)
 ``world/ground_truth``                the ground truth (``--gt``), logged once, static
 ``world/local_map``                   the local map's points (``Points3D``)
+``world/objects``                     the objects' 3-D boxes (``Boxes3D``, ``label #id speed``),
+                                      moving red, static green, undecided orange
+``world/object_paths``                each object's path in the world so far (``LineStrips3D``)
 ``camera/left``, ``camera/right``     the images
 ``camera/left/mask``,                 the dynamic masks (``SegmentationImage``: 1 = masked)
 ``camera/right/mask``
@@ -71,6 +74,7 @@ class RerunObserver:
             sinks.append(rr.GrpcSink())
         self.rec.set_sinks(*sinks)
         self._positions: list[np.ndarray] = []
+        self._paths = None  # slam.objects.ObjectPaths, made at the first object
         self._static_done = False
         self._gt = gt
 
@@ -131,6 +135,7 @@ class RerunObserver:
         rec.log("world/trajectory", rr.LineStrips3D([np.array(self._positions)], colors=[TRAJECTORY_COLOR]))
         rec.log("status", rr.TextLog(f"frame {event.frame.index}: {event.status}",
                                      level="WARN" if event.status == "lost" else "INFO"))
+        self._log_objects(event)
         view = event.system.frame_view() if event.system is not None else None
         if view is None:
             return
@@ -138,6 +143,37 @@ class RerunObserver:
         colors = [INLIER_COLOR] * int(view.inlier.sum()) + [OUTLIER_COLOR] * int(view.outlier.sum())
         rec.log("camera/left/features", rr.Points2D(uv, colors=colors, radii=1.5))
         rec.log("world/local_map", rr.Points3D(view.local_points, colors=[(200, 200, 200)], radii=0.03))
+
+    def _log_objects(self, event: FrameEvent) -> None:
+        """The objects' boxes in the world and their paths (``slam.objects``)."""
+        from ..slam.objects import ObjectPaths, verdict_rgb
+
+        rr, rec = self.rr, self.rec
+        objs = [o for o in (event.masks.objects if event.masks is not None else []) if o.world is not None]
+        if not objs:
+            rec.log("world/objects", rr.Clear(recursive=False))
+            return
+        centres, halves, quats, colours, labels = [], [], [], [], []
+        for o in objs:
+            s = o.world
+            h = np.array([s.heading[0], 0.0, s.heading[2]])
+            yaw = float(np.arctan2(h[0], h[2]))  # about y (down): z -> the heading
+            centres.append(s.world)
+            halves.append(0.5 * np.asarray(s.extent))
+            quats.append((0.0, np.sin(yaw / 2), 0.0, np.cos(yaw / 2)))
+            colours.append(verdict_rgb(o.moving))
+            sp = f" {s.speed:.1f} m/s" if s.speed is not None else ""
+            labels.append(f"{o.label} #{o.track_id}{sp}")
+        if self._paths is None:
+            self._paths = ObjectPaths()
+        self._paths.add(objs)
+        rec.log("world/objects", rr.Boxes3D(centers=centres, half_sizes=halves,
+                                            quaternions=[rr.Quaternion(xyzw=q) for q in quats],
+                                            colors=colours, labels=labels))
+        paths = self._paths.paths()
+        if paths:
+            rec.log("world/object_paths", rr.LineStrips3D([p for _, p, _ in paths],
+                                                          colors=[verdict_rgb(v) for _, _, v in paths]))
 
     def close(self) -> None:
         self.rec.flush()

@@ -1,0 +1,564 @@
+"""Every object's track in the world: position, velocity, speed and extent from stereo.
+
+The masker outlines each detected object (``StereoMasks.labels_left``) and computes the
+disparity in its box (``StereoMasks.box_disparity``); SLAM gives the frame's camera pose.
+:class:`WorldObjects` turns them, per frame and object, into an :class:`ObjectState` in
+the trajectory's frame (the first camera's: x right, y down, z forward):
+
+* **Measurement** (one compiled pass over the objects' boxes, :func:`_object_stats`): the
+  disparities of the object's own outline pixels (with a box masker: the box's pixels
+  within 15 % of the object's peak disparity) go into a histogram of 1/16 px bins, giving
+  the median and the 10th / 90th percentiles.
+* **Centre, not surface.**  Stereo sees the near surface; the object's centre lies behind
+  it.  With a class footprint (``CLASS_SIZE``: width, height, length) and a heading (the
+  track's velocity when it moves faster than 1 m/s, else the camera's forward axis: parked
+  cars line the road), the box's extent along the view ray through the box centre is
+  ``e = l|cos φ| + w|sin φ|``, and the centre is at the nearest point (the 90th percentile
+  disparity's range) plus ``e / 2``.  An object cut by the image's side (its box centre is
+  not its centre) and a person (no length to speak of) are placed from a second pass
+  over their pixels instead: the 10th / 90th percentiles of their top-view coordinates
+  along and across the heading; per axis the face toward the camera plus half the
+  footprint (both ends' middle when the camera is within the object's span).
+* **Uncertainty.**  Along the ray ``σ_r = r σ_d / d`` (the disparity's noise,
+  ``motion.sigma_disparity``, shared by the pixels: not divided by their number) plus a
+  tenth of the class length; across it ``r σ_px / f`` with ``σ_px`` a twentieth of the box
+  width (at least 1 px) plus a tenth of the class width.  The 3x3 covariance is rotated into
+  the world with the pose.
+* **Velocity** (:meth:`WorldObjects.update`): a constant-velocity Kalman filter per track
+  id in the world frame (state ``[p, v]``, white acceleration noise ``accel_noise``
+  m²/s³, a thousandth of it vertically: objects keep to the ground), all tracks of the
+  frame at once (stacked matrices).  After the position, the motion test's own speed
+  (``ObjectMask.speed_mps``, from its points' flow) updates the speed along the filter's
+  direction, and an object the motion test judged static gets ``v = 0`` (σ 0.1 m/s).  An
+  innovation over chi-square ``GATE`` (the tracker gave the id to another object) restarts
+  the track.  Speed = ``|v|`` with ``σ = sqrt(vᵀ P_v v) / |v|``.
+* **Extent**: the box's width and height at the centre's depth, and the class length.
+
+Frames whose pose was lost are skipped (the filter only predicts over the gap).  Objects
+without a track id get a position but no velocity.  :class:`TrackWriter` appends one CSV
+row per object and frame (``objects_tracks.csv``).
+"""
+
+from __future__ import annotations
+
+import csv
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+from numba import njit
+
+from ..types import StereoCalibration, StereoMasks
+
+__all__ = ["ObjectState", "WorldObjects", "TrackWriter", "CLASS_SIZE", "TRACKS_NAME", "read_tracks", "verdict_rgb",
+           "box_corners", "ObjectPaths"]
+
+TRACKS_NAME = "objects_tracks.csv"
+TRACK_COLUMNS = ("track_id", "frame", "stamp", "label", "x", "y", "z", "vx", "vy", "vz", "speed", "speed_sigma",
+                 "moving")
+# typical footprints (width, height, length) in metres, by detector label
+CLASS_SIZE = {
+    "car": (1.8, 1.5, 4.4), "truck": (2.5, 3.0, 8.0), "bus": (2.6, 3.2, 12.0), "train": (2.6, 3.5, 20.0),
+    "person": (0.6, 1.7, 0.5), "bicycle": (0.6, 1.7, 1.8), "motorcycle": (0.8, 1.5, 2.1),
+}
+DEFAULT_SIZE = (1.0, 1.5, 1.0)
+BIN = 1.0 / 16.0  # px, disparity histogram bin
+N_BINS = 4096  # disparities up to 256 px
+AB_STEP = 0.02  # m, top-view histogram bin
+AB_BINS = 2500  # +-25 m around the median point
+GATE = 40.0  # chi-square (3 dof) of an innovation that restarts the track
+VERTICAL = np.diag([1.0, 1e-3, 1.0])  # the filter's acceleration noise per world axis (y: down)
+MOVING_HEADING_SPEED = 1.0  # m/s: above it, the velocity gives the heading
+SPEED_DIRECTION = 0.3  # m/s: the filter's velocity gives a direction for the motion test's speed above it
+SPEED_SIGMA = 0.3  # m/s, the motion test's speed (plus 10 %)
+STILL_SIGMA = 0.1  # m/s, the velocity of an object the motion test judged static
+
+
+@njit(nogil=True, cache=True)
+def _quantiles(hist, n, lo, hi, origin, step, out, k, col):  # pragma: no cover - compiled
+    """out[k, col], out[k, col + 1] = the ``lo`` and ``hi`` quantiles of a histogram."""
+    c = 0
+    got = False
+    tl = lo * n
+    th = hi * n
+    for b in range(hist.shape[0]):
+        c += hist[b]
+        if not got and c >= tl:
+            out[k, col] = origin + (b + 0.5) * step
+            got = True
+        if c >= th:
+            out[k, col + 1] = origin + (b + 0.5) * step
+            return
+
+
+@njit(nogil=True, cache=True)
+def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, cx, hist, hist_a, hist_b,
+                  out):  # pragma: no cover - compiled
+    """Per object k (boxes int (N, 4) clipped x0, y0, x1, y1; ``head`` (N, 2) its heading
+    (x, z) in the camera's top view): out[k] = (pixels with a disparity, median, p10, p90
+    disparity, then the p10 / p90 of its pixels' top-view coordinates along the heading
+    (a) and across it (b), metres), from histograms (module doc)."""
+    n_obj = boxes.shape[0]
+    nb = hist.shape[0]
+    na = hist_a.shape[0]
+    half = 0.5 * na * AB_STEP
+    for k in range(n_obj):
+        for b in range(nb):
+            hist[b] = 0
+        n = 0
+        lo = 0.85 * peak[k] - 1.0
+        hi = 1.15 * peak[k] + 1.0
+        for y in range(boxes[k, 1], boxes[k, 3]):
+            for x in range(boxes[k, 0], boxes[k, 2]):
+                d = disp[y, x]
+                if d <= 0.0:
+                    continue
+                if use_labels:
+                    if labels[y, x] != k + 1:
+                        continue
+                elif peak[k] > 0.0 and (d < lo or d > hi):
+                    continue
+                b = int(d * 16.0)
+                if b >= nb:
+                    b = nb - 1
+                hist[b] += 1
+                n += 1
+        for c in range(8):
+            out[k, c] = 0.0
+        out[k, 0] = n
+        if n == 0:
+            continue
+        _quantiles(hist, n, 0.5, 0.5, 0.0, BIN, out, k, 1)
+        _quantiles(hist, n, 0.1, 0.9, 0.0, BIN, out, k, 2)
+        if not need_ab[k]:
+            continue
+        # second pass: the pixels' top-view coordinates along / across the heading, around
+        # the median point of the box centre's column
+        hx, hz = head[k, 0], head[k, 1]
+        zm = bf / max(out[k, 1], 1e-3)
+        xm = (0.5 * (boxes[k, 0] + boxes[k, 2]) - cx) * zm / fx
+        am = xm * hx + zm * hz
+        bm = xm * hz - zm * hx
+        for b in range(na):
+            hist_a[b] = 0
+            hist_b[b] = 0
+        for y in range(boxes[k, 1], boxes[k, 3]):
+            for x in range(boxes[k, 0], boxes[k, 2]):
+                d = disp[y, x]
+                if d <= 0.0:
+                    continue
+                if use_labels:
+                    if labels[y, x] != k + 1:
+                        continue
+                elif peak[k] > 0.0 and (d < lo or d > hi):
+                    continue
+                z = bf / d
+                xx = (x + 0.5 - cx) * z / fx
+                ia = int((xx * hx + z * hz - am + half) / AB_STEP)
+                ib = int((xx * hz - z * hx - bm + half) / AB_STEP)
+                hist_a[min(max(ia, 0), na - 1)] += 1
+                hist_b[min(max(ib, 0), na - 1)] += 1
+        _quantiles(hist_a, n, 0.1, 0.9, am - half, AB_STEP, out, k, 4)
+        _quantiles(hist_b, n, 0.1, 0.9, bm - half, AB_STEP, out, k, 6)
+
+
+@dataclass
+class ObjectState:
+    """One object in one frame, in the trajectory's (world) frame; metres, m/s."""
+
+    track: int
+    world: np.ndarray  # (3,) centre
+    world_sigma: np.ndarray  # (3,) standard deviations
+    extent: np.ndarray  # (3,) width, height, length
+    heading: np.ndarray  # (3,) unit vector, world: the length axis
+    distance: float  # from the camera, metres
+    camera: np.ndarray | None = None  # (3,) centre in this frame's camera (x right, y down, z forward)
+    velocity: np.ndarray | None = None  # (3,)
+    velocity_sigma: np.ndarray | None = None
+    speed: float | None = None
+    speed_sigma: float | None = None
+    updates: int = 1  # measurements the track's filter has taken
+
+    def to_dict(self) -> dict[str, Any]:
+        r = lambda a, n=3: [round(float(v), n) for v in a]  # noqa: E731
+        d = {"world": r(self.world), "world_sigma": r(self.world_sigma), "extent": r(self.extent, 2),
+             "distance": round(float(self.distance), 2)}
+        if self.camera is not None:
+            d["camera"] = r(self.camera)
+        if self.velocity is not None:
+            d.update(velocity=r(self.velocity), velocity_sigma=r(self.velocity_sigma),
+                     speed=round(float(self.speed), 3), speed_sigma=round(float(self.speed_sigma), 3))
+        return d
+
+
+def verdict_rgb(moving: bool | None) -> tuple[int, int, int]:
+    """The motion test's verdict colour as RGB (``pipeline.VERDICT_COLOURS``, which is BGR):
+    moving red, static green, undecided orange."""
+    from ..pipeline import VERDICT_COLOURS
+
+    b, g, r = VERDICT_COLOURS[None if moving is None else bool(moving)]
+    return (r, g, b)
+
+
+def box_corners(centre: np.ndarray, extent: np.ndarray, heading: np.ndarray) -> np.ndarray:
+    """(8, 3) corners of an object's box: ``extent`` (width, height, length), the length
+    along ``heading`` (world, y down), upright."""
+    h = np.array([heading[0], 0.0, heading[2]])
+    h /= max(np.linalg.norm(h), 1e-9)
+    across = np.array([h[2], 0.0, -h[0]])
+    up = np.array([0.0, 1.0, 0.0])
+    w, hh, l = 0.5 * np.asarray(extent, float)
+    sx, sy, sz = np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")
+    return centre + (sx.reshape(-1, 1) * w * across + sy.reshape(-1, 1) * hh * up + sz.reshape(-1, 1) * l * h)
+
+
+def _class_size(label: str) -> tuple[float, float, float]:
+    return CLASS_SIZE.get(str(label).lower(), DEFAULT_SIZE)
+
+
+class WorldObjects:
+    """Per stream of frames: ``update(masks, pose, ok, stamp)`` after each tracked frame
+    (module doc).  ``accel_noise``: the filter's white acceleration noise (m²/s³);
+    ``sigma_disparity`` / ``sigma_px``: stereo noise (px); ``max_gap``: seconds after
+    which an unseen track is forgotten."""
+
+    def __init__(self, calibration: StereoCalibration, *, accel_noise: float = 2.0, sigma_disparity: float = 0.5,
+                 sigma_px: float = 0.5, max_gap: float = 2.0):
+        self.gate = GATE
+        self.restarts = 0
+        self.calib = calibration
+        self.q = float(accel_noise)
+        self.sigma_d = float(sigma_disparity)
+        self.sigma_px = float(sigma_px)
+        self.max_gap = float(max_gap)
+        self._x: dict[int, np.ndarray] = {}  # track -> state (6,)
+        self._P: dict[int, np.ndarray] = {}  # track -> covariance (6, 6)
+        self._t: dict[int, float] = {}  # track -> stamp of its last update
+        self._n: dict[int, int] = {}
+        self._hist = np.zeros(N_BINS, np.int64)
+        self._hist_a = np.zeros(AB_BINS, np.int64)
+        self._hist_b = np.zeros(AB_BINS, np.int64)
+        self.last: list[ObjectState | None] = []
+        self._mover_boxes: deque = deque(maxlen=20000)  # (centre, extent, heading) of movers, every frame
+        # the compiled kernel loaded (or compiled) now, not in the first frame
+        _object_stats(np.zeros((1, 1), np.int32), np.zeros((1, 1), np.float32), np.zeros((0, 4), np.int64),
+                      np.zeros(0), True, np.zeros((0, 2)), np.zeros(0, np.bool_), 1.0, 1.0, 0.0, self._hist,
+                      self._hist_a, self._hist_b, np.zeros((0, 8)))
+
+    def outside_movers(self, points: np.ndarray, margin: float = 0.5) -> np.ndarray:
+        """(M,) bool: the world ``points`` (M, 3) outside every box (grown by ``margin`` m)
+        an object judged moving had in any frame -- what a static map export keeps."""
+        P = np.asarray(points, np.float64).reshape(-1, 3)
+        keep = np.ones(len(P), bool)
+        for c, ext, h in self._mover_boxes:  # per mover box (hundreds), vectorised over the points
+            along = np.array([h[0], 0.0, h[2]])
+            along /= max(np.linalg.norm(along), 1e-9)
+            across = np.array([along[2], 0.0, -along[0]])
+            d = P - c
+            half = 0.5 * np.asarray(ext) + margin
+            inside = ((np.abs(d @ across) <= half[0]) & (np.abs(d[:, 1]) <= half[1])
+                      & (np.abs(d @ along) <= half[2]))
+            keep &= ~inside
+        return keep
+
+    def reset(self) -> None:
+        self._x.clear()
+        self._P.clear()
+        self._t.clear()
+        self._n.clear()
+
+    # ------------------------------------------------------------------ measurement
+    def measure(self, masks: StereoMasks, head_c: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Per object (``head_c`` (N, 2): heading (x, z) in the camera's top view; ``sizes``
+        (N, 3) width, height, length): (valid (N,), centre in the camera (N, 3), range sigma
+        of the median disparity (N,), box width / height at unit depth (N, 2)): module doc."""
+        c = self.calib
+        objs = masks.objects
+        N = len(objs)
+        disp = masks.box_disparity if masks.box_disparity is not None else masks.disparity
+        boxes = np.array([o.box for o in objs], np.float64).reshape(N, 4)
+        out = np.zeros((N, 8))
+        if disp is not None and N:
+            h, w = disp.shape[:2]
+            bi = np.empty((N, 4), np.int64)
+            bi[:, 0] = np.clip(np.floor(boxes[:, 0]), 0, w)
+            bi[:, 1] = np.clip(np.floor(boxes[:, 1]), 0, h)
+            bi[:, 2] = np.clip(np.ceil(boxes[:, 2]), 0, w)
+            bi[:, 3] = np.clip(np.ceil(boxes[:, 3]), 0, h)
+            labels = masks.labels_left
+            use = labels is not None and labels.shape == disp.shape
+            peak = np.array([o.disparity for o in objs], np.float64)
+            need_ab = (boxes[:, 0] <= 1.0) | (boxes[:, 2] >= w - 1.0) | (sizes[:, 2] < 1.0)
+            _object_stats(labels if use else np.zeros((1, 1), np.int32), np.ascontiguousarray(disp, np.float32),
+                          bi, peak, use, np.ascontiguousarray(head_c, np.float64), need_ab, c.bf, c.fx, c.cx,
+                          self._hist, self._hist_a, self._hist_b, out)
+        n, dmed = out[:, 0], out[:, 1]
+        a_lo, a_hi, b_lo, b_hi = out[:, 4], out[:, 5], out[:, 6], out[:, 7]
+        valid = (n >= 10) & (dmed > 0.5)
+        w_, l_ = sizes[:, 0], sizes[:, 2]
+        # along the heading (length l) and across it (width w): the face toward the camera
+        # (at 0) is the visible extreme; a camera within the object's span sees both ends
+        a_mid, b_mid = 0.5 * (a_lo + a_hi), 0.5 * (b_lo + b_hi)
+        a_c = np.where(np.abs(a_mid) < 0.5 * l_, a_mid, np.where(a_mid > 0, a_lo + 0.5 * l_, a_hi - 0.5 * l_))
+        b_c = np.where(np.abs(b_mid) < 0.5 * w_, b_mid, np.where(b_mid > 0, b_lo + 0.5 * w_, b_hi - 0.5 * w_))
+        hx, hz = head_c[:, 0], head_c[:, 1]
+        X = np.empty((N, 3))
+        X[:, 0] = a_c * hx + b_c * hz
+        X[:, 2] = a_c * hz - b_c * hx
+        dm = np.where(valid, dmed, 1.0)
+        # whole in view: the box centre's ray, at the nearest point (p90 disparity) plus half
+        # the box's extent along the ray
+        u = 0.5 * (boxes[:, 0] + boxes[:, 2])
+        v = 0.5 * (boxes[:, 1] + boxes[:, 3])
+        ray = np.column_stack([(u - c.cx) / c.fx, np.zeros(N), np.ones(N)])
+        ray /= np.linalg.norm(ray, axis=1)[:, None]
+        cos_phi = np.abs(ray[:, 0] * hx + ray[:, 2] * hz)
+        e = l_ * cos_phi + w_ * np.sqrt(np.maximum(1.0 - cos_phi**2, 0.0))
+        r_near = c.bf / np.where(valid, np.maximum(out[:, 3], 0.5), 1.0) / ray[:, 2]
+        r_med = c.bf / dm / ray[:, 2]
+        X_ray = ray * np.maximum(r_near + 0.5 * e, r_med)[:, None]
+        h_img, w_img = (disp.shape[:2] if disp is not None else (c.height, c.width))
+        cut = (boxes[:, 0] <= 1.0) | (boxes[:, 2] >= w_img - 1.0)
+        small = l_ < 1.0  # a person: no length to speak of
+        use_ray = ~cut & ~small
+        X[use_ray] = X_ray[use_ray]
+        X[:, 1] = (v - c.cy) / c.fy * X[:, 2]
+        sigma_r = (c.bf / dm) * self.sigma_d / dm
+        size_unit = np.column_stack([(boxes[:, 2] - boxes[:, 0]) / c.fx, (boxes[:, 3] - boxes[:, 1]) / c.fy])
+        return valid & (X[:, 2] > 0), X, sigma_r, size_unit
+
+    # ------------------------------------------------------------------ the frame
+    def update(self, masks: StereoMasks | None, pose: np.ndarray, ok: bool = True,
+               stamp: float | None = None) -> list[ObjectState | None]:
+        """The states of ``masks.objects`` in this frame (None: no disparity, or the pose
+        was lost), also set as each object's ``world``; ``pose``: 3x4 / 4x4 camera-to-world;
+        ``stamp``: seconds (default: 0.1 s a frame)."""
+        if masks is None or not masks.objects:
+            self.last = []
+            return []
+        objs = masks.objects
+        N = len(objs)
+        states: list[ObjectState | None] = [None] * N
+        if not ok:
+            for o in objs:
+                o.world = None
+            self.last = states
+            return states
+        T = np.vstack([np.asarray(pose, np.float64)[:3, :4], [0.0, 0.0, 0.0, 1.0]])
+        R, t_c = T[:3, :3], T[:3, 3]
+        stamp = float(stamp) if stamp is not None else (max(self._t.values(), default=-0.1) + 0.1)
+        sizes = np.array([_class_size(o.label) for o in objs])  # (N, 3) w, h, l
+        tracks = np.array([int(o.track_id) for o in objs], np.int64)
+        # heading: the track's velocity when it moves, else the camera's forward axis (world)
+        head_w = np.tile(R[:, 2], (N, 1))
+        for k, tr in enumerate(tracks):  # per object (a handful), not per pixel
+            x = self._x.get(int(tr))
+            if x is not None and np.linalg.norm(x[3:]) > MOVING_HEADING_SPEED:
+                head_w[k] = x[3:]
+        head_c = head_w @ R  # into the camera: R^T h
+        head_c[:, 1] = 0.0
+        head_c /= np.maximum(np.linalg.norm(head_c, axis=1), 1e-9)[:, None]
+        valid, X_c, sigma_r, size_unit = self.measure(masks, head_c[:, [0, 2]], sizes)
+        r_c = np.linalg.norm(X_c, axis=1)
+        ray = X_c / np.maximum(r_c, 1e-9)[:, None]
+        sig_along = np.sqrt(sigma_r**2 + (0.1 * sizes[:, 2]) ** 2)
+        sig_lat = np.sqrt((r_c * np.maximum(0.05 * size_unit[:, 0] * self.calib.fx, 1.0) / self.calib.fx) ** 2
+                          + (0.1 * sizes[:, 0]) ** 2)
+        # covariance: sig_along^2 r r^T + sig_lat^2 (I - r r^T), into the world
+        rr = ray[:, :, None] * ray[:, None, :]
+        C_c = (sig_along**2 - sig_lat**2)[:, None, None] * rr + (sig_lat**2)[:, None, None] * np.eye(3)
+        Cw = R @ C_c @ R.T
+        Xw = X_c @ R.T + t_c
+        depth = X_c[:, 2]
+        extent = np.column_stack([size_unit * np.maximum(depth, 0.0)[:, None], sizes[:, 2]])
+        head_w = head_c @ R.T
+        # the filter, for the tracked objects with a measurement (one row per track id)
+        use = valid & (tracks >= 0)
+        _, first = np.unique(tracks[use], return_index=True) if use.any() else (None, np.zeros(0, np.int64))
+        rows = np.flatnonzero(use)[first]
+        speed = np.array([np.nan if objs[k].speed_mps is None else objs[k].speed_mps for k in rows])
+        still = np.array([objs[k].moving is False for k in rows], bool)
+        vel = self._filter(tracks[rows], Xw[rows], Cw[rows], stamp, speed, still) if len(rows) else None
+        for j, k in enumerate(np.flatnonzero(valid)):
+            states[k] = ObjectState(int(tracks[k]), Xw[k], np.sqrt(np.diag(Cw[k])), extent[k], head_w[k],
+                                    float(r_c[k]), X_c[k])
+        if vel is not None:
+            xs, Ps, ns = vel
+            for j, k in enumerate(rows):
+                s = states[k]
+                v, Pv = xs[j, 3:], Ps[j, 3:, 3:]
+                sp = float(np.linalg.norm(v))
+                s.world = xs[j, :3]
+                s.camera = (s.world - t_c) @ R
+                s.world_sigma = np.sqrt(np.diag(Ps[j, :3, :3]))
+                s.velocity, s.velocity_sigma = v, np.sqrt(np.diag(Pv))
+                s.speed = sp
+                s.speed_sigma = float(np.sqrt(v @ Pv @ v) / sp) if sp > 1e-6 else float(np.sqrt(np.trace(Pv) / 3))
+                s.updates = int(ns[j])
+            # a second detection under the same id shares its track's velocity
+            for k in np.flatnonzero(use):
+                if states[k] is not None and states[k].velocity is None:
+                    j = int(np.flatnonzero(tracks[rows] == tracks[k])[0])
+                    states[k].velocity, states[k].velocity_sigma = xs[j, 3:], np.sqrt(np.diag(Ps[j, 3:, 3:]))
+                    states[k].speed = float(np.linalg.norm(xs[j, 3:]))
+                    states[k].speed_sigma = states[rows[j]].speed_sigma
+        for o, s in zip(objs, states):
+            o.world = s
+            if s is not None and o.moving is not False:  # moving, or undecided (masked): never in the map
+                self._mover_boxes.append((np.array(s.world), np.array(s.extent), np.array(s.heading)))
+        stale = [k for k, t in self._t.items() if stamp - t > self.max_gap]
+        for k in stale:
+            for d in (self._x, self._P, self._t, self._n):
+                d.pop(k, None)
+        self.last = states
+        return states
+
+    def _filter(self, tracks: np.ndarray, z: np.ndarray, Rz: np.ndarray, stamp: float,
+                speed: np.ndarray | None = None, still: np.ndarray | None = None):
+        """Predict and update the constant-velocity filters of ``tracks`` (unique) with
+        positions ``z`` (G, 3), covariances ``Rz`` (G, 3, 3); then with the motion test's
+        speed (``speed``, m/s, NaN: none) along the filter's own direction, and with zero
+        velocity for the objects it judged static (``still``); all tracks stacked."""
+        G = len(tracks)
+        I3 = np.eye(3)
+        known = np.array([int(t) in self._x for t in tracks])
+        x = np.zeros((G, 6))
+        P = np.zeros((G, 6, 6))
+        dt = np.zeros(G)
+        for j in np.flatnonzero(known):
+            t = int(tracks[j])
+            x[j], P[j], dt[j] = self._x[t], self._P[t], max(stamp - self._t[t], 1e-3)
+        # predict: F = [[I, dt I], [0, I]], Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]] (x) I
+        F = np.broadcast_to(np.eye(6), (G, 6, 6)).copy()
+        F[:, :3, 3:] = dt[:, None, None] * I3
+        Q = np.zeros((G, 6, 6))
+        A = self.q * VERTICAL  # per axis: the ground holds the objects, y (down) barely accelerates
+        Q[:, :3, :3] = (dt**3 / 3)[:, None, None] * A
+        Q[:, :3, 3:] = Q[:, 3:, :3] = (dt**2 / 2)[:, None, None] * A
+        Q[:, 3:, 3:] = dt[:, None, None] * A
+        x = np.einsum("gij,gj->gi", F, x)
+        P = F @ P @ F.transpose(0, 2, 1) + Q
+        # update with z: H = [I 0]
+        S = P[:, :3, :3] + Rz
+        y = z - x[:, :3]
+        Sinv = np.linalg.inv(S)
+        chi = np.einsum("gi,gij,gj->g", y, Sinv, y)
+        K = P[:, :, :3] @ Sinv
+        x = x + np.einsum("gij,gj->gi", K, y)
+        P = P - K @ P[:, :3, :]
+        if speed is not None:
+            x, P = self._speed_update(x, P, speed, still)
+        # new tracks and restarted ones (the id went to another object): the measurement, v = 0 +- 10 m/s
+        fresh = ~known | (chi > self.gate)
+        self.restarts += int((known & (chi > self.gate)).sum())
+        if fresh.any():
+            x[fresh] = np.column_stack([z[fresh], np.zeros((int(fresh.sum()), 3))])
+            P[fresh] = 0.0
+            P[fresh, :3, :3] = Rz[fresh]
+            P[fresh, 3:, 3:] = 100.0 * VERTICAL
+        n = np.zeros(G, np.int64)
+        for j, tr in enumerate(tracks):
+            t = int(tr)
+            self._x[t], self._P[t], self._t[t] = x[j], P[j], stamp
+            self._n[t] = 1 if fresh[j] else self._n.get(t, 0) + 1
+            n[j] = self._n[t]
+        return x, P, n
+
+
+    def _speed_update(self, x: np.ndarray, P: np.ndarray, speed: np.ndarray, still: np.ndarray):
+        """The scalar update ``|v| = speed`` (H = [0, v/|v|]) where the motion test measured
+        a speed and the filter has a direction; the 3-D update ``v = 0`` for the static."""
+        v = x[:, 3:]
+        sp = np.linalg.norm(v, axis=1)
+        use = np.isfinite(speed) & (sp > SPEED_DIRECTION) & ~still
+        if use.any():
+            H = np.zeros((int(use.sum()), 6))
+            H[:, 3:] = v[use] / sp[use, None]
+            Pu = P[use]
+            r = SPEED_SIGMA**2 + (0.1 * speed[use]) ** 2
+            s = np.einsum("gi,gij,gj->g", H, Pu, H) + r
+            K = np.einsum("gij,gj->gi", Pu, H) / s[:, None]
+            x[use] = x[use] + K * (speed[use] - sp[use])[:, None]
+            P[use] = Pu - K[:, :, None] * np.einsum("gi,gij->gj", H, Pu)[:, None, :]
+        if still.any():
+            Pv = P[still][:, 3:, 3:]
+            S = Pv + STILL_SIGMA**2 * np.eye(3)
+            K = P[still][:, :, 3:] @ np.linalg.inv(S)  # (g, 6, 3)
+            x[still] = x[still] - np.einsum("gij,gj->gi", K, x[still][:, 3:])
+            P[still] = P[still] - K @ P[still][:, 3:, :]
+        return x, P
+
+
+class ObjectPaths:
+    """Each track's recent world positions and last verdict, for drawing paths (rerun, ROS):
+    ``add(objects)`` once a frame with its ``ObjectMask`` list; ``paths()`` -> ``[(track,
+    (n, 3) positions, moving)]`` of the tracks with two positions or more."""
+
+    def __init__(self, max_len: int = 300):
+        self.max_len = max_len
+        self._p: dict[int, deque] = {}
+        self._v: dict[int, bool | None] = {}
+
+    def add(self, objects: list) -> None:
+        for o in objects:
+            if getattr(o, "world", None) is not None and o.track_id >= 0:
+                self._p.setdefault(int(o.track_id), deque(maxlen=self.max_len)).append(np.asarray(o.world.world, float))
+                self._v[int(o.track_id)] = o.moving
+
+    def paths(self) -> list[tuple[int, np.ndarray, bool | None]]:
+        return [(t, np.array(p), self._v[t]) for t, p in self._p.items() if len(p) > 1]
+
+
+class TrackWriter:
+    """``objects_tracks.csv``: one row per object and frame with a world position
+    (``TRACK_COLUMNS``), flushed after every frame."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self._fh: IO[str] | None = open(self.path, "w", newline="")
+        self._w = csv.writer(self._fh)
+        self._w.writerow(TRACK_COLUMNS)
+
+    def write(self, frame: int, stamp: float, masks: StereoMasks | None) -> None:
+        if self._fh is None or masks is None:
+            return
+        f = lambda v: "" if v is None else f"{float(v):.3f}"  # noqa: E731
+        for o in masks.objects:
+            s = getattr(o, "world", None)
+            if s is None:
+                continue
+            v = s.velocity if s.velocity is not None else (None, None, None)
+            mv = "" if o.moving is None else int(bool(o.moving))
+            self._w.writerow([s.track, frame, f"{stamp:.6f}", o.label, *map(f, s.world), *map(f, v), f(s.speed),
+                              f(s.speed_sigma), mv])
+        self._fh.flush()
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+    def __enter__(self) -> "TrackWriter":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def read_tracks(path: str | Path) -> dict[int, dict[str, np.ndarray]]:
+    """``objects_tracks.csv`` as ``{track: {"frame", "stamp", "xyz" (n, 3), "speed", "speed_sigma", "moving"
+    (1, 0, -1 undecided), "label"}}``."""
+    out: dict[int, dict[str, list]] = {}
+    with open(path, newline="") as fh:
+        for row in csv.DictReader(fh):
+            t = out.setdefault(int(row["track_id"]), {"frame": [], "stamp": [], "xyz": [], "speed": [],
+                                                       "speed_sigma": [], "moving": [], "label": row["label"]})
+            t["frame"].append(int(row["frame"]))
+            t["stamp"].append(float(row["stamp"]))
+            t["xyz"].append([float(row["x"]), float(row["y"]), float(row["z"])])
+            t["speed"].append(float(row["speed"]) if row["speed"] else np.nan)
+            t["speed_sigma"].append(float(row["speed_sigma"]) if row["speed_sigma"] else np.nan)
+            t["moving"].append({"": -1, "0": 0, "1": 1}[row["moving"]])
+    return {k: {kk: (np.asarray(vv) if kk != "label" else vv) for kk, vv in v.items()} for k, v in out.items()}
