@@ -29,6 +29,27 @@ with ``--masker none``: ``summary.fps``, medians over the repeats.
 
 Prints a table per sequence (medians over the repeats) and writes
 benchmarks/results/profile.json.
+
+**The SLAM's stages** (``--part stages``, issue 23's "profile first"): the SLAM alone
+(``masker none``) driven frame by frame from this process, with ``slam.threads 1`` (the
+right image's ORB not on a second thread) and ``slam.local_ba inline`` (the BA solve in
+this thread, not the worker process), so that every stage's CPU is this thread's.  Each
+stage is an entry point of the SLAM (``STAGES``: a method or module function, patched
+with a thin timing wrapper); its CPU (``time.process_time``, so native pools count too)
+is *exclusive*: what a nested stage spends is its own, not its caller's, and what no
+stage claims stays with ``other`` (``System.track``'s own work: the self-calibration's
+per-frame part, the motion update...).  Reading the images is outside.  A second pass
+counts the calls each stage makes (``sys.setprofile``: every Python function call and
+every call of a builtin / C function from Python -- ``cv2``, ``gtsam`` and numpy's
+builtin functions; numpy's ufuncs and operators, and calls into compiled kernels, fire
+no event) -- the Python-level overhead a compiled kernel removes.  Per frame: totals
+over the clip / its frames; medians of ``--repeats`` for the CPU, the counts are the
+same every time.  Entry points that no longer exist are listed as ``missing``.
+
+    DYNASTEREO_DATA=... .venv/bin/python benchmarks/bench_profile.py --part stages [--sequences 06,03]
+
+(``--part budget``: the parts above only; ``--part all``, the default: both.  A part run
+alone keeps the other's figures in the JSON.)
 """
 
 from __future__ import annotations
@@ -42,6 +63,8 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -193,18 +216,204 @@ def _median_dict(rows: list[dict]) -> dict:
     return {k: round(float(np.median([r.get(k, 0.0) for r in rows])), 2) for k in sorted(keys)}
 
 
+# ---------------------------------------------------------------- the SLAM's stages
+# (module, attribute path, stage): the SLAM's entry points, in the order of a frame
+STAGES = [
+    ("dynastereo.slam.orb", "ORBExtractor.extract", "ORB extraction"),
+    ("dynastereo.slam.tracking", "stereo_match", "stereo matching"),
+    ("dynastereo.slam.tracking", "Tracker.make_frame", "frame setup (selfcal, Frame)"),
+    ("dynastereo.slam.tracking", "Tracker.track_motion_model", "pose prediction + search by projection"),
+    ("dynastereo.slam.tracking", "Tracker.track_reference_keyframe", "pose prediction + search by projection"),
+    ("dynastereo.slam.tracking", "Tracker._optimize", "pose optimization"),
+    ("dynastereo.slam.tracking", "Tracker.track_local_map", "local map tracking"),
+    ("dynastereo.slam.tracking", "Tracker._relocalize", "relocalization"),
+    ("dynastereo.slam.tracking", "Tracker.need_new_keyframe", "keyframe decision"),
+    ("dynastereo.slam.tracking", "Tracker._create_keyframe", "keyframe creation"),
+    ("dynastereo.slam.local_mapping", "LocalMapper.process", "local mapping: map updates"),
+    ("dynastereo.slam.local_mapping", "LocalMapper.create_new_points", "local mapping: triangulation"),
+    ("dynastereo.slam.local_mapping", "LocalMapper.fuse", "local mapping: fusion"),
+    ("dynastereo.slam.local_mapping", "LocalMapper.cull_points", "local mapping: culling"),
+    ("dynastereo.slam.local_mapping", "LocalMapper.cull_keyframes", "local mapping: culling"),
+    ("dynastereo.slam.local_mapping", "LocalMapper.build_problem", "local BA: build"),
+    ("dynastereo.slam.local_mapping", "LocalMapper.build_selfcal_problem", "local BA: build"),
+    ("dynastereo.slam.local_mapping", "run_ba", "local BA: solve"),
+    ("dynastereo.slam.local_mapping", "LocalMapper._apply", "local BA: apply"),
+    ("dynastereo.slam.active_map", "ActiveMap.place_keyframe", "loop closing + keyframe DB"),
+    ("dynastereo.slam.loop_closing", "LoopCloser.collect", "loop closing + keyframe DB"),
+]
+OTHER = "other"
+STAGE_ORDER = list(dict.fromkeys([s for *_x, s in STAGES] + [OTHER]))
+
+
+class StageClock:
+    """Exclusive CPU time and call counts per stage (module doc, ``--part stages``)."""
+
+    def __init__(self) -> None:
+        self.cpu: dict[str, float] = {}
+        self.calls: dict[str, int] = {}
+        self.entries: dict[str, int] = {}
+        self.stack: list[list] = []  # [stage, start cpu, cpu of nested stages]
+        self.wrappers: set = set()
+
+    @contextmanager
+    def stage(self, name: str):
+        t0 = time.process_time()
+        self.stack.append([name, t0, 0.0])
+        self.entries[name] = self.entries.get(name, 0) + 1
+        try:
+            yield
+        finally:
+            _, start, nested = self.stack.pop()
+            dt = time.process_time() - start
+            self.cpu[name] = self.cpu.get(name, 0.0) + dt - nested
+            if self.stack:
+                self.stack[-1][2] += dt
+
+    def wrap(self, fn, name: str):
+        clock = self
+
+        def timed(*a, **k):
+            with clock.stage(name):
+                return fn(*a, **k)
+
+        self.wrappers.add(timed.__code__)
+        return timed
+
+    def profiler(self, frame, event, arg) -> None:
+        if event in ("call", "c_call") and self.stack:
+            if event == "call" and (frame.f_code in self.wrappers or frame.f_code.co_name in ("stage", "__enter__",
+                                                                                                "__exit__")):
+                return
+            top = self.stack[-1][0]
+            self.calls[top] = self.calls.get(top, 0) + 1
+
+
+@contextmanager
+def hooked(clock: StageClock):
+    """Patch the entry points of ``STAGES`` with ``clock``'s wrappers; yields the missing ones."""
+    import importlib
+
+    undo, missing = [], []
+    for mod_name, attr, name in STAGES:
+        mod = importlib.import_module(mod_name)
+        *path, last = attr.split(".")
+        owner = mod
+        for p in path:
+            owner = getattr(owner, p, None)
+        fn = getattr(owner, last, None) if owner is not None else None
+        if fn is None:
+            missing.append(f"{mod_name}.{attr}")
+            continue
+        raw = owner.__dict__[last] if isinstance(owner, type) else fn
+        setattr(owner, last, clock.wrap(fn, name))
+        undo.append((owner, last, raw))
+    try:
+        yield missing
+    finally:
+        for owner, last, raw in reversed(undo):
+            setattr(owner, last, raw)
+
+
+def stages_once(seq_dir: Path, count_calls: bool) -> dict:
+    """One pass of the SLAM alone over the clip (module doc): per stage, CPU ms and
+    calls over the whole clip; and the frames."""
+    from dynastereo.io import open_sequence
+    from dynastereo.slam import System
+
+    seq = open_sequence(seq_dir)
+    cfg = Config().with_overrides({"masker.kind": "none", "slam.threads": 1, "slam.local_ba": "inline"})
+    clock = StageClock()
+    n = len(seq)
+    with hooked(clock) as missing:
+        system = System(cfg, seq.calibration)
+        total = 0.0
+        try:
+            for i in range(n):
+                f = seq.frame(i)
+                t0 = time.process_time()
+                if count_calls:
+                    sys.setprofile(clock.profiler)
+                try:
+                    with clock.stage(OTHER):
+                        system.track(f, None)
+                finally:
+                    if count_calls:
+                        sys.setprofile(None)
+                total += time.process_time() - t0
+            lost = len(system.lost_frames())
+        finally:
+            system.shutdown()
+    return {"frames": n, "lost": lost, "cpu_ms": {k: v * 1e3 for k, v in clock.cpu.items()},
+            "calls": dict(clock.calls), "entries": dict(clock.entries), "total_cpu_ms": total * 1e3,
+            "missing": missing}
+
+
+def slam_stages(seq_dir: Path, repeats: int) -> dict:
+    """The stage table of one clip: CPU ms a frame (median of ``repeats`` passes) and
+    Python-level calls a frame (a separate counting pass)."""
+    timed = [stages_once(seq_dir, False) for _ in range(repeats)]
+    counted = stages_once(seq_dir, True)
+    n = timed[0]["frames"]
+    rows = []
+    for st in STAGE_ORDER:
+        cpu = float(np.median([t["cpu_ms"].get(st, 0.0) for t in timed])) / n
+        rows.append({"stage": st, "cpu_ms_per_frame": round(cpu, 2),
+                     "calls_per_frame": round(counted["calls"].get(st, 0) / n, 1),
+                     "entries_per_frame": round(counted["entries"].get(st, 0) / n, 2)})
+    total = float(np.median([t["total_cpu_ms"] for t in timed])) / n
+    return {"frames": n, "lost": timed[0]["lost"], "repeats": repeats, "total_cpu_ms_per_frame": round(total, 1),
+            "calls_per_frame": round(sum(counted["calls"].values()) / n, 1),
+            "rows": rows, "missing": timed[0]["missing"],
+            "cpu_ms_runs": [round(t["total_cpu_ms"] / n, 1) for t in timed]}
+
+
+def print_stages(name: str, r: dict) -> None:
+    print(f"\nKITTI {name}, the SLAM alone (--masker none; one thread, local BA inline): {r['frames']} frames, "
+          f"{r['total_cpu_ms_per_frame']} ms CPU a frame, {r['calls_per_frame']:.0f} Python-level calls a frame")
+    print("| stage | CPU ms / frame | share | Python-level calls / frame | entries / frame |")
+    print("|---|---:|---:|---:|---:|")
+    tot = sum(x["cpu_ms_per_frame"] for x in r["rows"]) or 1.0
+    for x in r["rows"]:
+        print(f"| {x['stage']} | {x['cpu_ms_per_frame']:.1f} | {100 * x['cpu_ms_per_frame'] / tot:.0f} % | "
+              f"{x['calls_per_frame']:.0f} | {x['entries_per_frame']:.2f} |")
+    if r["missing"]:
+        print("missing entry points (not timed): " + ", ".join(r["missing"]))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sequences", default="06,03")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--masker", default="outline")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--part", choices=("all", "budget", "stages"), default="all",
+                    help="budget: the threads and parts of a run; stages: the SLAM's stage table; all: both")
     args = ap.parse_args()
     data = Path(os.environ["DYNASTEREO_DATA"])
+    kept = json.loads(args.out.read_text()) if args.out.exists() else {}
+    if args.part in ("all", "stages"):
+        stages = {"method": "exclusive process CPU per SLAM entry point (bench_profile.py doc), masker none, "
+                            "slam.threads 1, slam.local_ba inline; calls: sys.setprofile call + c_call events",
+                  "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_before": os.getloadavg()[0],
+                  "sequences": {}}
+        for name in args.sequences.split(","):
+            seq = data / "kitti_odometry" / "dataset" / "sequences" / name
+            r = slam_stages(seq, args.repeats)
+            stages["sequences"][name] = r
+            print_stages(name, r)
+        stages["load_after"] = os.getloadavg()[0]
+        kept["slam_stages"] = stages
+        if args.part == "stages":
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(json.dumps(kept, indent=1))
+            print(f"-> {args.out}")
+            return
     models = Path(os.environ["DYNASTEREO_MODELS"]) if os.environ.get("DYNASTEREO_MODELS") else None
     cfg = Config().with_overrides({"masker.kind": args.masker})
     out = {"masker": args.masker, "repeats": args.repeats, "host": platform.node(), "cpus": os.cpu_count(),
            "load_before": os.getloadavg()[0], "sequences": {}}
+    if "slam_stages" in kept:
+        out["slam_stages"] = kept["slam_stages"]
     for name in args.sequences.split(","):
         seq = data / "kitti_odometry" / "dataset" / "sequences" / name
         runs = [profile_once(seq, cfg, models) for _ in range(args.repeats)]

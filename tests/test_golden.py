@@ -12,21 +12,27 @@ same number of lost frames.
 instead of 2000 -- a change that should not matter -- differ from the default's
 trajectory by (camera positions, not aligned, the largest of the three variants):
 
-=========  =================  =================  ===========================
-case       position RMSE (m)  largest diff. (m)  (path; ATE of the golden)
-=========  =================  =================  ===========================
-kitti06    0.0525             0.2215             60 m; 0.0329 m
-kitti03    0.0700             0.2082             58 m; 0.0964 m
-convoy     0.0680             0.2341             23 m; 0.0267 m
-=========  =================  =================  ===========================
+=========  =================  =================  ===============  ====================
+case       position RMSE (m)  largest diff. (m)  rotation (deg)   path; golden's ATE
+=========  =================  =================  ===============  ====================
+kitti06    0.0525             0.2215             0.175            60 m; 0.0329 m
+kitti03    0.0700             0.2082             0.116            58 m; 0.0964 m
+convoy     0.0680             0.2341             0.631            23 m; 0.0267 m
+=========  =================  =================  ===============  ====================
 
-A new core may move the trajectory by as much as such a change, no more: the limits
-(``TOLERANCE``) are those figures rounded up to 5 mm.  A core that shifts every path
+(rotation: the largest angle between a frame's orientation in the variant and in the
+default run.)  A new core may move the trajectory by as much as such a change, no more: the limits
+(``TOLERANCE``) are those figures rounded up to 5 mm and 0.05 deg.  A core that shifts every path
 by the same systematic error shows up as an RMSE above them; identical code gives
 0 here (the runs are deterministic, ``test_two_runs_are_byte_identical``).
 
-Each sequence runs once per module (``dynastereo run`` in its own process, as a user
-runs it); KITTI 06 a second time for the determinism check.
+The ATE against ground truth may not exceed the golden's by more than the RMSE limit,
+and the default pipeline has accuracy floors on real KITTI (06 <= 0.05 m, 03 <= 0.12 m,
+all frames; 0.033 / 0.100 m today -- note that 06's n_features variants reach 0.051 m).
+
+Each case runs once per module (``dynastereo run`` in its own process, as a user runs
+it; KITTI 03 twice: ``--masker none`` for the golden, the default for the floor);
+KITTI 06 a second time for the determinism check.  About 90 s of CPU on a quiet machine.
 """
 
 from __future__ import annotations
@@ -45,8 +51,9 @@ from dynastereo.eval import evaluate_files
 GOLDEN = Path(__file__).parent / "data" / "golden"
 CONVOY_FRAMES = 40
 CONVOY_SIZE = "640x192"
-# (position RMSE, largest position difference) in metres: the n_features spread, module doc
-TOLERANCE = {"kitti06": (0.055, 0.225), "kitti03": (0.070, 0.210), "convoy": (0.070, 0.235)}
+# (position RMSE m, largest position difference m, largest rotation difference deg):
+# the n_features spread, module doc
+TOLERANCE = {"kitti06": (0.055, 0.225, 0.20), "kitti03": (0.070, 0.210, 0.15), "convoy": (0.070, 0.235, 0.65)}
 # accuracy floors of the default pipeline on real KITTI, all frames (issue 23): ATE RMSE (m)
 FLOOR = {"kitti06": 0.05, "kitti03_default": 0.12}
 
@@ -105,8 +112,12 @@ def test_trajectory_stays_within_the_n_features_spread_of_the_golden(case: str, 
     assert run["frames_lost"] == meta["frames_lost"], (run["lost"], meta["lost_positions"])
     d = np.linalg.norm(est[:, :, 3] - gold[:, :, 3], axis=1)
     rmse, worst = float(np.sqrt(np.mean(d**2))), float(d.max())
-    tol_rmse, tol_max = TOLERANCE[case]
+    tol_rmse, tol_max, tol_rot = TOLERANCE[case]
     assert rmse <= tol_rmse and worst <= tol_max, (case, rmse, worst, int(d.argmax()))
+    # the orientations too (a path with a turned heading)
+    R = np.einsum("nji,njk->nik", gold[:, :, :3], est[:, :, :3])
+    ang = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    assert ang.max() <= tol_rot, (case, float(ang.max()), int(ang.argmax()))
     # the ATE against ground truth is not worse than the golden's by more than the spread
     ate = evaluate_files(out / "trajectory.kitti.txt", _gt(case, data_dir, out)).ape["rmse"]
     assert ate <= meta["ate_gt_m"] + tol_rmse, (case, ate, meta["ate_gt_m"])

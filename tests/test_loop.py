@@ -111,9 +111,15 @@ def test_kitti03_kidnapped_camera_relocalizes(kitti03: Path, models_dir: Path, t
 
 def test_kitti03_map_reuse_localise_only(kitti03: Path, models_dir: Path, tmp_path: Path, data_dir: Path) -> None:
     """Map 03 with --save-map (default outline masks, only what moves), then --load-map
-    --localize-only on the same frames: no new keyframe, every frame tracked, the ATE of
-    the mapping run within 1 cm (0.110 m with the default masks since the motion test;
-    0.100 m when every car was masked) and <= 0.12 m; run.json names the map files."""
+    --localize-only on the same frames: no new keyframe, every frame tracked, the ATE
+    within 1 cm of the mapping run's and <= 0.14 m; run.json names the map files.
+
+    The ceiling (2026-12-02, over the ``slam.n_features`` variants 2000 / 1950 / 2050 /
+    2100): localizing 0.130 / 0.110 / 0.117 / 0.093 m, the mapping run with --save-map
+    0.132 / 0.112 / 0.121 / 0.092 m, the same run without it 0.100 / 0.101 / 0.101 /
+    0.090 m: the final whole-map (self-calibrating) BA that --save-map runs before
+    writing the map moves the frames' poses by +0.002-0.032 m, and localizing follows
+    the saved map.  0.14 = the largest variant + 0.01 (README, "KITTI 03")."""
     gt = data_dir / "kitti_odometry/dataset/poses/03.txt"
     map_file = tmp_path / "03.dsmap"
     r = runner.invoke(
@@ -138,10 +144,8 @@ def test_kitti03_map_reuse_localise_only(kitti03: Path, models_dir: Path, tmp_pa
     assert run["stats"]["keyframes_created"] == 0  # no keyframe added
     ate_map = evaluate_files(tmp_path / "map/trajectory.kitti.txt", gt).ape["rmse"]
     ate_loc = evaluate_files(tmp_path / "loc/trajectory.kitti.txt", gt).ape["rmse"]
-    # localizing in the saved map is as good as mapping it; the absolute ceiling is loose:
-    # a change that should not matter moves a 99-frame clip's ATE by 10-20 % (README,
-    # "Mask only what moves": 0.0895-0.1104 m over n_features variants)
-    assert ate_loc <= 0.16 and ate_loc <= ate_map + 0.01, (ate_map, ate_loc)
+    # localizing in the saved map is as good as mapping it; the ceiling: the docstring
+    assert ate_loc <= 0.14 and ate_loc <= ate_map + 0.01, (ate_map, ate_loc)
 
 
 def test_map_file_errors_through_the_cli(kitti06: Path, kitti03: Path, models_dir: Path, tmp_path: Path) -> None:
