@@ -115,9 +115,10 @@ def main() -> None:
                 runs[nf] = {"frames_lost": run["frames_lost"], "keyframes": run["keyframes"], "ate_gt_m": ate}
                 if nf != 2000:
                     runs[nf].update(compare(out / "trajectory.kitti.txt", tmp / case / "2000" / "trajectory.kitti.txt"))
-                print(f"{case:8s} n_features {nf}: ATE {ate:.4f} m, lost {run['frames_lost']}, "
-                      + (f"vs 2000: rmse {runs[nf]['rmse_m']:.4f} max {runs[nf]['max_m']:.4f} "
-                         f"aligned {runs[nf]['ate_aligned_m']:.4f} m rot {runs[nf]['rot_max_deg']:.3f} deg" if nf != 2000 else "(default)"), flush=True)
+                r = runs[nf]
+                vs = (f"vs 2000: rmse {r['rmse_m']:.4f} max {r['max_m']:.4f} aligned {r['ate_aligned_m']:.4f} m "
+                      f"rot {r['rot_max_deg']:.3f} deg" if nf != 2000 else "(default)")
+                print(f"{case:8s} n_features {nf}: ATE {ate:.4f} m, lost {run['frames_lost']}, {vs}", flush=True)
                 if nf == 2000 and args.write:
                     GOLDEN.mkdir(parents=True, exist_ok=True)
                     (GOLDEN / f"{case}.kitti.txt").write_bytes((out / "trajectory.kitti.txt").read_bytes())
@@ -134,12 +135,14 @@ def main() -> None:
     results["machine"] = {"cpus": os.cpu_count(), "python": platform.python_version()}
     OUT.parent.mkdir(parents=True, exist_ok=True)
     OUT.write_text(json.dumps(results, indent=1) + "\n")
-    print("\n| case | ATE vs GT (2000) | largest variant vs default: position RMSE / max / aligned ATE (m) | rotation max (deg) | lost |")
+    print("\n| case | ATE vs GT (2000) | largest variant vs default: position RMSE / max / aligned ATE (m) "
+          "| rotation max (deg) | lost |")
     print("|---|---|---|---|---|")
     for case, r in results["cases"].items():
         s = r["spread"]
+        lost = [r["runs"][str(v)]["frames_lost"] for v in VARIANTS]
         print(f"| {case} | {r['runs']['2000']['ate_gt_m']:.4f} | {s['rmse_m']:.4f} / {s['max_m']:.4f} / "
-              f"{s['ate_aligned_m']:.4f} | {s['rot_max_deg']:.3f} | {[r['runs'][str(v)]['frames_lost'] for v in VARIANTS]} |")
+              f"{s['ate_aligned_m']:.4f} | {s['rot_max_deg']:.3f} | {lost} |")
     print(f"-> {OUT}")
 
 

@@ -222,8 +222,9 @@ def main() -> None:
                     t = time.perf_counter()
                     r = run_peer(seq, d, gts[c], peer) if s == "orbslam3" else run_dynastereo(seq, s, d, gts[c])
                     runs[c][s].append(r)
-                    print(f"[{rep + 1}/{args.repeats}] {c:7s} {s:8s} {r['fps']:6.2f} FPS  {r['cpu_ms']:6.1f} ms CPU/frame"
-                          f"  ATE {_f(r['ate_m'], '.4f')} m  lost {r['lost']}  ({time.perf_counter() - t:.0f} s)",
+                    print(f"[{rep + 1}/{args.repeats}] {c:7s} {s:8s} {r['fps']:6.2f} FPS  "
+                          f"{r['cpu_ms']:6.1f} ms CPU/frame  ATE {_f(r['ate_m'], '.4f')} m  lost {r['lost']}  "
+                          f"({time.perf_counter() - t:.0f} s)",
                           flush=True)
     summary: dict[str, dict] = {}
     for c in clips:
