@@ -66,12 +66,10 @@ def test_exact_observations_converge_back_to_the_known_minimum():
     np.testing.assert_allclose(X, X_true, atol=1e-6)
 
 
-def test_a_big_camera_system_goes_through_lapack_and_converges():
-    """52 keyframes (6 x 51 unknowns >= ba_kernel.LAPACK_FROM): LAPACK's factorization."""
-    from dynastereo.slam.ba_kernel import LAPACK_FROM
-
-    T_true, X_true, kf, pt, uv, ur = _scene(41, n_kf=52, n_pts=400, step=0.1)
-    assert 6 * 51 >= LAPACK_FROM and len(np.unique(kf)) == 52
+def test_a_big_camera_system_converges():
+    """52 keyframes (306 camera unknowns, a full BA's size), every one seeing the points."""
+    T_true, X_true, kf, pt, uv, ur = _scene(41, n_kf=52, n_pts=250, step=0.1)
+    assert len(np.unique(kf)) == 52
     fixed = np.zeros(len(T_true), bool)
     fixed[0] = True
     T0, X0 = _perturb(T_true, X_true, fixed, 42, rot=0.002, trans=0.02, pts=0.05)

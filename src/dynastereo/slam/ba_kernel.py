@@ -277,32 +277,6 @@ def _cholesky_solve(S, r, n):
     return True
 
 
-# reduced camera systems at least this big (50 free keyframes: the loop's full BA, a saved
-# map's final BA) are factorized by LAPACK (potrf, ~8x faster at 1000 unknowns than the
-# scalar loop); the local BAs' smaller ones by the scalar loop
-LAPACK_FROM = 300
-
-
-@njit(nogil=True, cache=True)
-def _cholesky_solve_lapack(S, r, n):
-    """``_cholesky_solve`` with LAPACK's factorization (reads S's lower triangle)."""
-    try:
-        L = np.linalg.cholesky(S)
-    except Exception:  # noqa: BLE001 -- not positive definite
-        return False
-    for i in range(n):
-        s = r[i]
-        for k in range(i):
-            s -= L[i, k] * r[k]
-        r[i] = s / L[i, i]
-    for i in range(n - 1, -1, -1):
-        s = r[i]
-        for k in range(i + 1, n):
-            s -= L[k, i] * r[k]
-        r[i] = s / L[i, i]
-    return True
-
-
 @njit(nogil=True, cache=True)
 def _solve_damped(lam, obs_kf, obs_pt, pt_start, pt_obs, cam_var, nc, Hcc, bc, Hpp, bp, Hcp, Wt,
                   Pinv, Y, S, rhs, dx_c, dx_p):
@@ -371,10 +345,9 @@ def _solve_damped(lam, obs_kf, obs_pt, pt_start, pt_obs, cam_var, nc, Hcc, bc, H
                             Y[i, a, 0] * Hcp[j, b, 0] + Y[i, a, 1] * Hcp[j, b, 1] + Y[i, a, 2] * Hcp[j, b, 2]
                         )
     # S's lower triangle (block rows ci >= cj) is complete; the factorization reads only it
-    if n >= LAPACK_FROM:
-        if not _cholesky_solve_lapack(S, rhs, n):
-            return False
-    elif n > 0:
+    # a scalar Cholesky, not LAPACK's: LAPACK's threads fight tracking's for the cores (on a
+    # busy 2-core machine potrf of 300 unknowns took 8x longer with them than without)
+    if n > 0:
         if not _cholesky_solve(S, rhs, n):
             return False
     for c in range(nc):
