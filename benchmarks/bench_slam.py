@@ -221,7 +221,7 @@ def main() -> int:
     ap.add_argument("--maskers", default="none,box,outline,seg")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--frames", type=int, default=0, help="first N frames only (0: all)")
-    ap.add_argument("--local-ba", default=None, help="override slam.local_ba (process | inline | off)")
+    ap.add_argument("--local-ba", default=None, help="override slam.local_ba (thread | inline | off)")
     ap.add_argument("--features", type=int, default=None, help="override slam.n_features (default 2000)")
     ap.add_argument("--levels", type=int, default=None, help="override slam.n_levels (default 8)")
     ap.add_argument("--out", type=Path, default=OUT)

@@ -23,12 +23,12 @@ BASELINE = 0.54
 BF = K[0, 0] * BASELINE
 
 
-def _scene(seed: int, n_kf: int = 6, n_pts: int = 500, mono_beyond: float = 25.0):
+def _scene(seed: int, n_kf: int = 6, n_pts: int = 500, mono_beyond: float = 25.0, step: float = 0.8):
     """Keyframes 0.8 m apart along z looking at points 5-40 m away; exact observations
     (stereo up to ``mono_beyond`` m, monocular beyond).  Returns the true ``T_cw``,
     points, and the observation arrays."""
     rng = np.random.default_rng(seed)
-    T_wc = np.stack([se3_exp(np.r_[0.0, 0.01 * i, 0.0, 0.05 * i, 0.0, 0.8 * i]) for i in range(n_kf)])
+    T_wc = np.stack([se3_exp(np.r_[0.0, 0.01 * i, 0.0, 0.05 * i, 0.0, step * i]) for i in range(n_kf)])
     T_cw = np.stack([inv_T(T) for T in T_wc])
     X = np.c_[rng.uniform(-12, 12, n_pts), rng.uniform(-3, 2, n_pts), rng.uniform(5, 40, n_pts)]
     kf, pt, uv, ur = [], [], [], []
@@ -64,6 +64,18 @@ def test_exact_observations_converge_back_to_the_known_minimum():
     assert inl.all() and st[3] == 0
     np.testing.assert_allclose(T, T_true, atol=1e-8)
     np.testing.assert_allclose(X, X_true, atol=1e-6)
+
+
+def test_a_big_camera_system_converges():
+    """52 keyframes (306 camera unknowns, a full BA's size), every one seeing the points."""
+    T_true, X_true, kf, pt, uv, ur = _scene(41, n_kf=52, n_pts=250, step=0.1)
+    assert len(np.unique(kf)) == 52
+    fixed = np.zeros(len(T_true), bool)
+    fixed[0] = True
+    T0, X0 = _perturb(T_true, X_true, fixed, 42, rot=0.002, trans=0.02, pts=0.05)
+    T, X, inl, st = solve(T0, X0, kf, pt, uv, ur, np.ones(len(kf)), fixed, K, BF, 30, 0, 1e-14)
+    assert st[1] > 1e3 and st[2] < 1e-10
+    np.testing.assert_allclose(T, T_true, atol=1e-7)
 
 
 def test_fixed_keyframes_do_not_move():

@@ -427,7 +427,7 @@ def stop_then_signal(p: subprocess.Popen, sig: int, group: bool = False) -> None
 
 @pytest.mark.parametrize("how", ["SIGINT-group", "SIGTERM"])
 def test_run_interrupted(how: str, kitti06: Path, models_dir: Path, tmp_path: Path) -> None:
-    """Ctrl-C (SIGINT to the process group, the BA worker included) or SIGTERM mid-run:
+    """Ctrl-C (SIGINT to the process group) or SIGTERM mid-run (the BA thread aborted):
     one line, 130 / 143, and run.json / timing.json / trajectory agree on the frames done."""
     out = tmp_path / "out"
     sig = signal.SIGINT if how.startswith("SIGINT") else signal.SIGTERM

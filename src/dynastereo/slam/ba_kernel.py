@@ -345,6 +345,8 @@ def _solve_damped(lam, obs_kf, obs_pt, pt_start, pt_obs, cam_var, nc, Hcc, bc, H
                             Y[i, a, 0] * Hcp[j, b, 0] + Y[i, a, 1] * Hcp[j, b, 1] + Y[i, a, 2] * Hcp[j, b, 2]
                         )
     # S's lower triangle (block rows ci >= cj) is complete; the factorization reads only it
+    # a scalar Cholesky, not LAPACK's: LAPACK's threads fight tracking's for the cores (on a
+    # busy 2-core machine potrf of 300 unknowns took 8x longer with them than without)
     if n > 0:
         if not _cholesky_solve(S, rhs, n):
             return False
