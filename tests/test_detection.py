@@ -445,7 +445,6 @@ def test_runtime_resolution_and_fallback_line(caplog, monkeypatch):
     assert rt.resolve_runtime("auto", "auto", have_openvino=True, caps=("FP32",)).label == "onnxruntime/f32"
     assert rt.resolve_runtime("auto", "f32", have_openvino=True, caps=("BF16",)).label == "onnxruntime/f32"
     assert rt.resolve_runtime("openvino", "auto", have_openvino=True, caps=("FP32",)).label == "openvino/f32"
-    assert rt.resolve_runtime("auto", "auto", have_openvino=False).label == "onnxruntime/f32"
     assert rt.resolve_runtime("onnxruntime", "auto", have_openvino=True, caps=("BF16",)).label == "onnxruntime/f32"
     assert not caplog.records  # nothing asked for that could not be had
     # openvino asked for but absent: onnxruntime, with ONE line (once per process)
@@ -454,10 +453,14 @@ def test_runtime_resolution_and_fallback_line(caplog, monkeypatch):
         assert c.label == "onnxruntime/f32"
     lines = [r.getMessage() for r in caplog.records]
     assert len(lines) == 1 and "OpenVINO is not installed" in lines[0] and "onnxruntime" in lines[0]
+    # the default (auto) without the extra: onnxruntime, and one line says so too
+    assert rt.resolve_runtime("auto", "auto", have_openvino=False).label == "onnxruntime/f32"
+    assert rt.resolve_runtime("auto", "auto", have_openvino=False).label == "onnxruntime/f32"
+    assert len(caplog.records) == 2 and "pip install 'dynastereo[openvino]'" in caplog.records[-1].getMessage()
     # bf16 on a CPU without it: f32, said once
     c = rt.resolve_runtime("openvino", "bf16", have_openvino=True, caps=("FP32", "INT8"))
     assert c.label == "openvino/f32" and "no bf16" in c.note
-    assert len(caplog.records) == 2
+    assert len(caplog.records) == 3
 
 
 def test_runtime_config_keys_validate():

@@ -7,7 +7,8 @@ onnxruntime's on the measured machine, ``benchmarks/bench_detect.py --runtimes``
 OpenVINO's ``OPTIMIZATION_CAPABILITIES`` lists ``BF16``: AVX512-BF16 / AMX x86, some ARM
 -- f32 elsewhere and always on onnxruntime), ``f32`` or ``bf16`` (OpenVINO only; on a CPU
 without it: f32 with one line saying so).  Asking for OpenVINO where it is not installed
-falls back to onnxruntime with ONE logged line.
+falls back to onnxruntime with ONE logged line (``auto`` too: the extra is what makes the
+detector cheapest where the CPU has bf16).
 
 Both runtimes are set up alike for a two-core machine that also runs the tracking: a
 fixed number of inference threads (``detector.threads``), one stream, no busy-waiting
@@ -105,9 +106,8 @@ def resolve_runtime(runtime: str = "auto", precision: str = "auto", *, have_open
             rt = "openvino"
         else:
             rt = "onnxruntime"
-            if runtime == "openvino":
-                note = ("detector.runtime openvino: OpenVINO is not installed (pip install 'dynastereo[openvino]'); "
-                        "running the detector on onnxruntime")
+            note = (f"detector.runtime {runtime}: OpenVINO is not installed (pip install 'dynastereo[openvino]'); "
+                    "running the detector on onnxruntime")
     if rt == "onnxruntime":
         if precision == "bf16":
             note = note or "detector.precision bf16 needs the OpenVINO runtime; running f32 on onnxruntime"
