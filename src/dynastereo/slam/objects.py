@@ -71,6 +71,8 @@ AB_BINS = 2500  # +-25 m around the median point
 GATE = 40.0  # chi-square (3 dof) of an innovation that restarts the track
 VERTICAL = np.diag([1.0, 1e-3, 1.0])  # the filter's acceleration noise per world axis (y: down)
 MOVING_HEADING_SPEED = 1.0  # m/s: above it, the velocity gives the heading
+_NO_V = np.zeros(3)
+_I3 = np.eye(3)
 SPEED_DIRECTION = 0.3  # m/s: the filter's velocity gives a direction for the motion test's speed above it
 SPEED_SIGMA = 0.3  # m/s, the motion test's speed (plus 10 %)
 STILL_SIGMA = 0.1  # m/s, the velocity of an object the motion test judged static
@@ -94,20 +96,107 @@ def _quantiles(hist, n, lo, hi, origin, step, out, k, col):  # pragma: no cover 
 
 
 @njit(nogil=True, cache=True)
+def _row_spans(boxes, y, xs0, xs1):  # pragma: no cover - compiled
+    """The x-intervals [xs0[i], xs1[i]) of the union of the boxes covering row ``y``
+    (merged, sorted); returns their number."""
+    m = 0
+    for k in range(boxes.shape[0]):
+        if boxes[k, 1] <= y < boxes[k, 3] and boxes[k, 2] > boxes[k, 0]:
+            a, b = boxes[k, 0], boxes[k, 2]
+            j = m  # insertion sort by start (a handful of boxes)
+            while j > 0 and xs0[j - 1] > a:
+                xs0[j] = xs0[j - 1]
+                xs1[j] = xs1[j - 1]
+                j -= 1
+            xs0[j] = a
+            xs1[j] = b
+            m += 1
+    n = 0
+    for i in range(m):
+        if n > 0 and xs0[i] <= xs1[n - 1]:
+            if xs1[i] > xs1[n - 1]:
+                xs1[n - 1] = xs1[i]
+        else:
+            xs0[n] = xs0[i]
+            xs1[n] = xs1[i]
+            n += 1
+    return n
+
+
+@njit(nogil=True, cache=True)
 def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, cx, hist, hist_a, hist_b,
-                  out):  # pragma: no cover - compiled
+                  xs0, xs1, out):  # pragma: no cover - compiled
     """Per object k (boxes int (N, 4) clipped x0, y0, x1, y1; ``head`` (N, 2) its heading
-    (x, z) in the camera's top view): out[k] = (pixels with a disparity, median, p10, p90
-    disparity, then the p10 / p90 of its pixels' top-view coordinates along the heading
-    (a) and across it (b), metres), from histograms (module doc)."""
+    (x, z) in the camera's top view; ``need_ab``: whether it needs the second pass): out[k]
+    = (pixels with a disparity, median, p10, p90 disparity, then the p10 / p90 of its
+    pixels' top-view coordinates along the heading (a) and across it (b), metres), from
+    histograms ``hist`` (N, bins), ``hist_a`` / ``hist_b`` (N, AB bins) (module doc).
+    With instance labels every pixel of the boxes' union is visited once (its label names
+    its object); without, each box's pixels within 15 % of the object's peak disparity."""
     n_obj = boxes.shape[0]
-    nb = hist.shape[0]
-    na = hist_a.shape[0]
+    nb = hist.shape[1]
+    na = hist_a.shape[1]
     half = 0.5 * na * AB_STEP
+    h = disp.shape[0]
     for k in range(n_obj):
-        for b in range(nb):
-            hist[b] = 0
-        n = 0
+        for c in range(8):
+            out[k, c] = 0.0
+    if n_obj == 0:
+        return
+    y_lo = h
+    y_hi = 0
+    for k in range(n_obj):
+        y_lo = min(y_lo, boxes[k, 1])
+        y_hi = max(y_hi, boxes[k, 3])
+    # first pass: the disparity histograms
+    if use_labels:
+        for y in range(y_lo, y_hi):
+            ns = _row_spans(boxes, y, xs0, xs1)
+            for i in range(ns):
+                for x in range(xs0[i], xs1[i]):
+                    lab = labels[y, x]
+                    if lab <= 0 or lab > n_obj:
+                        continue
+                    d = disp[y, x]
+                    if d <= 0.0:
+                        continue
+                    b = min(int(d * 16.0), nb - 1)
+                    hist[lab - 1, b] += 1
+                    out[lab - 1, 0] += 1
+    else:
+        for k in range(n_obj):
+            lo = 0.85 * peak[k] - 1.0
+            hi = 1.15 * peak[k] + 1.0
+            for y in range(boxes[k, 1], boxes[k, 3]):
+                for x in range(boxes[k, 0], boxes[k, 2]):
+                    d = disp[y, x]
+                    if d <= 0.0 or (peak[k] > 0.0 and (d < lo or d > hi)):
+                        continue
+                    hist[k, min(int(d * 16.0), nb - 1)] += 1
+                    out[k, 0] += 1
+    am = np.zeros(n_obj)
+    bm = np.zeros(n_obj)
+    any_ab = False
+    for k in range(n_obj):
+        n = int(out[k, 0])
+        if n == 0:
+            continue
+        _quantiles(hist[k], n, 0.5, 0.5, 0.0, BIN, out, k, 1)
+        _quantiles(hist[k], n, 0.1, 0.9, 0.0, BIN, out, k, 2)
+        if need_ab[k]:
+            any_ab = True
+            zm = bf / max(out[k, 1], 1e-3)
+            xm = (0.5 * (boxes[k, 0] + boxes[k, 2]) - cx) * zm / fx
+            am[k] = xm * head[k, 0] + zm * head[k, 1]
+            bm[k] = xm * head[k, 1] - zm * head[k, 0]
+    if not any_ab:
+        return
+    # second pass, for the objects that need it: the pixels' top-view coordinates along /
+    # across the heading, around the median point of the box centre's column
+    for k in range(n_obj):
+        if not need_ab[k] or out[k, 0] == 0:
+            continue
+        hx, hz = head[k, 0], head[k, 1]
         lo = 0.85 * peak[k] - 1.0
         hi = 1.15 * peak[k] + 1.0
         for y in range(boxes[k, 1], boxes[k, 3]):
@@ -120,48 +209,15 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
                         continue
                 elif peak[k] > 0.0 and (d < lo or d > hi):
                     continue
-                b = int(d * 16.0)
-                if b >= nb:
-                    b = nb - 1
-                hist[b] += 1
-                n += 1
-        for c in range(8):
-            out[k, c] = 0.0
-        out[k, 0] = n
-        if n == 0:
-            continue
-        _quantiles(hist, n, 0.5, 0.5, 0.0, BIN, out, k, 1)
-        _quantiles(hist, n, 0.1, 0.9, 0.0, BIN, out, k, 2)
-        if not need_ab[k]:
-            continue
-        # second pass: the pixels' top-view coordinates along / across the heading, around
-        # the median point of the box centre's column
-        hx, hz = head[k, 0], head[k, 1]
-        zm = bf / max(out[k, 1], 1e-3)
-        xm = (0.5 * (boxes[k, 0] + boxes[k, 2]) - cx) * zm / fx
-        am = xm * hx + zm * hz
-        bm = xm * hz - zm * hx
-        for b in range(na):
-            hist_a[b] = 0
-            hist_b[b] = 0
-        for y in range(boxes[k, 1], boxes[k, 3]):
-            for x in range(boxes[k, 0], boxes[k, 2]):
-                d = disp[y, x]
-                if d <= 0.0:
-                    continue
-                if use_labels:
-                    if labels[y, x] != k + 1:
-                        continue
-                elif peak[k] > 0.0 and (d < lo or d > hi):
-                    continue
                 z = bf / d
                 xx = (x + 0.5 - cx) * z / fx
-                ia = int((xx * hx + z * hz - am + half) / AB_STEP)
-                ib = int((xx * hz - z * hx - bm + half) / AB_STEP)
-                hist_a[min(max(ia, 0), na - 1)] += 1
-                hist_b[min(max(ib, 0), na - 1)] += 1
-        _quantiles(hist_a, n, 0.1, 0.9, am - half, AB_STEP, out, k, 4)
-        _quantiles(hist_b, n, 0.1, 0.9, bm - half, AB_STEP, out, k, 6)
+                ia = int((xx * hx + z * hz - am[k] + half) / AB_STEP)
+                ib = int((xx * hz - z * hx - bm[k] + half) / AB_STEP)
+                hist_a[k, min(max(ia, 0), na - 1)] += 1
+                hist_b[k, min(max(ib, 0), na - 1)] += 1
+        n = int(out[k, 0])
+        _quantiles(hist_a[k], n, 0.1, 0.9, am[k] - half, AB_STEP, out, k, 4)
+        _quantiles(hist_b[k], n, 0.1, 0.9, bm[k] - half, AB_STEP, out, k, 6)
 
 
 @dataclass
@@ -237,15 +293,13 @@ class WorldObjects:
         self._P: dict[int, np.ndarray] = {}  # track -> covariance (6, 6)
         self._t: dict[int, float] = {}  # track -> stamp of its last update
         self._n: dict[int, int] = {}
-        self._hist = np.zeros(N_BINS, np.int64)
-        self._hist_a = np.zeros(AB_BINS, np.int64)
-        self._hist_b = np.zeros(AB_BINS, np.int64)
         self.last: list[ObjectState | None] = []
         self._mover_boxes: deque = deque(maxlen=20000)  # (centre, extent, heading) of movers, every frame
         # the compiled kernel loaded (or compiled) now, not in the first frame
         _object_stats(np.zeros((1, 1), np.int32), np.zeros((1, 1), np.float32), np.zeros((0, 4), np.int64),
-                      np.zeros(0), True, np.zeros((0, 2)), np.zeros(0, np.bool_), 1.0, 1.0, 0.0, self._hist,
-                      self._hist_a, self._hist_b, np.zeros((0, 8)))
+                      np.zeros(0), True, np.zeros((0, 2)), np.zeros(0, np.bool_), 1.0, 1.0, 0.0,
+                      np.zeros((0, N_BINS), np.int32), np.zeros((0, AB_BINS), np.int32),
+                      np.zeros((0, AB_BINS), np.int32), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 8)))
 
     def outside_movers(self, points: np.ndarray, margin: float = 0.5) -> np.ndarray:
         """(M,) bool: the world ``points`` (M, 3) outside every box (grown by ``margin`` m)
@@ -291,9 +345,12 @@ class WorldObjects:
             use = labels is not None and labels.shape == disp.shape
             peak = np.array([o.disparity for o in objs], np.float64)
             need_ab = (boxes[:, 0] <= 1.0) | (boxes[:, 2] >= w - 1.0) | (sizes[:, 2] < 1.0)
+            n_ab = int(need_ab.sum())
             _object_stats(labels if use else np.zeros((1, 1), np.int32), np.ascontiguousarray(disp, np.float32),
                           bi, peak, use, np.ascontiguousarray(head_c, np.float64), need_ab, c.bf, c.fx, c.cx,
-                          self._hist, self._hist_a, self._hist_b, out)
+                          np.zeros((N, N_BINS), np.int32), np.zeros((N if n_ab else 0, AB_BINS), np.int32),
+                          np.zeros((N if n_ab else 0, AB_BINS), np.int32), np.zeros(N, np.int64),
+                          np.zeros(N, np.int64), out)
         n, dmed = out[:, 0], out[:, 1]
         a_lo, a_hi, b_lo, b_hi = out[:, 4], out[:, 5], out[:, 6], out[:, 7]
         valid = (n >= 10) & (dmed > 0.5)
@@ -353,10 +410,10 @@ class WorldObjects:
         tracks = np.array([int(o.track_id) for o in objs], np.int64)
         # heading: the track's velocity when it moves, else the camera's forward axis (world)
         head_w = np.tile(R[:, 2], (N, 1))
-        for k, tr in enumerate(tracks):  # per object (a handful), not per pixel
-            x = self._x.get(int(tr))
-            if x is not None and np.linalg.norm(x[3:]) > MOVING_HEADING_SPEED:
-                head_w[k] = x[3:]
+        v_known = [self._x[t][3:] if t in self._x else _NO_V for t in tracks.tolist()]
+        v_known = np.array(v_known).reshape(N, 3)
+        moves = np.einsum("ij,ij->i", v_known, v_known) > MOVING_HEADING_SPEED**2
+        head_w[moves] = v_known[moves]
         head_c = head_w @ R  # into the camera: R^T h
         head_c[:, 1] = 0.0
         head_c /= np.maximum(np.linalg.norm(head_c, axis=1), 1e-9)[:, None]
@@ -368,7 +425,7 @@ class WorldObjects:
                           + (0.1 * sizes[:, 0]) ** 2)
         # covariance: sig_along^2 r r^T + sig_lat^2 (I - r r^T), into the world
         rr = ray[:, :, None] * ray[:, None, :]
-        C_c = (sig_along**2 - sig_lat**2)[:, None, None] * rr + (sig_lat**2)[:, None, None] * np.eye(3)
+        C_c = (sig_along**2 - sig_lat**2)[:, None, None] * rr + (sig_lat**2)[:, None, None] * _I3
         Cw = R @ C_c @ R.T
         Xw = X_c @ R.T + t_c
         depth = X_c[:, 2]
@@ -381,33 +438,31 @@ class WorldObjects:
         speed = np.array([np.nan if objs[k].speed_mps is None else objs[k].speed_mps for k in rows])
         still = np.array([objs[k].moving is False for k in rows], bool)
         vel = self._filter(tracks[rows], Xw[rows], Cw[rows], stamp, speed, still) if len(rows) else None
-        for j, k in enumerate(np.flatnonzero(valid)):
-            states[k] = ObjectState(int(tracks[k]), Xw[k], np.sqrt(np.diag(Cw[k])), extent[k], head_w[k],
-                                    float(r_c[k]), X_c[k])
-        if vel is not None:
+        world_sigma = np.sqrt(np.einsum("kii->ki", Cw))
+        if vel is not None:  # the tracked objects: the filter's position, velocity, speed (all rows at once)
             xs, Ps, ns = vel
-            for j, k in enumerate(rows):
-                s = states[k]
-                v, Pv = xs[j, 3:], Ps[j, 3:, 3:]
-                sp = float(np.linalg.norm(v))
-                s.world = xs[j, :3]
-                s.camera = (s.world - t_c) @ R
-                s.world_sigma = np.sqrt(np.diag(Ps[j, :3, :3]))
-                s.velocity, s.velocity_sigma = v, np.sqrt(np.diag(Pv))
-                s.speed = sp
-                s.speed_sigma = float(np.sqrt(v @ Pv @ v) / sp) if sp > 1e-6 else float(np.sqrt(np.trace(Pv) / 3))
-                s.updates = int(ns[j])
-            # a second detection under the same id shares its track's velocity
-            for k in np.flatnonzero(use):
-                if states[k] is not None and states[k].velocity is None:
-                    j = int(np.flatnonzero(tracks[rows] == tracks[k])[0])
-                    states[k].velocity, states[k].velocity_sigma = xs[j, 3:], np.sqrt(np.diag(Ps[j, 3:, 3:]))
-                    states[k].speed = float(np.linalg.norm(xs[j, 3:]))
-                    states[k].speed_sigma = states[rows[j]].speed_sigma
-        for o, s in zip(objs, states):
-            o.world = s
-            if s is not None and o.moving is not False:  # moving, or undecided (masked): never in the map
-                self._mover_boxes.append((np.array(s.world), np.array(s.extent), np.array(s.heading)))
+            Xw[rows] = xs[:, :3]
+            X_c[rows] = (xs[:, :3] - t_c) @ R
+            world_sigma[rows] = np.sqrt(np.einsum("kii->ki", Ps[:, :3, :3]))
+            Pv = Ps[:, 3:, 3:]
+            v = xs[:, 3:]
+            sp = np.linalg.norm(v, axis=1)
+            vPv = np.einsum("ki,kij,kj->k", v, Pv, v)
+            sp_sigma = np.where(sp > 1e-6, np.sqrt(vPv) / np.maximum(sp, 1e-6), np.sqrt(np.einsum("kii->k", Pv) / 3))
+            v_sigma = np.sqrt(np.einsum("kii->ki", Pv))
+            # per object: its track's row (a second detection under the same id shares it)
+            row_of = dict(zip(tracks[rows].tolist(), range(len(rows))))
+        for k in np.flatnonzero(valid).tolist():
+            st = ObjectState(int(tracks[k]), Xw[k], world_sigma[k], extent[k], head_w[k], float(r_c[k]), X_c[k])
+            j = row_of.get(int(tracks[k])) if vel is not None and tracks[k] >= 0 else None
+            if j is not None:
+                st.velocity, st.velocity_sigma = v[j], v_sigma[j]
+                st.speed, st.speed_sigma, st.updates = float(sp[j]), float(sp_sigma[j]), int(ns[j])
+            states[k] = st
+        for o, st in zip(objs, states):
+            o.world = st
+            if st is not None and o.moving is not False:  # moving, or undecided (masked): never in the map
+                self._mover_boxes.append((st.world, st.extent, st.heading))
         stale = [k for k, t in self._t.items() if stamp - t > self.max_gap]
         for k in stale:
             for d in (self._x, self._P, self._t, self._n):
