@@ -11,8 +11,9 @@ else ``calib.yaml`` (or the only ``*.yaml``) beside the video.  Its size is one 
 (half the frame's width when side by side).
 
 When opened, the file's packets are scanned once without decoding (``CAP_PROP_FORMAT = -1``,
-well under a millisecond a frame): the frames are counted (the container's
-``CAP_PROP_FRAME_COUNT`` is only an estimate, a difference is logged) and the stamps are the
+well under a millisecond a frame): the frames are counted and checked against the container's
+``CAP_PROP_FRAME_COUNT`` (an estimate for some containers: fewer frames by more than 1 % is a
+truncated file, a SequenceError; a smaller difference is logged) and the stamps are the
 container's (``CAP_PROP_POS_MSEC`` of each packet, in presentation order), or ``i / rate``
 with ``rate`` given; the first frame is decoded.  A file OpenCV cannot open, that holds no
 frame or whose first frame cannot be decoded is a SequenceError naming it; two files of
@@ -29,7 +30,8 @@ frame (the live node's policy: a queue of one, ``ros.core.DropOldestQueue``); a 
 replaced before the pipeline took it is *dropped* and counted (``dropped``, in ``run.json``'s
 ``source``).  Frames are numbered in the order they are taken; stamps are the capture's
 (``CAP_PROP_POS_MSEC`` when the backend gives it, else the host clock), relative to the
-first frame.  The source is unbounded (``len`` is :data:`UNBOUNDED`): ``--frames N`` stops
+first frame.  A video file given as the camera (``cam:video.mkv``) plays at its own frame
+rate, as a camera would deliver it.  The source is unbounded (``len`` is :data:`UNBOUNDED`): ``--frames N`` stops
 after N frames, Ctrl-C stops cleanly; the camera's end (unplugged) is a SequenceError.
 """
 
@@ -135,6 +137,9 @@ class _Reader:
             raw.release()
         if not stamps:
             raise SequenceError("the video holds no frame (empty or truncated file)", self.path)
+        if estimate - len(stamps) > max(1, estimate // 100):  # an estimate (duration x rate): a margin
+            raise SequenceError(f"truncated video: the container says {estimate} frames, the file holds "
+                                f"{len(stamps)}", self.path)
         if estimate > 0 and estimate != len(stamps):
             log.warning("%s: the container says %d frames, it holds %d; using %d",
                         self.path, estimate, len(stamps), len(stamps))
@@ -258,7 +263,7 @@ class CameraSequence:
     """A live side-by-side stereo camera through ``cv2.VideoCapture`` (see module doc).
 
     ``source``: a device index, or anything ``VideoCapture`` opens (a URL; a video file plays
-    as a camera, which the tests use).  ``calib``: the YAML calibration of one image (half the
+    as a camera would deliver it, at its container's stamps: the tests use this).  ``calib``: the YAML calibration of one image (half the
     frame).  ``color``: ``None`` BGR when the first frame holds colour.  ``size``: ask the
     camera for this frame size ``(width, height)`` (both images side by side).
     ``first_frame_timeout_s``: the wait for the first frame, and for any frame after it.
@@ -271,6 +276,7 @@ class CameraSequence:
         from ..ros.core import DropOldestQueue  # the live node's drop policy
 
         self.source = _capture_source(source)
+        self.paced = isinstance(self.source, str) and Path(self.source).is_file()
         self.path = Path(f"{CAMERA_PREFIX}{self.source}")
         self.name = name or f"camera {self.source}"
         self.timeout_s = float(timeout_s)
@@ -300,24 +306,32 @@ class CameraSequence:
         self.calibration, self.rectifier = rectified_calibration(calibration, self.raw_size, self.path, Path(calib))
         l0, r0 = split_side_by_side(first[1], self.path)
         self.color = (_is_colour(l0) or _is_colour(r0)) if color is None else bool(color)
-        self._pending: tuple[float, np.ndarray] | None = first  # the first frame is frame 0
+        self._pending: tuple[float, np.ndarray] | None = first  # frame 0, unless a newer one comes first
+        self._stale = 0  # pending first frames replaced by a newer one
 
     @property
     def dropped(self) -> int:
         """Frames replaced by a newer one before the pipeline took them."""
-        return self._queue.dropped
+        return self._queue.dropped + self._stale
 
     def _grab_loop(self) -> None:
+        use_pos: bool | None = None  # the capture's own stamps (decided on the first frame), else the host clock
+        start = 0.0
         try:
             while not self._stop.is_set():
                 ok, img = self.cap.read()
                 if not ok or img is None:
                     self._error = f"the camera stopped delivering frames after {self.received}"
                     break
+                now = time.monotonic()
                 ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
-                t = ms / 1000.0 if ms and ms > 0 else time.time()
-                self.received += 1
+                if use_pos is None:
+                    use_pos, start = self.paced or (ms is not None and ms > 0), now
+                t = ms / 1000.0 if use_pos else now
+                if self.paced:  # a file plays at its own rate, as a camera would deliver it
+                    self._stop.wait(max(0.0, start + t - time.monotonic()))
                 self._queue.put((t, img))
+                self.received += 1  # after the put: received - taken - dropped is 0 or 1 at any time
         finally:
             self._ended.set()
 
@@ -342,6 +356,8 @@ class CameraSequence:
     def frame(self, index: int) -> StereoFrame:
         """The newest camera frame, numbered ``index`` (frames are taken in order: ``index``
         only names it)."""
+        if self._pending is not None and len(self._queue):  # a newer frame came while setting up
+            self._pending, self._stale = None, self._stale + 1
         if self._pending is not None:
             item, self._pending = self._pending, None
         else:
