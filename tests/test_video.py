@@ -189,3 +189,31 @@ def test_run_on_camera_writes_drops(kitti06: Path, videos: dict[str, Path], tmp_
     assert src["kind"] == "camera" and src["taken"] == 2 and src["received"] >= 2
     assert src["received"] - src["taken"] - src["dropped"] in (0, 1)
     assert np.loadtxt(out / "trajectory.kitti.txt").shape == (2, 12)
+
+
+def test_readme_video_and_camera_as_written(tmp_path: Path, monkeypatch, models_dir: Path) -> None:
+    """README's "A stereo video file, or the camera itself", run as written (the camera is the
+    generated recording: ``cam:0`` -> ``cam:mycam.mkv``)."""
+    from test_readme import T0_NS, make_own_camera, readme_block, run_block
+
+    cam = open_sequence(make_own_camera(tmp_path, frames=8))
+    pairs = [cam.frame(i) for i in range(len(cam))]
+    _write_video(tmp_path / "mycam.mkv", [np.hstack([p.left, p.right]) for p in pairs], 30)
+    _write_video(tmp_path / "mycam_left.mkv", [p.left for p in pairs], 30)
+    _write_video(tmp_path / "mycam_right.mkv", [p.right for p in pairs], 30)
+    run_block("own-video", tmp_path, monkeypatch)
+    runs = [json.loads((tmp_path / d / "run.json").read_text()) for d in ("mycam_video_run", "mycam_video_run2")]
+    assert [r["frames_done"] for r in runs] == [len(cam)] * 2
+    assert [r["timestamps"] for r in runs] == ["video container", "rate 30 Hz (given)"]
+    assert T0_NS  # the folder's own stamps are not the video's: the container starts at 0
+
+    monkeypatch.chdir(tmp_path)
+    # played as a camera at 1 Hz: the recording outlasts loading the detector on a busy machine
+    _write_video(tmp_path / "mycam_live.mkv", [np.hstack([p.left, p.right]) for p in pairs], 1)
+    (args,) = readme_block("own-live")
+    args = [("cam:mycam_live.mkv" if a == "cam:0" else a) for a in args]
+    args[args.index("--frames") + 1] = "3"  # the recording holds 16
+    r = runner.invoke(app, args)
+    assert r.exit_code == 0, r.output
+    run = json.loads((tmp_path / "live_run" / "run.json").read_text())
+    assert run["frames_done"] == 3 and run["source"]["kind"] == "camera"
