@@ -179,8 +179,11 @@ def test_camera_frame_spec_and_end(tmp_path: Path) -> None:
 
 def test_run_on_camera_writes_drops(kitti06: Path, videos: dict[str, Path], tmp_path: Path, quiet_slam) -> None:
     """`dynastereo run cam:FILE --frames 2`: stops after 2 frames, run.json counts the drops."""
+    seq = KittiSequence(kitti06)
+    video = _write_video(tmp_path / "cam.mkv", [np.hstack([seq.frame(i).left, seq.frame(i).right]) for i in range(6)],
+                         1)  # played at 1 Hz: it outlasts the run's start on a busy machine
     out = tmp_path / "cam"
-    r = runner.invoke(app, ["run", f"cam:{videos['sbs']}", "--calib", str(videos["calib"]), "--out", str(out),
+    r = runner.invoke(app, ["run", f"cam:{video}", "--calib", str(videos["calib"]), "--out", str(out),
                             "--masker", "none", "--frames", "2", "--no-stereo-check"])
     assert r.exit_code == 0, r.output
     run = json.loads((out / "run.json").read_text())

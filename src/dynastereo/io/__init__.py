@@ -112,7 +112,8 @@ def detect_format(path: str | Path, calib: str | Path | None = None) -> str:
     if not path.exists():
         raise SequenceError("sequence folder not found", path)
     if not path.is_dir():
-        raise SequenceError("expected a sequence folder, got a file", path)
+        raise SequenceError("expected a sequence folder or a video file (.mkv, .avi, .mp4, ...), got another file",
+                            path)
     from .euroc import euroc_mav_dir
 
     has_kitti_images = kitti_image_dirs(path, False) is not None  # either pair; KittiSequence checks colour

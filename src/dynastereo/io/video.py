@@ -263,10 +263,11 @@ class CameraSequence:
     """A live side-by-side stereo camera through ``cv2.VideoCapture`` (see module doc).
 
     ``source``: a device index, or anything ``VideoCapture`` opens (a URL; a video file plays
-    as a camera would deliver it, at its container's stamps: the tests use this).  ``calib``: the YAML calibration of one image (half the
-    frame).  ``color``: ``None`` BGR when the first frame holds colour.  ``size``: ask the
-    camera for this frame size ``(width, height)`` (both images side by side).
-    ``first_frame_timeout_s``: the wait for the first frame, and for any frame after it.
+    as a camera would deliver it, at its container's stamps: the tests use this).
+    ``calib``: the YAML calibration of one image (half the frame).  ``color``: ``None`` BGR
+    when the first frame holds colour.  ``size``: ask the camera for this frame size
+    ``(width, height)`` (both images side by side).  ``timeout_s``: the longest wait for a
+    frame (a SequenceError past it).
     """
 
     live = True
@@ -296,15 +297,16 @@ class CameraSequence:
         self._error = ""
         self._thread = threading.Thread(target=self._grab_loop, name="camera", daemon=True)
         self._thread.start()
-        first = self._next()
-        h, w = first[1].shape[:2]
-        if w % 2:
+        try:
+            first = self._next()
+            l0, r0 = split_side_by_side(first[1], self.path)
+            self.raw_size = (l0.shape[1], l0.shape[0])
+            calibration = load_stereo_yaml(calib, self.raw_size)
+            self.calibration, self.rectifier = rectified_calibration(calibration, self.raw_size, self.path,
+                                                                     Path(calib))
+        except BaseException:
             self.close()
-            raise SequenceError(f"a side-by-side camera frame must have an even width, got {w}", self.path)
-        self.raw_size = (w // 2, h)
-        calibration = load_stereo_yaml(calib, self.raw_size)
-        self.calibration, self.rectifier = rectified_calibration(calibration, self.raw_size, self.path, Path(calib))
-        l0, r0 = split_side_by_side(first[1], self.path)
+            raise
         self.color = (_is_colour(l0) or _is_colour(r0)) if color is None else bool(color)
         self._pending: tuple[float, np.ndarray] | None = first  # frame 0, unless a newer one comes first
         self._stale = 0  # pending first frames replaced by a newer one
@@ -326,7 +328,8 @@ class CameraSequence:
                 now = time.monotonic()
                 ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
                 if use_pos is None:
-                    use_pos, start = self.paced or (ms is not None and ms > 0), now
+                    use_pos = self.paced or (ms is not None and ms > 0)
+                    start = now - (ms / 1000.0 if use_pos else now)  # the wall clock at stamp 0
                 t = ms / 1000.0 if use_pos else now
                 if self.paced:  # a file plays at its own rate, as a camera would deliver it
                     self._stop.wait(max(0.0, start + t - time.monotonic()))
@@ -381,7 +384,8 @@ class CameraSequence:
     def close(self) -> None:
         self._stop.set()
         self._thread.join(timeout=2.0)
-        self.cap.release()
+        if not self._thread.is_alive():  # a read blocked in the driver: the daemon thread keeps the capture
+            self.cap.release()
 
     def __enter__(self) -> "CameraSequence":
         return self
