@@ -83,7 +83,8 @@ def select_frames(spec: str | int | None, sequence: Any) -> list[int]:
     """:func:`parse_frame_spec` over a sequence whose frame indices may have gaps (KITTI
     images keep their own numbers, ``available_frames``): a count ``N`` (or all) takes
     the first ``N`` images there are; ranges name frame numbers, the missing ones left
-    out with a warning (an InputError when none is left)."""
+    out with a warning (an InputError when none is left).  A live source (``sequence.live``,
+    a camera: no end) takes all (a lazy ``range``) or a count N, no ranges."""
     if getattr(sequence, "live", False):  # a camera: no end, frames in the order they come
         if spec is None or (isinstance(spec, str) and spec.strip().lower() in ("all", "*")):
             return range(len(sequence))  # type: ignore[return-value]  -- a lazy range, no list
