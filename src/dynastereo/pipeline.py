@@ -392,6 +392,7 @@ def _run_record(sequence: Sequence, masker: Masker | None, motion, frames: list[
                    else {"mode": "all" if masker is not None else "none"}),
         "frames_requested": len(frames),
         "frames_done": n_done,
+        **(sequence.run_info() if hasattr(sequence, "run_info") else {}),  # a camera: frames dropped
         **({"frame_gaps": gaps} if (gaps := list(getattr(sequence, "missing_frames", []) or [])) else {}),
         "frames_tracked": sum(s.status in ("tracked", "init") for s in states),
         "frames_lost": len(lost),
@@ -477,7 +478,9 @@ def run_slam_job(
             (out / "masks" / side).mkdir(parents=True, exist_ok=True)
     timer = StageTimer()
     timer.add_derived("masking", ("detect",) + MASK_STAGES)
-    stamps = np.asarray(sequence.timestamps(), dtype=np.float64)
+    # a live source (a camera) has no stamps before its frames: each frame carries its own
+    stamps = None if getattr(sequence, "live", False) else np.asarray(sequence.timestamps(), dtype=np.float64)
+    frame_stamps: list[float] = []
     prefetcher = _Prefetcher(prefetch_timeout_s) if prefetch else None
     error: str | None = None
     t0 = time.perf_counter()
@@ -513,6 +516,8 @@ def run_slam_job(
                 if name not in ("total", "mask"):
                     timer.add(name, ms)
             slam_masks = motion.select(masks) if motion is not None else masks
+            stamp = frame.timestamp if stamps is None else float(stamps[idx])
+            frame_stamps.append(stamp)
             tracked = system.track(frame, slam_masks, timer)
             pose = tracked.pose
             if motion is not None:
@@ -520,10 +525,10 @@ def run_slam_job(
                     motion.update(masks, tracked, system)
             if world is not None:
                 with timer.stage("objects"):
-                    world.update(masks, pose, str(tracked.status) in ("tracked", "init"), float(stamps[idx]))
-                    tracks.write(idx, float(stamps[idx]), masks)
+                    world.update(masks, pose, str(tracked.status) in ("tracked", "init"), stamp)
+                    tracks.write(idx, stamp, masks)
             rec = timer.end_frame(status=tracked.status)
-            writer.append(pose, frame_index=idx, timestamp=float(stamps[idx]))
+            writer.append(pose, frame_index=idx, timestamp=stamp)
             written: list[Path] = []
             try:  # a failed write takes the frame back out of every output: they agree
                 if save_masks and slam_masks is not None:
@@ -576,7 +581,8 @@ def run_slam_job(
         del timer.frames[n_done:]  # a frame whose outputs failed is not done
         if error is None and n_done:
             try:
-                _write_final_trajectory(out, poses, stamps, frames[:n_done])
+                _write_final_trajectory(out, poses, np.asarray(frame_stamps) if stamps is None else stamps,
+                                        frames[:n_done])
             except OutputError as e:
                 late, error = e, f"{type(e).__name__}: {e}"
         stats = system.stats().to_dict() if n_done else {}

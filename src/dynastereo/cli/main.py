@@ -30,7 +30,7 @@ app.add_typer(models_app, name="models")
 
 
 _RATE_HELP = ("Frame rate (Hz) for the timestamps of a folder with no times.txt and no timestamp file names "
-              "(default: 10 Hz, with a warning).")
+              "(default: 10 Hz, with a warning), or of a video instead of its container's stamps.")
 
 
 def _fail(e: Exception) -> None:
@@ -132,7 +132,7 @@ def _build_config(config: Optional[Path], overrides: dict):
 
 @app.command()
 def mask(
-    sequence: Path = typer.Argument(..., help="Sequence folder: KITTI odometry, KITTI raw drive, EuRoC mav0, or left/right folders + YAML calibration."),
+    sequence: Path = typer.Argument(..., help="Sequence folder: KITTI odometry, KITTI raw drive, EuRoC mav0, or left/right folders + YAML calibration; or a stereo video (side by side: stereo.mkv; two files: left.mkv,right.mkv) or a camera (cam:0), with --calib."),
     out: Path = typer.Option(..., "--out", "-o", help="Output directory."),
     detector: Optional[str] = typer.Option(None, help="yolov3, yolov3-tiny, yolox-nano, fastestdet, yolo11n-int8, oracle, or a .cfg/.onnx path."),
     stereo: Optional[str] = typer.Option(None, help="Stereo matcher: bm | sgbm | sgbm3way."),
@@ -165,6 +165,7 @@ def mask(
             task = prog.add_task("masking", total=None, info="")
 
             def on_frame(done: int, total: int, rec: dict) -> None:
+                total = total if total < sys.maxsize else None  # a camera (io.video.UNBOUNDED): no end
                 ms = rec["ms"]
                 prog.update(task, completed=done, total=total,
                             info=f"detect {ms.get('detect', 0):.0f} ms  mask {ms.get('mask', 0):.0f} ms")
@@ -179,7 +180,7 @@ def mask(
 
 @app.command()
 def run(
-    sequence: Optional[Path] = typer.Argument(None, help="Sequence folder: KITTI odometry, KITTI raw drive, EuRoC mav0, or left/right folders + YAML calibration (or --bag)."),
+    sequence: Optional[Path] = typer.Argument(None, help="Sequence folder: KITTI odometry, KITTI raw drive, EuRoC mav0, or left/right folders + YAML calibration; or a stereo video (side by side: stereo.mkv; two files: left.mkv,right.mkv) or a side-by-side camera (cam:0, until --frames N or Ctrl-C), with --calib (or --bag)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output directory."),
     masker: Optional[str] = typer.Option(None, help="none | box | outline | seg."),
     detector: Optional[str] = typer.Option(None, help="yolov3, yolov3-tiny, yolox-nano, fastestdet, yolo11n-int8, oracle, or a .cfg/.onnx path."),
@@ -240,6 +241,7 @@ def run(
             task = prog.add_task("tracking", total=None, info="")
 
             def on_frame(done: int, total: int, rec: dict) -> None:
+                total = total if total < sys.maxsize else None  # a camera (io.video.UNBOUNDED): no end
                 prog.update(task, completed=done, total=total, info=f"{rec['fps']:.1f} FPS  {rec['status']}")
                 job.tick(done, total)
 

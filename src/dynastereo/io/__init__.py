@@ -8,6 +8,8 @@
   with ``data/`` and ``timestamps.txt``, and ``calib_cam_to_cam.txt`` in the date folder above
   (the drive folder, or a date folder holding one drive);
 * **EuRoC** MAV: ``mav0/`` (or ``cam0/sensor.yaml`` directly inside); raw, rectified on read;
+* **video**: a side-by-side stereo video file (``stereo.mkv``), two files (``left.mkv,right.mkv``)
+  or a camera (``cam:0``) with a generic folder's YAML calibration (:mod:`dynastereo.io.video`);
 * **generic**: ``left/``+``right/`` (or ``cam0/``+``cam1/``) with ``calib.yaml`` / one ``*.yaml``,
   or any of these layouts with an explicit ``calib`` YAML.
 
@@ -110,7 +112,8 @@ def detect_format(path: str | Path, calib: str | Path | None = None) -> str:
     if not path.exists():
         raise SequenceError("sequence folder not found", path)
     if not path.is_dir():
-        raise SequenceError("expected a sequence folder, got a file", path)
+        raise SequenceError("expected a sequence folder or a video file (.mkv, .avi, .mp4, ...), got another file",
+                            path)
     from .euroc import euroc_mav_dir
 
     has_kitti_images = kitti_image_dirs(path, False) is not None  # either pair; KittiSequence checks colour
@@ -149,6 +152,10 @@ def open_sequence(path: str | Path, calib: str | Path | None = None, color: bool
     ``times.txt`` (and, generic, no timestamp file names); ignored, with a warning, by
     formats that always carry stamps.  ``seq.timestamp_source`` says where they came from.
     """
+    from .video import is_video_source, open_video_source
+
+    if is_video_source(path):
+        return open_video_source(path, calib=calib, color=color, rate=rate)
     path = Path(path)
     fmt = detect_format(path, calib)
     if fmt == "kitti":

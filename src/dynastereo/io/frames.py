@@ -83,7 +83,14 @@ def select_frames(spec: str | int | None, sequence: Any) -> list[int]:
     """:func:`parse_frame_spec` over a sequence whose frame indices may have gaps (KITTI
     images keep their own numbers, ``available_frames``): a count ``N`` (or all) takes
     the first ``N`` images there are; ranges name frame numbers, the missing ones left
-    out with a warning (an InputError when none is left)."""
+    out with a warning (an InputError when none is left).  A live source (``sequence.live``,
+    a camera: no end) takes all (a lazy ``range``) or a count N, no ranges."""
+    if getattr(sequence, "live", False):  # a camera: no end, frames in the order they come
+        if spec is None or (isinstance(spec, str) and spec.strip().lower() in ("all", "*")):
+            return range(len(sequence))  # type: ignore[return-value]  -- a lazy range, no list
+        if (isinstance(spec, int) and not isinstance(spec, bool)) or (isinstance(spec, str) and spec.strip().isdigit()):
+            return parse_frame_spec(spec, len(sequence))
+        raise InputError(f"frame spec {spec!r}: a live source takes a count N (stop after N frames), not ranges")
     available = getattr(sequence, "available_frames", None)
     n = len(sequence)
     if available is None:

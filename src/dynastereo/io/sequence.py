@@ -30,6 +30,26 @@ def is_colour_image(path: str | Path) -> bool:
     return not (np.array_equal(img[:, :, 0], img[:, :, 1]) and np.array_equal(img[:, :, 0], img[:, :, 2]))
 
 
+def rectified_calibration(calibration: StereoCalibration | RawStereoCalibration, raw_size: tuple[int, int],
+                          images: object, calib_path: Path | None = None
+                          ) -> tuple[StereoCalibration, Rectifier | None]:
+    """The rectified calibration of images of ``raw_size`` (``(width, height)``) and the
+    :class:`Rectifier` that rectifies them on read (None when ``calibration`` is already
+    rectified), after checking the intrinsics and the size (a CalibrationError naming
+    ``calib_path`` and the ``images`` the size came from)."""
+    check_intrinsics(calibration, raw_size, calib_path or getattr(calibration, "source", None))
+    if calibration.size != raw_size:
+        raise CalibrationError(
+            f"calibration is for {calibration.width}x{calibration.height} images, "
+            f"the images ({images}) are {raw_size[0]}x{raw_size[1]}",
+            calib_path or (calibration.source if isinstance(calibration, RawStereoCalibration) else None),
+        )
+    if isinstance(calibration, RawStereoCalibration):
+        rectifier = Rectifier(calibration)
+        return rectifier.calibration, rectifier
+    return calibration, None
+
+
 class ImagePairSequence:
     """Rectified stereo pairs read from two lists of image files.
 
@@ -96,25 +116,8 @@ class ImagePairSequence:
                 self._timestamps = np.interp(full, nums, self._timestamps)  # missing numbers: never read
                 self._timestamps[nums] = np.asarray(timestamps, dtype=np.float64).reshape(-1)
         self.raw_size = self._check_sizes(ldir, rdir)  # (width, height) of the files
-        check_intrinsics(calibration, self.raw_size, calib_path or getattr(calibration, "source", None))
-        self.rectifier: Rectifier | None = None
-        if isinstance(calibration, RawStereoCalibration):
-            if calibration.size != self.raw_size:
-                raise CalibrationError(
-                    f"calibration is for {calibration.width}x{calibration.height} images, "
-                    f"the images ({self.left_paths[0]}) are {self.raw_size[0]}x{self.raw_size[1]}",
-                    calib_path or calibration.source,
-                )
-            self.rectifier = Rectifier(calibration)
-            self.calibration: StereoCalibration = self.rectifier.calibration
-        else:
-            if calibration.size != self.raw_size:
-                raise CalibrationError(
-                    f"calibration is for {calibration.width}x{calibration.height} images, "
-                    f"the images ({self.left_paths[0]}) are {self.raw_size[0]}x{self.raw_size[1]}",
-                    calib_path,
-                )
-            self.calibration = calibration
+        self.calibration, self.rectifier = rectified_calibration(calibration, self.raw_size, self.left_paths[0],
+                                                                 calib_path)
 
     # -- checks ---------------------------------------------------------------------------
 
