@@ -79,13 +79,16 @@ STILL_SIGMA = 0.1  # m/s, the velocity of an object the motion test judged stati
 
 
 @njit(nogil=True, cache=True)
-def _quantiles(hist, n, lo, hi, origin, step, out, k, col):  # pragma: no cover - compiled
-    """out[k, col], out[k, col + 1] = the ``lo`` and ``hi`` quantiles of a histogram."""
+def _quantiles(hist, n, lo, hi, origin, step, out, k, col, b0=0, b1=-1):  # pragma: no cover - compiled
+    """out[k, col], out[k, col + 1] = the ``lo`` and ``hi`` quantiles of a histogram whose
+    counts all lie in bins ``b0 .. b1`` (default: all)."""
     c = 0
     got = False
     tl = lo * n
     th = hi * n
-    for b in range(hist.shape[0]):
+    if b1 < 0:
+        b1 = hist.shape[0] - 1
+    for b in range(b0, b1 + 1):
         c += hist[b]
         if not got and c >= tl:
             out[k, col] = origin + (b + 0.5) * step
@@ -148,7 +151,9 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
     for k in range(n_obj):
         y_lo = min(y_lo, boxes[k, 1])
         y_hi = max(y_hi, boxes[k, 3])
-    # first pass: the disparity histograms
+    # first pass: the disparity histograms (and the range of bins each one uses)
+    bmin = np.full(n_obj, nb, np.int64)
+    bmax = np.zeros(n_obj, np.int64)
     if use_labels:
         for y in range(y_lo, y_hi):
             ns = _row_spans(boxes, y, xs0, xs1)
@@ -163,6 +168,10 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
                     b = min(int(d * 16.0), nb - 1)
                     hist[lab - 1, b] += 1
                     out[lab - 1, 0] += 1
+                    if b < bmin[lab - 1]:
+                        bmin[lab - 1] = b
+                    if b > bmax[lab - 1]:
+                        bmax[lab - 1] = b
     else:
         for k in range(n_obj):
             lo = 0.85 * peak[k] - 1.0
@@ -172,8 +181,11 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
                     d = disp[y, x]
                     if d <= 0.0 or (peak[k] > 0.0 and (d < lo or d > hi)):
                         continue
-                    hist[k, min(int(d * 16.0), nb - 1)] += 1
+                    b = min(int(d * 16.0), nb - 1)
+                    hist[k, b] += 1
                     out[k, 0] += 1
+                    bmin[k] = min(bmin[k], b)
+                    bmax[k] = max(bmax[k], b)
     am = np.zeros(n_obj)
     bm = np.zeros(n_obj)
     any_ab = False
@@ -181,8 +193,8 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
         n = int(out[k, 0])
         if n == 0:
             continue
-        _quantiles(hist[k], n, 0.5, 0.5, 0.0, BIN, out, k, 1)
-        _quantiles(hist[k], n, 0.1, 0.9, 0.0, BIN, out, k, 2)
+        _quantiles(hist[k], n, 0.5, 0.5, 0.0, BIN, out, k, 1, bmin[k], bmax[k])
+        _quantiles(hist[k], n, 0.1, 0.9, 0.0, BIN, out, k, 2, bmin[k], bmax[k])
         if need_ab[k]:
             any_ab = True
             zm = bf / max(out[k, 1], 1e-3)
@@ -199,6 +211,7 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
         hx, hz = head[k, 0], head[k, 1]
         lo = 0.85 * peak[k] - 1.0
         hi = 1.15 * peak[k] + 1.0
+        a0, a1, c0, c1 = na, 0, na, 0
         for y in range(boxes[k, 1], boxes[k, 3]):
             for x in range(boxes[k, 0], boxes[k, 2]):
                 d = disp[y, x]
@@ -213,11 +226,14 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
                 xx = (x + 0.5 - cx) * z / fx
                 ia = int((xx * hx + z * hz - am[k] + half) / AB_STEP)
                 ib = int((xx * hz - z * hx - bm[k] + half) / AB_STEP)
-                hist_a[k, min(max(ia, 0), na - 1)] += 1
-                hist_b[k, min(max(ib, 0), na - 1)] += 1
+                ia = min(max(ia, 0), na - 1)
+                ib = min(max(ib, 0), na - 1)
+                hist_a[k, ia] += 1
+                hist_b[k, ib] += 1
+                a0, a1, c0, c1 = min(a0, ia), max(a1, ia), min(c0, ib), max(c1, ib)
         n = int(out[k, 0])
-        _quantiles(hist_a[k], n, 0.1, 0.9, am[k] - half, AB_STEP, out, k, 4)
-        _quantiles(hist_b[k], n, 0.1, 0.9, bm[k] - half, AB_STEP, out, k, 6)
+        _quantiles(hist_a[k], n, 0.1, 0.9, am[k] - half, AB_STEP, out, k, 4, a0, a1)
+        _quantiles(hist_b[k], n, 0.1, 0.9, bm[k] - half, AB_STEP, out, k, 6, c0, c1)
 
 
 @njit(nogil=True, cache=True)
