@@ -79,13 +79,16 @@ STILL_SIGMA = 0.1  # m/s, the velocity of an object the motion test judged stati
 
 
 @njit(nogil=True, cache=True)
-def _quantiles(hist, n, lo, hi, origin, step, out, k, col):  # pragma: no cover - compiled
-    """out[k, col], out[k, col + 1] = the ``lo`` and ``hi`` quantiles of a histogram."""
+def _quantiles(hist, n, lo, hi, origin, step, out, k, col, b0=0, b1=-1):  # pragma: no cover - compiled
+    """out[k, col], out[k, col + 1] = the ``lo`` and ``hi`` quantiles of a histogram whose
+    counts all lie in bins ``b0 .. b1`` (default: all)."""
     c = 0
     got = False
     tl = lo * n
     th = hi * n
-    for b in range(hist.shape[0]):
+    if b1 < 0:
+        b1 = hist.shape[0] - 1
+    for b in range(b0, b1 + 1):
         c += hist[b]
         if not got and c >= tl:
             out[k, col] = origin + (b + 0.5) * step
@@ -148,7 +151,9 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
     for k in range(n_obj):
         y_lo = min(y_lo, boxes[k, 1])
         y_hi = max(y_hi, boxes[k, 3])
-    # first pass: the disparity histograms
+    # first pass: the disparity histograms (and the range of bins each one uses)
+    bmin = np.full(n_obj, nb, np.int64)
+    bmax = np.zeros(n_obj, np.int64)
     if use_labels:
         for y in range(y_lo, y_hi):
             ns = _row_spans(boxes, y, xs0, xs1)
@@ -163,6 +168,10 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
                     b = min(int(d * 16.0), nb - 1)
                     hist[lab - 1, b] += 1
                     out[lab - 1, 0] += 1
+                    if b < bmin[lab - 1]:
+                        bmin[lab - 1] = b
+                    if b > bmax[lab - 1]:
+                        bmax[lab - 1] = b
     else:
         for k in range(n_obj):
             lo = 0.85 * peak[k] - 1.0
@@ -172,8 +181,11 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
                     d = disp[y, x]
                     if d <= 0.0 or (peak[k] > 0.0 and (d < lo or d > hi)):
                         continue
-                    hist[k, min(int(d * 16.0), nb - 1)] += 1
+                    b = min(int(d * 16.0), nb - 1)
+                    hist[k, b] += 1
                     out[k, 0] += 1
+                    bmin[k] = min(bmin[k], b)
+                    bmax[k] = max(bmax[k], b)
     am = np.zeros(n_obj)
     bm = np.zeros(n_obj)
     any_ab = False
@@ -181,8 +193,8 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
         n = int(out[k, 0])
         if n == 0:
             continue
-        _quantiles(hist[k], n, 0.5, 0.5, 0.0, BIN, out, k, 1)
-        _quantiles(hist[k], n, 0.1, 0.9, 0.0, BIN, out, k, 2)
+        _quantiles(hist[k], n, 0.5, 0.5, 0.0, BIN, out, k, 1, bmin[k], bmax[k])
+        _quantiles(hist[k], n, 0.1, 0.9, 0.0, BIN, out, k, 2, bmin[k], bmax[k])
         if need_ab[k]:
             any_ab = True
             zm = bf / max(out[k, 1], 1e-3)
@@ -199,6 +211,7 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
         hx, hz = head[k, 0], head[k, 1]
         lo = 0.85 * peak[k] - 1.0
         hi = 1.15 * peak[k] + 1.0
+        a0, a1, c0, c1 = na, 0, na, 0
         for y in range(boxes[k, 1], boxes[k, 3]):
             for x in range(boxes[k, 0], boxes[k, 2]):
                 d = disp[y, x]
@@ -213,11 +226,125 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
                 xx = (x + 0.5 - cx) * z / fx
                 ia = int((xx * hx + z * hz - am[k] + half) / AB_STEP)
                 ib = int((xx * hz - z * hx - bm[k] + half) / AB_STEP)
-                hist_a[k, min(max(ia, 0), na - 1)] += 1
-                hist_b[k, min(max(ib, 0), na - 1)] += 1
+                ia = min(max(ia, 0), na - 1)
+                ib = min(max(ib, 0), na - 1)
+                hist_a[k, ia] += 1
+                hist_b[k, ib] += 1
+                a0, a1, c0, c1 = min(a0, ia), max(a1, ia), min(c0, ib), max(c1, ib)
         n = int(out[k, 0])
-        _quantiles(hist_a[k], n, 0.1, 0.9, am[k] - half, AB_STEP, out, k, 4)
-        _quantiles(hist_b[k], n, 0.1, 0.9, bm[k] - half, AB_STEP, out, k, 6)
+        _quantiles(hist_a[k], n, 0.1, 0.9, am[k] - half, AB_STEP, out, k, 4, a0, a1)
+        _quantiles(hist_b[k], n, 0.1, 0.9, bm[k] - half, AB_STEP, out, k, 6, c0, c1)
+
+
+@njit(nogil=True, cache=True)
+def _inv3(S, out):  # pragma: no cover - compiled
+    a, b, c = S[0, 0], S[0, 1], S[0, 2]
+    d, e, f = S[1, 0], S[1, 1], S[1, 2]
+    g, h, i = S[2, 0], S[2, 1], S[2, 2]
+    A, B, C = e * i - f * h, -(d * i - f * g), d * h - e * g
+    det = a * A + b * B + c * C
+    out[0, 0], out[1, 0], out[2, 0] = A / det, B / det, C / det
+    out[0, 1], out[1, 1], out[2, 1] = -(b * i - c * h) / det, (a * i - c * g) / det, -(a * h - b * g) / det
+    out[0, 2], out[1, 2], out[2, 2] = (b * f - c * e) / det, -(a * f - c * d) / det, (a * e - b * d) / det
+
+
+@njit(nogil=True, cache=True)
+def _kalman(x, P, z, Rz, dt, qa, speed, still, speed_dir, speed_sigma, still_sigma, chi):  # pragma: no cover
+    """Per track g, in place: predict ``x`` (G, 6), ``P`` (G, 6, 6) over ``dt`` with white
+    acceleration noise ``qa`` (3,) per axis; update with the position ``z`` (G, 3),
+    covariance ``Rz`` (G, 3, 3) (``chi``: the innovation's chi-square); then with the
+    motion test's ``speed`` along the velocity (NaN: none), or ``v = 0`` where ``still``."""
+    Pn = np.empty((6, 6))
+    S = np.empty((3, 3))
+    Si = np.empty((3, 3))
+    K = np.empty((6, 3))
+    KP = np.empty((6, 6))
+    y = np.empty(3)
+    h = np.empty(6)
+    for g in range(x.shape[0]):
+        t = dt[g]
+        # predict: F = [[I, t I], [0, I]], Q = [[t^3/3, t^2/2], [t^2/2, t]] qa
+        for i in range(3):
+            x[g, i] += t * x[g, i + 3]
+        for i in range(3):
+            for j in range(3):
+                p11, p12, p21, p22 = P[g, i, j], P[g, i, j + 3], P[g, i + 3, j], P[g, i + 3, j + 3]
+                Pn[i, j] = p11 + t * (p12 + p21) + t * t * p22
+                Pn[i, j + 3] = p12 + t * p22
+                Pn[i + 3, j] = p21 + t * p22
+                Pn[i + 3, j + 3] = p22
+            Pn[i, i] += t ** 3 / 3.0 * qa[i]
+            Pn[i, i + 3] += t * t / 2.0 * qa[i]
+            Pn[i + 3, i] += t * t / 2.0 * qa[i]
+            Pn[i + 3, i + 3] += t * qa[i]
+        # position update, H = [I 0]
+        for i in range(3):
+            y[i] = z[g, i] - x[g, i]
+            for j in range(3):
+                S[i, j] = Pn[i, j] + Rz[g, i, j]
+        _inv3(S, Si)
+        c = 0.0
+        for i in range(3):
+            for j in range(3):
+                c += y[i] * Si[i, j] * y[j]
+        chi[g] = c
+        for i in range(6):
+            for j in range(3):
+                K[i, j] = Pn[i, 0] * Si[0, j] + Pn[i, 1] * Si[1, j] + Pn[i, 2] * Si[2, j]
+        for i in range(6):
+            x[g, i] += K[i, 0] * y[0] + K[i, 1] * y[1] + K[i, 2] * y[2]
+            for j in range(6):
+                KP[i, j] = K[i, 0] * Pn[0, j] + K[i, 1] * Pn[1, j] + K[i, 2] * Pn[2, j]
+        for i in range(6):
+            for j in range(6):
+                Pn[i, j] -= KP[i, j]
+        sp = np.sqrt(x[g, 3] ** 2 + x[g, 4] ** 2 + x[g, 5] ** 2)
+        if still[g]:  # v = 0, H = [0 I]
+            for i in range(3):
+                y[i] = -x[g, i + 3]
+                for j in range(3):
+                    S[i, j] = Pn[i + 3, j + 3] + (still_sigma ** 2 if i == j else 0.0)
+            _inv3(S, Si)
+            for i in range(6):
+                for j in range(3):
+                    K[i, j] = Pn[i, 3] * Si[0, j] + Pn[i, 4] * Si[1, j] + Pn[i, 5] * Si[2, j]
+            for i in range(6):
+                x[g, i] += K[i, 0] * y[0] + K[i, 1] * y[1] + K[i, 2] * y[2]
+                for j in range(6):
+                    KP[i, j] = K[i, 0] * Pn[3, j] + K[i, 1] * Pn[4, j] + K[i, 2] * Pn[5, j]
+            for i in range(6):
+                for j in range(6):
+                    Pn[i, j] -= KP[i, j]
+        elif not np.isnan(speed[g]) and sp > speed_dir:  # |v| = speed, H = [0, v / |v|]
+            for i in range(6):
+                h[i] = 0.0
+            for i in range(3):
+                h[i + 3] = x[g, i + 3] / sp
+            s = speed_sigma ** 2 + (0.1 * speed[g]) ** 2
+            for i in range(3, 6):
+                for j in range(3, 6):
+                    s += h[i] * Pn[i, j] * h[j]
+            for i in range(6):
+                k = 0.0
+                for j in range(3, 6):
+                    k += Pn[i, j] * h[j]
+                K[i, 0] = k / s
+            for j in range(6):
+                hp = 0.0
+                for i in range(3, 6):
+                    hp += h[i] * Pn[i, j]
+                y[0] = hp
+                for i in range(6):
+                    KP[i, j] = K[i, 0] * hp
+            r = speed[g] - sp
+            for i in range(6):
+                x[g, i] += K[i, 0] * r
+            for i in range(6):
+                for j in range(6):
+                    Pn[i, j] -= KP[i, j]
+        for i in range(6):
+            for j in range(6):
+                P[g, i, j] = Pn[i, j]
 
 
 @dataclass
@@ -477,7 +604,6 @@ class WorldObjects:
         speed (``speed``, m/s, NaN: none) along the filter's own direction, and with zero
         velocity for the objects it judged static (``still``); all tracks stacked."""
         G = len(tracks)
-        I3 = np.eye(3)
         known = np.array([int(t) in self._x for t in tracks])
         x = np.zeros((G, 6))
         P = np.zeros((G, 6, 6))
@@ -485,26 +611,11 @@ class WorldObjects:
         for j in np.flatnonzero(known):
             t = int(tracks[j])
             x[j], P[j], dt[j] = self._x[t], self._P[t], max(stamp - self._t[t], 1e-3)
-        # predict: F = [[I, dt I], [0, I]], Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]] (x) I
-        F = np.broadcast_to(np.eye(6), (G, 6, 6)).copy()
-        F[:, :3, 3:] = dt[:, None, None] * I3
-        Q = np.zeros((G, 6, 6))
-        A = self.q * VERTICAL  # per axis: the ground holds the objects, y (down) barely accelerates
-        Q[:, :3, :3] = (dt**3 / 3)[:, None, None] * A
-        Q[:, :3, 3:] = Q[:, 3:, :3] = (dt**2 / 2)[:, None, None] * A
-        Q[:, 3:, 3:] = dt[:, None, None] * A
-        x = np.einsum("gij,gj->gi", F, x)
-        P = F @ P @ F.transpose(0, 2, 1) + Q
-        # update with z: H = [I 0]
-        S = P[:, :3, :3] + Rz
-        y = z - x[:, :3]
-        Sinv = np.linalg.inv(S)
-        chi = np.einsum("gi,gij,gj->g", y, Sinv, y)
-        K = P[:, :, :3] @ Sinv
-        x = x + np.einsum("gij,gj->gi", K, y)
-        P = P - K @ P[:, :3, :]
-        if speed is not None:
-            x, P = self._speed_update(x, P, speed, still)
+        speed = np.full(G, np.nan) if speed is None else np.asarray(speed, np.float64)
+        still = np.zeros(G, np.bool_) if still is None else np.asarray(still, np.bool_)
+        chi = np.zeros(G)
+        _kalman(x, P, np.ascontiguousarray(z), np.ascontiguousarray(Rz), dt, self.q * np.diag(VERTICAL), speed, still,
+                SPEED_DIRECTION, SPEED_SIGMA, STILL_SIGMA, chi)
         # new tracks and restarted ones (the id went to another object): the measurement, v = 0 +- 10 m/s
         fresh = ~known | (chi > self.gate)
         self.restarts += int((known & (chi > self.gate)).sum())
@@ -520,30 +631,6 @@ class WorldObjects:
             self._n[t] = 1 if fresh[j] else self._n.get(t, 0) + 1
             n[j] = self._n[t]
         return x, P, n
-
-
-    def _speed_update(self, x: np.ndarray, P: np.ndarray, speed: np.ndarray, still: np.ndarray):
-        """The scalar update ``|v| = speed`` (H = [0, v/|v|]) where the motion test measured
-        a speed and the filter has a direction; the 3-D update ``v = 0`` for the static."""
-        v = x[:, 3:]
-        sp = np.linalg.norm(v, axis=1)
-        use = np.isfinite(speed) & (sp > SPEED_DIRECTION) & ~still
-        if use.any():
-            H = np.zeros((int(use.sum()), 6))
-            H[:, 3:] = v[use] / sp[use, None]
-            Pu = P[use]
-            r = SPEED_SIGMA**2 + (0.1 * speed[use]) ** 2
-            s = np.einsum("gi,gij,gj->g", H, Pu, H) + r
-            K = np.einsum("gij,gj->gi", Pu, H) / s[:, None]
-            x[use] = x[use] + K * (speed[use] - sp[use])[:, None]
-            P[use] = Pu - K[:, :, None] * np.einsum("gi,gij->gj", H, Pu)[:, None, :]
-        if still.any():
-            Pv = P[still][:, 3:, 3:]
-            S = Pv + STILL_SIGMA**2 * np.eye(3)
-            K = P[still][:, :, 3:] @ np.linalg.inv(S)  # (g, 6, 3)
-            x[still] = x[still] - np.einsum("gij,gj->gi", K, x[still][:, 3:])
-            P[still] = P[still] - K @ P[still][:, 3:, :]
-        return x, P
 
 
 class ObjectPaths:
