@@ -81,3 +81,14 @@ class Interrupted(BaseException):
     def exit_code(self) -> int:
         """128 + the signal number (130 SIGINT, 143 SIGTERM), as a shell reports it."""
         return 128 + self.signum
+
+
+def as_interrupt(e: BaseException) -> BaseException:
+    """``e``, or the :class:`Interrupted` it wraps: a signal handler that raises while a
+    compiled function (a numba kernel's dispatcher) runs comes back as ``SystemError:
+    ... returned a result with an exception set`` whose cause is the ``Interrupted``."""
+    if isinstance(e, SystemError):
+        cause = e.__cause__ or e.__context__
+        if isinstance(cause, Interrupted):
+            return cause
+    return e

@@ -30,7 +30,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from .errors import OutputError
+from .errors import OutputError, as_interrupt
 from .io.base import Sequence
 from .io.images import write_disparity_png
 from .io.outputs import RowFile, atomic_write_text, reserve_json, write_bytes, write_failed, write_json_reserved, write_ply
@@ -142,7 +142,7 @@ def _write_png(path: Path, img: np.ndarray) -> None:
     removes the partial file and raises an OutputError naming it."""
     ok, buf = cv2.imencode(".png", img)
     if not ok:
-        from .errors import OutputError
+        from .errors import OutputError, as_interrupt
 
         raise OutputError("cannot encode the image as PNG", path)
     write_bytes(path, buf.tobytes())
@@ -220,8 +220,11 @@ def run_mask_job(
                 notify(observers, FrameEvent(k, frame, masks, rec["ms"], calibration=sequence.calibration))
                 if progress is not None:
                     progress(k + 1, len(frames), rec)
-    except BaseException as e:
+    except BaseException as exc:
+        e = as_interrupt(exc)
         result.error = f"{type(e).__name__}: {e}"
+        if e is not exc:
+            raise e from None
         raise
     finally:
         result.wall_s = time.perf_counter() - t0
@@ -337,8 +340,15 @@ class _Prefetcher:
                         idx, self.timeout_s)
             return fn(*args)
 
+    #: how long close() waits for a frame being masked to finish (bounded: a stuck one is left)
+    JOIN_S = 10.0
+
     def close(self) -> None:
+        """Stop the thread, waiting (at most ``JOIN_S`` s) for the frame it is masking: a
+        thread still inside onnxruntime while the interpreter exits aborts the process
+        ("terminate called without an active exception") after the outputs were written."""
         self._jobs.put(None)
+        self._thread.join(self.JOIN_S)
 
 
 def _status(error: str | None) -> str:
@@ -549,8 +559,11 @@ def run_slam_job(
                                          sequence.calibration))
             if progress is not None:
                 progress(k + 1, len(frames), dict(rec, fps=n_done / (time.perf_counter() - t0)))
-    except BaseException as e:
+    except BaseException as exc:
+        e = as_interrupt(exc)
         error = f"{type(e).__name__}: {e}"
+        if e is not exc:
+            raise e from None
         raise
     finally:
         # Clean-up in steps that each run whatever happens before them (a signal while the

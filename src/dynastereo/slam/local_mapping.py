@@ -116,6 +116,7 @@ class BARunner:
         self.fallbacks: list[dict] = []
         self._jobs: list[BAJob] = []
         self._ready: threading.Event | None = None
+        self._warmup: threading.Thread | None = None
 
     def warm_up(self) -> None:
         """Compile (first run) or load from numba's cache the BA kernel, in a daemon
@@ -134,7 +135,8 @@ class BARunner:
             finally:
                 ready.set()
 
-        threading.Thread(target=run, name="local-ba-warmup", daemon=True).start()
+        self._warmup = threading.Thread(target=run, name="local-ba-warmup", daemon=True)
+        self._warmup.start()
 
     def submit(self, problem: LocalBAProblem) -> BAJob | LocalBAResult:
         if self.mode == "thread":
@@ -174,10 +176,22 @@ class BARunner:
         if isinstance(job, BAJob):
             job.abort[0] = 1
 
+    #: how long shutdown waits for the kernel's threads to end (bounded: a stalled one is left)
+    JOIN_S = 10.0
+
     def shutdown(self) -> None:
-        """Abort the jobs still running (their daemon threads end at the next iteration)."""
+        """Abort the jobs still running and wait (at most ``JOIN_S`` s) for their threads
+        and for the kernel's start-up load to end: a thread still inside numba/LLVM while
+        the interpreter exits aborts the process ("terminate called without an active
+        exception") after the outputs were written."""
+        import time
+
         for j in self._jobs:
             j.abort[0] = 1
+        deadline = time.monotonic() + self.JOIN_S
+        threads = [j._thread for j in self._jobs] + ([self._warmup] if self._warmup is not None else [])
+        for t in threads:
+            t.join(max(0.0, deadline - time.monotonic()))
         self._jobs = []
 
 
