@@ -17,8 +17,9 @@ over the frames after the first, whose calls load the compiled code), the Python
 calls a frame (counted on frames 1-10 in an extra, untimed call; median per call x calls a frame) and the agreement: identical matches, the largest pose difference.
 
 Part 2, the whole ``dynastereo run --masker none`` (``api.run_sequence``, its own process
-each time) with the old code (``--old``, default /work/main/src: the numpy versions)
-and this checkout's, alternated, ``--repeats`` times: the frame loop's FPS and the process
+each time) with the old code (``--old SRC``: a source tree from before the kernels, e.g.
+``git archive 45948c1 src | tar -x -C /tmp/base`` and ``--old /tmp/base/src``; the README's
+figures were measured so) and this checkout's, alternated, ``--repeats`` times: the frame loop's FPS and the process
 tree's CPU a frame over the frame loop (start-up left out), medians; and the trajectories'
 largest difference between old and new.
 
@@ -26,7 +27,7 @@ Part 0 (first): numba's compile time on a first run (empty cache), the cached lo
 import time of the SLAM against the old code's.
 
     DYNASTEREO_DATA=... .venv/bin/python benchmarks/bench_kernels.py [--sequences 06,03] \\
-        [--repeats 3] [--old /work/main/src] [--skip-runs]
+        [--repeats 3] [--old /tmp/base/src] [--skip-runs] [--skip-compile]
 
 Prints the tables and writes benchmarks/results/kernels.json.
 """
