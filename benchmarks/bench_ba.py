@@ -169,7 +169,7 @@ def main() -> int:
     if args.ate:
         return ate(args.ate, OUT.parent / "ba_ate.json")
 
-    from dynastereo.slam import ba_kernel
+    from dynastereo.slam.kernels import ba as ba_kernel
     from dynastereo.slam.optimizer import local_ba, local_ba_gtsam
 
     t0 = time.perf_counter()

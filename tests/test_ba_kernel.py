@@ -1,4 +1,4 @@
-"""The compiled bundle adjustment (``slam.ba_kernel``) on known answers, against gtsam,
+"""The compiled bundle adjustment (``slam.kernels.ba``) on known answers, against gtsam,
 and the BA thread's bounded waits (``local_mapping.BARunner``)."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 from dynastereo.slam import System
 from dynastereo.slam import local_mapping
 from dynastereo.config import SlamConfig
-from dynastereo.slam.ba_kernel import solve
+from dynastereo.slam.kernels.ba import solve
 from dynastereo.slam.geometry import inv_T, se3_exp
 from dynastereo.slam.local_mapping import BARunner
 from dynastereo.slam.optimizer import LocalBAProblem, local_ba, local_ba_gtsam, project
@@ -199,6 +199,6 @@ def test_system_with_a_stalled_ba_thread_finishes_and_records_the_frames(monkeyp
 
 
 def test_the_kernel_releases_the_gil():
-    from dynastereo.slam.ba_kernel import ba_solve
+    from dynastereo.slam.kernels.ba import ba_solve
 
     assert ba_solve.targetoptions.get("nogil") is True

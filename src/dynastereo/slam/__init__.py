@@ -15,7 +15,7 @@ Modules follow ORB-SLAM2: ``orb`` (ORBExtractor: masked, grid-bucketed pyramid O
 and its policy), ``trajectory`` (the per-frame rows), ``selfcal`` (the disparity offset),
 ``active_map`` (the map with its mapper, database and loop closer), ``local_mapping``
 (point creation / culling / fusion, local BA, keyframe culling), ``optimizer`` (numpy
-motion-only BA, bundle adjustment), ``ba_kernel`` (the compiled BA kernel), ``settings``
+motion-only BA, bundle adjustment), ``kernels`` (the compiled kernels: BA, pose, matching), ``settings``
 (ORB-SLAM2 settings files), ``vocabulary`` / ``keyframe_database`` (bag of words, place
 recognition), ``loop_closing`` (detection, SE(3) verification, fusion, essential graph,
 full BA), ``map_io`` (map files), ``system``.  Stage times: ``features``, ``stereo``,

@@ -127,7 +127,7 @@ class BARunner:
 
         def run() -> None:
             try:
-                from .ba_kernel import warm_up
+                from .kernels.ba import warm_up
 
                 warm_up()
             except Exception as e:  # noqa: BLE001 -- the first BA reports it again

@@ -12,7 +12,7 @@ pass of a gtsam graph built per frame, same pose (``benchmarks/bench_slam.py``).
 
 Bundle adjustment (``local_ba``: the local BA, the self-calibrating BA's solves, the
 loop's full BA and the final BA of a saved map) is one call of the compiled kernel
-:func:`.ba_kernel.ba_solve` (Levenberg-Marquardt, points eliminated by the Schur
+:func:`.kernels.ba.ba_solve` (Levenberg-Marquardt, points eliminated by the Schur
 complement, ORB-SLAM2's robust + refine schedule; it releases the GIL, so local mapping
 runs it in a thread).  ``local_ba_gtsam`` is the former gtsam solver
 (``GenericStereoFactor3D`` / ``GenericProjectionFactorCal3_S2`` with Huber kernels, LM
@@ -298,14 +298,14 @@ def run_ba(p: LocalBAProblem, abort: np.ndarray | None = None) -> LocalBAResult:
 
 
 def local_ba(p: LocalBAProblem, abort: np.ndarray | None = None) -> LocalBAResult:
-    """Solve the BA with the compiled kernel (:func:`.ba_kernel.ba_solve`):
+    """Solve the BA with the compiled kernel (:func:`.kernels.ba.ba_solve`):
     ``p.iterations`` robust LM iterations, then ``p.refine_iterations`` without the
     kernel on the inliers.  ``abort``: a 1-element int64 array; set non-zero (by another
     thread) it stops the solve between iterations.  ``error_before`` / ``error_after``
     are the Huber cost over all observations (gtsam's ``graph.error`` convention)."""
     import time
 
-    from .ba_kernel import solve
+    from .kernels.ba import solve
 
     t0 = time.perf_counter()
     T_cw = np.linalg.inv(np.asarray(p.T_wc, np.float64))

@@ -31,37 +31,10 @@ is unchanged by the solver.
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 
-import numba
 import numpy as np
-from numba import njit
 
-
-def _writable(path: str) -> bool:
-    try:
-        os.makedirs(path, exist_ok=True)
-        tempfile.TemporaryFile(dir=path).close()
-        return True
-    except OSError:
-        return False
-
-
-def _cache_dir() -> None:
-    """numba caches compiled kernels in ``__pycache__`` beside this file, else (a read-only
-    install) in the user's cache (``~/.cache/numba``), or where ``NUMBA_CACHE_DIR`` says.
-    Where none is writable, numba would refuse ``cache=True`` at import: then a folder
-    in the temporary directory."""
-    if numba.config.CACHE_DIR:
-        return
-    here = os.path.join(os.path.dirname(os.path.abspath(__file__)), "__pycache__")
-    user = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "numba")
-    if not (_writable(here) or _writable(user)):
-        numba.config.CACHE_DIR = os.path.join(tempfile.gettempdir(), "dynastereo-numba-cache")
-
-
-_cache_dir()
+from ._numba import jit
 
 CHI2_MONO = 5.991
 CHI2_STEREO = 7.815
@@ -72,7 +45,7 @@ LAMBDA_INITIAL = 1e-5
 LAMBDA_FACTOR = 10.0
 
 
-@njit(nogil=True, cache=True, inline="always")
+@jit(inline="always")
 def _huber_rho(chi2: float, delta: float) -> float:
     """0.5 * rho(chi2) (g2o's Huber on the squared error, halved: gtsam's loss)."""
     if chi2 <= delta * delta:
@@ -80,7 +53,7 @@ def _huber_rho(chi2: float, delta: float) -> float:
     return delta * math.sqrt(chi2) - 0.5 * delta * delta
 
 
-@njit(nogil=True, cache=True)
+@jit
 def _project(Tcw, X, k, p, fx, fy, cx, cy, bf, out):
     """Camera coordinates and projection of point ``p`` in keyframe ``k``:
     out = (xc, yc, zc, u, v, ur); returns False when the depth is (numerically) 0.  A
@@ -101,7 +74,7 @@ def _project(Tcw, X, k, p, fx, fy, cx, cy, bf, out):
     return True
 
 
-@njit(nogil=True, cache=True)
+@jit
 def _obs_chi2(Tcw, X, k, p, meas, stereo, isig2, i, fx, fy, cx, cy, bf, tmp):
     """chi2 of observation ``i`` (``tmp[2]``: the depth); 1e12 at depth 0."""
     if not _project(Tcw, X, k, p, fx, fy, cx, cy, bf, tmp):
@@ -115,7 +88,7 @@ def _obs_chi2(Tcw, X, k, p, meas, stereo, isig2, i, fx, fy, cx, cy, bf, tmp):
     return e2 * isig2[i]
 
 
-@njit(nogil=True, cache=True)
+@jit
 def ba_cost(Tcw, X, obs_kf, obs_pt, meas, stereo, isig2, active, fx, fy, cx, cy, bf, mode, tmp):
     """Cost of the observations: ``mode`` 0 = Huber over the active ones (stage 1),
     1 = plain chi2/2 over the active ones (stage 2), 2 = Huber over all (the reported
@@ -132,7 +105,7 @@ def ba_cost(Tcw, X, obs_kf, obs_pt, meas, stereo, isig2, active, fx, fy, cx, cy,
     return c
 
 
-@njit(nogil=True, cache=True)
+@jit
 def _linearize(Tcw, X, obs_kf, obs_pt, meas, stereo, isig2, active, robust, fx, fy, cx, cy, bf,
                cam_var, Jc, Jp, E, Wt, tmp):
     """Residuals, Jacobians and weights of every observation (weight 0: not used)."""
@@ -196,7 +169,7 @@ def _linearize(Tcw, X, obs_kf, obs_pt, meas, stereo, isig2, active, robust, fx, 
             Jc[i, 2, 5] = a22
 
 
-@njit(nogil=True, cache=True)
+@jit
 def _build(obs_kf, obs_pt, cam_var, Jc, Jp, E, Wt, Hcc, bc, Hpp, bp, Hcp):
     Hcc[:] = 0.0
     bc[:] = 0.0
@@ -246,7 +219,7 @@ def _build(obs_kf, obs_pt, cam_var, Jc, Jp, E, Wt, Hcc, bc, Hpp, bp, Hcp):
                 Hcc[c, a, b] = Hcc[c, b, a]
 
 
-@njit(nogil=True, cache=True)
+@jit
 def _cholesky_solve(S, r, n):
     """Solve S x = r (n x n, SPD) in place: S becomes its Cholesky factor, r the
     solution.  Returns False when S is not positive definite."""
@@ -277,7 +250,7 @@ def _cholesky_solve(S, r, n):
     return True
 
 
-@njit(nogil=True, cache=True)
+@jit
 def _solve_damped(lam, obs_kf, obs_pt, pt_start, pt_obs, cam_var, nc, Hcc, bc, Hpp, bp, Hcp, Wt,
                   Pinv, Y, S, rhs, dx_c, dx_p):
     """The LM step at damping ``lam`` (H + lam I) by the Schur complement.  Returns False
@@ -371,7 +344,7 @@ def _solve_damped(lam, obs_kf, obs_pt, pt_start, pt_obs, cam_var, nc, Hcc, bc, H
     return True
 
 
-@njit(nogil=True, cache=True)
+@jit
 def _exp_left(T, k, xi, c, tmp):
     """T[k] = exp(xi[c]) @ T[k] (xi = (omega, rho)); tmp: (3, 3, 3) scratch."""
     w0, w1, w2 = xi[c, 0], xi[c, 1], xi[c, 2]
@@ -412,7 +385,7 @@ def _exp_left(T, k, xi, c, tmp):
     T[k, 2, 3] += t2
 
 
-@njit(nogil=True, cache=True)
+@jit
 def ba_solve(Tcw, X, obs_kf, obs_pt, meas, stereo, isig2, fixed, fx, fy, cx, cy, bf,
              n_robust, n_refine, rel_tol, abort, active, stats):
     """Bundle adjustment in place (module doc).
