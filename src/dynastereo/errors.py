@@ -87,8 +87,7 @@ def as_interrupt(e: BaseException) -> BaseException:
     """``e``, or the :class:`Interrupted` it wraps: a signal handler that raises while a
     compiled function (a numba kernel's dispatcher) runs comes back as ``SystemError:
     ... returned a result with an exception set`` whose cause is the ``Interrupted``."""
-    if isinstance(e, SystemError):
-        cause = e.__cause__ or e.__context__
-        if isinstance(cause, Interrupted):
-            return cause
-    return e
+    cause: BaseException | None = e
+    while isinstance(cause, SystemError):  # possibly nested, one per native frame
+        cause = cause.__cause__ or cause.__context__
+    return cause if isinstance(cause, Interrupted) else e
