@@ -464,7 +464,8 @@ def test_runtime_resolution_and_fallback_line(caplog, monkeypatch):
 
 
 def test_runtime_config_keys_validate():
-    assert DetectorConfig().runtime == "auto" and DetectorConfig().precision == "auto"
+    assert DetectorConfig().runtime == "onnxruntime" and DetectorConfig().precision == "auto"
+    assert DetectorConfig(runtime="auto").runtime == "auto"
     with pytest.raises(ConfigError, match="detector.runtime"):
         DetectorConfig(runtime="tensorrt")
     with pytest.raises(ConfigError, match="detector.precision"):
