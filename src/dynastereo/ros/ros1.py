@@ -72,7 +72,7 @@ log = logging.getLogger("dynastereo.ros")
 
 ROS1_PACKAGES = ("python3-rospy", "python3-rosmaster", "python3-roslaunch", "rosout", "python3-message-filters",
                  "python3-sensor-msgs", "python3-nav-msgs", "python3-stereo-msgs", "python3-tf2-msgs",
-                 "python3-std-srvs", "python3-rostopic", "python3-rosbag")
+                 "python3-std-srvs", "python3-rostopic", "python3-rosbag", "python3-visualization-msgs")
 
 
 def import_rospy():
@@ -218,11 +218,16 @@ class Ros1Node:
         self.pub_disp = rospy.Publisher("~disparity", DisparityImage, queue_size=2)
         self.pub_path = rospy.Publisher("~path", PathMsg, queue_size=1, latch=True)
         self.pub_map = rospy.Publisher("~map_points", PointCloud2, queue_size=1, latch=True)
-        from visualization_msgs.msg import MarkerArray
-
         from ..slam.objects import ObjectPaths
 
-        self.pub_objects = rospy.Publisher("~objects", MarkerArray, queue_size=2)
+        try:
+            from visualization_msgs.msg import MarkerArray
+        except ImportError:  # a minimal ROS install: no ~objects markers, said once
+            rospy.logwarn("visualization_msgs not installed (Debian: python3-visualization-msgs): "
+                          "~objects markers are not published")
+            self.pub_objects = None
+        else:
+            self.pub_objects = rospy.Publisher("~objects", MarkerArray, queue_size=2)
         self._object_paths = ObjectPaths()
         self._path: tuple[list[np.ndarray], list[int]] = ([], [])
         self.pub_ready = rospy.Publisher("~ready", Bool, queue_size=1, latch=True)
@@ -358,7 +363,7 @@ class Ros1Node:
             self.pub_path.publish(self.b.path(*self._path, odom, seq=r.position))
         objs = masks.objects if masks is not None else []
         self._object_paths.add(objs)
-        if self.pub_objects.get_num_connections() > 0:
+        if self.pub_objects is not None and self.pub_objects.get_num_connections() > 0:
             self.pub_objects.publish(self.b.object_markers(objs, r.stamp_ns, odom, r.position,
                                                            self._object_paths.paths()))
         if r.position % MAP_EVERY == 0 and self.pub_map.get_num_connections() > 0:
