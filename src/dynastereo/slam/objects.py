@@ -249,6 +249,23 @@ def _inv3(S, out):  # pragma: no cover - compiled
 
 
 @njit(nogil=True, cache=True)
+def _update3(x, g, Pn, y, Si, o, K, KP):  # pragma: no cover - compiled
+    """Kalman update of state ``x[g]`` (6) and covariance ``Pn`` by a 3-vector measurement
+    of the state's entries ``o..o+2`` (H = [I 0] for o = 0, [0 I] for o = 3): innovation
+    ``y``, inverse innovation covariance ``Si``; ``K`` (6, 3), ``KP`` (6, 6) scratch."""
+    for i in range(6):
+        for j in range(3):
+            K[i, j] = Pn[i, o] * Si[0, j] + Pn[i, o + 1] * Si[1, j] + Pn[i, o + 2] * Si[2, j]
+    for i in range(6):
+        x[g, i] += K[i, 0] * y[0] + K[i, 1] * y[1] + K[i, 2] * y[2]
+        for j in range(6):
+            KP[i, j] = K[i, 0] * Pn[o, j] + K[i, 1] * Pn[o + 1, j] + K[i, 2] * Pn[o + 2, j]
+    for i in range(6):
+        for j in range(6):
+            Pn[i, j] -= KP[i, j]
+
+
+@njit(nogil=True, cache=True)
 def _kalman(x, P, z, Rz, dt, qa, speed, still, speed_dir, speed_sigma, still_sigma, chi):  # pragma: no cover
     """Per track g, in place: predict ``x`` (G, 6), ``P`` (G, 6, 6) over ``dt`` with white
     acceleration noise ``qa`` (3,) per axis; update with the position ``z`` (G, 3),
@@ -288,16 +305,7 @@ def _kalman(x, P, z, Rz, dt, qa, speed, still, speed_dir, speed_sigma, still_sig
             for j in range(3):
                 c += y[i] * Si[i, j] * y[j]
         chi[g] = c
-        for i in range(6):
-            for j in range(3):
-                K[i, j] = Pn[i, 0] * Si[0, j] + Pn[i, 1] * Si[1, j] + Pn[i, 2] * Si[2, j]
-        for i in range(6):
-            x[g, i] += K[i, 0] * y[0] + K[i, 1] * y[1] + K[i, 2] * y[2]
-            for j in range(6):
-                KP[i, j] = K[i, 0] * Pn[0, j] + K[i, 1] * Pn[1, j] + K[i, 2] * Pn[2, j]
-        for i in range(6):
-            for j in range(6):
-                Pn[i, j] -= KP[i, j]
+        _update3(x, g, Pn, y, Si, 0, K, KP)
         sp = np.sqrt(x[g, 3] ** 2 + x[g, 4] ** 2 + x[g, 5] ** 2)
         if still[g]:  # v = 0, H = [0 I]
             for i in range(3):
@@ -305,16 +313,7 @@ def _kalman(x, P, z, Rz, dt, qa, speed, still, speed_dir, speed_sigma, still_sig
                 for j in range(3):
                     S[i, j] = Pn[i + 3, j + 3] + (still_sigma ** 2 if i == j else 0.0)
             _inv3(S, Si)
-            for i in range(6):
-                for j in range(3):
-                    K[i, j] = Pn[i, 3] * Si[0, j] + Pn[i, 4] * Si[1, j] + Pn[i, 5] * Si[2, j]
-            for i in range(6):
-                x[g, i] += K[i, 0] * y[0] + K[i, 1] * y[1] + K[i, 2] * y[2]
-                for j in range(6):
-                    KP[i, j] = K[i, 0] * Pn[3, j] + K[i, 1] * Pn[4, j] + K[i, 2] * Pn[5, j]
-            for i in range(6):
-                for j in range(6):
-                    Pn[i, j] -= KP[i, j]
+            _update3(x, g, Pn, y, Si, 3, K, KP)
         elif not np.isnan(speed[g]) and sp > speed_dir:  # |v| = speed, H = [0, v / |v|]
             for i in range(6):
                 h[i] = 0.0
