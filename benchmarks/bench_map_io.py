@@ -31,7 +31,7 @@ from dynastereo.slam import map_io
 from dynastereo.slam.keyframe import KeyFrame
 from dynastereo.slam.map import Map
 from dynastereo.slam.map_io import MapFile, load_map, save_map
-from dynastereo.types import StereoCalibration
+from dynastereo.datatypes import StereoCalibration
 
 OUT = Path(__file__).resolve().parent / "results" / "map_io.json"
 

@@ -52,7 +52,7 @@ from dynastereo.masking import BoxMasker, OutlineMasker, SegMasker, StereoMatche
 from dynastereo.masking.detection import create_detector, create_seg_model
 from dynastereo.masking.maskers import _box_iou_matrix
 from dynastereo.timing import StageTimer
-from dynastereo.types import Detections
+from dynastereo.datatypes import Detections
 
 OUT = Path(__file__).resolve().parent / "results" / "mask.json"
 MASK_STAGES = ("disparity", "outline", "transfer", "segment", "boxes")

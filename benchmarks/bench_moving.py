@@ -336,7 +336,7 @@ class _Overlays:
     def on_frame(self, ev) -> None:
         import cv2
 
-        from dynastereo.pipeline import draw_objects
+        from dynastereo.viz.draw import draw_objects
 
         if ev.position in self.frames and ev.masks is not None:
             img = draw_objects(ev.frame.left, ev.masks.left, ev.masks.objects, ev.masks.labels_left)

@@ -509,7 +509,7 @@ def draw_label_overlays(seq, labels: dict, folder: Path, frames=(10, 30, 45, 60,
     green static, orange undecided) and ``#id label speed``, to check by eye."""
     import cv2
 
-    from dynastereo.pipeline import VERDICT_COLOURS
+    from dynastereo.viz.draw import VERDICT_COLOURS
 
     folder.mkdir(parents=True, exist_ok=True)
     out = []

@@ -50,7 +50,7 @@ from dynastereo.masking import build_masker
 from dynastereo.io.frames import parse_frame_spec
 from dynastereo.slam import System
 from dynastereo.timing import StageTimer
-from dynastereo.types import StereoFrame
+from dynastereo.datatypes import StereoFrame
 
 OUT = Path(__file__).resolve().parent / "results" / "slam.json"
 SLAM_STAGES = ("features", "stereo", "track", "local_mapping")

@@ -62,7 +62,7 @@ from dynastereo.errors import ModelError
 from dynastereo.eval import evaluate_files
 from dynastereo.eval.masks import score_mask_dir
 from dynastereo.synth import OracleDetector, generate, read_gt_masks, read_objects
-from dynastereo.types import StereoMasks
+from dynastereo.datatypes import StereoMasks
 
 OUT = Path(__file__).resolve().parent / "results" / "synth_slam.json"
 SCENARIOS = ("static", "crossing", "convoy", "oncoming", "mixed")

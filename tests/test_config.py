@@ -49,7 +49,7 @@ def test_a_configuration_changed_after_it_was_made_is_checked_by_its_user() -> N
     import numpy as np
 
     from dynastereo.slam import System
-    from dynastereo.types import StereoCalibration
+    from dynastereo.datatypes import StereoCalibration
 
     cfg = Config()
     cfg.slam.local_ba = "bogus"

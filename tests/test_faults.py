@@ -478,7 +478,7 @@ def test_mask_interrupted(kitti06: Path, models_dir: Path, tmp_path: Path) -> No
 def test_stereo_check_verdicts_on_real_pairs(kitti06: Path) -> None:
     from dynastereo.io import KittiSequence
     from dynastereo.io.stereo_check import StereoFault, check_frames
-    from dynastereo.types import StereoFrame
+    from dynastereo.datatypes import StereoFrame
 
     seq = KittiSequence(kitti06)
     frames = [seq.frame(0), seq.frame(1)]

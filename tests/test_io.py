@@ -32,7 +32,7 @@ from dynastereo.io import (
     write_disparity_png,
     write_pfm,
 )
-from dynastereo.types import StereoCalibration
+from dynastereo.datatypes import StereoCalibration
 
 # --------------------------------------------------------------------------- helpers
 

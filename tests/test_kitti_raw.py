@@ -297,7 +297,7 @@ def test_detector_sees_colour_slam_gray(tmp_path):
     """The masker hands the detector ``frame.left`` (BGR here) and the matcher gray images."""
     from dynastereo.config import Config
     from dynastereo.masking import build_masker
-    from dynastereo.types import Detections
+    from dynastereo.datatypes import Detections
 
     d = make_drive(tmp_path, n=1, cams=("02", "03"), size=(256, 64))
     frame = open_sequence(d).frame(0)

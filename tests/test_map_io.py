@@ -45,7 +45,7 @@ from dynastereo.slam.matcher import stereo_match
 from dynastereo.slam.selfcal import shift_disparity
 from dynastereo.slam.tracking import Tracker
 from dynastereo.synth import generate
-from dynastereo.types import StereoCalibration
+from dynastereo.datatypes import StereoCalibration
 
 SIZE = (480, 144)
 N_FRAMES = 12

@@ -30,7 +30,7 @@ from dynastereo.masking.outline import (
     fill_invalid_rows,
 )
 from dynastereo.timing import StageTimer
-from dynastereo.types import Detections, MaskMethod, StereoFrame
+from dynastereo.datatypes import Detections, MaskMethod, StereoFrame
 
 H, W = 240, 480
 
@@ -1040,7 +1040,7 @@ def test_kitti_seg_masker_both_images(kitti06, models_dir):
 def test_object_method_and_source_are_enums_written_as_their_strings() -> None:
     import json
 
-    from dynastereo.types import DetectionSource, ObjectMask
+    from dynastereo.datatypes import DetectionSource, ObjectMask
 
     ob = ObjectMask((1.0, 2.0, 3.0, 4.0), "car", 0.9, "box-fallback:tiny", 5.0, 6, 7, source="carried")
     assert ob.method is MaskMethod.FALLBACK_TINY and ob.method.is_fallback and ob.source is DetectionSource.CARRIED

@@ -24,7 +24,7 @@ from dynastereo.config import Config, MotionConfig
 from dynastereo.errors import ConfigError
 from dynastereo.masking.motion import FrameFlow, MotionJudge, ObjectFlow
 from dynastereo.synth import generate, read_objects
-from dynastereo.types import MaskMethod, ObjectMask, StereoCalibration, StereoMasks
+from dynastereo.datatypes import MaskMethod, ObjectMask, StereoCalibration, StereoMasks
 
 pytestmark = pytest.mark.usefixtures("quiet_slam")
 
@@ -274,8 +274,8 @@ def test_forget_region_removes_the_points_of_an_object(convoy: Path) -> None:
 
 
 def test_overlay_colours_follow_the_verdicts() -> None:
-    from dynastereo.pipeline import VERDICT_COLOURS, draw_overlay
-    from dynastereo.types import StereoFrame
+    from dynastereo.viz.draw import VERDICT_COLOURS, draw_overlay
+    from dynastereo.datatypes import StereoFrame
 
     masks = _masks(0, [])
     for o, v in zip(masks.objects, (False, True, None)):

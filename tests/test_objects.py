@@ -13,7 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from dynastereo.slam.objects import TRACKS_NAME, ObjectPaths, WorldObjects, read_tracks
-from dynastereo.types import MaskMethod, ObjectMask, StereoCalibration, StereoMasks
+from dynastereo.datatypes import MaskMethod, ObjectMask, StereoCalibration, StereoMasks
 
 W, H = 640, 240
 FX = 400.0

@@ -29,7 +29,7 @@ from dynastereo.ros.convert import (
     image_fields,
     image_to_array,
 )
-from dynastereo.types import StereoCalibration
+from dynastereo.datatypes import StereoCalibration
 
 runner = CliRunner()
 N_FRAMES = 5

@@ -22,7 +22,7 @@ from dynastereo.errors import ConfigError
 from dynastereo.eval.trajectory import read_trajectory
 from dynastereo.io import KittiSequence
 from dynastereo.ros.core import DropOldestQueue, StereoInput, StereoNodeCore
-from dynastereo.types import StereoMasks
+from dynastereo.datatypes import StereoMasks
 
 LIVE_FRAMES = 25  # KITTI 06 frames 0..24 at 10 Hz
 BURST = "25-44"  # then 20 frames at 200 Hz with queue_size 1
@@ -164,7 +164,7 @@ def test_core_live_parameters(kitti06: Path, models_dir: Path, tmp_path: Path) -
 
 
 def test_core_refuses_a_changed_calibration(kitti06: Path) -> None:
-    from dynastereo.types import StereoCalibration
+    from dynastereo.datatypes import StereoCalibration
 
     seq = KittiSequence(kitti06)
     core = StereoNodeCore(Config(), calibration=seq.calibration, masker=_BlockingMasker())

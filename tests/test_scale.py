@@ -21,7 +21,7 @@ from dynastereo.masking.detection import (
     tile_windows,
 )
 from dynastereo.masking.detection.rewrite import rewrite
-from dynastereo.types import Detections, StereoFrame
+from dynastereo.datatypes import Detections, StereoFrame
 
 NAMES = ("person", "bicycle", "car", "motorcycle", "bus", "truck")
 CAR = NAMES.index("car")

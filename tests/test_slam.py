@@ -23,7 +23,7 @@ from dynastereo.slam.matcher import KeypointGrid, search_by_projection, stereo_m
 from dynastereo.slam.optimizer import LocalBAProblem, local_ba, optimize_pose, project, self_calibrating_ba
 from dynastereo.slam.orb import ORBExtractor
 from dynastereo.timing import StageTimer
-from dynastereo.types import StereoCalibration, StereoFrame, StereoMasks
+from dynastereo.datatypes import StereoCalibration, StereoFrame, StereoMasks
 
 W, H = 512, 192
 K = np.array([[320.0, 0.0, 256.0], [0.0, 320.0, 96.0], [0.0, 0.0, 1.0]])

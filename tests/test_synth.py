@@ -27,7 +27,7 @@ from dynastereo.synth import (
 )
 from dynastereo.synth.render import Renderer
 from dynastereo.synth.world import build_world
-from dynastereo.types import Detections
+from dynastereo.datatypes import Detections
 
 REQUIRED = ("static", "crossing", "convoy", "oncoming", "loop", "mixed")
 

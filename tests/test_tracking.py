@@ -12,7 +12,7 @@ import pytest
 
 from dynastereo.masking.detection.classes import COCO_CLASSES
 from dynastereo.masking.detection.tracking import BoxTracker, TrackerParams, box_iou
-from dynastereo.types import Detections
+from dynastereo.datatypes import Detections
 
 H, W = 240, 480
 CAR, BUS, PERSON = COCO_CLASSES.index("car"), COCO_CLASSES.index("bus"), COCO_CLASSES.index("person")

@@ -8,7 +8,7 @@ __version__ = "0.1.0"
 
 from .config import Config, load_config  # noqa: E402
 from .errors import DynastereoError  # noqa: E402
-from .types import Detections, StereoCalibration, StereoFrame, StereoMasks  # noqa: E402
+from .datatypes import Detections, StereoCalibration, StereoFrame, StereoMasks  # noqa: E402
 
 __all__ = [
     "Config",

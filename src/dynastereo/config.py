@@ -18,7 +18,7 @@ from typing import Any, Literal
 import yaml
 
 from .errors import ConfigError
-from .types import DEFAULT_DYNAMIC_CLASSES
+from .datatypes import DEFAULT_DYNAMIC_CLASSES
 
 
 StereoAlgorithm = Literal["bm", "sgbm", "sgbm3way", "hh", "hh4"]

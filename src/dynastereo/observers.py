@@ -13,7 +13,7 @@ from typing import Any, Iterable, Protocol, runtime_checkable
 
 import numpy as np
 
-from .types import StereoFrame, StereoMasks
+from .datatypes import StereoFrame, StereoMasks
 
 
 @dataclass

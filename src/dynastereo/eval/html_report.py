@@ -347,7 +347,7 @@ def pick_sample_frames(available: list[int], worst: int | None, n: int = 6) -> l
 
 
 def _objects_by_frame(rf: RunFiles) -> dict[int, list]:
-    from ..types import ObjectMask
+    from ..datatypes import ObjectMask
 
     fields = set(ObjectMask.__dataclass_fields__)
     out = {}
@@ -361,8 +361,8 @@ def _overlay_section(rf: RunFiles, ev: EvalResult | None, n: int) -> str:
     available = _mask_frames(rf)
     if not available or n <= 0:
         return ""
-    from ..pipeline import draw_overlay
-    from ..types import StereoFrame, StereoMasks
+    from ..viz.draw import draw_overlay
+    from ..datatypes import StereoFrame, StereoMasks
 
     worst, why_worst = None, ""
     if ev is not None and rf.frames is not None and len(rf.frames) == len(ev.ape_errors):

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from ..errors import ImageReadError
-from ..types import MaskMethod
+from ..datatypes import MaskMethod
 
 
 @dataclass

@@ -7,7 +7,7 @@ from typing import Iterator, Protocol, runtime_checkable
 
 import numpy as np
 
-from ..types import StereoCalibration, StereoFrame
+from ..datatypes import StereoCalibration, StereoFrame
 
 
 @runtime_checkable

@@ -2,7 +2,7 @@
 
 Two kinds of result:
 
-* :class:`~dynastereo.types.StereoCalibration` -- the images are already rectified
+* :class:`~dynastereo.datatypes.StereoCalibration` -- the images are already rectified
   (KITTI, pre-rectified folders): ``K``, baseline in metres, image size.
 * :class:`RawStereoCalibration` -- the images are raw (EuRoC, calibrated but not
   rectified cameras): per-camera ``K``/``D`` and either the pose between the cameras
@@ -86,7 +86,7 @@ import numpy as np
 import yaml
 
 from ..errors import CalibrationError
-from ..types import StereoCalibration
+from ..datatypes import StereoCalibration
 
 # --------------------------------------------------------------------------- raw calibration
 

@@ -6,7 +6,7 @@ calibration, 0 = only valid pixels, no black borders) -- or takes the ready-made
 ``cv2.initUndistortRectifyMap`` maps once (fixed-point ``CV_16SC2`` by default, the fastest
 for ``cv2.remap``).  ``rectify(left, right)`` is then two ``cv2.remap`` calls.
 
-``Rectifier.calibration`` is the rectified :class:`~dynastereo.types.StereoCalibration`:
+``Rectifier.calibration`` is the rectified :class:`~dynastereo.datatypes.StereoCalibration`:
 ``K = P1[:, :3]``, ``baseline = -P2[0, 3] / P2[0, 0]``.
 """
 
@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from ..errors import CalibrationError
-from ..types import StereoCalibration
+from ..datatypes import StereoCalibration
 from .calib import RawStereoCalibration
 
 

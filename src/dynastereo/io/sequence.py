@@ -9,7 +9,7 @@ from typing import Iterable, Iterator
 import numpy as np
 
 from ..errors import CalibrationError, SequenceError
-from ..types import StereoCalibration, StereoFrame
+from ..datatypes import StereoCalibration, StereoFrame
 from .calib import RawStereoCalibration, check_intrinsics
 from .images import image_size, list_images, read_image
 from .rectify import Rectifier

@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from ..errors import StereoCheckError
-from ..types import StereoFrame
+from ..datatypes import StereoFrame
 
 log = logging.getLogger(__name__)
 

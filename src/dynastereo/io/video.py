@@ -48,7 +48,7 @@ import cv2
 import numpy as np
 
 from ..errors import InputError, SequenceError
-from ..types import StereoCalibration, StereoFrame
+from ..datatypes import StereoCalibration, StereoFrame
 from .calib import RawStereoCalibration, load_stereo_yaml
 from .sequence import rectified_calibration
 from .times import check_rate

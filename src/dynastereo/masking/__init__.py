@@ -15,7 +15,7 @@ from pathlib import Path
 
 from ..config import Config
 from ..errors import ConfigError
-from ..types import StereoCalibration
+from ..datatypes import StereoCalibration
 from .base import Detector, DisparityEstimator, Masker
 from .disparity import StereoMatcher, normalize_disparity
 from .maskers import MASK_STAGES, BoxMasker, NoneMasker, OutlineMasker, SegMasker

@@ -12,7 +12,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from ..timing import StageTimer
-from ..types import Detections, StereoFrame, StereoMasks
+from ..datatypes import Detections, StereoFrame, StereoMasks
 
 
 @runtime_checkable

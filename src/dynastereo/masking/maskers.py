@@ -26,7 +26,7 @@ import numpy as np
 
 from ..config import OutlineConfig, StereoConfig
 from ..timing import StageTimer, timed
-from ..types import Detections, MaskMethod, ObjectMask, StereoFrame, StereoMasks
+from ..datatypes import Detections, MaskMethod, ObjectMask, StereoFrame, StereoMasks
 from .base import Detector
 from .disparity import StereoMatcher
 from .ground import DEFAULT_BASELINE, GroundLine, fit_ground_line, road_samples, slope_range

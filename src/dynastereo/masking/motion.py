@@ -58,7 +58,7 @@ import cv2
 import numpy as np
 
 from ..config import MotionConfig
-from ..types import StereoCalibration, StereoFrame, StereoMasks
+from ..datatypes import StereoCalibration, StereoFrame, StereoMasks
 from .detection.classes import canonical_name
 from .detection.tracking import TrackerParams, box_iou
 

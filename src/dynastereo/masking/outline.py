@@ -56,7 +56,7 @@ import cv2
 import numpy as np
 
 from ..config import OutlineConfig
-from ..types import MaskMethod
+from ..datatypes import MaskMethod
 from .ground import GroundLine
 
 # A peak range ending this close (px) to the matcher's largest disparity reaches beyond it.

@@ -23,7 +23,7 @@ import numpy as np
 from ..config import Config
 from ..errors import InputError
 from ..observers import FrameEvent
-from ..types import StereoFrame, StereoMasks
+from ..datatypes import StereoFrame, StereoMasks
 from .bags import BAG_SUFFIX, BagStereoSequence, BagWriter
 from .convert import masked_image, twist_between
 from .core import disparity_data

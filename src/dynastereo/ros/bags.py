@@ -34,7 +34,7 @@ from ..errors import CalibrationError, InputError, SequenceError
 from ..io.calib import RawStereoCalibration, check_intrinsics, load_stereo_yaml
 from ..io.euroc import pair_by_timestamp
 from ..io.rectify import Rectifier
-from ..types import StereoCalibration, StereoFrame
+from ..datatypes import StereoCalibration, StereoFrame
 from .convert import ImageDecoder, calibration_from_camera_info, CameraInfoData, camera_info_fields
 from .messages import (
     DEFAULT_LEFT_FRAME,

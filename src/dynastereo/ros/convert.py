@@ -25,7 +25,7 @@ Calibration
 ``P`` (3x4) is the projection of the *rectified* camera, ``R`` the rectification
 rotation, ``K``/``D`` the raw camera.  When the pair says the images are already
 rectified (``D`` zero, ``R`` identity, ``K == P[:, :3]``) -- or ``rectify="no"`` -- the
-result is a rectified :class:`~dynastereo.types.StereoCalibration` with ``K = P_left[:, :3]``
+result is a rectified :class:`~dynastereo.datatypes.StereoCalibration` with ``K = P_left[:, :3]``
 and ``baseline = (P_left[0,3] - P_right[0,3]) / fx`` (ROS: ``P_right[0,3] = -fx * B``; the
 same arithmetic as KITTI's ``calib.txt``); otherwise a
 :class:`~dynastereo.io.calib.RawStereoCalibration` that carries ``R``/``P`` as its
@@ -49,7 +49,7 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import CalibrationError, InputError
 from ..io.calib import RawStereoCalibration
-from ..types import StereoCalibration
+from ..datatypes import StereoCalibration
 
 # encoding -> (numpy dtype, channels)
 IMAGE_ENCODINGS: dict[str, tuple[np.dtype, int]] = {

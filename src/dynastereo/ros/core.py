@@ -57,7 +57,7 @@ from ..io.rectify import Rectifier
 from ..io.stereo_check import StereoWatch
 from ..masking.maskers import MASK_STAGES
 from ..timing import StageTimer
-from ..types import StereoCalibration, StereoFrame, StereoMasks
+from ..datatypes import StereoCalibration, StereoFrame, StereoMasks
 from .convert import twist_between
 from .messages import DEFAULT_LEFT_FRAME, ODOM_FRAME, DisparityData, OdometryData
 

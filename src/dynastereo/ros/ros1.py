@@ -16,7 +16,7 @@ Publishes
     ``~odometry`` nav_msgs/Odometry, ``/tf`` (``~odom_frame`` -> camera frame), ``~left/masked``,
     ``~right/masked``, ``~left/mask``, ``~right/mask`` (sensor_msgs/Image; the masks SLAM got:
     objects judged moving or not yet judged), ``~left/objects`` (bgr8: the left image with
-    the objects in the colours of the motion test's verdicts, ``pipeline.VERDICT_COLOURS``:
+    the objects in the colours of the motion test's verdicts, ``viz.draw.VERDICT_COLOURS``:
     moving red, undecided orange, static green), ``~disparity``
     (stereo_msgs/DisparityImage), ``~path`` (nav_msgs/Path, the trajectory so far, latched),
     ``~map_points`` (sensor_msgs/PointCloud2, the map every ``MAP_EVERY``-th frame, latched),
@@ -90,7 +90,7 @@ def import_rospy():
 
 def _objects_view(image: np.ndarray, mask: np.ndarray, masks: Any) -> np.ndarray:
     """The left image with the objects coloured by the motion test's verdicts (``~left/objects``)."""
-    from ..pipeline import draw_objects
+    from ..viz.draw import draw_objects
 
     if masks is None:
         return draw_objects(image, mask, [])

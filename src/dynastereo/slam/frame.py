@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..types import StereoCalibration
+from ..datatypes import StereoCalibration
 from .geometry import desc_u64, inv_T
 from .matcher import KeypointGrid
 from .orb import Features

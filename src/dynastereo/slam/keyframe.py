@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..types import StereoCalibration
+from ..datatypes import StereoCalibration
 from .geometry import camera_center, inv_T
 from .frame import KeypointSet
 from .matcher import KeypointGrid

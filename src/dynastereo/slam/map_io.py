@@ -42,7 +42,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from ..errors import MapFileError
-from ..types import StereoCalibration
+from ..datatypes import StereoCalibration
 from .map import COUNTS, Map
 from .table import check_entry
 

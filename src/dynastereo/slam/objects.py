@@ -50,7 +50,7 @@ from typing import IO, Any
 import numpy as np
 from numba import njit
 
-from ..types import StereoCalibration, StereoMasks
+from ..datatypes import StereoCalibration, StereoMasks
 
 __all__ = ["ObjectState", "WorldObjects", "TrackWriter", "CLASS_SIZE", "TRACKS_NAME", "read_tracks", "verdict_rgb",
            "box_corners", "ObjectPaths"]
@@ -376,9 +376,9 @@ class ObjectState:
 
 
 def verdict_rgb(moving: bool | None) -> tuple[int, int, int]:
-    """The motion test's verdict colour as RGB (``pipeline.VERDICT_COLOURS``, which is BGR):
+    """The motion test's verdict colour as RGB (``viz.draw.VERDICT_COLOURS``, which is BGR):
     moving red, static green, undecided orange."""
-    from ..pipeline import VERDICT_COLOURS
+    from ..viz.draw import VERDICT_COLOURS
 
     b, g, r = VERDICT_COLOURS[None if moving is None else bool(moving)]
     return (r, g, b)

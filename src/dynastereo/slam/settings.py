@@ -22,7 +22,7 @@ from typing import Any
 
 from ..config import SlamConfig, orbslam2_slam_values
 from ..errors import ConfigError
-from ..types import StereoCalibration
+from ..datatypes import StereoCalibration
 
 
 def slam_config_from_orbslam(

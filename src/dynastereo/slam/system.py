@@ -62,7 +62,7 @@ import numpy as np
 from ..config import Config, SlamConfig
 from ..errors import ConfigError
 from ..timing import StageTimer
-from ..types import StereoCalibration, StereoFrame, StereoMasks
+from ..datatypes import StereoCalibration, StereoFrame, StereoMasks
 from .active_map import ActiveMap
 from .keyframe_database import KeyFrameDatabase
 from .local_mapping import BARunner, LocalMapper

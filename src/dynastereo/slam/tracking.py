@@ -36,7 +36,7 @@ import numpy as np
 
 from ..config import SlamConfig
 from ..timing import StageTimer
-from ..types import StereoCalibration, StereoFrame, StereoMasks
+from ..datatypes import StereoCalibration, StereoFrame, StereoMasks
 from .frame import Frame
 from .geometry import desc_u64, inv_T, orthonormalize
 from .keyframe import KeyFrame

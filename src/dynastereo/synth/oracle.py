@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from ..errors import ImageReadError, InputError, SequenceError
-from ..types import DEFAULT_DYNAMIC_CLASSES, Detections
+from ..datatypes import DEFAULT_DYNAMIC_CLASSES, Detections
 
 OBJECTS_FILE = Path("gt") / "objects.json"
 

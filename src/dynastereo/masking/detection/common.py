@@ -10,7 +10,7 @@ import numpy as np
 
 from ...config import DetectorConfig
 from ...errors import InputError
-from ...types import Detections
+from ...datatypes import Detections
 from .classes import dynamic_class_mask
 from .postprocess import PostResult, RowLayout, postprocess, postprocess_loop
 

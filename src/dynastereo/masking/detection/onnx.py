@@ -16,7 +16,7 @@ import numpy as np
 
 from ...config import DetectorConfig
 from ...errors import ConfigError, ModelError
-from ...types import Detections
+from ...datatypes import Detections
 from .classes import resolve_class_names
 from .common import BoxTransform, RawOutput, YoloDetectorBase, letterbox, to_bgr
 from .postprocess import ULTRALYTICS_LAYOUT, YOLOX_LAYOUT, PostResult

@@ -31,7 +31,7 @@ import numpy as np
 
 from ...config import DETECTOR_CANVASES
 from ...errors import ConfigError
-from ...types import Detections
+from ...datatypes import Detections
 from .postprocess import nms
 
 CANVAS_MODES = DETECTOR_CANVASES

@@ -30,7 +30,7 @@ import numpy as np
 
 from ...config import DetectorConfig
 from ...timing import StageTimer, timed
-from ...types import Detections, StereoFrame
+from ...datatypes import Detections, StereoFrame
 from .scale import ScaledDetector
 from .tracking import BoxTracker, TrackerParams
 

@@ -3,7 +3,7 @@
 The detector need not run on every frame, and it misses objects now and then; a
 :class:`BoxTracker` keeps each object's box alive on the frames in between and gives
 every box a track id.  Call :meth:`BoxTracker.update` once per frame, in order, with the
-frame's grey left image and the detector's :class:`~dynastereo.types.Detections` for
+frame's grey left image and the detector's :class:`~dynastereo.datatypes.Detections` for
 that frame, or ``None`` when the detector did not run on it.
 
 Method
@@ -67,7 +67,7 @@ import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from ...types import Detections
+from ...datatypes import Detections
 from .classes import canonical_name
 
 __all__ = ["BoxTracker", "TrackerParams", "box_iou"]
