@@ -4,25 +4,26 @@
 >>> result = mask_sequence("KITTI/sequences/06", "out/", frames="0-9")
 >>> result.summary["mask"]["median"]
 
-Every job is assembled in one place each: :func:`mask_sequence` and :func:`slam_job`
-(``run``, ``run --bag``) check their inputs with :func:`_checked_inputs` and build the
-masker with :func:`dynastereo.masking.build_masker`; the live node uses the same factory.
+Each function builds a :class:`~dynastereo.runtime.JobSpec` and runs it with
+:func:`dynastereo.runtime.run`, the one place a job is assembled (the CLI does the same).
 """
 
 from __future__ import annotations
 
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
 from .config import Config
 from .io import open_sequence
 from .io.base import Sequence
 from .io.frames import select_frames
-from .io.outputs import check_output_file, prepare_output_dir
-from .io.stereo_check import check_sequence
+from .io.outputs import check_output_file
 from .observers import FrameObserver
-from .pipeline import MaskJobResult, SlamJobResult, run_mask_job, run_slam_job
+from .runtime import BagRunResult, BagSpec, JobKind, JobSpec, MaskJobResult, OutputSpec, SlamJobResult, SourceSpec
+from .runtime import run as run_job
+from .runtime.finish import resolve_ground_truth  # noqa: F401 -- part of the API
+from .runtime.spec import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC
+from .viz.viewers import viewers  # noqa: F401 -- part of the API
 
 
 def load_sequence(sequence: str | Path | Sequence, calib: str | Path | None = None,
@@ -33,27 +34,12 @@ def load_sequence(sequence: str | Path | Sequence, calib: str | Path | None = No
     return sequence
 
 
-def _checked_inputs(seq: Sequence, cfg: Config, frames, models_dir, ground_truth, *, out, overwrite: bool,
-                    stereo_check: bool):
-    """(frame indices, masker) for a job, after the checks made before its first frame: the
-    frames, the stereo pair (``io.stereo_check``), the model (the masker factory verifies
-    it), and last the output folder (``io.outputs.prepare_output_dir``: an earlier run there
-    is cleared only once the inputs proved good)."""
-    from .masking import build_masker
-
-    indices = select_frames(frames, seq)
-    if stereo_check:
-        check_sequence(seq, indices)
-    masker = build_masker(cfg, seq.calibration, models_dir=models_dir, ground_truth=ground_truth)
-    prepare_output_dir(out, overwrite=overwrite)
-    return indices, masker
-
-
-def _stereo_watch(seq: Sequence, stereo_check: bool) -> tuple[FrameObserver, ...]:
-    """The stereo check again every ``CHECK_EVERY`` frames of the job (``io.stereo_check``)."""
-    from .io.stereo_check import PeriodicStereoCheck
-
-    return (PeriodicStereoCheck(getattr(seq, "path", None)),) if stereo_check else ()
+def source_spec(sequence: str | Path | Sequence, calib: str | Path | None = None,
+                rate: float | None = None) -> SourceSpec:
+    """The :class:`~dynastereo.runtime.SourceSpec` of a path or an opened sequence."""
+    if isinstance(sequence, (str, Path)):
+        return SourceSpec(path=sequence, calib=Path(calib) if calib else None, rate=rate)
+    return SourceSpec(sequence=sequence)
 
 
 def make_report(run_dir: str | Path, gt: str | Path | None = None, out: str | Path | None = None, *,
@@ -103,35 +89,6 @@ def write_ground_truth(sequence: str | Path, out: str | Path, fmt: str = "both")
     return written
 
 
-def resolve_ground_truth(gt: str | Path | None, sequence) -> Path | None:
-    """``gt``, else the sequence's own ground truth when it has one (KITTI odometry
-    ``poses/NN.txt``, a KITTI raw drive's ``oxts/``)."""
-    from .eval.html_report import default_ground_truth
-
-    if gt is not None:
-        return Path(gt)
-    path = getattr(sequence, "path", sequence)
-    return default_ground_truth(path) if isinstance(path, (str, Path)) else None
-
-
-@contextmanager
-def viewers(observers: tuple[FrameObserver, ...] = (), *, viewer: bool = False, rrd: str | Path | None = None,
-            gt: str | Path | None = None, name: str = "dynastereo") -> Iterator[tuple[FrameObserver, ...]]:
-    """``observers`` plus, with ``viewer`` (spawn the rerun viewer) or ``rrd`` (record to a
-    file), a :class:`dynastereo.viz.rerun.RerunObserver` (needs ``pip install
-    dynastereo[viz]``), flushed and closed on exit.  Neither: rerun is not imported."""
-    if not viewer and rrd is None:
-        yield tuple(observers)
-        return
-    from .viz.rerun import RerunObserver
-
-    rec = RerunObserver(spawn=viewer, rrd=rrd, gt=gt, name=name)
-    try:
-        yield (*observers, rec)
-    finally:
-        rec.close()
-
-
 def mask_sequence(
     sequence: str | Path | Sequence,
     out: str | Path,
@@ -150,7 +107,8 @@ def mask_sequence(
     viewer: bool = False,
     rrd: str | Path | None = None,
 ) -> MaskJobResult:
-    """Mask the dynamic objects of ``sequence`` in both images; see ``pipeline.run_mask_job``.
+    """Mask the dynamic objects of ``sequence`` in both images (a :class:`~dynastereo.runtime.JobSpec` of kind ``mask``, run by
+    :func:`dynastereo.runtime.run`).
 
     ``overwrite``: the outputs of an earlier run in ``out`` are deleted first (False: an
     :class:`~dynastereo.errors.OutputError`, as the CLI without ``--overwrite``);
@@ -158,16 +116,11 @@ def mask_sequence(
     (:class:`~dynastereo.errors.StereoCheckError`; ``io.stereo_check``).  ``viewer`` /
     ``rrd``: show the frames in the rerun viewer / record them (see :func:`viewers`).
     ``rate``: frame rate (Hz) for a folder without timestamps (see :func:`~dynastereo.io.open_sequence`)."""
-    cfg = cfg or Config()
-    if save_disparity and cfg.stereo.region != "full":
-        cfg = cfg.with_overrides({"stereo.region": "full"})
-    seq = load_sequence(sequence, calib, rate=rate)
-    indices, masker = _checked_inputs(seq, cfg, frames, models_dir, getattr(seq, "path", None), out=out,
-                                      overwrite=overwrite, stereo_check=stereo_check)
-    watch = _stereo_watch(seq, stereo_check)
-    with viewers((*observers, *watch), viewer=viewer, rrd=rrd, name="dynastereo mask") as obs:
-        return run_mask_job(seq, masker, out, indices, save_disparity=save_disparity, overlays=overlays,
-                            progress=progress, observers=obs)
+    spec = JobSpec(JobKind.MASK, source_spec(sequence, calib, rate),
+                   OutputSpec(Path(out), overwrite=overwrite, save_disparity=save_disparity, overlays=overlays,
+                              viewer=viewer, rrd=rrd),
+                   cfg or Config(), frames=frames, models_dir=models_dir, stereo_check=stereo_check)
+    return run_job(spec, progress=progress, observers=observers)
 
 
 def run_sequence(
@@ -193,7 +146,8 @@ def run_sequence(
     rrd: str | Path | None = None,
     save_cloud: str | Path | None = None,
 ) -> SlamJobResult:
-    """Mask and track ``sequence`` with the stereo SLAM; see ``pipeline.run_slam_job``.
+    """Mask and track ``sequence`` with the stereo SLAM (a :class:`~dynastereo.runtime.JobSpec` of kind ``run``;
+    the outputs are listed in :mod:`dynastereo.runtime.sinks` and :mod:`dynastereo.runtime.finish`).
 
     ``frames`` may revisit (``"0-98,40-60"``): frames are fed in the order given.
     ``load_map``: start from a map file (``save_map`` of an earlier run); with
@@ -207,75 +161,12 @@ def run_sequence(
     from is ``run.json``'s ``timestamps``.  ``save_cloud``: write the final map's points as
     PLY, none on an object judged moving or undecided.
     """
-    cfg = cfg or Config()
-    seq = load_sequence(sequence, calib, rate=rate)
-    gt = resolve_ground_truth(gt, seq)
-    with viewers(observers, viewer=viewer, rrd=rrd, gt=gt, name="dynastereo run") as obs:
-        res = slam_job(seq, out, cfg, frames=frames, models_dir=models_dir, ground_truth=getattr(seq, "path", None),
-                       observers=obs, save_masks=save_masks, progress=progress, save_map=save_map,
-                       load_map=load_map, localize_only=localize_only, overwrite=overwrite, stereo_check=stereo_check,
-                       save_cloud=save_cloud)
-    if report:
-        res.report = make_report(out, gt)
-    return res
-
-
-def slam_job(
-    seq: Sequence,
-    out: str | Path,
-    cfg: Config,
-    *,
-    frames: str | int | None = None,
-    models_dir: str | Path | None = None,
-    ground_truth: str | Path | None = None,
-    observers: tuple[FrameObserver, ...] = (),
-    open_observers: Callable[[], tuple[FrameObserver, ...]] | None = None,
-    save_masks: bool = False,
-    progress: Callable[[int, int, dict], None] | None = None,
-    save_map: str | Path | None = None,
-    load_map: str | Path | None = None,
-    localize_only: bool = False,
-    overwrite: bool = True,
-    stereo_check: bool = True,
-    save_cloud: str | Path | None = None,
-) -> SlamJobResult:
-    """The one place that assembles reader -> masker -> SLAM -> writers, for a folder, a
-    bag or anything else that is a :class:`~dynastereo.io.base.Sequence`: the inputs checked
-    (:func:`_checked_inputs`: frames, stereo pair, model, then the output folder), the
-    masker from :func:`dynastereo.masking.build_masker` (the sequence's calibration), the
-    SLAM system (optionally from ``load_map``), the motion test (``cfg.motion``:
-    :func:`dynastereo.masking.motion.build_motion`), then
-    :func:`~dynastereo.pipeline.run_slam_job` with ``observers`` and those
-    ``open_observers()`` returns once the output folder is ready (a bag's writer)."""
-    from .config import to_dict
-    from .errors import ConfigError
-    from .slam import System
-
-    if localize_only and load_map is None:
-        raise ConfigError("localization only needs a map: give load_map (--load-map FILE)")
-    if save_map is not None:
-        check_output_file(save_map, what="map file")
-    if save_cloud is not None:
-        check_output_file(save_cloud, what="point cloud file")
-    indices, masker = _checked_inputs(seq, cfg, frames, models_dir, ground_truth, out=out, overwrite=overwrite,
-                                      stereo_check=stereo_check)
-    observers = (*observers, *_stereo_watch(seq, stereo_check))
-    if open_observers is not None:
-        observers = (*observers, *open_observers())
-    system = System(cfg, seq.calibration)
-    info = {}
-    if load_map is not None:
-        try:
-            system.load_map(load_map, localize_only=localize_only)
-        except BaseException:
-            system.shutdown()
-            raise
-        info = {"loaded": str(load_map), "localize_only": bool(localize_only)}
-    from .masking.motion import build_motion
-
-    return run_slam_job(seq, masker, system, out, indices, config_dict=to_dict(cfg), save_masks=save_masks,
-                        progress=progress, save_map=save_map, map_info=info, observers=observers,
-                        motion=build_motion(cfg, seq.calibration, masker), save_cloud=save_cloud)
+    spec = JobSpec(JobKind.RUN, source_spec(sequence, calib, rate),
+                   OutputSpec(Path(out), overwrite=overwrite, save_masks=save_masks, save_map=save_map,
+                              save_cloud=save_cloud, report=report, viewer=viewer, rrd=rrd),
+                   cfg or Config(), frames=frames, models_dir=models_dir, load_map=load_map,
+                   localize_only=localize_only, stereo_check=stereo_check, gt=gt)
+    return run_job(spec, progress=progress, observers=observers)
 
 
 # --------------------------------------------------------------------------- benchmarks
@@ -345,26 +236,20 @@ def run_bag(
     :func:`run_sequence` plus ``out/output.<fmt>`` and ``out/bag.json``.  Calibration:
     ``calib`` (YAML) > the bag's CameraInfo > ``config_path`` when it is an ORB-SLAM2
     settings file.  ``overwrite`` / ``stereo_check`` / ``report`` / ``viewer`` / ``rrd`` /
-    ``gt`` as for :func:`run_sequence`.  See :func:`dynastereo.ros.bagrun.run_bag`."""
-    from .ros.bagrun import run_bag as _run_bag
-    from .ros.messages import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC
-
+    ``gt`` as for :func:`run_sequence`.  The output bag's content: :class:`dynastereo.ros.bagrun.BagOutput`."""
     fallback = None
     if config_path is not None:
         from .io.calib import is_orbslam2_settings, read_yaml_file
 
         if is_orbslam2_settings(read_yaml_file(config_path)):
-            fallback = config_path
-    with viewers(observers, viewer=viewer, rrd=rrd, gt=gt, name="dynastereo run --bag") as obs:
-        res = _run_bag(bag, out, cfg, left_topic=left_topic or DEFAULT_LEFT_TOPIC,
-                       right_topic=right_topic or DEFAULT_RIGHT_TOPIC, left_info=left_info, right_info=right_info,
-                       calib=calib, fallback_calib=fallback, tolerance_s=tolerance_s, rectify=rectify,
-                       frames=frames, models_dir=models_dir, save_masks=save_masks, outputs=outputs,
-                       progress=progress, overwrite=overwrite, stereo_check=stereo_check, observers=obs,
-                       save_cloud=save_cloud)
-    if report:
-        res.slam.report = make_report(out, gt)
-    return res
+            fallback = Path(config_path)
+    bag_spec = BagSpec(Path(bag), left_topic or DEFAULT_LEFT_TOPIC, right_topic or DEFAULT_RIGHT_TOPIC, left_info,
+                       right_info, tolerance_s, rectify, fallback, outputs)
+    spec = JobSpec(JobKind.RUN, SourceSpec(bag=bag_spec, calib=Path(calib) if calib else None),
+                   OutputSpec(Path(out), overwrite=overwrite, save_masks=save_masks, save_cloud=save_cloud,
+                              report=report, viewer=viewer, rrd=rrd),
+                   cfg or Config(), frames=frames, models_dir=models_dir, stereo_check=stereo_check, gt=gt)
+    return run_job(spec, progress=progress, observers=observers)
 
 
 def export_bag(

@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import shutil
 import tempfile
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -71,8 +72,8 @@ def run_demo(
     viewer: bool = False,
     rrd: str | Path | None = None,
 ) -> list[DemoRow]:
-    from .api import run_sequence
     from .eval import evaluate_files, plot_trajectories
+    from .runtime import JobKind, JobSpec, OutputSpec, SourceSpec, run
     from .eval.masks import score_mask_dir
     from .synth import generate
 
@@ -123,16 +124,17 @@ def run_demo(
         shutil.rmtree(run_dir, ignore_errors=True)
         c = cfg.with_overrides({"masker.kind": kind, "detector.name": det})
         view = dict(viewer=viewer, rrd=rrd) if (kind, det) == shown else {}
+        spec = JobSpec(JobKind.RUN, SourceSpec(path=seq),
+                       OutputSpec(run_dir, save_masks=kind != "none", report=True, **view), c,
+                       models_dir=models_dir, gt=gt)
         prog = bar()
-        if prog is not None:
-            with prog:
+        with prog if prog is not None else nullcontext():
+            on_frame = None
+            if prog is not None:
                 task = prog.add_task(f"SLAM, masker {label}", total=frames, info="")
-                res = run_sequence(seq, run_dir, c, models_dir=models_dir, save_masks=kind != "none", report=True,
-                                   gt=gt, progress=lambda k, n, rec: prog.update(
-                                       task, completed=k, total=n, info=f"{rec['fps']:.1f} FPS"), **view)
-        else:
-            res = run_sequence(seq, run_dir, c, models_dir=models_dir, save_masks=kind != "none", report=True,
-                               gt=gt, **view)
+                on_frame = lambda k, n, rec: prog.update(task, completed=k, total=n,  # noqa: E731
+                                                         info=f"{rec['fps']:.1f} FPS")
+            res = run(spec, progress=on_frame)
         reports.append((label, res.report))
         ev = evaluate_files(run_dir / "trajectory.kitti.txt", gt)
         iou_l = iou_r = None

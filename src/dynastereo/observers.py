@@ -1,6 +1,6 @@
 """Per-frame hook of the jobs: what leaves the pipeline after each frame.
 
-``run_mask_job`` and ``run_slam_job`` (``pipeline.py``) call ``observer.on_frame(event)``
+The frame loop (``runtime/loop.py``, every job) calls ``observer.on_frame(event)``
 for every observer they are given, once per frame, after the frame's results are
 written.  Viewers and recorders (``dynastereo.viz.rerun``) are observers; the
 pipeline itself knows nothing about them, and with no observer nothing is imported.

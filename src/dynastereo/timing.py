@@ -31,10 +31,11 @@ class StageTimer:
         """Stage ``name`` = sum of ``parts`` (those present in a frame)."""
         self._derived[name] = tuple(parts)
 
-    def start_frame(self, index: int) -> None:
+    def start_frame(self, index: int, elapsed_ms: float = 0.0) -> None:
+        """A new frame; ``elapsed_ms``: its time spent before (counted in its ``total``)."""
         self._current = {}
         self._frame_index = index
-        self._frame_t0 = time.perf_counter()
+        self._frame_t0 = time.perf_counter() - elapsed_ms / 1000.0
 
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:

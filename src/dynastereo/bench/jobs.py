@@ -1,7 +1,7 @@
 """One benchmark job: run a (sequence, masker, repeat) in-process and evaluate it.
 
 ``execute(job)`` is what every engine's worker calls.  It runs
-:func:`dynastereo.api.run_sequence` into ``job.out`` (trajectory, ``timing.json``,
+:func:`dynastereo.runtime.run` into ``job.out`` (trajectory, ``timing.json``,
 ``run.json``: the files of ``dynastereo run``), evaluates the trajectory against the
 sequence's ground truth with :func:`dynastereo.eval.evaluate_files` (the numbers of
 ``dynastereo eval --json``) and returns the job's **record** -- a JSON-able dict, the line
@@ -157,13 +157,14 @@ def _evaluate(job: BenchJob, gt: Path) -> dict[str, Any]:
 
 def execute(job: BenchJob, progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """Run and evaluate ``job`` (see module doc); exceptions propagate (the engine reports them)."""
-    from ..api import load_sequence, run_sequence
     from ..config import Config, from_dict
+    from ..io import open_sequence
+    from ..runtime import JobKind, JobSpec, OutputSpec, SourceSpec, run
 
     t0 = time.perf_counter()
     job.out.mkdir(parents=True, exist_ok=True)
     cfg = from_dict(Config, job.config, "<bench job>")
-    seq = load_sequence(job.sequence.path)
+    seq = open_sequence(job.sequence.path)
     fault_at = 1
 
     def on_frame(done: int, total: int, rec: dict) -> None:
@@ -172,7 +173,9 @@ def execute(job: BenchJob, progress: Callable[[int, int], None] | None = None) -
         if progress is not None:
             progress(done, total)
 
-    res = run_sequence(seq, job.out, cfg, frames=job.frames, models_dir=job.models_dir, progress=on_frame)
+    spec = JobSpec(JobKind.RUN, SourceSpec(sequence=seq), OutputSpec(job.out), cfg, frames=job.frames,
+                   models_dir=job.models_dir)
+    res = run(spec, progress=on_frame)
     t_run = time.perf_counter()
     metrics, gt_used = {}, _ground_truth(job, seq)
     if gt_used is not None and len(res.frames) >= 2:

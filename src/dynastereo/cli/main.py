@@ -153,14 +153,16 @@ def mask(
     rrd: Optional[Path] = typer.Option(None, "--rrd", help="Record the frames for the rerun viewer into FILE.rrd (headless; `rerun FILE.rrd` opens it)."),
 ) -> None:
     """Mask the dynamic objects of a stereo sequence in BOTH images."""
-    from ..api import mask_sequence
+    from ..runtime import JobKind, JobSpec, OutputSpec, SourceSpec, run as run_job
 
     with _job(_kept_files(out, ("masks", "objects.jsonl", "timing.json"), "the frames done; timing.json with the signal")) as job:
         overrides = {"detector.name": detector, "stereo.algorithm": stereo, "stereo.wls": wls, "masker.kind": masker,
                      "detector.canvas": canvas, "detector.schedule": schedule}
-        if save_disparity:
-            overrides["stereo.region"] = "full"
-        cfg = _build_config(config, overrides)
+        spec = JobSpec(JobKind.MASK, SourceSpec(path=sequence, calib=calib, rate=rate),
+                       OutputSpec(out, overwrite=overwrite, save_disparity=save_disparity, overlays=overlays,
+                                  viewer=viewer, rrd=rrd),
+                       _build_config(config, overrides), frames=frames, models_dir=models_dir,
+                       stereo_check=not no_stereo_check)
         with _progress() as prog:
             task = prog.add_task("masking", total=None, info="")
 
@@ -171,11 +173,29 @@ def mask(
                             info=f"detect {ms.get('detect', 0):.0f} ms  mask {ms.get('mask', 0):.0f} ms")
                 job.tick(done, total)
 
-            result = mask_sequence(sequence, out, cfg, frames=frames, calib=calib, rate=rate, models_dir=models_dir,
-                                   save_disparity=save_disparity, overlays=overlays, progress=on_frame,
-                                   overwrite=overwrite, stereo_check=not no_stereo_check, viewer=viewer, rrd=rrd)
+            result = run_job(spec, progress=on_frame)
     out_console.print(timing_table(result.summary))
     out_console.print(f"{len(result.frames_done)} frames -> {out}  ({result.wall_s:.1f} s)")
+
+
+def _run_source(sequence, bag, calib, rate, config, left_topic, right_topic, left_info, right_info,
+                sync_tolerance, rectify, bag_outputs):
+    """The run's :class:`~dynastereo.runtime.SourceSpec`: a folder / video / camera, or a bag
+    (its CameraInfo topics ``auto`` / ``none`` / a topic; an ORB-SLAM2 settings file given as
+    ``--config`` is its calibration when it has no CameraInfo)."""
+    from ..runtime import BagSpec, SourceSpec
+
+    if bag is None or sequence is not None:
+        return SourceSpec(path=sequence, bag=None if bag is None else BagSpec(bag), calib=calib, rate=rate)
+    fallback = None
+    if config is not None:
+        from ..io.calib import is_orbslam2_settings, read_yaml_file
+
+        fallback = config if is_orbslam2_settings(read_yaml_file(config)) else None
+    info = {"auto": "auto", "none": None}
+    spec = BagSpec(bag, left_topic, right_topic, info.get(left_info.lower(), left_info),
+                   info.get(right_info.lower(), right_info), sync_tolerance / 1000.0, rectify, fallback, bag_outputs)
+    return SourceSpec(bag=spec, calib=calib, rate=rate)
 
 
 @app.command()
@@ -216,18 +236,8 @@ def run(
     rrd: Optional[Path] = typer.Option(None, "--rrd", help="Record the frames for the rerun viewer into FILE.rrd (headless; `rerun FILE.rrd` opens it)."),
 ) -> None:
     """Mask and track a stereo sequence (a folder or a ROS bag): trajectory, timing and run summary out."""
-    from ..api import run_bag, run_sequence
+    from ..runtime import JobKind, JobSpec, OutputSpec, run as run_job
 
-    if (sequence is None) == (bag is None):
-        _fail(DynastereoError("give either a SEQUENCE folder or --bag FILE (not both)"))
-    if bag is not None and (save_map or load_map):
-        _fail(DynastereoError("--save-map / --load-map work on sequence folders, not with --bag"))
-    if localize_only and load_map is None:
-        _fail(DynastereoError("--localize-only needs --load-map FILE"))
-    if bag is not None and rate is not None:
-        _fail(DynastereoError("--rate is for sequence folders; a bag's images carry their stamps"))
-    _check_option("--sync-tolerance", sync_tolerance, sync_tolerance >= 0, "a time >= 0 ms (milliseconds)")
-    bag_report = None
     kept = _kept_files(out, ("run.json", "timing.json", "trajectory.kitti.txt", "trajectory.tum.txt"),
                        "with the signal; the frames done", (save_map,) if save_map else ())
     with _job(kept) as job:
@@ -236,7 +246,12 @@ def run(
                      "slam.loop_closing": False if no_loop_closing else None,
                      "slam.vocabulary": str(vocabulary) if vocabulary else None,
                      "motion.mode": "all" if mask_all else None}
-        cfg = _build_config(config, overrides)
+        spec = JobSpec(JobKind.RUN, _run_source(sequence, bag, calib, rate, config, left_topic, right_topic,
+                                                left_info, right_info, sync_tolerance, rectify, bag_outputs),
+                       OutputSpec(out, overwrite=overwrite, save_masks=save_masks, save_map=save_map,
+                                  save_cloud=save_cloud, report=report, viewer=viewer, rrd=rrd),
+                       _build_config(config, overrides), frames=frames, models_dir=models_dir, load_map=load_map,
+                       localize_only=localize_only, stereo_check=not no_stereo_check, gt=gt)
         with _progress() as prog:
             task = prog.add_task("tracking", total=None, info="")
 
@@ -245,22 +260,10 @@ def run(
                 prog.update(task, completed=done, total=total, info=f"{rec['fps']:.1f} FPS  {rec['status']}")
                 job.tick(done, total)
 
+            result = run_job(spec, progress=on_frame)
             if bag is not None:
-                info = {"auto": "auto", "none": None}
-                br = run_bag(bag, out, cfg, left_topic=left_topic, right_topic=right_topic,
-                             left_info=info.get(left_info.lower(), left_info),
-                             right_info=info.get(right_info.lower(), right_info), calib=calib, config_path=config,
-                             tolerance_s=sync_tolerance / 1000.0, rectify=rectify, frames=frames,
-                             models_dir=models_dir, save_masks=save_masks, outputs=bag_outputs, progress=on_frame,
-                             overwrite=overwrite, stereo_check=not no_stereo_check, report=report, gt=gt,
-                             viewer=viewer, rrd=rrd, save_cloud=save_cloud)
-                result, bag_report = br.slam, br.report
-            else:
-                result = run_sequence(sequence, out, cfg, frames=frames, calib=calib, rate=rate, models_dir=models_dir,
-                                      save_masks=save_masks, progress=on_frame, save_map=save_map,
-                                      load_map=load_map, localize_only=localize_only, overwrite=overwrite,
-                                      stereo_check=not no_stereo_check, report=report, gt=gt, viewer=viewer, rrd=rrd,
-                                      save_cloud=save_cloud)
+                result = result.slam
+    bag_report = result.bag
     out_console.print(timing_table(result.summary, "timing (ms per frame)"))
     st = result.stats
     out_console.print(

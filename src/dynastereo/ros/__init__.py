@@ -4,7 +4,7 @@
 * :mod:`.messages` -- the output messages and topic names, for any message library.
 * :mod:`.bags` -- ROS 1 ``.bag`` / ROS 2 ``.db3`` / ``.mcap`` reading (:class:`BagStereoSequence`),
   writing (:class:`BagWriter`) and :func:`export_bag` (a sequence folder as a bag).
-* :mod:`.bagrun` -- :func:`run_bag`, what ``dynastereo run --bag`` runs.
+* :mod:`.bagrun` -- :class:`BagOutput`, what ``dynastereo run --bag`` writes into its output bag.
 * :mod:`.core` -- :class:`StereoNodeCore`, the node's transport-agnostic logic.
 * :mod:`.ros1` -- the ``rospy`` adapter (``dynastereo_node``), :mod:`.player` -- a sequence
   published as live topics.  Both need ROS 1 (Debian: ``python3-rospy`` ...).
@@ -14,7 +14,8 @@ Nothing here imports ``rospy`` at import time; only :mod:`.ros1` and :mod:`.play
 
 from __future__ import annotations
 
-from .bagrun import ALL_OUTPUTS, BagRunResult, run_bag
+from ..runtime.spec import BAG_OUTPUTS
+from .bagrun import BagOutput
 from .bags import BAG_FORMATS, BagStereoSequence, BagWriter, ExportResult, bag_format, bag_topics, export_bag, \
     read_messages, read_odometry
 from .convert import ImageDecoder, calibration_from_camera_info, camera_info_fields, image_fields
@@ -30,9 +31,9 @@ from .messages import (
 )
 
 __all__ = [
-    "ALL_OUTPUTS",
+    "BAG_OUTPUTS",
+    "BagOutput",
     "BAG_FORMATS",
-    "BagRunResult",
     "BagStereoSequence",
     "BagWriter",
     "DEFAULT_LEFT_INFO",
@@ -57,5 +58,4 @@ __all__ = [
     "image_fields",
     "read_messages",
     "read_odometry",
-    "run_bag",
 ]

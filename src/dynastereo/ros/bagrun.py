@@ -1,7 +1,7 @@
-"""``dynastereo run --bag``: a stereo bag through masking + SLAM, results into a bag.
+"""``dynastereo run --bag``: what a bag run writes into its output bag.
 
 The bag is read as a :class:`~dynastereo.ros.bags.BagStereoSequence` and fed to the same
-job as a sequence folder (:func:`dynastereo.api.slam_job`: trajectory files,
+job as a sequence folder (:func:`dynastereo.runtime.run`: trajectory files,
 ``timing.json``, ``run.json``), with a :class:`BagOutput` observer that writes every
 tracked frame to ``DIR/output.{bag,db3,mcap}`` (the input's format): odometry, TF, the
 masked images, the masks, the disparity, the path so far and (every ``MAP_EVERY``-th frame
@@ -13,45 +13,26 @@ the calibration source and what was written.
 
 from __future__ import annotations
 
-import json
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
 from ..config import Config
-from ..errors import InputError
-from ..observers import FrameEvent
 from ..datatypes import StereoFrame, StereoMasks
+from ..observers import FrameEvent
+from ..runtime.spec import BAG_OUTPUTS
 from .bags import BAG_SUFFIX, BagStereoSequence, BagWriter
 from .convert import masked_image, twist_between
 from .core import disparity_data
-from .messages import (DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC, MAP_EVERY, ODOM_FRAME, OUTPUT_TOPICS, OUTPUT_TYPES,
-                       OdometryData)
-
-ALL_OUTPUTS = ("odometry", "tf", "masked", "masks", "disparity", "path", "map_points", "objects")
-
-
-def parse_outputs(spec: str | list[str] | tuple[str, ...] | None) -> tuple[str, ...]:
-    """``"all"`` / None -> every output; else a comma list of odometry, tf, masked, masks, disparity,
-    path, map_points, objects."""
-    if spec is None:
-        return ALL_OUTPUTS
-    items = [s.strip() for s in (spec.split(",") if isinstance(spec, str) else spec) if s.strip()]
-    if items == ["all"]:
-        return ALL_OUTPUTS
-    bad = [s for s in items if s not in ALL_OUTPUTS]
-    if bad:
-        raise InputError(f"unknown bag output(s) {', '.join(bad)}; choose from {', '.join(ALL_OUTPUTS)} or 'all'")
-    return tuple(items)
-
+from .messages import MAP_EVERY, ODOM_FRAME, OUTPUT_TOPICS, OUTPUT_TYPES, OdometryData
 
 class BagOutput:
     """Writes the per-frame results into the output bag."""
 
     def __init__(self, path: Path, fmt: str, cfg: Config, calibration, camera_frame: str,
-                 outputs: tuple[str, ...] = ALL_OUTPUTS, stamps_ns: np.ndarray | None = None) -> None:
+                 outputs: tuple[str, ...] = BAG_OUTPUTS, stamps_ns: np.ndarray | None = None) -> None:
+        self.path = Path(path)
         self.stamps_ns = stamps_ns  # per sequence index, for on_frame
         self.writer = BagWriter(path, fmt, overwrite=True)
         self.b = self.writer.builder
@@ -144,71 +125,9 @@ class BagOutput:
         self.writer.close()
 
 
-@dataclass
-class BagRunResult:
-    out: Path
-    output_bag: Path
-    slam: Any  # pipeline.SlamJobResult
-    report: dict[str, Any]  # pairing + output counts (bag.json)
-
-
-def run_bag(
-    bag: str | Path,
-    out: str | Path,
-    cfg: Config | None = None,
-    *,
-    left_topic: str = DEFAULT_LEFT_TOPIC,
-    right_topic: str = DEFAULT_RIGHT_TOPIC,
-    left_info: str | None = "auto",
-    right_info: str | None = "auto",
-    calib: str | Path | None = None,
-    fallback_calib: str | Path | None = None,
-    tolerance_s: float = 0.005,
-    rectify: str = "auto",
-    frames: str | int | None = None,
-    models_dir: str | Path | None = None,
-    save_masks: bool = False,
-    outputs: str | tuple[str, ...] | None = None,
-    progress: Callable[[int, int, dict], None] | None = None,
-    overwrite: bool = True,
-    stereo_check: bool = True,
-    observers: tuple = (),
-    save_cloud: str | Path | None = None,
-) -> BagRunResult:
-    """Run masking + SLAM on a stereo bag (module doc); see :class:`BagStereoSequence` for
-    the topic, calibration and pairing arguments (``fallback_calib``: used only when the bag
-    has no CameraInfo, e.g. the ORB-SLAM2 settings file given as ``--config``); ``stereo_check``:
-    refuse identical / swapped / unrectified pairs (``io.stereo_check``); ``overwrite``: clear
-    an earlier run in ``out`` (False: refuse it; ``io.outputs.prepare_output_dir``)."""
-    from ..api import slam_job
-    from ..io.frames import parse_frame_spec
-
-    cfg = cfg or Config()
-    outs = parse_outputs(outputs)
-    out = Path(out)
-    seq = BagStereoSequence(bag, left_topic, right_topic, left_info, right_info, calib, tolerance_s, rectify,
-                            fallback_calib=fallback_calib)
-    try:
-        indices = parse_frame_spec(frames, len(seq))
-        out_bag = out / ("output" + BAG_SUFFIX[seq.format])
-        writers: list[BagOutput] = []
-
-        def open_writer() -> tuple[BagOutput]:  # once the output folder is checked and ready
-            writers.append(BagOutput(out_bag, seq.format, cfg, seq.calibration, seq.frame_id, outs,
-                                     stamps_ns=seq.stamps_ns))
-            return (writers[0],)
-
-        try:  # a bag has no synthetic ground truth: detector 'oracle' is refused by the masker factory
-            res = slam_job(seq, out, cfg, frames=frames, models_dir=models_dir, observers=observers,
-                           open_observers=open_writer, save_masks=save_masks, progress=progress,
-                           overwrite=overwrite, stereo_check=stereo_check, save_cloud=save_cloud)
-        finally:
-            for w in writers:
-                w.close()
-        writer = writers[0]
-        report = {"bag": str(Path(bag)), "format": seq.format, **seq.report.to_dict(),
-                  "frames_requested": len(indices), "output_bag": str(out_bag), "output_topics": writer.writer.counts}
-        (out / "bag.json").write_text(json.dumps(report, indent=1))
-        return BagRunResult(out, out_bag, res, report)
-    finally:
-        seq.close()
+def open_bag_output(spec, seq: BagStereoSequence) -> BagOutput:
+    """The writer of a bag run's ``DIR/output.<the input's format>`` (``spec``: its
+    :class:`~dynastereo.runtime.spec.JobSpec`), opened once the output folder is ready."""
+    path = spec.outputs.dir / ("output" + BAG_SUFFIX[seq.format])
+    return BagOutput(path, seq.format, spec.config, seq.calibration, seq.frame_id, spec.source.bag.outputs,
+                     stamps_ns=seq.stamps_ns)
