@@ -186,15 +186,10 @@ def slam_run(seq: Path, work: Path, detector: str, masker: str, seed: int, model
     run_dir = work / f"run_{detector}_{masker}"
     shutil.rmtree(run_dir, ignore_errors=True)
     if masker == "gt":
-        from dynastereo.config import to_dict
-        from dynastereo.io import open_sequence
-        from dynastereo.pipeline import run_slam_job
-        from dynastereo.slam import System
+        from dynastereo.runtime import JobKind, JobSpec, OutputSpec, SourceSpec, run
 
-        cfg = Config().with_overrides({"masker.kind": "none", "seed": seed})
-        sq = open_sequence(seq)
-        res = run_slam_job(sq, GTMasker(seq), System(cfg, sq.calibration), run_dir, list(range(len(sq))),
-                           config_dict=to_dict(cfg))
+        cfg = Config().with_overrides({"masker.kind": "none", "seed": seed, "motion.mode": "all"})
+        res = run(JobSpec(JobKind.RUN, SourceSpec(path=seq), OutputSpec(run_dir), cfg), masker=GTMasker(seq))
     else:
         cfg = Config().with_overrides({"detector.name": detector, "masker.kind": masker, "seed": seed})
         res = run_sequence(seq, run_dir, cfg, models_dir=models_dir, save_masks=masker != "none")

@@ -417,6 +417,7 @@ def test_write_error_on_an_output(err: str, where: str, kitti06: Path, models_di
     /sys/kernel/notes, /proc/version; EACCES by chmod when not root): OutputError naming
     the file, every output at the frames done, run.json "failed: ..."."""
     import dynastereo.api as api
+    import dynastereo.runtime.job as runtime_job
     from dynastereo.config import Config
     from dynastereo.errors import OutputError
 
@@ -432,7 +433,7 @@ def test_write_error_on_an_output(err: str, where: str, kitti06: Path, models_di
         pytest.skip(f"{target} not here")
     else:
         name.symlink_to(target)
-    monkeypatch.setattr(api, "prepare_output_dir", lambda out, **kw: Path(out))  # keep the planted file
+    monkeypatch.setattr(runtime_job, "prepare_output_dir", lambda out, **kw: Path(out))  # keep the planted file
     seq = link_copy(kitti06, tmp_path / "seq", range(4))
     cfg = Config().with_overrides({"masker.kind": "box"})
     with pytest.raises(OutputError, match=str(name.name)) as e:
@@ -535,20 +536,21 @@ def test_report_on_a_killed_run_is_partial(kitti06: Path, tmp_path: Path) -> Non
 def test_prefetch_hand_over_is_bounded_and_recorded(kitti06: Path, tmp_path: Path, monkeypatch) -> None:
     """The prefetch thread stops answering (a stuck detector): the frame is masked inline
     after the bound, the run goes on without prefetch, run.json records the fallback."""
-    import dynastereo.pipeline as pipeline
+    import dynastereo.runtime.pipelining as pipelining
     from dynastereo.api import run_sequence
     from dynastereo.config import Config
+    from dynastereo.runtime.processor import FrameProcessor
 
-    real = pipeline._masking_step
+    real = FrameProcessor.mask
     stuck = threading.Event()
 
-    def step(sequence, masker, idx, motion=None):
-        if idx == 2 and threading.current_thread().name == "prefetch":
-            stuck.wait(30)  # the prefetch thread hangs on frame 2
-        return real(sequence, masker, idx, motion)
+    def mask(self, item):
+        if item.index == 2 and threading.current_thread().name == "dynastereo-mask":
+            stuck.wait(30)  # the masking thread hangs on frame 2
+        return real(self, item)
 
-    monkeypatch.setattr(pipeline, "_masking_step", step)
-    monkeypatch.setattr(pipeline, "PREFETCH_TIMEOUT_S", 0.5)
+    monkeypatch.setattr(FrameProcessor, "mask", mask)
+    monkeypatch.setattr(pipelining, "HAND_OVER_TIMEOUT_S", 0.5)
     seq = link_copy(kitti06, tmp_path / "seq", range(5))
     out = tmp_path / "out"
     try:

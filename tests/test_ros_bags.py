@@ -20,7 +20,8 @@ from dynastereo.errors import CalibrationError, InputError, SequenceError
 from dynastereo.eval.trajectory import read_trajectory
 from dynastereo.io import EurocSequence, KittiSequence, load_kitti_calib
 from dynastereo.io.calib import RawStereoCalibration, kitti_projections
-from dynastereo.ros import BagStereoSequence, BagWriter, bag_topics, export_bag, read_messages, read_odometry, run_bag
+from dynastereo.api import run_bag
+from dynastereo.ros import BagStereoSequence, BagWriter, bag_topics, export_bag, read_messages, read_odometry
 from dynastereo.ros.bags import bag_format, header_ns
 from dynastereo.ros.convert import (
     ImageDecoder,

@@ -117,7 +117,7 @@ def test_core_drops_the_oldest_when_busy(kitti06: Path, pipelined: bool) -> None
         assert masker.entered.wait(10)  # frame 0 is being processed, blocked
         drops = [core.submit(f) for f in frames[1:]]
         assert drops == [0, 1, 1, 1]  # 1 waits; 2, 3, 4 each evict the oldest waiting one
-        assert len(core._inq) == 1
+        assert len(core.source.queue) == 1
         masker.gate.set()
         assert core.wait_idle(60)
     finally:

@@ -10,11 +10,14 @@ Keeping up
 ----------
 ``submit`` never blocks and never queues without bound: the input queue holds at most
 ``queue_size`` pairs (default 1) and, when a new pair arrives while it is full, the
-*oldest* waiting pair is dropped and counted (``stats.dropped``).  Processing runs on one
-thread by default; ``pipelined=True`` uses two: masking of pair k+1 overlaps tracking of
-pair k (OpenCV and onnxruntime release the GIL), and the masking thread takes the next
-pair only once the tracker has taken the previous one, so at most ``queue_size + 2``
-pairs are in flight and a busy tracker never makes masked pairs queue up.  Pipelining
+*oldest* waiting pair is dropped and counted (``stats.dropped``).  The pairs go through
+the frame loop every job runs (:class:`dynastereo.runtime.loop.FrameLoop` over a
+:class:`dynastereo.runtime.sources.LiveSource`), on one thread by default;
+``pipelined=True`` uses two: masking of pair k+1 overlaps tracking of pair k, and the
+masking thread takes the next pair only once the tracker has taken the previous one
+(:mod:`dynastereo.runtime.pipelining`), so at most ``queue_size + 2`` pairs are in flight
+and a busy tracker never makes masked pairs queue up.  A pair that fails is counted
+(``stats.errors``) and the node goes on.  Pipelining
 raises the frame rate a machine can sustain when it has cores to spare; on two shared
 cores the two stages slow each other down and latency rises (benchmarks/bench_ros_latency.py),
 hence serial is the default.  Poses are published as soon as tracking returns
@@ -42,7 +45,6 @@ import json
 import logging
 import threading
 import time
-from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,30 +53,23 @@ from typing import Any, Iterator, Protocol
 import numpy as np
 
 from ..config import Config, to_dict
+from ..datatypes import StereoCalibration, StereoFrame, StereoMasks
 from ..errors import ConfigError
 from ..io.calib import RawStereoCalibration
 from ..io.rectify import Rectifier
 from ..io.stereo_check import StereoWatch
-from ..masking.maskers import MASK_STAGES
+from ..runtime.loop import FrameLoop
+from ..runtime.pipelining import block_sigint
+from ..runtime.processor import FrameItem, FrameProcessor, Processed
+from ..runtime.results import new_run_timer
+from ..runtime.sources import DropOldestQueue, LiveSource, StereoInput  # noqa: F401 -- DropOldestQueue re-exported
 from ..timing import StageTimer
-from ..datatypes import StereoCalibration, StereoFrame, StereoMasks
 from .convert import twist_between
 from .messages import DEFAULT_LEFT_FRAME, ODOM_FRAME, DisparityData, OdometryData
 
 log = logging.getLogger("dynastereo.ros")
 
 LIVE_SECTIONS = ("stereo", "masker", "detector")
-
-
-@dataclass
-class StereoInput:
-    """One stereo pair as the transport delivered it (raw or rectified, per calibration)."""
-
-    left: np.ndarray  # uint8 gray (H, W) or BGR (H, W, 3)
-    right: np.ndarray
-    stamp_ns: int  # the left image's header stamp
-    frame_id: str = ""
-    received: float = field(default_factory=time.time)  # wall clock (s) when the pair was complete
 
 
 @dataclass
@@ -106,79 +101,6 @@ class NodeSink(Protocol):
 #: The longest wait for the SLAM held by the tracker thread (stop, save): past it the step
 #: is skipped and recorded as a fallback.
 SLAM_LOCK_TIMEOUT_S = 60.0
-#: Idle waits on the hand-over slot wake at least this often to see a stop (they are
-#: notified at once otherwise: no polling on the hot path).
-IDLE_WAIT_S = 1.0
-
-
-class DropOldestQueue:
-    """A bounded FIFO: ``put`` on a full queue evicts (and counts) the oldest item."""
-
-    def __init__(self, maxsize: int = 1) -> None:
-        if int(maxsize) < 1:
-            raise ConfigError(f"queue_size must be >= 1, got {maxsize}")
-        self.maxsize = int(maxsize)
-        self._dq: deque = deque()
-        self._cv = threading.Condition()
-        self._closed = False
-        self.dropped = 0
-        self.high_water = 0
-
-    def put(self, item: Any) -> int:
-        """Append ``item``; returns how many old items were dropped for it (0 or more)."""
-        with self._cv:
-            if self._closed:
-                return 0
-            n = 0
-            while len(self._dq) >= self.maxsize:
-                self._dq.popleft()
-                n += 1
-            self._dq.append(item)
-            self.dropped += n
-            self.high_water = max(self.high_water, len(self._dq))
-            self._cv.notify()
-            return n
-
-    def get(self, timeout: float | None = None) -> Any:
-        """The oldest item; None when closed (or on timeout)."""
-        with self._cv:
-            end = None if timeout is None else time.monotonic() + timeout
-            while not self._dq and not self._closed:
-                left = None if end is None else end - time.monotonic()
-                if left is not None and left <= 0:
-                    return None
-                self._cv.wait(left)
-            if self._dq:
-                return self._dq.popleft()
-            return None
-
-    def resize(self, maxsize: int) -> int:
-        """New capacity; surplus oldest items are dropped (returned count)."""
-        if int(maxsize) < 1:
-            raise ConfigError(f"queue_size must be >= 1, got {maxsize}")
-        with self._cv:
-            self.maxsize = int(maxsize)
-            n = 0
-            while len(self._dq) > self.maxsize:
-                self._dq.popleft()
-                n += 1
-            self.dropped += n
-            return n
-
-    def close(self) -> int:
-        """Stop: waiting getters return None; returns the number of items discarded."""
-        with self._cv:
-            self._closed = True
-            n = len(self._dq)
-            self._dq.clear()
-            self._cv.notify_all()
-            return n
-
-    def __len__(self) -> int:
-        with self._cv:
-            return len(self._dq)
-
-
 @dataclass
 class NodeStats:
     received: int = 0  # pairs submitted
@@ -283,42 +205,45 @@ class StereoNodeCore:
         self.odom_frame = odom_frame
         self.camera_frame = camera_frame
         self.stats = NodeStats()
-        self.timer = StageTimer()
-        self.timer.add_derived("masking", ("detect",) + MASK_STAGES)
+        self.timer = new_run_timer()
         self._detector = detector
         self._detector_cfg = to_dict(self.cfg.detector) if detector is None else None
         self.calibration: StereoCalibration | None = None
         self._own_masker = masker is None  # built here: (re)built for the rig once its calibration is known
+        self.source = LiveSource(self._prepare, queue_size)
         # with the calibration given, set_calibration (below) builds it once; without it, a
         # masker for no rig now (the configuration checked), rebuilt when CameraInfo comes
-        self._masker = masker if masker is not None or calibration is not None else self._build_masker(self.cfg)
+        self.processor = FrameProcessor(self.source, masker if masker is not None or calibration is not None
+                                        else self._build_masker(self.cfg))
+        self._slam_lock = self.processor.lock
         self._masker_cfg = self.cfg
         self._pending: tuple[Any, Config] | None = None
         self._param_lock = threading.Lock()
-        self._slam_lock = threading.RLock()
         self.fallbacks: list[dict[str, Any]] = []  # bounded waits that ran out (node.json)
         self._matcher = None  # for published disparity when the masker computed none
         self._matcher_cfg: Any = None
-        self._system: Any = None
-        self._motion: Any = None  # masking.motion.ObjectMotion (motion.mode: moving), once calibrated
-        self._world: Any = None  # slam.objects.WorldObjects: the objects in the world, once calibrated
         self._calib_in: StereoCalibration | RawStereoCalibration | None = None
         self.rectifier: Rectifier | None = None
         self._stamps: list[int] = []
         self._prev: tuple[np.ndarray, int] | None = None
-        self._position = 0
-        self._inq = DropOldestQueue(queue_size)
-        self._slot: list = []  # masked pair waiting for the tracker (0 or 1 item)
-        self._slot_cv = threading.Condition()
-        self._threads: list[threading.Thread] = []
+        self._last: NodeResult | None = None
+        self.loop = FrameLoop(self.processor, self.timer, pipelined=self.pipelined, on_error=self._error,
+                              after=self._publish)
+        self._thread: threading.Thread | None = None
         self._running = False
-        self._idle = threading.Condition()
-        self._in_flight = 0
         self.stereo_watch = StereoWatch("stereo input")  # warns once if the pairs look wrong
         if calibration is not None:
             self.set_calibration(calibration)
 
     # ------------------------------------------------------------------ setup
+    @property
+    def _masker(self) -> Any:
+        return self.processor.masker
+
+    @property
+    def _system(self) -> Any:
+        return self.processor.system
+
     def _build_masker(self, cfg: Config) -> Any:
         from ..masking import build_masker
 
@@ -335,7 +260,9 @@ class StereoNodeCore:
                 if _same_calibration(self._calib_in, calibration):
                     return False
                 raise ConfigError("the stereo calibration changed while running; restart the node to use it")
+            from ..masking.motion import build_motion
             from ..slam import System
+            from ..slam.objects import WorldObjects
 
             if isinstance(calibration, RawStereoCalibration):
                 self.rectifier = Rectifier(calibration)
@@ -343,18 +270,16 @@ class StereoNodeCore:
             else:
                 self.rectifier = None
                 self.calibration = calibration
+            p = self.processor
             if self._own_masker:  # the road line's slopes follow the rig's baseline
                 with self._param_lock:
-                    self._masker = self._build_masker(self._masker_cfg)
-            with _sigint_blocked():  # the BA worker process inherits it: Ctrl-C / roslaunch's
-                self._system = System(self.cfg, self.calibration)  # SIGINT to the group is ours to handle
-            from ..masking.motion import build_motion
-
-            self._motion = build_motion(self.cfg, self.calibration, self._masker)
-            from ..slam.objects import WorldObjects
-
-            self._world = WorldObjects(self.calibration, sigma_disparity=self.cfg.motion.sigma_disparity,
-                                       sigma_px=self.cfg.motion.sigma_px)
+                    p.masker = self._build_masker(self._masker_cfg)
+            with _sigint_blocked():  # threads started meanwhile (the BA's) inherit it: Ctrl-C is the main thread's
+                p.system = System(self.cfg, self.calibration)
+            p.motion = build_motion(self.cfg, self.calibration, p.masker)
+            p.world = WorldObjects(self.calibration, sigma_disparity=self.cfg.motion.sigma_disparity,
+                                   sigma_px=self.cfg.motion.sigma_px)
+            self.source.calibration = self.calibration
             self._calib_in = calibration
             return True
 
@@ -372,10 +297,10 @@ class StereoNodeCore:
 
     @property
     def queue_size(self) -> int:
-        return self._inq.maxsize
+        return self.source.queue.maxsize
 
     def set_queue_size(self, n: int) -> None:
-        self.stats.dropped += self._inq.resize(n)
+        self.stats.dropped += self.source.resize(n)
 
     # ------------------------------------------------------------------ params
     def update_params(self, changes: dict[str, Any]) -> dict[str, Any]:
@@ -411,51 +336,36 @@ class StereoNodeCore:
     def _take_pending(self) -> None:
         with self._param_lock:
             if self._pending is not None:
-                self._masker, self._masker_cfg = self._pending
+                self.processor.masker, self._masker_cfg = self._pending
                 self._own_masker = True
                 self._pending = None
-                if self._motion is not None:  # the new masker's track ids start again
-                    self._motion.flow.reset()
+                if self.processor.motion is not None:  # the new masker's track ids start again
+                    self.processor.motion.flow.reset()
 
     # ------------------------------------------------------------------ input
     def submit(self, inp: StereoInput) -> int:
         """Queue a pair for processing (never blocks); returns how many older waiting
         pairs were dropped to make room."""
         self.stats.received += 1
-        with self._idle:
-            self._in_flight += 1
-        n = self._inq.put(inp)
-        if n:
-            self.stats.dropped += n
-            with self._idle:
-                self._in_flight -= n
-                self._idle.notify_all()
+        n = self.source.submit(inp)
+        self.stats.dropped += n
         return n
 
     def start(self) -> None:
+        """The frame loop on its own thread (and, pipelined, the masking thread beside it)."""
         if self._running:
             return
         self._running = True
-        if self.pipelined:
-            self._threads = [threading.Thread(target=_thread_main(self._mask_loop), name="dynastereo-mask", daemon=True),
-                             threading.Thread(target=_thread_main(self._track_loop), name="dynastereo-track",
-                                              daemon=True)]
-        else:
-            self._threads = [threading.Thread(target=_thread_main(self._serial_loop), name="dynastereo-process",
-                                              daemon=True)]
-        for t in self._threads:
-            t.start()
+        self._thread = threading.Thread(target=self._run_loop, name="dynastereo-process", daemon=True)
+        self._thread.start()
+
+    def _run_loop(self) -> None:
+        block_sigint()
+        self.loop.run()
 
     def wait_idle(self, timeout: float = 30.0) -> bool:
         """Wait until every submitted pair is processed or dropped; False on timeout."""
-        end = time.monotonic() + timeout
-        with self._idle:
-            while self._in_flight > 0:
-                left = end - time.monotonic()
-                if left <= 0:
-                    return False
-                self._idle.wait(left)
-        return True
+        return self.source.wait_idle(timeout)
 
     def stop(self, timeout: float = 10.0) -> None:
         """Stop the threads (the pair being processed is finished, waiting ones discarded).
@@ -464,25 +374,25 @@ class StereoNodeCore:
         if not self._running:
             return
         self._running = False
-        n = self._inq.close()
-        with self._slot_cv:
-            self._slot_cv.notify_all()
-        self.stats.discarded_at_stop += n
-        for t in self._threads:
-            t.join(timeout)
-            if t.is_alive():
-                self._fallback("stop", f"thread {t.name} still busy after {timeout:g} s", "left behind (daemon)")
-        self._threads = []
+        self.stats.discarded_at_stop += self.source.close()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                self._fallback("stop", f"thread {self._thread.name} still busy after {timeout:g} s",
+                               "left behind (daemon)")
+        if not self.loop.close():
+            self._fallback("stop", f"thread dynastereo-mask still busy after {timeout:g} s", "left behind (daemon)")
+        self._thread = None
 
     def shutdown(self) -> None:
-        """Stop and finish the SLAM (pending local BA; worker process stopped)."""
+        """Stop and finish the SLAM (pending local BA)."""
         self.stop()
         with self._slam_locked("shutdown", "the SLAM's final local BA skipped") as ok:
             if ok and self._system is not None:
                 self._system.shutdown()
 
     def _fallback(self, what: str, reason: str, action: str) -> None:
-        self.fallbacks.append({"what": what, "frame": self._position, "reason": reason, "action": action})
+        self.fallbacks.append({"what": what, "frame": self.loop.state.n_done, "reason": reason, "action": action})
         log.warning("%s: %s; %s", what, reason, action)
 
     @contextmanager
@@ -499,78 +409,21 @@ class StereoNodeCore:
                 self._slam_lock.release()
 
     # ------------------------------------------------------------------ processing
-    def _done(self) -> None:
-        with self._idle:
-            self._in_flight -= 1
-            self._idle.notify_all()
-
-    def _serial_loop(self) -> None:
-        while True:
-            inp = self._inq.get()
-            if inp is None:
-                return
-            try:
-                self.process(inp)
-            finally:
-                self._done()
-
-    def _mask_loop(self) -> None:
-        """Takes the next pair only when the tracker has taken the previous one: the pair
-        masked is always the newest waiting, never one queued behind a busy tracker."""
-        while True:
-            with self._slot_cv:
-                while self._slot and self._running:
-                    self._slot_cv.wait(IDLE_WAIT_S)  # notified at once; the bound only re-checks _running
-            inp = self._inq.get()
-            if inp is None:
-                with self._slot_cv:
-                    self._slot.append(None)
-                    self._slot_cv.notify_all()
-                return
-            try:
-                item = self._mask_stage(inp)
-            except Exception as e:  # noqa: BLE001 - a bad frame must not stop the node
-                self._error(e)
-                self._done()
-                continue
-            with self._slot_cv:
-                self._slot.append(item)
-                self._slot_cv.notify_all()
-
-    def _track_loop(self) -> None:
-        while True:
-            with self._slot_cv:
-                while not self._slot:
-                    if not self._running and not any(t.name == "dynastereo-mask" and t.is_alive()
-                                                     for t in self._threads):
-                        return  # stopped, and no masker left to hand anything over
-                    self._slot_cv.wait(IDLE_WAIT_S)  # notified at once; the bound only re-checks
-                item = self._slot.pop(0)
-                self._slot_cv.notify_all()
-            if item is None:
-                return
-            try:
-                self._track_stage(*item)
-            except Exception as e:  # noqa: BLE001
-                self._error(e)
-            finally:
-                self._done()
-
-    def _error(self, e: Exception) -> None:
+    def _error(self, e: BaseException) -> None:
         self.stats.errors += 1
         self.stats.last_error = f"{type(e).__name__}: {e}"
         log.error("frame failed: %s", self.stats.last_error, exc_info=log.isEnabledFor(logging.DEBUG))
 
     def process(self, inp: StereoInput) -> NodeResult:
         """Mask, track and publish one pair on the calling thread."""
-        return self._track_stage(*self._mask_stage(inp))
+        self.loop.process(FrameItem(self.loop.state.n_done, None, inp))
+        return self._last
 
-    def _mask_stage(self, inp: StereoInput) -> tuple[StereoInput, StereoFrame, StereoMasks | None, dict[str, float]]:
+    def _prepare(self, inp: StereoInput, t: StageTimer) -> StereoFrame:
+        """The pair as a rectified frame (the masking stage's read; the live source's ``prepare``)."""
         if self._system is None:
             raise ConfigError("no calibration yet (waiting for CameraInfo, or give a calibration file)")
         self._take_pending()
-        t = StageTimer()
-        t.start_frame(0)
         left, right = inp.left, inp.right
         if self.rectifier is not None:
             with t.stage("rectify"):
@@ -582,58 +435,33 @@ class StereoNodeCore:
         frame = StereoFrame(index=-1, timestamp=inp.stamp_ns * 1e-9, left=left, right=right)
         if not self.stereo_watch.done:
             self.stereo_watch.observe(frame)
-        masks = self._masker.mask(frame, t) if self._masker is not None else None
-        if self._motion is not None and masks is not None:
-            with t.stage("motion_flow"):
-                self._motion.measure(frame, masks)
-        ms = t.end_frame()["ms"]
-        return inp, frame, masks, ms
+        return frame
 
-    def _track_stage(self, inp: StereoInput, frame: StereoFrame, masks: StereoMasks | None,
-                     mask_ms: dict[str, float]) -> NodeResult:
-        with self._slam_lock:
-            pos = self._position
-            frame.index = pos
-            self.timer.start_frame(pos)
-            for k, v in mask_ms.items():
-                if k not in ("total", "masking"):
-                    self.timer.add(k, v)
-            motion = self._motion if masks is not None else None
-            if motion is not None:  # only objects judged moving or not yet judged are masked
-                judged, masks = masks, motion.select(masks)
-            tracked = self._system.track(frame, masks, self.timer)
-            pose, status = tracked.pose, tracked.status
-            if motion is not None:
-                with self.timer.stage("motion"):
-                    motion.update(judged, tracked, self._system)
-            if masks is not None and self._world is not None:
-                with self.timer.stage("objects"):
-                    self._world.update(masks, pose, str(status) in ("tracked", "init"), inp.stamp_ns * 1e-9)
-            self._position += 1
-            self._stamps.append(int(inp.stamp_ns))
+    def _publish(self, p: Processed) -> None:
+        """The tracked pair out: the pose at once, then the images and disparity."""
+        inp: StereoInput = p.payload
         pose_time = time.time()
-        T = np.vstack([pose, [0.0, 0.0, 0.0, 1.0]])
+        self._stamps.append(int(inp.stamp_ns))
+        T = np.vstack([p.pose, [0.0, 0.0, 0.0, 1.0]])
         prev = self._prev
         lin, ang = twist_between(prev[0] if prev else None, T, (inp.stamp_ns - prev[1]) * 1e-9 if prev else 0.0)
         self._prev = (T, int(inp.stamp_ns))
         odo = OdometryData(stamp_ns=int(inp.stamp_ns), pose=T, frame_id=self.odom_frame,
                            child_frame_id=self.camera_frame or inp.frame_id or DEFAULT_LEFT_FRAME,
-                           linear=lin, angular=ang, seq=pos)
-        rec = self.timer.end_frame(status=status)
-        res = NodeResult(pos, int(inp.stamp_ns), frame, masks, pose, odo, status, rec["ms"], inp.received, pose_time)
+                           linear=lin, angular=ang, seq=p.position)
+        res = NodeResult(p.position, int(inp.stamp_ns), p.frame, p.slam_masks, p.pose, odo, p.status, p.ms,
+                         inp.received, pose_time)
+        self._last = res
         if self.sink is not None:
             self.sink.publish_pose(res)
         published = time.time()
         self.stats.processed += 1
-        self.stats.lost += status == "lost"
+        self.stats.lost += p.status == "lost"
         self.stats.latency_stamp_ms.append((published - inp.stamp_ns * 1e-9) * 1000.0)
         self.stats.latency_receipt_ms.append((published - inp.received) * 1000.0)
         if self.sink is not None:
-            disp = None
-            if self.sink.wants_disparity():
-                disp = self.compute_disparity(frame, masks)
+            disp = self.compute_disparity(p.frame, p.slam_masks) if self.sink.wants_disparity() else None
             self.sink.publish_images(res, disp)
-        return res
 
     def map_points(self) -> np.ndarray:
         """(M, 3) positions of the map points, in ``odom`` (empty before the calibration)."""
@@ -664,7 +492,7 @@ class StereoNodeCore:
 
     def status(self) -> dict[str, Any]:
         d = self.stats.summary()
-        d.update(queue_size=self.queue_size, queue_high_water=self._inq.high_water, ready=self.ready,
+        d.update(queue_size=self.queue_size, queue_high_water=self.source.queue.high_water, ready=self.ready,
                  pipelined=self.pipelined, config=to_dict(self.cfg), fallbacks=list(self.fallbacks))
         if self.stereo_watch.verdict is not None:
             d["stereo_check"] = self.stereo_watch.verdict.to_dict()
@@ -715,17 +543,6 @@ class _sigint_blocked:
 
         if self._old is not None:
             signal.pthread_sigmask(signal.SIG_SETMASK, self._old)
-
-
-def _thread_main(fn):
-    def run() -> None:
-        import signal
-
-        if hasattr(signal, "pthread_sigmask"):
-            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-        fn()
-
-    return run
 
 
 def _same_calibration(a: Any, b: Any) -> bool:

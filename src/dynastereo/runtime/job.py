@@ -23,6 +23,9 @@ from typing import Any
 
 from ..errors import as_interrupt
 from ..io.base import Sequence
+from ..io.frames import select_frames
+from ..io.outputs import check_output_file, prepare_output_dir
+from ..io.stereo_check import PeriodicStereoCheck, check_sequence
 from ..observers import FrameObserver
 from . import finish
 from .loop import FrameLoop, Progress
@@ -48,15 +51,17 @@ class Job:
     map_info: dict = field(default_factory=dict)
 
 
-def run(spec: JobSpec, *, progress: Progress | None = None,
-        observers: tuple[FrameObserver, ...] = ()) -> MaskJobResult | SlamJobResult | BagRunResult:
+def run(spec: JobSpec, *, progress: Progress | None = None, observers: tuple[FrameObserver, ...] = (),
+        masker: Any = None) -> MaskJobResult | SlamJobResult | BagRunResult:
     """Run the job ``spec`` describes (module doc).  ``progress(done, total, record)`` after
-    each frame; ``observers`` get a :class:`~dynastereo.observers.FrameEvent` per frame."""
+    each frame; ``observers`` get a :class:`~dynastereo.observers.FrameEvent` per frame;
+    ``masker``: a ready :class:`~dynastereo.masking.base.Masker` instead of the one the
+    configuration builds (e.g. ground-truth masks in a benchmark)."""
     seq = open_sequence_source(spec.source)
     try:
         with ExitStack() as stack:
             obs = stack.enter_context(_viewers(spec, seq, observers))
-            job = assemble(spec, seq, obs)
+            job = assemble(spec, seq, obs, masker)
             stack.callback(_close_sinks, job)
             result = execute(job, progress)
         return _after(spec, job, result)
@@ -77,11 +82,8 @@ def _viewers(spec: JobSpec, seq: Sequence, observers: tuple[FrameObserver, ...])
     return viewers(observers, viewer=o.viewer, rrd=o.rrd, gt=gt, name=name)
 
 
-def _checked_frames(spec: JobSpec, seq: Sequence) -> tuple[list[int], Any]:
+def _checked_frames(spec: JobSpec, seq: Sequence, masker: Any = None) -> tuple[list[int], Any]:
     """(frame indices, masker), after the checks made before the first frame (module doc)."""
-    from ..io.frames import select_frames
-    from ..io.outputs import check_output_file, prepare_output_dir
-    from ..io.stereo_check import check_sequence
     from ..masking import build_masker
 
     o = spec.outputs
@@ -94,44 +96,41 @@ def _checked_frames(spec: JobSpec, seq: Sequence) -> tuple[list[int], Any]:
         check_sequence(seq, indices)
     # a bag has no synthetic ground truth: detector 'oracle' is refused by the masker factory
     truth = None if spec.source.bag is not None else getattr(seq, "path", None)
-    masker = build_masker(spec.config, seq.calibration, models_dir=spec.models_dir, ground_truth=truth)
+    if masker is None:
+        masker = build_masker(spec.config, seq.calibration, models_dir=spec.models_dir, ground_truth=truth)
     prepare_output_dir(o.dir, overwrite=o.overwrite)
     return indices, masker
 
 
-def assemble(spec: JobSpec, seq: Sequence, observers: tuple[FrameObserver, ...]) -> Job:
+def assemble(spec: JobSpec, seq: Sequence, observers: tuple[FrameObserver, ...], masker: Any = None) -> Job:
     """The job's parts (module doc: steps 2-6)."""
-    indices, masker = _checked_frames(spec, seq)
+    indices, masker = _checked_frames(spec, seq, masker)
     source = SequenceSource(seq, indices)
     if spec.stereo_check:
-        from ..io.stereo_check import PeriodicStereoCheck
-
         observers = (*observers, PeriodicStereoCheck(getattr(seq, "path", None)))
-    out = spec.outputs.dir
     if spec.kind is JobKind.MASK:
-        job = Job(spec, seq, indices, FrameProcessor(source, masker), observers=observers)
-        job.sinks = _mask_sinks(spec, masker)
-        return job
+        return Job(spec, seq, indices, FrameProcessor(source, masker), observers=observers)
     system, info = _slam_system(spec, seq)
     from ..masking.motion import build_motion
 
     motion = build_motion(spec.config, seq.calibration, masker)
     world = _world_objects(seq, masker, motion)
-    job = Job(spec, seq, indices, FrameProcessor(source, masker, system=system, motion=motion, world=world),
-              observers=observers, map_info=info)
-    try:
-        finish.reserve_run_json(out, spec, len(indices))
-        job.sinks = _run_sinks(spec, masker, world)
-        if spec.source.bag is not None:
-            from ..ros.bagrun import open_bag_output
+    return Job(spec, seq, indices, FrameProcessor(source, masker, system=system, motion=motion, world=world),
+               observers=observers, map_info=info)
 
-            job.bag_output = open_bag_output(spec, seq)
-            job.observers = (*job.observers, job.bag_output)
-    except BaseException:
-        _close_sinks(job)
-        system.shutdown()
-        raise
-    return job
+
+def open_outputs(job: Job) -> None:
+    """A run's first files: run.json (room reserved), then the sinks' files and a bag's
+    output bag.  A failure here (a file that cannot be written) ends the job like any
+    other: its run.json says so."""
+    spec, proc = job.spec, job.processor
+    finish.reserve_run_json(spec.outputs.dir, spec, len(job.frames))
+    _open_run_sinks(job.sinks, spec, proc.masker, proc.world)
+    if spec.source.bag is not None:
+        from ..ros.bagrun import open_bag_output
+
+        job.bag_output = open_bag_output(spec, job.sequence)
+        job.observers = (*job.observers, job.bag_output)
 
 
 def _mask_sinks(spec: JobSpec, masker: Any) -> list[Sink]:
@@ -145,16 +144,16 @@ def _mask_sinks(spec: JobSpec, masker: Any) -> list[Sink]:
     return sinks
 
 
-def _run_sinks(spec: JobSpec, masker: Any, world: Any) -> list[Sink]:
+def _open_run_sinks(sinks: list[Sink], spec: JobSpec, masker: Any, world: Any) -> None:
+    """Into ``sinks`` one by one (those opened are closed if a later one fails)."""
     out = spec.outputs.dir
-    sinks: list[Sink] = [TrajectorySink(out)]
+    if world is not None:
+        sinks.append(TracksSink(out))
+    sinks.append(TrajectorySink(out))
     if spec.outputs.save_masks:
         sinks.append(MaskSink(out))
     if masker is not None:
         sinks.append(ObjectsLogSink(out))
-    if world is not None:
-        sinks.insert(0, TracksSink(out))
-    return sinks
 
 
 def _slam_system(spec: JobSpec, seq: Sequence) -> tuple[Any, dict]:
@@ -194,11 +193,16 @@ def execute(job: Job, progress: Progress | None) -> MaskJobResult | SlamJobResul
     spec = job.spec
     run_job = spec.kind is JobKind.RUN
     timer = new_run_timer() if run_job else new_mask_timer()
-    loop = FrameLoop(job.processor, timer, sinks=job.sinks,
-                     observers=ObserverSink(job.observers, job.processor.system, job.sequence.calibration),
-                     pipelined=run_job and spec.prefetch, progress=progress, total=len(job.frames))
+    observers = ObserverSink(job.observers, job.processor.system, job.sequence.calibration)
+    loop = FrameLoop(job.processor, timer, observers=observers, pipelined=run_job and spec.prefetch,
+                     progress=progress, total=len(job.frames))
     error: str | None = None
     try:
+        if run_job:
+            open_outputs(job)
+        else:
+            job.sinks = _mask_sinks(spec, job.processor.masker)
+        loop.sinks, observers.observers = job.sinks, job.observers  # the same list: sinks opened so far
         loop.run()
     except BaseException as exc:
         e = as_interrupt(exc)

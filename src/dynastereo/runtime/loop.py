@@ -18,7 +18,7 @@ from typing import Any, Callable
 
 from ..timing import StageTimer
 from .pipelining import StageFailed, StagePipeline
-from .processor import FrameProcessor, Masked, Processed
+from .processor import FrameItem, FrameProcessor, Masked, Processed
 from .sinks import ObserverSink, Sink, write_frame
 
 Progress = Callable[[int, int, dict], None]
@@ -78,13 +78,18 @@ class FrameLoop:
             source.done(item)
         return True
 
+    def process(self, item: FrameItem) -> Processed:
+        """An item the source did not give (the live node's synchronous ``process``) through
+        both stages on the calling thread; errors propagate."""
+        return self._frame(self.processor.mask(item))
+
     def _failed(self, e: BaseException) -> None:
         if self.on_error is None or not isinstance(e, Exception):
             raise e
         self.state.failed += 1
         self.on_error(e)
 
-    def _frame(self, m: Masked) -> None:
+    def _frame(self, m: Masked) -> Processed:
         st, timer = self.state, self.timer
         serial_ms = 0.0 if self.pipeline.pipelined else m.ms.get("total", 0.0)  # its masking was on this thread
         timer.start_frame(m.item.index if m.item.index is not None else st.n_done, serial_ms)
@@ -104,6 +109,7 @@ class FrameLoop:
             self.observers.notify(p)
         if self.progress is not None:
             self.progress(st.n_done, self.total, dict(rec, fps=st.fps))
+        return p
 
     @property
     def fallbacks(self) -> list[dict[str, Any]]:

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -76,9 +77,8 @@ class StagePipeline:
         self._current: Any = None  # the item the thread is masking
         self._abandoned = False
         self._thread: threading.Thread | None = None
-        if pipelined:
+        if pipelined:  # started by the first next()
             self._thread = threading.Thread(target=self._loop, name="dynastereo-mask", daemon=True)
-            self._thread.start()
 
     @property
     def pipelined(self) -> bool:
@@ -101,6 +101,7 @@ class StagePipeline:
             item = self._take()
             with self._cv:
                 self._current = item
+                self._cv.notify_all()  # the wait for it is bounded from now on
             slot = _END if item is None else self._run_stage(item)
             with self._cv:
                 if self._abandoned:  # the caller went serial meanwhile: this result is not wanted
@@ -117,14 +118,32 @@ class StagePipeline:
         if not self.pipelined:
             item = self._take()
             return None if item is None else self._unwrap(self._run_stage(item))
+        if not self._thread.is_alive() and self._thread.ident is None:
+            self._thread.start()
         with self._cv:
-            if not self._cv.wait_for(lambda: self._slot is not None, self.timeout_s):
+            if not self._wait_for_slot():
                 stuck, self._abandoned = self._current, True
                 self._cv.notify_all()
                 return self._go_serial(stuck, position)
             slot, self._slot = self._slot, None
             self._cv.notify_all()
         return None if slot is _END else self._unwrap(slot)
+
+    def _wait_for_slot(self) -> bool:
+        """Wait (holding the lock) for the slot; False when the thread spent over ``timeout_s``
+        on one item.  A thread waiting on the source (no input yet) is waited for without end."""
+        deadline = None
+        while self._slot is None:
+            if self._current is None:  # waiting on the source: a live input may be idle for long
+                deadline = None
+                self._cv.wait()
+                continue
+            now = time.monotonic()
+            deadline = deadline if deadline is not None else now + self.timeout_s
+            if now >= deadline:
+                return False
+            self._cv.wait(deadline - now)
+        return True
 
     def _go_serial(self, stuck: Any, position: int) -> tuple[Any, Any] | None:
         frame = getattr(stuck, "index", None)
@@ -151,7 +170,7 @@ class StagePipeline:
         with self._cv:
             self._abandoned = True
             self._cv.notify_all()
-        if self._thread is None:
+        if self._thread is None or self._thread.ident is None:
             return True
         self._thread.join(join_s)
         return not self._thread.is_alive()

@@ -74,6 +74,7 @@ class Processed:
     pose: np.ndarray | None  # 3x4 camera-to-world; None without SLAM
     status: str  # "init" | "tracked" | "lost"; "" without SLAM
     ms: dict[str, float] = field(default_factory=dict)  # every stage of this frame
+    payload: Any = None  # the source's own data of the frame (the live node's StereoInput)
 
 
 class FrameProcessor:
@@ -115,7 +116,7 @@ class FrameProcessor:
         motion = self.motion if masks is not None else None
         slam_masks = motion.select(masks) if motion is not None else masks
         if self.system is None:
-            return Processed(position, item.index, stamp, frame, masks, slam_masks, None, "")
+            return Processed(position, item.index, stamp, frame, masks, slam_masks, None, "", payload=item.payload)
         with self.lock:
             tracked = self.system.track(frame, slam_masks, timer)
             if motion is not None:
@@ -124,4 +125,5 @@ class FrameProcessor:
             if self.world is not None and masks is not None:
                 with timer.stage("objects"):
                     self.world.update(masks, tracked.pose, str(tracked.status) in ("tracked", "init"), stamp)
-        return Processed(position, item.index, stamp, frame, masks, slam_masks, tracked.pose, str(tracked.status))
+        return Processed(position, item.index, stamp, frame, masks, slam_masks, tracked.pose, str(tracked.status),
+                         payload=item.payload)

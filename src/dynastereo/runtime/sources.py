@@ -197,6 +197,13 @@ class LiveSource:
             self.in_flight -= n
             self._idle.notify_all()
 
+    def resize(self, queue_size: int) -> int:
+        """A new queue size; returns the waiting pairs dropped for it."""
+        n = self.queue.resize(queue_size)
+        if n:
+            self._settle(n)
+        return n
+
     def close(self) -> int:
         """No more pairs: the loop ends after the pair in hand; returns the pairs discarded."""
         n = self.queue.close()
