@@ -33,6 +33,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from ..dotted import flatten_dotted
 from ..errors import InputError
 from .metrics import STAT_KEYS, EvalResult, evaluate_files
 from .plot import plot_ape_over_time, plot_trajectories
@@ -191,16 +192,6 @@ def _plot_png(fn, *args, **kwargs) -> bytes:
     return buf.getvalue()
 
 
-def _flatten(d: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
-    out: list[tuple[str, Any]] = []
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out += _flatten(v, f"{prefix}{k}.")
-        else:
-            out.append((f"{prefix}{k}", json.dumps(v) if isinstance(v, (list, tuple)) else v))
-    return out
-
-
 # --------------------------------------------------------------------------- sections
 
 
@@ -239,7 +230,8 @@ def _summary_section(rf: RunFiles) -> str:
         parts.append("<p>lost frames: " + _esc(", ".join(str(x["frame"]) for x in run["lost"])) + "</p>")
     if cfg:
         parts.append("<details><summary>settings (configuration of the run)</summary>"
-                     + _table([[k, v] for k, v in _flatten(cfg)], ["key", "value"]) + "</details>")
+                     + _table([[k, json.dumps(v) if isinstance(v, (list, tuple)) else v]
+                                              for k, v in flatten_dotted(cfg).items()], ["key", "value"]) + "</details>")
     if run.get("versions"):
         parts.append("<details><summary>versions</summary>"
                      + _table([[k, v] for k, v in run["versions"].items()], ["package", "version"]) + "</details>")
