@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from dynastereo.masking.detection.classes import COCO_CLASSES
-from dynastereo.masking.detection.tracking import BoxTracker, TrackerParams, box_iou
+from dynastereo.masking.boxes import box_iou
+from dynastereo.masking.detection.tracking import BoxTracker, TrackerParams
 from dynastereo.datatypes import Detections
 
 H, W = 240, 480

@@ -27,6 +27,7 @@ import numpy as np
 from ..config import OutlineConfig, StereoConfig
 from ..timing import StageTimer, timed
 from ..datatypes import Detections, MaskMethod, ObjectMask, StereoFrame, StereoMasks
+from .boxes import box_iou_pairs
 from .base import Detector
 from .disparity import StereoMatcher
 from .ground import DEFAULT_BASELINE, GroundLine, fit_ground_line, road_samples, slope_range
@@ -451,17 +452,6 @@ class BoxMasker(_DisparityMasker):
         return self.mask_detections(frame, self._detect(frame, timer), timer)
 
 
-def _box_iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    a = np.asarray(a, np.float64).reshape(-1, 1, 4)
-    b = np.asarray(b, np.float64).reshape(1, -1, 4)
-    iw = np.clip(np.minimum(a[..., 2], b[..., 2]) - np.maximum(a[..., 0], b[..., 0]), 0, None)
-    ih = np.clip(np.minimum(a[..., 3], b[..., 3]) - np.maximum(a[..., 1], b[..., 1]), 0, None)
-    inter = iw * ih
-    area_a = (a[..., 2] - a[..., 0]) * (a[..., 3] - a[..., 1])
-    area_b = (b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1])
-    return inter / np.maximum(area_a + area_b - inter, 1e-9)
-
-
 def match_stereo_detections(left: Detections, right: Detections, max_disparity: float) -> np.ndarray:
     """For each left detection, the index of its right-image detection (-1 if none).
 
@@ -480,7 +470,7 @@ def match_stereo_detections(left: Detections, right: Detections, max_disparity: 
     shifted = np.repeat(rb[None, :, :], n, axis=0)
     shifted[..., 0] += shift
     shifted[..., 2] += shift
-    iou = np.stack([_box_iou_matrix(lb[i:i + 1], shifted[i])[0] for i in range(n)])
+    iou = box_iou_pairs(lb[:, None, :], shifted)  # (n, m): left box i with right box j moved by shift[i, j]
     ok = (left.class_ids[:, None] == right.class_ids[None, :]) & (shift >= -2) & (shift <= max_disparity + 2)
     iou = np.where(ok, iou, 0.0)
     while True:

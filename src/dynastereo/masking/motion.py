@@ -60,7 +60,8 @@ import numpy as np
 from ..config import MotionConfig
 from ..datatypes import StereoCalibration, StereoFrame, StereoMasks
 from .detection.classes import canonical_name
-from .detection.tracking import TrackerParams, box_iou
+from .boxes import box_iou
+from .detection.tracking import TrackerParams
 
 __all__ = ["FrameFlow", "ObjectFlow", "SceneFlow", "MotionJudge", "ObjectMotion", "static_chi2", "world_velocity"]
 

@@ -68,6 +68,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ...datatypes import Detections
+from ..boxes import box_iou
 from .classes import canonical_name
 
 __all__ = ["BoxTracker", "TrackerParams", "box_iou"]
@@ -149,20 +150,6 @@ class _Track:
     vel: np.ndarray | None = None  # float64 (4,) box change over the last frame, if known
     age: int = 0  # frames carried since the last confirming detection
     mask: np.ndarray | None = field(default=None, repr=False)  # bool (H, W)
-
-
-def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU matrix ``(len(a), len(b))`` of ``x1, y1, x2, y2`` boxes."""
-    a = np.asarray(a, np.float64).reshape(-1, 4)
-    b = np.asarray(b, np.float64).reshape(-1, 4)
-    iw = np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0])
-    ih = np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1])
-    inter = np.clip(iw, 0, None) * np.clip(ih, 0, None)
-    area_a = np.clip(a[:, 2] - a[:, 0], 0, None) * np.clip(a[:, 3] - a[:, 1], 0, None)
-    area_b = np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)
-    union = area_a[:, None] + area_b[None, :] - inter
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(union > 0, inter / union, 0.0)
 
 
 class BoxTracker:
