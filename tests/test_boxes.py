@@ -49,3 +49,18 @@ def test_same_bits_as_the_two_former_copies_on_valid_boxes() -> None:
     shifted = np.repeat(b[None].astype(np.float64), len(a), axis=0) + rng.uniform(-50, 50, (len(a), len(b), 1)) * [1, 0, 1, 0]
     loop = np.stack([old_maskers(a[i:i + 1], shifted[i])[0] for i in range(len(a))])
     assert np.array_equal(box_iou_pairs(a.astype(np.float64)[:, None, :], shifted), loop)
+
+
+def test_one_class_group_definition_gives_the_former_partitions() -> None:
+    from dynastereo.masking.detection.classes import CLASS_GROUPS, COCO_CLASSES, class_group_index
+    from dynastereo.masking.detection.scale import GROUPS
+    from dynastereo.masking.detection.tracking import TrackerParams
+
+    assert TrackerParams().class_groups is CLASS_GROUPS
+    assert class_group_index() == {"car": 0, "bus": 0, "truck": 0, "train": 0, "bicycle": 1, "motorcycle": 1}
+    assert class_group_index((("Motorbike", "bicycle"),)) == {"motorcycle": 0, "bicycle": 0}
+    # the seam merger's former table: the same classes share a group (person alone)
+    former = {"car": 0, "truck": 0, "bus": 0, "train": 0, "person": 1, "bicycle": 2, "motorcycle": 2}
+    old = [former.get(n, 100 + k) for k, n in enumerate(COCO_CLASSES)]
+    new = [GROUPS.get(n, 100 + k) for k, n in enumerate(COCO_CLASSES)]
+    assert np.array_equal(np.equal.outer(old, old), np.equal.outer(new, new))

@@ -32,12 +32,13 @@ import numpy as np
 from ...config import DETECTOR_CANVASES
 from ...errors import ConfigError
 from ...datatypes import Detections
+from .classes import class_group_index
 from .postprocess import nms
 
 CANVAS_MODES = DETECTOR_CANVASES
-#: classes that are one object group when merging across seams (a car seen as "truck"
-#: in one tile and "car" in the other is one vehicle)
-GROUPS = {"car": 0, "truck": 0, "bus": 0, "train": 0, "person": 1, "bicycle": 2, "motorcycle": 2}
+#: class name -> group when merging across seams (a car seen as "truck" in one tile and
+#: "car" in the other is one vehicle): :data:`~.classes.CLASS_GROUPS`
+GROUPS = class_group_index()
 
 
 def round32(v: float) -> int:

@@ -69,9 +69,9 @@ from scipy.optimize import linear_sum_assignment
 
 from ...datatypes import Detections
 from ..boxes import box_iou
-from .classes import canonical_name
+from .classes import CLASS_GROUPS, canonical_name, class_group_index
 
-__all__ = ["BoxTracker", "TrackerParams", "box_iou"]
+__all__ = ["BoxTracker", "TrackerParams"]
 
 
 @dataclass(frozen=True)
@@ -120,7 +120,7 @@ class TrackerParams:
     # a carried box overlapping an earlier-kept box of its class group this much is dropped
     dup_iou: float = 0.7
     # classes that are one group for matching (canonical COCO names); others: own group
-    class_groups: tuple[tuple[str, ...], ...] = (("car", "bus", "truck", "train"), ("bicycle", "motorcycle"))
+    class_groups: tuple[tuple[str, ...], ...] = CLASS_GROUPS
 
     def __post_init__(self) -> None:
         if not 0.0 < self.match_iou <= 1.0:
@@ -158,7 +158,7 @@ class BoxTracker:
     def __init__(self, params: TrackerParams | None = None):
         self.params = params or TrackerParams()
         p = self.params
-        self._group_of = {canonical_name(n): gi for gi, g in enumerate(p.class_groups) for n in g}
+        self._group_of = class_group_index(p.class_groups)
         self._lk_kw = dict(
             winSize=(p.lk_win, p.lk_win),
             maxLevel=p.lk_levels,
