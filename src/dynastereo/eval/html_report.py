@@ -123,10 +123,8 @@ def partial_reason(run_dir: str | Path) -> str | None:
         return None
 
 
-def default_ground_truth(sequence: str | Path) -> Path | None:
-    """The sequence's ground truth if it has one (:func:`~dynastereo.eval.trajectory.find_ground_truth`:
-    KITTI odometry ``poses/NN.txt``, a KITTI raw drive's ``oxts/``)."""
-    return find_ground_truth(sequence)
+#: the name ``api.resolve_ground_truth`` calls; the rule is :func:`~.trajectory.find_ground_truth`
+default_ground_truth = find_ground_truth
 
 
 # --------------------------------------------------------------------------- HTML pieces
@@ -530,7 +528,7 @@ def build_report(
     rf = read_run(run_dir)
     gt_path = Path(gt) if gt is not None else None
     if gt_path is None and auto_gt and rf.run.get("sequence"):
-        gt_path = default_ground_truth(rf.run["sequence"])
+        gt_path = find_ground_truth(rf.run["sequence"])
     if gt_path is not None and not gt_path.exists():
         raise InputError("ground truth file not found", gt_path)
     ev = None
