@@ -54,7 +54,7 @@ def test_same_bits_as_the_two_former_copies_on_valid_boxes() -> None:
 def test_one_class_group_definition_gives_the_former_partitions() -> None:
     from dynastereo.masking.detection.classes import CLASS_GROUPS, COCO_CLASSES, class_group_index
     from dynastereo.masking.detection.scale import GROUPS
-    from dynastereo.masking.detection.tracking import TrackerParams
+    from dynastereo.masking.detection.box_tracker import TrackerParams
 
     assert TrackerParams().class_groups is CLASS_GROUPS
     assert class_group_index() == {"car": 0, "bus": 0, "truck": 0, "train": 0, "bicycle": 1, "motorcycle": 1}
