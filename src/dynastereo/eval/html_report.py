@@ -30,13 +30,12 @@ from typing import Any
 
 import cv2
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..dotted import flatten_dotted
 from ..errors import InputError
 from .metrics import STAT_KEYS, EvalResult, evaluate_files
-from .plot import plot_ape_over_time, plot_trajectories
+from .plot import _new_figure, plot_ape_over_time, plot_trajectories
 from .report import format_table
 from .trajectory import FRAMES_NAME, KITTI_NAME, find_ground_truth, read_frame_indices, read_trajectory
 
@@ -172,9 +171,7 @@ def _img(data: bytes, alt: str, mime: str = "image/png") -> str:
 
 
 def _figure(size: tuple[float, float]) -> Figure:
-    fig = Figure(figsize=size, dpi=90, layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
+    return _new_figure(size, dpi=90)
 
 
 def _png_of(fig: Figure) -> bytes:
