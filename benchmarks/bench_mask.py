@@ -50,7 +50,7 @@ from dynastereo.errors import ModelError
 from dynastereo.io import open_sequence
 from dynastereo.masking import BoxMasker, OutlineMasker, SegMasker, StereoMatcher
 from dynastereo.masking.detection import create_detector, create_seg_model
-from dynastereo.masking.maskers import _box_iou_matrix
+from dynastereo.masking.boxes import box_iou
 from dynastereo.timing import StageTimer
 from dynastereo.datatypes import Detections
 
@@ -101,7 +101,7 @@ def run_timed(fn, repeats: int) -> tuple[dict[str, float], object]:
 def match_boxes(a: np.ndarray, b: np.ndarray, thr: float = 0.5) -> list[tuple[int, int]]:
     if len(a) == 0 or len(b) == 0:
         return []
-    iou = _box_iou_matrix(a, b)
+    iou = box_iou(a, b)
     pairs = []
     while True:
         i, j = np.unravel_index(int(np.argmax(iou)), iou.shape)

@@ -341,7 +341,7 @@ def score_verdicts(run_dir: Path, labels_path: Path) -> dict:
     the run's object matched by box IoU >= 0.5 (the best); right / undecided / wrong
     (an unmatched reference object is not counted); movers masked within 3 frames of
     their first appearance; static object-frames left unmasked."""
-    from dynastereo.masking.detection.tracking import box_iou
+    from dynastereo.masking.boxes import box_iou
 
     lab = json.loads(labels_path.read_text())
     by_frame: dict[int, list] = {}
@@ -413,7 +413,7 @@ def make_labels(drive: Path, ref_dir: Path, out: Path, overlays: Path | None = N
     import cv2
 
     from dynastereo.io import open_sequence
-    from dynastereo.masking.detection.tracking import box_iou
+    from dynastereo.masking.boxes import box_iou
     from dynastereo.masking.motion import _group
 
     seq = open_sequence(drive)

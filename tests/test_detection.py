@@ -482,7 +482,7 @@ def test_openvino_matches_onnxruntime_on_kitti_frames(models_dir, kitti06):
     """OpenVINO f32 and bf16 find the same near vehicles as onnxruntime on real frames
     (the sequences' recall and IoU move by <= 0.01: README "Detectors and models")."""
     from dynastereo.masking.detection import ScaledDetector, openvino_available
-    from dynastereo.masking.maskers import _box_iou_matrix
+    from dynastereo.masking.boxes import box_iou
 
     if not openvino_available():
         pytest.skip("OpenVINO is not installed (pip install 'dynastereo[openvino]')")
@@ -503,7 +503,7 @@ def test_openvino_matches_onnxruntime_on_kitti_frames(models_dir, kitti06):
         for label in best:
             got = runs[label].detect(img)
             if len(ref):
-                iou = _box_iou_matrix(ref, got.boxes) if len(got) else np.zeros((len(ref), 1))
+                iou = box_iou(ref, got.boxes) if len(got) else np.zeros((len(ref), 1))
                 best[label] += iou.max(axis=1).tolist()
     f32, bf16 = np.array(best["f32"]), np.array(best["bf16"])
     assert len(f32) >= 10  # the frames hold near vehicles to compare

@@ -17,6 +17,7 @@ from typing import Any, Literal
 
 import yaml
 
+from .dotted import nest_dotted
 from .errors import ConfigError
 from .datatypes import DEFAULT_DYNAMIC_CLASSES
 
@@ -631,18 +632,10 @@ class Config:
     def with_overrides(self, overrides: dict[str, Any]) -> "Config":
         """Return a copy with dotted-key overrides applied (``{"stereo.wls": True}``)."""
         data = to_dict(self)
-        for dotted, value in overrides.items():
-            if value is None:
-                continue
-            node = data
-            parts = dotted.split(".")
-            for p in parts[:-1]:
-                if p not in node or not isinstance(node[p], dict):
-                    raise ConfigError(f"unknown configuration key '{dotted}'")
-                node = node[p]
-            if parts[-1] not in node:
-                raise ConfigError(f"unknown configuration key '{dotted}'")
-            node[parts[-1]] = value
+        try:
+            nest_dotted({k: v for k, v in overrides.items() if v is not None}, data, known_only=True)
+        except KeyError as e:
+            raise ConfigError(f"unknown configuration key '{e.args[0]}'") from None
         return from_dict(Config, data, "<overrides>")
 
 

@@ -136,7 +136,7 @@ class Detections:
     class_ids: np.ndarray  # (N,) int32
     class_names: tuple[str, ...] = ()
     masks: np.ndarray | None = None  # optional (N, H, W) bool instance masks (seg models)
-    # Set by the box tracker (masking.detection.tracking): a track id per box (-1: none)
+    # Set by the box tracker (masking.detection.box_tracker): a track id per box (-1: none)
     # and whether the box was carried from earlier frames rather than detected in this one.
     track_ids: np.ndarray | None = None  # (N,) int64
     carried: np.ndarray | None = None  # (N,) bool

@@ -18,6 +18,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from .io.outputs import atomic_write_text
+
 
 class StageTimer:
     def __init__(self) -> None:
@@ -97,10 +99,7 @@ class StageTimer:
 
     def write(self, path: str | Path, summary_extra: dict[str, Any] | None = None, **extra: Any) -> None:
         """Write ``timing.json`` atomically (``summary_extra`` goes into ``summary``)."""
-        p = Path(path)
-        tmp = p.with_suffix(p.suffix + ".tmp")
-        tmp.write_text(json.dumps(self.to_json(summary_extra, **extra), indent=1))
-        tmp.replace(p)
+        atomic_write_text(path, json.dumps(self.to_json(summary_extra, **extra), indent=1), fsync=False, mkdir=False)
 
 
 def timed(timer: "StageTimer | None", name: str):

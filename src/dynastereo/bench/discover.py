@@ -28,7 +28,6 @@ a number, or a name / shell pattern (``convoy/*``, ``*drive_0001*``).
 from __future__ import annotations
 
 import fnmatch
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,6 +37,7 @@ from ..errors import InputError, SequenceError
 from ..eval.trajectory import find_ground_truth
 from ..io import detect_format
 from ..io.euroc import euroc_mav_dir
+from ..io.outputs import atomic_open
 from ..io.kitti_raw import is_kitti_raw_drive
 
 MAX_DEPTH = 4
@@ -180,8 +180,6 @@ def euroc_ground_truth_tum(csv_path: Path, sequence, out_path: Path) -> Path:
     T_WC = T_WB @ T_BS @ T_CR
     q = Rotation.from_matrix(T_WC[:, :3, :3]).as_quat()
     table = np.column_stack([rows[:, 0] * 1e-9, T_WC[:, :3, 3], q])
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_name(f".{out_path.name}.{os.getpid()}")
-    np.savetxt(tmp, table, fmt="%.9f")
-    tmp.replace(out_path)
+    with atomic_open(out_path, "w", fsync=False) as f:
+        np.savetxt(f, table, fmt="%.9f")
     return out_path

@@ -30,12 +30,12 @@ from typing import Any
 
 import cv2
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from ..dotted import flatten_dotted
 from ..errors import InputError
 from .metrics import STAT_KEYS, EvalResult, evaluate_files
-from .plot import plot_ape_over_time, plot_trajectories
+from .plot import _new_figure, plot_ape_over_time, plot_trajectories
 from .report import format_table
 from .trajectory import FRAMES_NAME, KITTI_NAME, find_ground_truth, read_frame_indices, read_trajectory
 
@@ -122,10 +122,8 @@ def partial_reason(run_dir: str | Path) -> str | None:
         return None
 
 
-def default_ground_truth(sequence: str | Path) -> Path | None:
-    """The sequence's ground truth if it has one (:func:`~dynastereo.eval.trajectory.find_ground_truth`:
-    KITTI odometry ``poses/NN.txt``, a KITTI raw drive's ``oxts/``)."""
-    return find_ground_truth(sequence)
+#: the name ``api.resolve_ground_truth`` calls; the rule is :func:`~.trajectory.find_ground_truth`
+default_ground_truth = find_ground_truth
 
 
 # --------------------------------------------------------------------------- HTML pieces
@@ -173,9 +171,7 @@ def _img(data: bytes, alt: str, mime: str = "image/png") -> str:
 
 
 def _figure(size: tuple[float, float]) -> Figure:
-    fig = Figure(figsize=size, dpi=90, layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
+    return _new_figure(size, dpi=90)
 
 
 def _png_of(fig: Figure) -> bytes:
@@ -189,16 +185,6 @@ def _plot_png(fn, *args, **kwargs) -> bytes:
     buf = io.BytesIO()
     fn(*args, buf, **kwargs)
     return buf.getvalue()
-
-
-def _flatten(d: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
-    out: list[tuple[str, Any]] = []
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out += _flatten(v, f"{prefix}{k}.")
-        else:
-            out.append((f"{prefix}{k}", json.dumps(v) if isinstance(v, (list, tuple)) else v))
-    return out
 
 
 # --------------------------------------------------------------------------- sections
@@ -239,7 +225,8 @@ def _summary_section(rf: RunFiles) -> str:
         parts.append("<p>lost frames: " + _esc(", ".join(str(x["frame"]) for x in run["lost"])) + "</p>")
     if cfg:
         parts.append("<details><summary>settings (configuration of the run)</summary>"
-                     + _table([[k, v] for k, v in _flatten(cfg)], ["key", "value"]) + "</details>")
+                     + _table([[k, json.dumps(v) if isinstance(v, (list, tuple)) else v]
+                                              for k, v in flatten_dotted(cfg).items()], ["key", "value"]) + "</details>")
     if run.get("versions"):
         parts.append("<details><summary>versions</summary>"
                      + _table([[k, v] for k, v in run["versions"].items()], ["package", "version"]) + "</details>")
@@ -538,7 +525,7 @@ def build_report(
     rf = read_run(run_dir)
     gt_path = Path(gt) if gt is not None else None
     if gt_path is None and auto_gt and rf.run.get("sequence"):
-        gt_path = default_ground_truth(rf.run["sequence"])
+        gt_path = find_ground_truth(rf.run["sequence"])
     if gt_path is not None and not gt_path.exists():
         raise InputError("ground truth file not found", gt_path)
     ev = None

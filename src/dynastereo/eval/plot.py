@@ -30,8 +30,9 @@ def top_view_plane(gt: Trajectory) -> str:
     return "".join("xyz"[i] for i in keep)
 
 
-def _new_figure(size: tuple[float, float]) -> Figure:
-    fig = Figure(figsize=size, dpi=100, layout="constrained")
+def _new_figure(size: tuple[float, float], dpi: int = 100) -> Figure:
+    """A matplotlib figure on its own Agg canvas (no pyplot, no global state)."""
+    fig = Figure(figsize=size, dpi=dpi, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
 

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
-from ..masking.detection.tracking import box_iou
+from ..masking.boxes import box_iou
 
 VEHICLES = frozenset({"car", "truck", "bus"})
 RIDERS = frozenset({"person", "bicycle", "motorcycle"})

@@ -254,17 +254,17 @@ def tum_rows(poses: np.ndarray, timestamps: np.ndarray) -> str:
     return "".join(f"{t:.9f} " + " ".join(f"{v:.9f}" for v in row) + "\n" for t, row in zip(ts, rows))
 
 
-_atomic_write = atomic_write_text  # (ros.core imports this name)
+_atomic_write = atomic_write_text  # the name ros.core imports (the lead's file); use atomic_write_text
 
 
 def write_kitti(path: str | Path, poses: np.ndarray) -> Path:
     """Write ``(N, 4, 4)`` camera-to-world poses as a KITTI file (atomically)."""
-    return _atomic_write(path, kitti_rows(poses))
+    return atomic_write_text(path, kitti_rows(poses))
 
 
 def write_tum(path: str | Path, poses: np.ndarray, timestamps: np.ndarray) -> Path:
     """Write poses and timestamps (seconds) as a TUM file (atomically)."""
-    return _atomic_write(path, tum_rows(poses, timestamps))
+    return atomic_write_text(path, tum_rows(poses, timestamps))
 
 
 def write_trajectory(path: str | Path, traj: Trajectory, fmt: str | None = None) -> Path:

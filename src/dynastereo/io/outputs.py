@@ -17,8 +17,9 @@ import os
 import secrets
 import shutil
 import tempfile
+from contextlib import contextmanager, suppress
 from pathlib import Path
-from typing import Iterable
+from typing import IO, Iterable, Iterator
 
 import numpy as np
 
@@ -34,25 +35,46 @@ RUN_OUTPUTS = (
 SYNTH_OUTPUTS = ("sequences/00", "poses/00.txt")
 
 
-def atomic_write_text(path: str | Path, text: str, *, fsync: bool = True) -> Path:
-    """Write ``text`` to a temporary file beside ``path`` and rename it over ``path``.  The
+@contextmanager
+def atomic_open(path: str | Path, mode: str = "w", *, fsync: bool = True, mkdir: bool = True) -> Iterator[IO]:
+    """``with atomic_open(path, "w" | "wb") as f:`` writes a temporary file beside ``path``
+    (``.NAME.<random>.tmp``) and renames it over ``path`` when the block ends without an
+    error; on an error the temporary file is removed and ``path`` stays as it was.  The
     file is created with mode 0666 minus the umask (0644 usually), as ``open(path, "w")``
-    would make it -- not ``mkstemp``'s 0600."""
+    would make it -- not ``mkstemp``'s 0600.  ``fsync``: forced to disk before the rename;
+    ``mkdir``: the parent folders are created."""
+    if mode not in ("w", "wb"):
+        raise ValueError(f"atomic_open writes ('w' or 'wb'), not {mode!r}")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if mkdir:
+        path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        with os.fdopen(fd, mode) as f:
+            yield f
             f.flush()
             if fsync:
                 os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        with suppress(OSError):  # the error that stopped the write is the one to report
+            tmp.unlink(missing_ok=True)
         raise
-    return path
+
+
+def atomic_write_text(path: str | Path, text: str, *, fsync: bool = True, mkdir: bool = True) -> Path:
+    """Write ``text`` to ``path`` atomically (:func:`atomic_open`)."""
+    with atomic_open(path, "w", fsync=fsync, mkdir=mkdir) as f:
+        f.write(text)
+    return Path(path)
+
+
+def atomic_write_bytes(path: str | Path, data: bytes, *, fsync: bool = True, mkdir: bool = True) -> Path:
+    """Write ``data`` to ``path`` atomically (:func:`atomic_open`)."""
+    with atomic_open(path, "wb", fsync=fsync, mkdir=mkdir) as f:
+        f.write(data)
+    return Path(path)
 
 
 def _reason(e: OSError) -> str:
@@ -251,13 +273,10 @@ def write_ply(path: str | Path, points: np.ndarray) -> Path:
             f"element vertex {len(P)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}")
     try:
-        with open(tmp, "wb") as fh:
+        with atomic_open(path, "wb", fsync=False, mkdir=False) as fh:
             fh.write(head.encode("ascii"))
             fh.write(P.tobytes())
-        tmp.replace(path)
     except OSError as e:
-        tmp.unlink(missing_ok=True)
         raise OutputError(f"cannot write the point cloud: {e.strerror}", path) from None
     return path

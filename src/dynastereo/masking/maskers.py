@@ -27,6 +27,7 @@ import numpy as np
 from ..config import OutlineConfig, StereoConfig
 from ..timing import StageTimer, timed
 from ..datatypes import Detections, MaskMethod, ObjectMask, StereoFrame, StereoMasks
+from .boxes import box_iou_pairs
 from .base import Detector
 from .disparity import StereoMatcher
 from .ground import DEFAULT_BASELINE, GroundLine, fit_ground_line, road_samples, slope_range
@@ -180,6 +181,19 @@ class _DisparityMasker:
         masks.labels_left, masks.labels_right = left, right
         return masks
 
+    def mask(self, frame: StereoFrame, timer: StageTimer | None = None) -> StereoMasks:
+        return self.mask_detections(frame, self._detect(frame, timer), timer)
+
+    def _no_objects(self, shape: tuple[int, int], dets: Detections,
+                    disp: np.ndarray | None) -> tuple[StereoMasks, np.ndarray, np.ndarray]:
+        """``mask_labels``'s result for a frame without detections."""
+        m = StereoMasks.empty(shape)
+        m.detections = dets
+        m.disparity = disp if self.full_disparity else None
+        m.box_disparity = disp
+        z = np.zeros(shape, np.int32)
+        return m, z, z
+
     def _detect(self, frame: StereoFrame, timer: StageTimer | None) -> Detections:
         from .detection.stage import DetectionStage
 
@@ -261,10 +275,13 @@ class OutlineMasker(_DisparityMasker):
         self._kept: dict = {}  # track id -> its outline of the previous frame (cfg.carry_outline)
         self._kept_index = -2
 
+    def ground_baseline(self) -> float:
+        """The rig's baseline (m) for the road line: the configuration's, the rig's, else KITTI's."""
+        return self.cfg.ground_baseline or self.baseline or DEFAULT_BASELINE
+
     def ground_slopes(self) -> tuple[float, float]:
         """Plausible road slopes (disparity px per image row) for this rig."""
-        b = self.cfg.ground_baseline or self.baseline or DEFAULT_BASELINE
-        return slope_range(b, self.cfg.ground_min_height, self.cfg.ground_max_height)
+        return slope_range(self.ground_baseline(), self.cfg.ground_min_height, self.cfg.ground_max_height)
 
     def fit_ground(self, frame: StereoFrame) -> GroundLine:
         """The road's disparity line in ``frame``, from a coarse disparity of the image's
@@ -274,7 +291,7 @@ class OutlineMasker(_DisparityMasker):
         rows, vals = road_samples(self.matcher, frame.left_gray, frame.right_gray, c.ground_rows_from)
         line = fit_ground_line(rows, vals, self.ground_slopes(), frame.shape[0], tolerance=c.ground_fit_tolerance,
                                min_inliers=c.ground_min_inliers)
-        return replace(line, baseline=self.cfg.ground_baseline or self.baseline or DEFAULT_BASELINE)
+        return replace(line, baseline=self.ground_baseline())
 
     # -- carried boxes keep their outline (cfg.carry_outline) ------------------------
     def _carried_outlines(self, frame: StereoFrame, dets: Detections, disp: np.ndarray,
@@ -339,12 +356,7 @@ class OutlineMasker(_DisparityMasker):
         rois = clip_boxes(dets.boxes, shape)
         disp = self._disparity(frame, rois, timer, left_margin=LEFT_CONTEXT)
         if len(dets) == 0:
-            m = StereoMasks.empty(shape)
-            m.detections = dets
-            m.disparity = disp if self.full_disparity else None
-            m.box_disparity = disp
-            z = np.zeros(shape, np.int32)
-            return m, z, z
+            return self._no_objects(shape, dets, disp)
         assert disp is not None
         ground = None
         if self.cfg.ground_removal:
@@ -374,9 +386,6 @@ class OutlineMasker(_DisparityMasker):
         masks = StereoMasks(left, right, objects, dets, disp if self.full_disparity else None, ground=ground,
                             box_disparity=disp)
         return masks, o.labels, t.labels
-
-    def mask(self, frame: StereoFrame, timer: StageTimer | None = None) -> StereoMasks:
-        return self.mask_detections(frame, self._detect(frame, timer), timer)
 
 
 class BoxMasker(_DisparityMasker):
@@ -410,12 +419,7 @@ class BoxMasker(_DisparityMasker):
         rois = clip_boxes(dets.boxes, shape, self.margin)
         disp = self._disparity(frame, rois, timer)
         if len(dets) == 0:
-            m = StereoMasks.empty(shape)
-            m.detections = dets
-            m.disparity = disp if self.full_disparity else None
-            m.box_disparity = disp
-            z = np.zeros(shape, np.int32)
-            return m, z, z
+            return self._no_objects(shape, dets, disp)
         assert disp is not None
         n = len(dets)
         with _stage(timer, "boxes"):
@@ -447,20 +451,6 @@ class BoxMasker(_DisparityMasker):
         masks = StereoMasks(left, right, objects, dets, disp if self.full_disparity else None, box_disparity=disp)
         return masks, labels, t.labels
 
-    def mask(self, frame: StereoFrame, timer: StageTimer | None = None) -> StereoMasks:
-        return self.mask_detections(frame, self._detect(frame, timer), timer)
-
-
-def _box_iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    a = np.asarray(a, np.float64).reshape(-1, 1, 4)
-    b = np.asarray(b, np.float64).reshape(1, -1, 4)
-    iw = np.clip(np.minimum(a[..., 2], b[..., 2]) - np.maximum(a[..., 0], b[..., 0]), 0, None)
-    ih = np.clip(np.minimum(a[..., 3], b[..., 3]) - np.maximum(a[..., 1], b[..., 1]), 0, None)
-    inter = iw * ih
-    area_a = (a[..., 2] - a[..., 0]) * (a[..., 3] - a[..., 1])
-    area_b = (b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1])
-    return inter / np.maximum(area_a + area_b - inter, 1e-9)
-
 
 def match_stereo_detections(left: Detections, right: Detections, max_disparity: float) -> np.ndarray:
     """For each left detection, the index of its right-image detection (-1 if none).
@@ -480,7 +470,7 @@ def match_stereo_detections(left: Detections, right: Detections, max_disparity: 
     shifted = np.repeat(rb[None, :, :], n, axis=0)
     shifted[..., 0] += shift
     shifted[..., 2] += shift
-    iou = np.stack([_box_iou_matrix(lb[i:i + 1], shifted[i])[0] for i in range(n)])
+    iou = box_iou_pairs(lb[:, None, :], shifted)  # (n, m): left box i with right box j moved by shift[i, j]
     ok = (left.class_ids[:, None] == right.class_ids[None, :]) & (shift >= -2) & (shift <= max_disparity + 2)
     iou = np.where(ok, iou, 0.0)
     while True:

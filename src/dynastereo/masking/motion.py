@@ -59,8 +59,8 @@ import numpy as np
 
 from ..config import MotionConfig
 from ..datatypes import StereoCalibration, StereoFrame, StereoMasks
-from .detection.classes import canonical_name
-from .detection.tracking import TrackerParams, box_iou
+from .detection.classes import canonical_name, class_group_index
+from .boxes import box_iou
 
 __all__ = ["FrameFlow", "ObjectFlow", "SceneFlow", "MotionJudge", "ObjectMotion", "static_chi2", "world_velocity"]
 
@@ -69,8 +69,8 @@ _FB_MAX = 1.0  # px, forward-backward error to keep a point
 _MARGIN = 48  # px around the boxes' union that LK works on
 _NEAR = tuple(a.ravel() for a in np.meshgrid(np.arange(-3, 4), np.arange(-3, 4)))  # (dx, dy) offsets
 _MIN_PIXELS = 150  # objects with fewer outline pixels are not followed (they stay undecided: masked)
-# class groups whose names a detector swaps on one object (the box tracker's)
-_GROUP_OF = {canonical_name(n): g for g, names in enumerate(TrackerParams().class_groups) for n in names}
+# class groups whose names a detector swaps on one object (detection.classes.CLASS_GROUPS)
+_GROUP_OF = class_group_index()
 _NONE2 = np.zeros((0, 2), np.float32)
 _NO_POINTS = (np.zeros((0, 2)), (np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int64)))  # a track's points: none
 
@@ -456,7 +456,7 @@ class MotionJudge:
 
     def verdicts(self, objects: list) -> list[bool | None]:
         """Per object (``ObjectMask``), its track's verdict; an undecided object that
-        overlaps a judged one of its class group (the box tracker's ``class_groups``) by
+        overlaps a judged one of its class group (``detection.classes.CLASS_GROUPS``) by
         IoU >= ``duplicate_iou`` is a second detection of that object (a detector names
         one car ``car`` and ``truck``; the tracker keeps both boxes, the second under a new
         id every run) and takes its verdict."""

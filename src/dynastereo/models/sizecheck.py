@@ -18,7 +18,9 @@ from pathlib import Path
 from ..errors import ModelError
 
 
-def _sections(cfg_path: Path) -> list[tuple[str, dict[str, str]]]:
+def darknet_cfg_sections(cfg_path: Path) -> list[tuple[str, dict[str, str]]]:
+    """A Darknet ``.cfg`` as ``[(section name, {key: value})]`` in file order (names and keys
+    lower-case, ``#`` comments and lines before the first section left out)."""
     try:
         text = Path(cfg_path).read_text(encoding="utf-8", errors="replace")
     except OSError as e:
@@ -40,7 +42,7 @@ def darknet_weights_floats(cfg_path: str | Path) -> int:
     """The number of float32 values a ``.weights`` file for ``cfg_path`` holds (after its
     header).  ModelError naming the cfg when a layer cannot be followed."""
     cfg_path = Path(cfg_path)
-    secs = _sections(cfg_path)
+    secs = darknet_cfg_sections(cfg_path)
     if not secs or secs[0][0] not in ("net", "network"):
         raise ModelError("not a Darknet cfg: it does not start with [net]", cfg_path)
     try:

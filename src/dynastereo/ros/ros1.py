@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from ..config import Config, load_config, to_dict
+from ..dotted import flatten_dotted, nest_dotted
 from ..errors import DynastereoError, RosUnavailable
 from .convert import CameraInfoData, ImageDecoder, calibration_from_camera_info, masked_image, stamp_split
 from .core import LIVE_SECTIONS, NodeResult, StereoInput, StereoNodeCore, flatten_live
@@ -137,17 +138,9 @@ def stamp_ns_of(msg: Any) -> int:
     return int(st.secs) * 1_000_000_000 + int(st.nsecs)
 
 
-def _flatten(prefix: str, v: Any, out: dict[str, Any]) -> None:
-    if isinstance(v, dict):
-        for k, vv in v.items():
-            _flatten(f"{prefix}.{k}" if prefix else str(k), vv, out)
-    else:
-        out[prefix] = v
-
-
 def _nested(d: dict[str, Any]) -> dict[str, Any]:
     """Config dict for the parameter server: None values left out (not representable)."""
-    return {k: _nested(v) if isinstance(v, dict) else v for k, v in d.items() if v is not None}
+    return nest_dotted(flatten_dotted(d, skip_none=True))
 
 
 def config_from_params(rospy: Any) -> Config:
@@ -159,7 +152,7 @@ def config_from_params(rospy: Any) -> Config:
     for section in LIVE_SECTIONS + ("slam",):
         v = rospy.get_param("~" + section, None)
         if isinstance(v, dict):
-            _flatten(section, v, overrides)
+            overrides.update(flatten_dotted(v, section))
     if rospy.has_param("~seed"):
         overrides["seed"] = rospy.get_param("~seed")
     return cfg.with_overrides(overrides)
@@ -394,7 +387,7 @@ class Ros1Node:
             for section in LIVE_SECTIONS:
                 v = rospy.get_param("~" + section, None)
                 if isinstance(v, dict):
-                    _flatten(section, v, wanted)
+                    wanted.update(flatten_dotted(v, section))
             q = rospy.get_param("~queue_size", self.core.queue_size)
         except Exception as e:  # noqa: BLE001 - master gone during shutdown
             log.debug("parameter poll failed: %s", e)

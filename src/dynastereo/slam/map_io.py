@@ -32,7 +32,6 @@ import io
 import json
 import math
 import os
-import secrets
 import zipfile
 import zlib
 from dataclasses import dataclass, field
@@ -42,6 +41,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from ..errors import MapFileError
+from ..io.outputs import atomic_open
 from ..datatypes import StereoCalibration
 from .map import COUNTS, Map
 from .table import check_entry
@@ -251,14 +251,10 @@ def save_map(path: str | os.PathLike, mf: MapFile) -> None:
     path = Path(path)
     header, arrays = _collect(mf)  # everything that can fail on the data, before any file exists
     hbytes = json.dumps(header, default=_json_default, allow_nan=False, indent=1).encode("utf-8")
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
-    fd = -1
     try:
         if path.is_dir():
             raise IsADirectoryError(21, "is a folder")
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-        with os.fdopen(fd, "wb") as fh:
-            fd = -1  # owned by fh now
+        with atomic_open(path, "wb", fsync=True, mkdir=False) as fh:
             with zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
                 zf.writestr(HEADER, hbytes, compress_type=zipfile.ZIP_DEFLATED, compresslevel=6)
                 for name, a in arrays.items():
@@ -267,19 +263,8 @@ def save_map(path: str | os.PathLike, mf: MapFile) -> None:
                     else:
                         zf.writestr(name + ".npy", _npy_bytes(a), compress_type=zipfile.ZIP_DEFLATED,
                                     compresslevel=1)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException as e:
-        if fd >= 0:
-            os.close(fd)
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        if isinstance(e, OSError):
-            raise MapFileError(f"cannot write the map file: {e.strerror or e}", path) from e
-        raise
+    except OSError as e:
+        raise MapFileError(f"cannot write the map file: {e.strerror or e}", path) from e
     try:  # make the rename durable (best effort; not possible on every platform)
         dfd = os.open(path.parent, os.O_RDONLY)
         try:

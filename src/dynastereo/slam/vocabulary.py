@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +48,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..errors import InputError, VocabularyError
+from ..io.outputs import atomic_open
 
 FORMAT_NAME = "dynastereo-orb-vocabulary"
 FORMAT_VERSION = 1
@@ -391,13 +391,10 @@ class Vocabulary:
         """Write the vocabulary as a versioned ``.npz`` (format in the module docstring).
         The file is written under a temporary name and renamed: never half-written."""
         path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
         try:
-            with open(tmp, "wb") as f:
+            with atomic_open(path, "wb", fsync=False, mkdir=False) as f:
                 np.savez_compressed(f, **self.to_arrays())
-            os.replace(tmp, path)
         except OSError as e:
-            tmp.unlink(missing_ok=True)
             raise VocabularyError(f"cannot write vocabulary: {e.strerror or e}", path) from None
         return path
 

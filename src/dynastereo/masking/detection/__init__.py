@@ -31,7 +31,7 @@ from .onnx import (
 from .runtime import PRECISIONS, RUNTIMES, OpenVinoSession, RuntimeChoice, openvino_available, resolve_runtime
 from .scale import CANVAS_MODES, ScaledDetector, Tile, merge_tile_boxes, tile_windows
 from .stage import Contrast, DetectionStage
-from .tracking import BoxTracker, TrackerParams
+from .box_tracker import BoxTracker, TrackerParams
 from .postprocess import (
     DARKNET_LAYOUT,
     ULTRALYTICS_LAYOUT,

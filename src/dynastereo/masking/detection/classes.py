@@ -44,6 +44,17 @@ ALIASES: dict[str, str] = {
 }
 
 
+#: Classes a detector swaps on one object (a car called "truck" in one frame or tile and
+#: "car" in the next): each tuple is one group for matching boxes over frames and merging
+#: them across tile seams; every other class (``person`` too) is a group of its own.
+CLASS_GROUPS: tuple[tuple[str, ...], ...] = (("car", "bus", "truck", "train"), ("bicycle", "motorcycle"))
+
+
+def class_group_index(groups: tuple[tuple[str, ...], ...] = CLASS_GROUPS) -> dict[str, int]:
+    """``{canonical class name: index of its group in groups}`` (classes in no group absent)."""
+    return {canonical_name(n): gi for gi, g in enumerate(groups) for n in g}
+
+
 def canonical_name(name: str) -> str:
     """Lower-case, ``_``/``-`` -> space, collapse spaces, then map aliases."""
     n = " ".join(str(name).strip().lower().replace("_", " ").replace("-", " ").split())

@@ -18,6 +18,7 @@ import numpy as np
 
 from ...config import DetectorConfig
 from ...errors import ConfigError, ModelError
+from ...models.sizecheck import check_darknet_weights, darknet_cfg_sections
 from .classes import COCO_CLASSES, read_names_file
 from .common import BoxTransform, RawOutput, YoloDetectorBase, to_bgr
 from .postprocess import DARKNET_LAYOUT
@@ -25,35 +26,23 @@ from .postprocess import DARKNET_LAYOUT
 
 def read_cfg_net(cfg_path: Path) -> dict[str, str]:
     """The ``[net]`` section of a Darknet .cfg as a dict (keys lower-case)."""
-    out: dict[str, str] = {}
-    section = None
-    try:
-        text = Path(cfg_path).read_text(encoding="utf-8", errors="replace")
-    except OSError as e:
-        raise ModelError(f"cannot read Darknet cfg: {e}", cfg_path) from None
-    for line in text.splitlines():
-        line = line.split("#", 1)[0].strip()
-        if not line:
-            continue
-        if line.startswith("["):
-            section = line.strip("[]").strip().lower()
-            continue
-        if section == "net" and "=" in line:
-            k, v = line.split("=", 1)
-            out[k.strip().lower()] = v.strip()
-    return out
+    return _net_section(darknet_cfg_sections(cfg_path))
 
 
 def count_yolo_classes(cfg_path: Path) -> int | None:
-    """``classes=`` of the first ``[yolo]``/``[region]`` section, if any."""
-    section = None
-    for line in Path(cfg_path).read_text(encoding="utf-8", errors="replace").splitlines():
-        line = line.split("#", 1)[0].strip()
-        if line.startswith("["):
-            section = line.strip("[]").strip().lower()
-        elif section in ("yolo", "region") and line.replace(" ", "").startswith("classes="):
+    """``classes=`` of the first ``[yolo]``/``[region]`` section that has it, if any."""
+    return _yolo_classes(darknet_cfg_sections(cfg_path))
+
+
+def _net_section(sections: list[tuple[str, dict[str, str]]]) -> dict[str, str]:
+    return {k: v for name, kv in sections if name == "net" for k, v in kv.items()}
+
+
+def _yolo_classes(sections: list[tuple[str, dict[str, str]]]) -> int | None:
+    for name, kv in sections:
+        if name in ("yolo", "region") and "classes" in kv:
             try:
-                return int(line.split("=", 1)[1])
+                return int(kv["classes"])
             except ValueError:
                 return None
     return None
@@ -96,12 +85,13 @@ class DarknetDetector(YoloDetectorBase):
             class_names = read_names_file(Path(names))
         else:
             class_names = tuple(names)
-        n_cfg = count_yolo_classes(cfg_path)
+        sections = darknet_cfg_sections(cfg_path)
+        n_cfg = _yolo_classes(sections)
         if n_cfg is not None and n_cfg != len(class_names):
             raise ModelError(f"cfg declares classes={n_cfg} but {len(class_names)} class names were given", cfg_path)
         self._init_common(name or cfg_path.stem, class_names, config)
 
-        net_section = read_cfg_net(cfg_path)
+        net_section = _net_section(sections)
         size = config.input_size or input_size
         if size is not None:
             self.input_w = self.input_h = int(size)
@@ -115,8 +105,6 @@ class DarknetDetector(YoloDetectorBase):
             raise ConfigError(
                 f"detector.input_size must be a positive multiple of 32 for Darknet YOLO, got {self.input_w}x{self.input_h}"
             )
-
-        from ...models.sizecheck import check_darknet_weights
 
         check_darknet_weights(cfg_path, weights_path)  # a truncated file: one line, before the first frame
         if config.threads and config.threads > 0:

@@ -32,12 +32,13 @@ import numpy as np
 from ...config import DETECTOR_CANVASES
 from ...errors import ConfigError
 from ...datatypes import Detections
+from .classes import class_group_index
 from .postprocess import nms
 
 CANVAS_MODES = DETECTOR_CANVASES
-#: classes that are one object group when merging across seams (a car seen as "truck"
-#: in one tile and "car" in the other is one vehicle)
-GROUPS = {"car": 0, "truck": 0, "bus": 0, "train": 0, "person": 1, "bicycle": 2, "motorcycle": 2}
+#: class name -> group when merging across seams (a car seen as "truck" in one tile and
+#: "car" in the other is one vehicle): :data:`~.classes.CLASS_GROUPS`
+GROUPS = class_group_index()
 
 
 def round32(v: float) -> int:
@@ -232,6 +233,11 @@ class ScaledDetector:
         if getattr(det, "batch", 1) != 1 and hasattr(self.base, "with_canvas"):
             det = self._single.get((w, h)) or self._single.setdefault(
                 (w, h), self.base.with_canvas(det.input_w, det.input_h, 1))
+        return self._detect_in(det, image, t)
+
+    @staticmethod
+    def _detect_in(det, image: np.ndarray, t: Tile) -> Detections:
+        """``det`` on window ``t`` of ``image``, boxes in frame coordinates."""
         d = det.detect(image[t.y0 : t.y1, t.x0 : t.x1])
         if len(d):
             d.boxes[:, 0::2] += t.x0
@@ -243,11 +249,7 @@ class ScaledDetector:
         """One window: the whole image, or its band below ``t.y0`` (boxes in frame coordinates)."""
         if t.y0 == 0:
             return det.detect(image)
-        d = det.detect(image[t.y0 : t.y1, t.x0 : t.x1])
-        if len(d):
-            d.boxes[:, 1::2] += t.y0
-            d.boxes[:, 0::2] += t.x0
-        return d
+        return ScaledDetector._detect_in(det, image, t)
 
     def detect(self, image: np.ndarray) -> Detections:
         h, w = image.shape[:2]

@@ -11,7 +11,7 @@
    one tile per frame in turn.  Frames are counted as they come (revisits included).
 3. **Scale**: the network sees the frame (or the tile) at about its native scale
    (:class:`~.scale.ScaledDetector`).
-4. **Carry** (``detector.track``): a :class:`~.tracking.BoxTracker` moves the boxes of
+4. **Carry** (``detector.track``): a :class:`~.box_tracker.BoxTracker` moves the boxes of
    earlier frames into this one by sparse optical flow; a detection confirms (same track
    id) or corrects a carried box; boxes the detector did not confirm are carried for
    ``detector.max_carry`` detector runs.  Every box has a track id and a ``carried`` flag
@@ -32,7 +32,7 @@ from ...config import DetectorConfig
 from ...timing import StageTimer, timed
 from ...datatypes import Detections, StereoFrame
 from .scale import ScaledDetector
-from .tracking import BoxTracker, TrackerParams
+from .box_tracker import BoxTracker, TrackerParams
 
 
 _stage = timed

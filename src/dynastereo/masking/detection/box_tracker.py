@@ -68,9 +68,10 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ...datatypes import Detections
-from .classes import canonical_name
+from ..boxes import box_iou
+from .classes import CLASS_GROUPS, canonical_name, class_group_index
 
-__all__ = ["BoxTracker", "TrackerParams", "box_iou"]
+__all__ = ["BoxTracker", "TrackerParams"]
 
 
 @dataclass(frozen=True)
@@ -119,7 +120,7 @@ class TrackerParams:
     # a carried box overlapping an earlier-kept box of its class group this much is dropped
     dup_iou: float = 0.7
     # classes that are one group for matching (canonical COCO names); others: own group
-    class_groups: tuple[tuple[str, ...], ...] = (("car", "bus", "truck", "train"), ("bicycle", "motorcycle"))
+    class_groups: tuple[tuple[str, ...], ...] = CLASS_GROUPS
 
     def __post_init__(self) -> None:
         if not 0.0 < self.match_iou <= 1.0:
@@ -151,27 +152,13 @@ class _Track:
     mask: np.ndarray | None = field(default=None, repr=False)  # bool (H, W)
 
 
-def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU matrix ``(len(a), len(b))`` of ``x1, y1, x2, y2`` boxes."""
-    a = np.asarray(a, np.float64).reshape(-1, 4)
-    b = np.asarray(b, np.float64).reshape(-1, 4)
-    iw = np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0])
-    ih = np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1])
-    inter = np.clip(iw, 0, None) * np.clip(ih, 0, None)
-    area_a = np.clip(a[:, 2] - a[:, 0], 0, None) * np.clip(a[:, 3] - a[:, 1], 0, None)
-    area_b = np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)
-    union = area_a[:, None] + area_b[None, :] - inter
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(union > 0, inter / union, 0.0)
-
-
 class BoxTracker:
     """Carries detector boxes from frame to frame by sparse optical flow (module docstring)."""
 
     def __init__(self, params: TrackerParams | None = None):
         self.params = params or TrackerParams()
         p = self.params
-        self._group_of = {canonical_name(n): gi for gi, g in enumerate(p.class_groups) for n in g}
+        self._group_of = class_group_index(p.class_groups)
         self._lk_kw = dict(
             winSize=(p.lk_win, p.lk_win),
             maxLevel=p.lk_levels,

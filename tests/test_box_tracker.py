@@ -1,4 +1,4 @@
-"""Box tracker (masking.detection.tracking): boxes carried between detections.
+"""Box tracker (masking.detection.box_tracker): boxes carried between detections.
 
 Synthetic sequences with known answers: a random-texture object moving (and scaling,
 as an approaching car) by a known sub-pixel motion over a textured background that moves
@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from dynastereo.masking.detection.classes import COCO_CLASSES
-from dynastereo.masking.detection.tracking import BoxTracker, TrackerParams, box_iou
+from dynastereo.masking.boxes import box_iou
+from dynastereo.masking.detection.box_tracker import BoxTracker, TrackerParams
 from dynastereo.datatypes import Detections
 
 H, W = 240, 480
