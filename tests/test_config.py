@@ -33,6 +33,8 @@ runner = CliRunner()
     ("masker.outline.min_outline_fraction", 1.5),
     ("masker.outline.dilate", -2),
     ("seed", -1),
+    ("slam.n_features", "nan"),  # an integer key given nan/inf: one line, not a bare OverflowError
+    ("seed", float("inf")),
 ])
 def test_a_bad_value_is_refused_naming_the_key(key: str, value) -> None:
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):

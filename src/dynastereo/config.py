@@ -9,12 +9,13 @@ uses them).  ``dump_config`` writes it back, so ``run.json`` can record what was
 from __future__ import annotations
 
 import dataclasses
-import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import cattrs
+import cattrs.gen
 import yaml
 
 from .dotted import nest_dotted
@@ -647,81 +648,123 @@ def to_dict(obj: Any) -> Any:
     return obj
 
 
-def _coerce(tp: Any, value: Any, where: str) -> Any:
-    origin = typing.get_origin(tp)
+# Values from YAML or a command line's text.  cattrs walks the dataclass tree (sections,
+# ``X | None``, unknown keys, which key an error is at); the hooks below are the rules for
+# one value: what a command line's text may mean ("true", "9", "SGBM", "car,person").
+
+
+class _BadValue(ValueError):
+    """A value a hook refuses, ``must be <what>, got <value>``; from_dict adds the key."""
+
+
+def _to_bool(value: Any, _tp: Any = bool) -> bool:
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, str) and value.strip().lower() in ("true", "false"):  # a command line's text
+        return value.strip().lower() == "true"
+    if isinstance(value, int) and value in (0, 1):
+        return bool(value)
+    raise _BadValue(f"must be true/false, got {value!r}")
+
+
+def _to_int(value: Any, _tp: Any = int) -> int:
+    try:
+        f = None if isinstance(value, bool) else float(value)
+    except (TypeError, ValueError):
+        f = None
+    if f is None or not f.is_integer():
+        raise _BadValue(f"must be an integer, got {value!r}")
+    return int(f)
+
+
+def _to_float(value: Any, _tp: Any = float) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise _BadValue(f"must be a number, got {value!r}") from None
+
+
+def _to_str(value: Any, _tp: Any = str) -> str:
+    if not isinstance(value, (str, int, float)):
+        raise _BadValue(f"must be a string, got {value!r}")
+    return str(value)
+
+
+def _to_choice(value: Any, tp: Any) -> Any:
     args = typing.get_args(tp)
-    if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        last: Exception | None = None
-        for a in args:
-            if a is type(None):
-                continue
-            try:
-                return _coerce(a, value, where)
-            except ConfigError as e:
-                last = e
-        raise last or ConfigError(f"invalid value {value!r} for '{where}'")
-    if origin is Literal:
-        if isinstance(value, str) and value.lower() in args:
-            return value.lower()
-        if value in args and not isinstance(value, bool):
-            return value
-        raise ConfigError(f"'{where}' must be one of {', '.join(map(str, args))}, got {value!r}")
-    if dataclasses.is_dataclass(tp):
+    if isinstance(value, str) and value.lower() in args:
+        return value.lower()
+    if value in args and not isinstance(value, bool):
+        return value
+    raise _BadValue(f"must be one of {', '.join(map(str, args))}, got {value!r}")
+
+
+def _to_list(value: Any, tp: Any) -> list:
+    if isinstance(value, str):
+        value = [v.strip() for v in value.split(",") if v.strip()]
+    if not isinstance(value, (list, tuple)):
+        raise _BadValue(f"must be a list, got {value!r}")
+    args = typing.get_args(tp)
+    return [_converter.structure(v, args[0] if args else Any) for v in value]
+
+
+def _section_hook(cls: type) -> Any:
+    structure = cattrs.gen.make_dict_structure_fn(cls, _converter)
+
+    def to_section(value: Any, _tp: Any) -> Any:
         if not isinstance(value, dict):
-            raise ConfigError(f"'{where}' must be a mapping, got {type(value).__name__}")
-        return from_dict(tp, value, where)
-    if origin is list:
-        if isinstance(value, str):
-            value = [v.strip() for v in value.split(",") if v.strip()]
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"'{where}' must be a list, got {value!r}")
-        return [_coerce(args[0] if args else Any, v, where) for v in value]
-    if tp is bool:
-        if isinstance(value, bool):
-            return value
-        if isinstance(value, str) and value.strip().lower() in ("true", "false"):  # a command line's text
-            return value.strip().lower() == "true"
-        if isinstance(value, int) and value in (0, 1):
-            return bool(value)
-        raise ConfigError(f"'{where}' must be true/false, got {value!r}")
-    if tp is int:
-        if isinstance(value, bool):
-            raise ConfigError(f"'{where}' must be an integer, got {value!r}")
-        try:
-            f = float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"'{where}' must be an integer, got {value!r}") from None
-        if f != int(f):
-            raise ConfigError(f"'{where}' must be an integer, got {value!r}")
-        return int(f)
-    if tp is float:
-        try:
-            return float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"'{where}' must be a number, got {value!r}") from None
-    if tp is str:
-        if not isinstance(value, (str, int, float)):
-            raise ConfigError(f"'{where}' must be a string, got {value!r}")
-        return str(value)
-    return value
+            raise _BadValue(f"must be a mapping, got {type(value).__name__}")
+        return structure(value, cls)
+
+    return to_section
+
+
+_converter = cattrs.Converter(forbid_extra_keys=True, detailed_validation=True)
+for _tp, _hook in ((bool, _to_bool), (int, _to_int), (float, _to_float), (str, _to_str)):
+    _converter.register_structure_hook(_tp, _hook)
+_converter.register_structure_hook_func(lambda tp: typing.get_origin(tp) is Literal, _to_choice)
+_converter.register_structure_hook_func(lambda tp: typing.get_origin(tp) is list, _to_list)
+_converter.register_structure_hook_factory(dataclasses.is_dataclass, _section_hook)
+
+
+def _errors(exc: BaseException, path: tuple[str, ...] = ()) -> typing.Iterator[tuple[tuple[str, ...], BaseException]]:
+    """``(key path, error)`` of every error in cattrs' exception tree."""
+    if isinstance(exc, cattrs.ClassValidationError):
+        with_notes, without = exc.group_exceptions()
+        for e, note in with_notes:
+            yield from _errors(e, path + (note.name,))
+        for e in without:
+            yield from _errors(e, path)
+    else:
+        yield path, exc
 
 
 def from_dict(cls: type, data: dict[str, Any], where: str = "") -> Any:
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(data) - names
-    if unknown:
-        prefix = f"{where}." if where and not where.startswith("<") else ""
+    """``cls`` (a configuration dataclass) from a nested mapping; the first bad key or
+    value raises a one-line ConfigError naming the key (``where``: a prefix of the keys;
+    ``"<...>"`` names no prefix)."""
+    prefix = () if not where or where.startswith("<") else tuple(where.split("."))
+    try:
+        return _converter.structure(data, cls)
+    except (cattrs.ClassValidationError, _BadValue) as exc:
+        found = list(_errors(exc, prefix))
+
+    def order(pe: tuple[tuple[str, ...], BaseException]) -> tuple[int, ...]:
+        # the first error in the order of the data's keys; a section's unknown keys before its values
+        rank, node = [], data
+        for k in pe[0][len(prefix):]:
+            rank.append(list(node).index(k) if isinstance(node, dict) and k in node else len(node or ()))
+            node = node.get(k) if isinstance(node, dict) else None
+        return (*rank, -1 if isinstance(pe[1], cattrs.ForbiddenExtraKeysError) else 0)
+
+    path, err = min(found, key=order)
+    if isinstance(err, cattrs.ForbiddenExtraKeysError):
         raise ConfigError(
-            f"unknown configuration key(s): {', '.join(prefix + k for k in sorted(unknown))}"
+            f"unknown configuration key(s): {', '.join('.'.join(path + (k,)) for k in sorted(err.extra_fields))}"
         )
-    kwargs = {}
-    for k, v in data.items():
-        sub = f"{where}.{k}" if where and not where.startswith("<") else k
-        kwargs[k] = _coerce(hints[k], v, sub)
-    return cls(**kwargs)
+    if isinstance(err, _BadValue):
+        raise ConfigError(f"'{'.'.join(path)}' {err}")
+    raise err  # a section's own check (ConfigError naming the key) or a bug
 
 
 def load_config(path: str | Path | None = None) -> Config:

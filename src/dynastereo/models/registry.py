@@ -9,7 +9,9 @@ Every ``sha256``/``size`` below was computed (``sha256sum``) from the files the 
 was developed with.  Where that file came from a mirror rather than the official address
 (YOLOX-nano, the Darknet cfg), the registry's hash is *that* file's; should the official
 file differ, ``dynastereo models download`` reports a checksum mismatch naming the file,
-the expected and the actual hash (and leaves nothing behind).
+the expected and the actual hash (and leaves nothing behind).  Downloads go through
+``pooch.retrieve`` (temporary file, sha256, rename into place) with the checks it does
+not make (size, a cfg without a known hash) in its downloader (:class:`_CheckedDownload`).
 ``yolov3.weights``' size and sha256 are the published figures of the official file.
 ``yolov3.cfg`` (the official darknet repository's raw file) could not be fetched offline:
 its sha256 and size are unknown (``None``); a download is accepted when it parses as a
@@ -27,9 +29,6 @@ import hashlib
 import json
 import logging
 import os
-import tempfile
-import urllib.error
-import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable
@@ -349,52 +348,66 @@ def _file_url(spec: ModelSpec, f: ModelFile, mirror: str | None) -> str | None:
     return f.url
 
 
-def _fetch(url: str, dest: Path, f: ModelFile, progress: bool) -> None:
-    """Stream ``url`` into a temporary file beside ``dest``, check it, rename into place."""
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".part", dir=dest.parent)
-    tmp = Path(tmp_name)
-    try:
-        h = hashlib.sha256()
-        with os.fdopen(fd, "wb") as out:
-            try:
-                req = urllib.request.Request(url, headers={"User-Agent": "dynastereo-model-download"})
-                with urllib.request.urlopen(req, timeout=60) as resp:
-                    total = resp.headers.get("Content-Length")
-                    total_n = int(total) if total and total.isdigit() else f.size
-                    bar = _progress_bar() if progress else None
-                    if bar is not None:
-                        bar.start()
-                        task = bar.add_task(f.filename, total=total_n)
-                    try:
-                        while b := resp.read(1 << 20):
-                            out.write(b)
-                            h.update(b)
-                            if bar is not None:
-                                bar.advance(task, len(b))
-                    finally:
-                        if bar is not None:
-                            bar.stop()
-            except (urllib.error.URLError, OSError, ValueError) as e:
-                raise ModelError(f"download of {url} failed: {e}", dest) from None
+class _CheckedDownload:
+    """A pooch downloader: :class:`pooch.HTTPDownloader` into pooch's temporary file, then
+    the checks pooch does not make (size, a Darknet cfg without a known hash) and the
+    file's mode; pooch then compares the sha256 and moves the file into place."""
+
+    def __init__(self, dest: Path, f: ModelFile, progress: bool) -> None:
+        import pooch
+
+        self.dest, self.f, self.actual = dest, f, ""
+        self.bar = _RichBar(f.filename, f.size) if progress else None
+        self.http = pooch.HTTPDownloader(progressbar=self.bar or False, chunk_size=1 << 20, timeout=60,
+                                         headers={"User-Agent": "dynastereo-model-download"})
+
+    def __call__(self, url: str, output_file: str, pooch_: Any) -> None:
+        import requests
+
+        try:
+            self.http(url, output_file, pooch_)
+        except (requests.RequestException, OSError, ValueError) as e:
+            raise ModelError(f"download of {url} failed: {e}", self.dest) from None
+        finally:
+            if self.bar is not None:
+                self.bar.close()
+        tmp, f = Path(output_file), self.f
         size = tmp.stat().st_size
         if f.size is not None and size != f.size:
-            raise ModelError(f"downloaded {size} bytes from {url}, expected {f.size}; file discarded", dest)
-        actual = h.hexdigest()
-        if f.sha256 is not None and actual != f.sha256:
-            raise ModelError(
-                f"sha256 mismatch for {f.filename} from {url}: expected {f.sha256}, actual {actual}; file discarded",
-                dest,
-            )
+            raise ModelError(f"downloaded {size} bytes from {url}, expected {f.size}; file discarded", self.dest)
         if f.sha256 is None and f.filename.endswith(".cfg") and (problem := _check_darknet_cfg(tmp)):
-            raise ModelError(f"downloaded cfg from {url} is invalid ({problem}); file discarded", dest)
+            problem = problem.split(": ", 1)[-1]  # (not the temporary file's name)
+            raise ModelError(f"downloaded cfg from {url} is invalid ({problem}); file discarded", self.dest)
+        self.actual = sha256_file(tmp)  # for the message, should pooch find a mismatch
         umask = os.umask(0)
         os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it 0600
-        os.replace(tmp, dest)
+        os.chmod(tmp, 0o666 & ~umask)  # a temporary file is made 0600
+
+
+def _fetch(url: str, dest: Path, f: ModelFile, progress: bool) -> None:
+    """Download ``url`` to ``dest`` with :func:`pooch.retrieve`: into a temporary file
+    beside ``dest``, checked (:class:`_CheckedDownload`, sha256), then renamed into place;
+    a failed check leaves nothing behind.  (pooch, requests: imported only to download.)"""
+    import pooch
+
+    if f.sha256 is None and dest.exists():
+        dest.unlink()  # known bad (download() checked it); without a hash pooch would keep it
+    get = _CheckedDownload(dest, f, progress)
+    logger = pooch.get_logger()
+    level = logger.level
+    logger.setLevel(logging.WARNING)  # no "Downloading data from ..." line: the progress bar says it
+    try:
+        pooch.retrieve(url, known_hash=f"sha256:{f.sha256}" if f.sha256 else None, fname=dest.name,
+                       path=dest.parent, downloader=get)
+    except ValueError:  # pooch's sha256 mismatch (the temporary file is deleted)
+        raise ModelError(
+            f"sha256 mismatch for {f.filename} from {url}: expected {f.sha256}, actual {get.actual}; file discarded",
+            dest,
+        ) from None
+    except OSError as e:
+        raise ModelError(f"cannot write the model file: {e}", dest) from None
     finally:
-        if tmp.exists():
-            tmp.unlink()
+        logger.setLevel(level)
 
 
 def _progress_bar() -> Any:
@@ -414,6 +427,30 @@ def _progress_bar() -> Any:
         TransferSpeedColumn(),
         TimeRemainingColumn(),
     )
+
+
+class _RichBar:
+    """The progress bar pooch drives (``total``, ``update``, ``reset``, ``close``), drawn by rich."""
+
+    def __init__(self, name: str, size: int | None) -> None:
+        self.name, self.size, self.total = name, size, 0
+        self.bar: Any = None
+
+    def update(self, n: int) -> None:
+        if self.bar is None:
+            self.bar = _progress_bar()
+            self.bar.start()
+            self.task = self.bar.add_task(self.name, total=self.total or self.size)
+        self.bar.advance(self.task, n)
+
+    def reset(self) -> None:
+        if self.bar is not None:
+            self.bar.reset(self.task, total=self.total or self.size)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+            self.bar = None
 
 
 def download(

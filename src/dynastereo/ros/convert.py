@@ -11,7 +11,12 @@ Images
 ``16UC1``, ``bgr8``, ``rgb8``, ``bgra8``, ``rgba8``, ``8UC3``) and
 ``sensor_msgs/CompressedImage`` (PNG, JPEG: whatever ``cv2.imdecode`` reads) into what the
 pipeline eats: ``uint8`` gray ``(H, W)`` or BGR ``(H, W, 3)``.  Row padding (``step``)
-and big-endian 16-bit data are honoured.  16-bit images become 8-bit by a right shift
+and big-endian 16-bit data are honoured.  The message is checked here (encoding, sizes,
+one-line :class:`InputError`) and its row padding dropped; ``rosbags-image``
+(:func:`rosbags.image.image_to_cvimage`) then does dtype, byte order and the colour
+conversion to BGR.  CompressedImage is decoded with ``cv2.imdecode(IMREAD_UNCHANGED)``
+itself: rosbags-image's decoder (``IMREAD_ANYCOLOR``) would cut 16-bit PNGs to 8 bits
+before the fixed shift below, and fails on bad data with a bare ``AssertionError``.  16-bit images become 8-bit by a right shift
 that is fixed once per decoder (not per frame, which would change the brightness from
 frame to frame): given, or chosen from the first 16-bit image so that its largest value
 fits in 8 bits (a 12-bit camera -> shift 4, full 16-bit range -> shift 8).
@@ -41,10 +46,12 @@ Poses
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Any
 
 import cv2
 import numpy as np
+from rosbags.image import image_to_cvimage
 from scipy.spatial.transform import Rotation
 
 from ..errors import CalibrationError, InputError
@@ -88,9 +95,9 @@ def _bytes_view(data: Any) -> np.ndarray:
     return np.asarray(data, dtype=np.uint8).reshape(-1)
 
 
-def image_to_array(msg: Any, where: str = "") -> np.ndarray:
-    """A ``sensor_msgs/Image`` as a numpy array in its own encoding's dtype (no conversion
-    of depth or channel order): ``(H, W)`` or ``(H, W, C)``."""
+def _packed_image(msg: Any, where: str = "") -> SimpleNamespace:
+    """The checked fields of a ``sensor_msgs/Image`` with the row padding dropped, as
+    :func:`rosbags.image.image_to_cvimage` reads them (it takes rows as packed)."""
     enc = str(msg.encoding)
     if enc not in IMAGE_ENCODINGS:
         raise InputError(
@@ -108,13 +115,15 @@ def image_to_array(msg: Any, where: str = "") -> np.ndarray:
     if buf.size < h * step:
         raise InputError(f"image data holds {buf.size} bytes, expected height*step = {h}*{step} = {h * step}",
                          where or None)
-    rows = buf[: h * step].reshape(h, step)[:, :row]
-    big = bool(getattr(msg, "is_bigendian", 0))
-    dt = dtype.newbyteorder(">" if big else "<")
-    arr = np.ascontiguousarray(rows).view(dt).reshape((h, w) if ch == 1 else (h, w, ch))
-    if arr.dtype != dtype:
-        arr = arr.astype(dtype)  # to native byte order
-    return arr
+    data = buf[: h * row] if step == row else np.ascontiguousarray(buf[: h * step].reshape(h, step)[:, :row])
+    return SimpleNamespace(height=h, width=w, encoding=enc, is_bigendian=int(bool(getattr(msg, "is_bigendian", 0))),
+                           step=row, data=data)
+
+
+def image_to_array(msg: Any, where: str = "") -> np.ndarray:
+    """A ``sensor_msgs/Image`` as a numpy array in its own encoding's dtype (native byte
+    order; no conversion of depth or channel order): ``(H, W)`` or ``(H, W, C)``."""
+    return image_to_cvimage(_packed_image(msg, where))
 
 
 class ImageDecoder:
@@ -144,17 +153,12 @@ class ImageDecoder:
         """``uint8`` gray ``(H, W)`` or BGR ``(H, W, 3)`` from an Image or CompressedImage."""
         if hasattr(msg, "format") and not hasattr(msg, "encoding"):
             return self.decode_compressed(msg, where)
-        enc = str(msg.encoding)
-        arr = image_to_array(msg, where)
-        if enc == "32FC1":
+        packed = _packed_image(msg, where)
+        if packed.encoding == "32FC1":
             raise InputError("a 32FC1 (float) image is not a camera image", where or None)
-        if arr.ndim == 3:
-            if arr.shape[2] == 4:
-                arr = arr[:, :, :3]
-            if enc in _RGB:
-                arr = arr[:, :, ::-1]
-            return np.ascontiguousarray(arr)
-        return self.to_uint8(arr)
+        if IMAGE_ENCODINGS[packed.encoding][1] > 1:  # colour: rosbags-image drops alpha, RGB -> BGR
+            return image_to_cvimage(packed, "bgr8")
+        return self.to_uint8(image_to_cvimage(packed))
 
     def decode_compressed(self, msg: Any, where: str = "") -> np.ndarray:
         buf = _bytes_view(msg.data)
