@@ -413,11 +413,11 @@ def test_gt_command_writes_kitti_and_tum(raw_drive, tmp_path):
 
 def test_bench_and_report_find_oxts(raw_drive):
     from dynastereo.bench.discover import discover
-    from dynastereo.eval.html_report import default_ground_truth
+    from dynastereo.eval.trajectory import find_ground_truth
 
     seqs = discover(raw_drive.parent.parent)
     assert [s.ground_truth for s in seqs] == [raw_drive / "oxts"]
-    assert default_ground_truth(raw_drive) == raw_drive / "oxts"
+    assert find_ground_truth(raw_drive) == raw_drive / "oxts"
 
 
 def _oxts_drive(tmp_path: Path, n: int = 3) -> Path:

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from ..io.outputs import atomic_write_text
 from .discover import BenchSequence
 
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
@@ -95,10 +96,7 @@ def finished_record(job: BenchJob) -> dict[str, Any] | None:
 
 
 def write_json_atomic(path: Path, data: Any) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=1, default=float))
-    tmp.replace(path)
+    atomic_write_text(path, json.dumps(data, indent=1, default=float), fsync=False)
 
 
 def store_result(job: BenchJob, record: dict[str, Any]) -> dict[str, Any]:

@@ -261,7 +261,6 @@ def tum_rows(poses: np.ndarray, timestamps: np.ndarray) -> str:
     return "".join(f"{t:.9f} " + " ".join(f"{v:.9f}" for v in row) + "\n" for t, row in zip(ts, rows))
 
 
-_atomic_write = atomic_write_text  # the name ros.core imports (the lead's file); use atomic_write_text
 
 
 def write_kitti(path: str | Path, poses: np.ndarray) -> Path:

@@ -53,6 +53,7 @@ from typing import Any, Iterator, Protocol
 import numpy as np
 
 from ..config import Config, to_dict
+from ..dotted import flatten_dotted
 from ..datatypes import StereoCalibration, StereoFrame, StereoMasks
 from ..errors import ConfigError
 from ..io.calib import RawStereoCalibration
@@ -132,18 +133,10 @@ class NodeStats:
 
 def flatten_live(cfg: Config) -> dict[str, Any]:
     """``{"stereo.block_size": 15, ...}`` for the live sections (None values left out)."""
-    out: dict[str, Any] = {}
-
-    def walk(prefix: str, v: Any) -> None:
-        if isinstance(v, dict):
-            for k, vv in v.items():
-                walk(f"{prefix}.{k}" if prefix else k, vv)
-        elif v is not None:
-            out[prefix] = v
-
     d = to_dict(cfg)
+    out: dict[str, Any] = {}
     for s in LIVE_SECTIONS:
-        walk(s, d[s])
+        out.update(flatten_dotted(d[s], s, skip_none=True))
     return out
 
 
@@ -505,7 +498,8 @@ class StereoNodeCore:
     def save(self, out_dir: str | Path) -> dict[str, str]:
         """Write ``trajectory.{kitti,tum,frames}.txt``, ``timing.json`` and ``node.json``
         (statistics, latency, configuration) into ``out_dir``; returns the paths."""
-        from ..eval.trajectory import FRAMES_NAME, KITTI_NAME, TUM_NAME, _atomic_write, write_kitti, write_tum
+        from ..eval.trajectory import FRAMES_NAME, KITTI_NAME, TUM_NAME, write_kitti, write_tum
+        from ..io.outputs import atomic_write_text
 
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -514,14 +508,14 @@ class StereoNodeCore:
                  "timing": out / "timing.json", "node": out / "node.json"}
         write_kitti(paths["kitti"], poses)
         write_tum(paths["tum"], poses, stamps.astype(np.float64) * 1e-9)
-        _atomic_write(paths["frames"], "".join(f"{i}\n" for i in range(len(stamps))))
+        atomic_write_text(paths["frames"], "".join(f"{i}\n" for i in range(len(stamps))))
         with self._slam_locked("save", "timing.json not written") as ok:
             if ok:
                 self.timer.write(paths["timing"], frames_done=len(stamps))
         st = self.status()
         if self._system is not None:
             st["slam"] = self._system.stats().to_dict()
-        _atomic_write(paths["node"], json.dumps(st, indent=1, default=float))
+        atomic_write_text(paths["node"], json.dumps(st, indent=1, default=float))
         return {k: str(v) for k, v in paths.items()}
 
 

@@ -31,12 +31,12 @@ if TYPE_CHECKING:  # pragma: no cover
 def resolve_ground_truth(gt: str | Path | None, sequence: Any) -> Path | None:
     """``gt``, else the sequence's own ground truth when it has one (KITTI odometry
     ``poses/NN.txt``, a KITTI raw drive's ``oxts/``)."""
-    from ..eval.html_report import default_ground_truth
+    from ..eval.trajectory import find_ground_truth
 
     if gt is not None:
         return Path(gt)
     path = getattr(sequence, "path", sequence)
-    return default_ground_truth(path) if isinstance(path, (str, Path)) else None
+    return find_ground_truth(path) if isinstance(path, (str, Path)) else None
 
 
 def versions() -> dict[str, str]:
@@ -188,7 +188,6 @@ def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> SlamJobResul
     except OSError as e:
         late = late or write_failed(e, out / "timing.json")
         error = error or f"{type(late).__name__}: {late}"
-        (out / "timing.json.tmp").unlink(missing_ok=True)
     late = _write_run_json(job, loop, error, stats, map_out, fps, wall) or late
     if late is not None and first_error is None:
         raise late
