@@ -89,6 +89,7 @@ def _thread_cpu() -> dict[str, float]:
         cpu = (int(fields[11]) + int(fields[12])) / TICK  # utime + stime
         name = names.get(int(d.name), f"native:{comm}")
         key = name.rsplit("_", 1)[0] if name.startswith(("prefetch", "features")) else name
+        key = "prefetch" if key == "dynastereo-mask" else key  # the runtime's masking thread
         out[key] = out.get(key, 0.0) + cpu
     return out
 
