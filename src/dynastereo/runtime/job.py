@@ -12,6 +12,11 @@ an earlier run there is cleared only once the inputs proved good):
 
 Then the frame loop (:class:`~dynastereo.runtime.loop.FrameLoop`) and the job's last files
 (:mod:`dynastereo.runtime.finish`): whatever happens, they say how the job ended.
+
+The masking and SLAM packages (onnxruntime, numba: about a second to load), the rerun viewer,
+the report (matplotlib) and the bag writer (rosbags) are imported where a job needs them:
+``import dynastereo.api`` and ``dynastereo --help`` do not pay for them.  No import here is
+inside a function to dodge a cycle (``tests/test_imports.py``).
 """
 
 from __future__ import annotations
