@@ -42,6 +42,7 @@ from dynastereo.slam.map_io import (
     save_map,
 )
 from dynastereo.slam.matcher import stereo_match
+from dynastereo.slam.relocalization import candidate_keyframes, relocalize
 from dynastereo.slam.selfcal import shift_disparity
 from dynastereo.slam.tracking import Tracker
 from dynastereo.synth import generate
@@ -104,8 +105,8 @@ def _frame(sysm: System, sf, index: int = 0) -> Frame:
 
 
 def _relocalize(tr: Tracker, mp: Map, f: Frame) -> tuple[bool, int]:
-    """``Tracker.relocalize`` on the descriptor-vote candidates."""
-    return tr.relocalize(mp, f, tr.candidate_keyframes(mp, f, 3))
+    """``relocalization.relocalize`` on the descriptor-vote candidates."""
+    return relocalize(tr, mp, f, candidate_keyframes(mp, f, 3))
 
 
 def _assert_same_map(a: Map, b: Map) -> None:
