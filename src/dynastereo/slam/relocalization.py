@@ -1,11 +1,9 @@
 """Relocalization (ORB-SLAM2 ``Tracking::Relocalization``): a prior-free pose of a frame in
 the map, when neither the motion model nor the reference keyframe gives a supported one.
 
-Candidate keyframes come from the bag-of-words keyframe database
-(``KeyFrameDatabase.detect_relocalization_candidates``, ORB-SLAM2's
-``DetectRelocalizationCandidates``), then, when none of them holds, from
-:func:`candidate_keyframes` (a vote of a sample of the frame's descriptors matched
-brute force to the map's points).  For each candidate: descriptor matches, PnP-RANSAC,
+Candidate keyframes come from the bag-of-words keyframe database, the one shared with loop
+closing (``KeyFrameDatabase.detect_relocalization_candidates``, ORB-SLAM2's
+``DetectRelocalizationCandidates``).  For each candidate: descriptor matches, PnP-RANSAC,
 motion-only BA and local-map tracking; the hypothesis with most inliers wins
 (:func:`relocalize`).  The tracker's state (reference keyframe, local keyframes,
 inliers) is left as the winning hypothesis made it.
@@ -16,40 +14,40 @@ from __future__ import annotations
 import time
 from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
 
 from .frame import Frame
 from .geometry import pnp_ransac
+from .keyframe_database import KeyFrameDatabase
 from .map import Map
-from .matcher import TH_LOW, keyframe_point_matches
+from .matcher import keyframe_point_matches
+from .vocabulary import Vocabulary
 
 if TYPE_CHECKING:  # for annotations only: the Tracker imports this module
     from .tracking import Tracker
 
 
 def relocalize_frame(tracker: Tracker, f: Frame) -> tuple[bool, int]:
-    """:func:`relocalize` on the bag-of-words candidates (ORB-SLAM2's
-    ``DetectRelocalizationCandidates``); when none of them holds, on the keyframes
-    that see most of a sample of the frame's descriptors (brute force)."""
+    """:func:`relocalize` on the best ``slam.reloc_candidates`` keyframes of the
+    bag-of-words database (ORB-SLAM2's ``DetectRelocalizationCandidates``)."""
     t0 = time.perf_counter()
     active, cfg = tracker.active, tracker.cfg
     mp, n = active.map, cfg.reloc_candidates
-    bow, _ = tracker.vocab.transform(f.desc)
-    cands = [k for k in active.kfdb.detect_relocalization_candidates(bow, mp.best_covisibles)
-             if k in mp.keyframes]
-    found, kid = relocalize(tracker, mp, f, cands[:n])
-    if not found or tracker.n_inliers < max(cfg.reloc_min_inliers, cfg.min_inliers):
-        more = [k for k in candidate_keyframes(mp, f, n) if k not in cands[:n]]
-        if more:
-            found, kid = relocalize(tracker, mp, f, more)
+    found, kid = relocalize(tracker, mp, f, database_candidates(tracker.vocab, active.kfdb, mp, f, n))
     tracker.reloc_ms.append((time.perf_counter() - t0) * 1e3)
     return found, kid
 
 
+def database_candidates(vocab: Vocabulary, kfdb: KeyFrameDatabase, mp: Map, f: Frame, n: int) -> list[int]:
+    """The ``n`` best relocalization candidates of the frame in the keyframe database
+    ``kfdb`` (the keyframes of ``mp`` only), best first."""
+    bow, _ = vocab.transform(f.desc)
+    return [k for k in kfdb.detect_relocalization_candidates(bow, mp.best_covisibles) if k in mp.keyframes][:n]
+
+
 def relocalize(tracker: Tracker, mp: Map, frame: Frame, candidates: list[int]) -> tuple[bool, int]:
     """Prior-free pose of the frame in the map (ORB-SLAM2 ``Relocalization``): for each
-    candidate keyframe (from the bag-of-words database, or ``candidate_keyframes``),
+    candidate keyframe (:func:`database_candidates`),
     descriptor matches + PnP-RANSAC + motion-only BA + local-map tracking; the
     hypothesis with most inliers wins.  Returns ``(found, keyframe id)``; the frame /
     tracker hold the best hypothesis (or are left as they were when none is found)."""
@@ -102,27 +100,3 @@ def relocalize(tracker: Tracker, mp: Map, frame: Frame, candidates: list[int]) -
     mp.points.mark_found(inl)
     mp.points.mark_visible(inl)
     return True, kid
-
-
-def candidate_keyframes(mp: Map, frame: Frame, n: int = 3, max_points: int = 20000) -> list[int]:
-    """Keyframes of the map most likely to see the frame's place: a sample of the
-    frame's descriptors is matched to the map's points (nearest, <= TH_LOW) and every
-    keyframe gets a vote per matched point it observes (a brute-force stand-in for
-    ORB-SLAM2's bag-of-words keyframe database, cheap on maps of a few dozen keyframes)."""
-    if len(frame) < 10 or not mp.keyframes:
-        return []
-    pts = np.flatnonzero(~mp.points.bad[: mp.points.n] & (mp.points.nobs[: mp.points.n] > 0))
-    if len(pts) == 0:
-        return []
-    if len(pts) > max_points:  # newest points (deterministic)
-        pts = pts[-max_points:]
-    step = max(1, len(frame) // 400)
-    sample = np.arange(0, len(frame), step)
-    dnn, inn = cv2.batchDistance(frame.desc[sample], mp.points.desc[pts], cv2.CV_32S, normType=cv2.NORM_HAMMING, K=1)
-    good = (inn[:, 0] >= 0) & (dnn[:, 0] <= TH_LOW)
-    matched = np.unique(pts[inn[good, 0]])
-    counts = mp.covisible_counts(matched)
-    ranked = sorted(
-        ((c, k) for k, c in counts.items() if k in mp.keyframes and c >= 5), key=lambda t: (-t[0], -t[1])
-    )
-    return [k for _, k in ranked[:n]]
