@@ -50,6 +50,7 @@ import numpy as np
 from ..errors import InputError, SequenceError
 from ..datatypes import StereoCalibration, StereoFrame
 from .calib import RawStereoCalibration, load_stereo_yaml
+from .folder import find_calib_yaml
 from .sequence import rectified_calibration
 from .times import check_rate
 
@@ -96,8 +97,6 @@ def _is_colour(img: np.ndarray) -> bool:
 def _calibration_path(calib: str | Path | None, video: Path) -> Path:
     if calib is not None:
         return Path(calib)
-    from .folder import find_calib_yaml
-
     found = find_calib_yaml(video.parent if video.parent != Path("") else Path("."))
     if found is None:
         raise SequenceError("no calibration: pass --calib calib.yaml (or put calib.yaml beside the video)", video)

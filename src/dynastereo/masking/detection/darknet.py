@@ -18,6 +18,7 @@ import numpy as np
 
 from ...config import DetectorConfig
 from ...errors import ConfigError, ModelError
+from ...models.sizecheck import check_darknet_weights
 from .classes import COCO_CLASSES, read_names_file
 from .common import BoxTransform, RawOutput, YoloDetectorBase, to_bgr
 from .postprocess import DARKNET_LAYOUT
@@ -115,8 +116,6 @@ class DarknetDetector(YoloDetectorBase):
             raise ConfigError(
                 f"detector.input_size must be a positive multiple of 32 for Darknet YOLO, got {self.input_w}x{self.input_h}"
             )
-
-        from ...models.sizecheck import check_darknet_weights
 
         check_darknet_weights(cfg_path, weights_path)  # a truncated file: one line, before the first frame
         if config.threads and config.threads > 0:
