@@ -414,7 +414,7 @@ def make_labels(drive: Path, ref_dir: Path, out: Path, overlays: Path | None = N
 
     from dynastereo.io import open_sequence
     from dynastereo.masking.boxes import box_iou
-    from dynastereo.masking.motion import _group
+    from dynastereo.masking.motion.verdicts import _group
 
     seq = open_sequence(drive)
     c = seq.calibration

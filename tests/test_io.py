@@ -631,6 +631,26 @@ def test_euroc_errors(euroc_dir, tmp_path):
         open_sequence(root)
 
 
+
+def test_euroc_T_BS_as_written_or_as_a_list_and_bad_ones_named(tmp_path):
+    """``T_BS`` of a sensor.yaml (one reader for the calibration and bench's ground truth)."""
+    from dynastereo.io.calib import read_euroc_T_BS
+
+    T = np.arange(16.0).reshape(4, 4)
+    row = "[" + ", ".join(str(v) for v in T.ravel()) + "]"
+    y = tmp_path / "sensor.yaml"
+    y.write_text(f"T_BS:\n  cols: 4\n  rows: 4\n  data: {row}\n")
+    np.testing.assert_array_equal(read_euroc_T_BS(y), T)
+    y.write_text(f"T_BS: {row}\n")
+    np.testing.assert_array_equal(read_euroc_T_BS(y), T)
+    y.write_text("T_BS:\n  data: [1, 2, 3]\n")
+    with pytest.raises(CalibrationError, match=r"sensor.yaml: key 'T_BS.data': expected 16 numbers, got 3"):
+        read_euroc_T_BS(y)
+    y.write_text("intrinsics: [1, 2, 3, 4]\n")
+    with pytest.raises(CalibrationError, match=r"sensor.yaml: key 'T_BS' is missing \(EuRoC sensor.yaml\)"):
+        read_euroc_T_BS(y)
+
+
 # --------------------------------------------------------------------------- generic folders
 
 

@@ -111,7 +111,7 @@ def test_pipeline_goes_serial_after_a_stuck_stage_and_records_it() -> None:
 
 def test_pipeline_waits_without_bound_for_a_quiet_source() -> None:
     """A live input may send nothing for long: only a stage that takes too long counts."""
-    from dynastereo.runtime.sources import DropOldestQueue
+    from dynastereo.io.queues import DropOldestQueue
 
     q = DropOldestQueue(2)
     pipe = StagePipeline(q.get, lambda i: i + 1, pipelined=True, timeout_s=0.2)

@@ -472,7 +472,7 @@ class SlamConfig:
     # not supported either (a wrong pose keeps a few far points: a jump back in a revisit)
     min_inlier_fraction: float = 0.25
     # an unsupported pose is replaced by a prior-free search over the map's keyframes
-    # (descriptor votes -> best reloc_candidates keyframes -> PnP-RANSAC -> local map);
+    # (bag-of-words database -> best reloc_candidates keyframes -> PnP-RANSAC -> local map);
     # its best hypothesis needs reloc_min_inliers, else the frame is lost.  0 = no search
     reloc_candidates: int = 3
     reloc_min_inliers: int = 50

@@ -36,6 +36,7 @@ import numpy as np
 from ..errors import InputError, SequenceError
 from ..eval.trajectory import find_ground_truth
 from ..io import detect_format
+from ..io.calib import read_euroc_T_BS
 from ..io.euroc import euroc_mav_dir
 from ..io.outputs import atomic_open
 from ..io.kitti_raw import is_kitti_raw_drive
@@ -159,8 +160,6 @@ def euroc_ground_truth_tum(csv_path: Path, sequence, out_path: Path) -> Path:
     the sequence's rectified left camera: ``T_W_C = T_W_B @ T_BS(cam0) @ R1^T``."""
     from scipy.spatial.transform import Rotation
 
-    from ..io.calib import read_yaml_file
-
     try:
         rows = np.loadtxt(csv_path, delimiter=",", comments="#", ndmin=2)
     except ValueError as e:
@@ -170,9 +169,7 @@ def euroc_ground_truth_tum(csv_path: Path, sequence, out_path: Path) -> Path:
     T_WB = np.broadcast_to(np.eye(4), (len(rows), 4, 4)).copy()
     T_WB[:, :3, 3] = rows[:, 1:4]
     T_WB[:, :3, :3] = Rotation.from_quat(rows[:, [5, 6, 7, 4]]).as_matrix()  # wxyz -> xyzw
-    sensor = read_yaml_file(euroc_mav_dir(Path(sequence.path)) / "cam0" / "sensor.yaml")
-    T = sensor["T_BS"]
-    T_BS = np.asarray(T.get("data") if isinstance(T, dict) else T, np.float64).reshape(4, 4)
+    T_BS = read_euroc_T_BS(euroc_mav_dir(Path(sequence.path)) / "cam0" / "sensor.yaml")
     T_CR = np.eye(4)
     rect = getattr(sequence, "rectifier", None)
     if rect is not None:

@@ -42,7 +42,7 @@ from .calib import (
     read_kitti_calib_rows,
     read_yaml_file,
 )
-from .euroc import EurocSequence, pair_by_timestamp
+from .euroc import EurocSequence, euroc_mav_dir, pair_by_timestamp
 from .folder import FolderSequence, find_calib_yaml, find_pair_dirs
 from .frames import parse_frame_spec
 from .images import (
@@ -58,6 +58,7 @@ from .kitti import KittiSequence, kitti_image_dirs
 from .kitti_raw import KittiRawSequence, read_kitti_raw_timestamps, resolve_kitti_raw_drive
 from .rectify import Rectifier
 from .sequence import ImagePairSequence, is_colour_image
+from .video import is_video_source, open_video_source
 
 __all__ = [
     "EurocSequence",
@@ -114,8 +115,6 @@ def detect_format(path: str | Path, calib: str | Path | None = None) -> str:
     if not path.is_dir():
         raise SequenceError("expected a sequence folder or a video file (.mkv, .avi, .mp4, ...), got another file",
                             path)
-    from .euroc import euroc_mav_dir
-
     has_kitti_images = kitti_image_dirs(path, False) is not None  # either pair; KittiSequence checks colour
     if has_kitti_images and ((path / "calib.txt").is_file() or calib is not None):
         return "kitti"
@@ -152,8 +151,6 @@ def open_sequence(path: str | Path, calib: str | Path | None = None, color: bool
     ``times.txt`` (and, generic, no timestamp file names); ignored, with a warning, by
     formats that always carry stamps.  ``seq.timestamp_source`` says where they came from.
     """
-    from .video import is_video_source, open_video_source
-
     if is_video_source(path):
         return open_video_source(path, calib=calib, color=color, rate=rate)
     path = Path(path)

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from ..errors import ImageReadError, InputError
+from .outputs import write_bytes
 
 IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -92,8 +93,6 @@ def write_disparity_png(path: str | Path, disparity: np.ndarray) -> None:
     ok, buf = cv2.imencode(".png", q)
     if not ok:
         raise InputError("cannot encode the disparity PNG", path)
-    from .outputs import write_bytes
-
     write_bytes(path, buf.tobytes())  # a failed write: OutputError naming the file
 
 

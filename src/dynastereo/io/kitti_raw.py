@@ -67,8 +67,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SequenceError
-from .calib import KITTI_RAW_COLOUR_PAIR, KITTI_RAW_GRAY_PAIR, load_kitti_raw_calib, load_stereo_yaml
+from ..errors import CalibrationError, SequenceError
+from .calib import (
+    KITTI_RAW_COLOUR_PAIR,
+    KITTI_RAW_GRAY_PAIR,
+    load_kitti_raw_calib,
+    load_stereo_yaml,
+    read_kitti_calib_rows,
+)
 from .images import image_size
 from .sequence import ImagePairSequence, list_image_pairs
 
@@ -384,9 +390,6 @@ def oxts_imu_poses(packets: np.ndarray) -> np.ndarray:
 
 def _rigid(path: Path) -> np.ndarray:
     """The 4x4 transform of a KITTI raw ``R: ...``/``T: ...`` calibration file."""
-    from ..errors import CalibrationError
-    from .calib import read_kitti_calib_rows
-
     rows = read_kitti_calib_rows(path)
     T = np.eye(4)
     for key, n in (("R", 9), ("T", 3)):
@@ -408,9 +411,6 @@ def _rigid(path: Path) -> np.ndarray:
 def kitti_raw_cam0_from_imu(date_dir: str | Path) -> np.ndarray:
     """The 4x4 IMU -> rectified camera 0 transform ``R_rect_00 · T_velo_to_cam · T_imu_to_velo``
     from the calibration files of a date folder."""
-    from ..errors import CalibrationError
-    from .calib import read_kitti_calib_rows
-
     d = Path(date_dir)
     T_velo_imu = _rigid(d / CALIB_IMU_TO_VELO)
     T_cam_velo = _rigid(d / CALIB_VELO_TO_CAM)

@@ -26,7 +26,7 @@ SequenceError naming the file and the frame.
 **Camera** (:class:`CameraSequence`, ``open_sequence("cam:0")``): any ``VideoCapture``
 source (a device index, a URL, a file) delivering side-by-side frames, as UVC stereo cameras
 (ZED, ELP) do.  A thread reads the camera as fast as it delivers and keeps only the newest
-frame (the live node's policy: a queue of one, ``ros.core.DropOldestQueue``); a frame
+frame (the live node's policy: a queue of one, ``io.queues.DropOldestQueue``); a frame
 replaced before the pipeline took it is *dropped* and counted (``dropped``, in ``run.json``'s
 ``source``).  Frames are numbered in the order they are taken; stamps are the capture's
 (``CAP_PROP_POS_MSEC`` when the backend gives it, else the host clock), relative to the
@@ -50,6 +50,8 @@ import numpy as np
 from ..errors import InputError, SequenceError
 from ..datatypes import StereoCalibration, StereoFrame
 from .calib import RawStereoCalibration, load_stereo_yaml
+from .folder import find_calib_yaml
+from .queues import DropOldestQueue
 from .sequence import rectified_calibration
 from .times import check_rate
 
@@ -96,8 +98,6 @@ def _is_colour(img: np.ndarray) -> bool:
 def _calibration_path(calib: str | Path | None, video: Path) -> Path:
     if calib is not None:
         return Path(calib)
-    from .folder import find_calib_yaml
-
     found = find_calib_yaml(video.parent if video.parent != Path("") else Path("."))
     if found is None:
         raise SequenceError("no calibration: pass --calib calib.yaml (or put calib.yaml beside the video)", video)
@@ -274,8 +274,6 @@ class CameraSequence:
 
     def __init__(self, source: int | str | Path, calib: str | Path, *, color: bool | None = None,
                  size: tuple[int, int] | None = None, timeout_s: float = 5.0, name: str | None = None) -> None:
-        from ..ros.core import DropOldestQueue  # the live node's drop policy
-
         self.source = _capture_source(source)
         self.paced = isinstance(self.source, str) and Path(self.source).is_file()
         self.path = Path(f"{CAMERA_PREFIX}{self.source}")

@@ -63,7 +63,8 @@ from ..runtime.loop import FrameLoop
 from ..runtime.pipelining import block_sigint
 from ..runtime.processor import FrameItem, FrameProcessor, Processed
 from ..runtime.results import new_run_timer
-from ..runtime.sources import DropOldestQueue, LiveSource, StereoInput  # noqa: F401 -- DropOldestQueue re-exported
+from ..io.queues import DropOldestQueue  # noqa: F401 -- re-exported (tests, adapters)
+from ..runtime.sources import LiveSource, StereoInput
 from ..timing import StageTimer
 from .convert import twist_between
 from .messages import DEFAULT_LEFT_FRAME, ODOM_FRAME, DisparityData, OdometryData

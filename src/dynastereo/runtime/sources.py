@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -20,8 +19,8 @@ from typing import Any, Callable
 import numpy as np
 
 from ..datatypes import StereoCalibration, StereoFrame
-from ..errors import ConfigError
 from ..io.base import Sequence
+from ..io.queues import DropOldestQueue
 from ..timing import StageTimer
 from .processor import FrameItem
 from .spec import SourceSpec
@@ -79,67 +78,6 @@ class SequenceSource:
 
 
 # --------------------------------------------------------------------------- live input
-
-
-class DropOldestQueue:
-    """A bounded FIFO: ``put`` on a full queue evicts (and counts) the oldest item."""
-
-    def __init__(self, maxsize: int = 1) -> None:
-        if int(maxsize) < 1:
-            raise ConfigError(f"queue_size must be >= 1, got {maxsize}")
-        self.maxsize = int(maxsize)
-        self._dq: deque = deque()
-        self._cv = threading.Condition()
-        self._closed = False
-        self.dropped = 0
-        self.high_water = 0
-
-    def put(self, item: Any) -> int:
-        """Append ``item``; returns how many old items were dropped for it (0 or more)."""
-        with self._cv:
-            if self._closed:
-                return 0
-            n = 0
-            while len(self._dq) >= self.maxsize:
-                self._dq.popleft()
-                n += 1
-            self._dq.append(item)
-            self.dropped += n
-            self.high_water = max(self.high_water, len(self._dq))
-            self._cv.notify()
-            return n
-
-    def get(self, timeout: float | None = None) -> Any:
-        """The oldest item; None when closed (or on timeout)."""
-        with self._cv:
-            self._cv.wait_for(lambda: self._dq or self._closed, timeout)
-            return self._dq.popleft() if self._dq else None
-
-    def resize(self, maxsize: int) -> int:
-        """New capacity; surplus oldest items are dropped (returned count)."""
-        if int(maxsize) < 1:
-            raise ConfigError(f"queue_size must be >= 1, got {maxsize}")
-        with self._cv:
-            self.maxsize = int(maxsize)
-            n = 0
-            while len(self._dq) > self.maxsize:
-                self._dq.popleft()
-                n += 1
-            self.dropped += n
-            return n
-
-    def close(self) -> int:
-        """Stop: waiting getters return None; returns the number of items discarded."""
-        with self._cv:
-            self._closed = True
-            n = len(self._dq)
-            self._dq.clear()
-            self._cv.notify_all()
-            return n
-
-    def __len__(self) -> int:
-        with self._cv:
-            return len(self._dq)
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Small vectorized geometry helpers: SE(3), projection, Hamming distances, index ranges.
+"""Small vectorized geometry helpers: SE(3), projection, Hamming distances, index ranges, PnP-RANSAC.
 
 Poses are 4x4 float64 matrices.  ``T_cw`` maps world points into the camera
 (ORB-SLAM2's convention inside the SLAM); the trajectory the System returns is
@@ -7,6 +7,7 @@ Poses are 4x4 float64 matrices.  ``T_cw`` maps world points into the camera
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 # chi-square 95% thresholds (2 and 3 degrees of freedom), as in ORB-SLAM2
@@ -163,3 +164,27 @@ def triangulate_dlt(P1: np.ndarray, P2: np.ndarray, x1: np.ndarray, x2: np.ndarr
         X = Xh[:, :3] / Xh[:, 3:4]
     X[~np.isfinite(X).all(axis=1)] = np.nan
     return X
+
+
+def pnp_ransac(
+    X: np.ndarray, uv: np.ndarray, K: np.ndarray, seed: int, iterations: int = 200, min_inliers: int = 10
+) -> tuple[np.ndarray | None, int]:
+    """Prior-free PnP-RANSAC (EPnP, 3 px, fixed seed): ``(T_cw or None, inliers)``; None
+    with fewer than ``min_inliers`` inliers."""
+    cv2.setRNGSeed(seed)
+    okp, rvec, tvec, inl = cv2.solvePnPRansac(
+        X.astype(np.float64),
+        uv.astype(np.float64),
+        K,
+        None,
+        iterationsCount=iterations,
+        reprojectionError=3.0,
+        confidence=0.999,
+        flags=cv2.SOLVEPNP_EPNP,
+    )
+    if not okp or inl is None or len(inl) < min_inliers:
+        return None, 0 if inl is None else len(inl)
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rvec)[0]
+    T[:3, 3] = tvec.ravel()
+    return T, len(inl)

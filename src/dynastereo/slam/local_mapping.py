@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -152,8 +153,6 @@ class BARunner:
         kernel is ready; None (recorded in ``fallbacks``) when it is skipped."""
         if isinstance(job, LocalBAResult):
             return job
-        import time
-
         t0 = time.perf_counter()
         if self._ready is not None and not self._ready.wait(self.COMPILE_WAIT_S):
             log.warning("local BA kernel still compiling after %.0f s", self.COMPILE_WAIT_S)
@@ -184,8 +183,6 @@ class BARunner:
         and for the kernel's start-up load to end: a thread still inside numba/LLVM while
         the interpreter exits aborts the process ("terminate called without an active
         exception") after the outputs were written."""
-        import time
-
         for j in self._jobs:
             j.abort[0] = 1
         deadline = time.monotonic() + self.JOIN_S
@@ -601,8 +598,6 @@ class LocalMapper:
 
     def collect(self, frame_index: int, force: bool = False) -> None:
         """Apply the running BA's result if it is due (waits for it)."""
-        import time
-
         self._last_frame = max(self._last_frame, frame_index)
         if self._job is None:
             return

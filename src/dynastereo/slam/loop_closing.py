@@ -40,14 +40,13 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ..config import SlamConfig
-from .geometry import desc_u64, inv_T, orthonormalize
+from .geometry import desc_u64, inv_T, orthonormalize, pnp_ransac
 from .keyframe import KeyFrame
 from .local_mapping import LocalMapper
 from .map import Map
 from .keyframe_database import KeyFrameDatabase
 from .matcher import TH_HIGH, keyframe_point_matches, search_by_projection
 from .optimizer import LocalBAProblem, LocalBAResult, optimize_pose, optimize_pose_graph
-from .tracking import pnp_ransac
 from .vocabulary import BowVector, Vocabulary
 
 log = logging.getLogger("dynastereo.slam")

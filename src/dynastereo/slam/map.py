@@ -22,6 +22,7 @@ from .geometry import desc_u64
 from .keyframe import KeyFrame
 from .map_points import MapPoints
 from .observations import Observations
+from .optimizer import project
 from .table import check_entry
 
 
@@ -329,8 +330,6 @@ class Map:
         """ORB-SLAM2's ``isInFrustum`` for points ``pts`` seen from a camera at ``T_cw``
         (optical centre ``center`` in world): in front, inside the image, within the
         scale-invariance distances, viewing angle under 60 degrees; vectorized."""
-        from .optimizer import project
-
         K = calib.K
         Xw = self.points.pos[pts]
         Xc, u, v, ur = project(T_cw, Xw, K[0, 0], K[1, 1], K[0, 2], K[1, 2], calib.bf)

@@ -40,6 +40,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from .. import __version__
 from ..errors import MapFileError
 from ..io.outputs import atomic_open
 from ..datatypes import StereoCalibration
@@ -221,8 +222,6 @@ def _collect(mf: MapFile) -> tuple[dict, dict[str, np.ndarray]]:
         vocab_hdr = {"class": f"{t.__module__}.{t.__qualname__}", "entries": list(va)}
     meta = dict(mf.meta or {})
     meta.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
-    from .. import __version__
-
     meta.setdefault("dynastereo_version", __version__)
     header = {
         "format": FORMAT,

@@ -51,6 +51,7 @@ import numpy as np
 from numba import njit
 
 from ..datatypes import StereoCalibration, StereoMasks
+from ..viz.draw import VERDICT_COLOURS
 
 __all__ = ["ObjectState", "WorldObjects", "TrackWriter", "CLASS_SIZE", "TRACKS_NAME", "read_tracks", "verdict_rgb",
            "box_corners", "ObjectPaths"]
@@ -378,8 +379,6 @@ class ObjectState:
 def verdict_rgb(moving: bool | None) -> tuple[int, int, int]:
     """The motion test's verdict colour as RGB (``viz.draw.VERDICT_COLOURS``, which is BGR):
     moving red, static green, undecided orange."""
-    from ..viz.draw import VERDICT_COLOURS
-
     b, g, r = VERDICT_COLOURS[None if moving is None else bool(moving)]
     return (r, g, b)
 

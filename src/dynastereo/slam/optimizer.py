@@ -24,6 +24,7 @@ disparity offset.  All of them work on plain arrays (``LocalBAProblem``).
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -256,8 +257,6 @@ def self_calibrating_ba(p: LocalBAProblem, abort: np.ndarray | None = None) -> L
     convex, an estimate beyond twice the grid, or one within ``p.offset_min_sigmas``
     sigmas of 0 (not significant: a rig without offset, e.g. the synthetic scenes, gave
     -0.03 +- 0.07 px) gives ``offset = None`` and the solve at offset 0."""
-    import time
-
     t0 = time.perf_counter()
     grid = np.asarray(p.offset_grid, np.float64)
     sols = [
@@ -303,8 +302,6 @@ def local_ba(p: LocalBAProblem, abort: np.ndarray | None = None) -> LocalBAResul
     kernel on the inliers.  ``abort``: a 1-element int64 array; set non-zero (by another
     thread) it stops the solve between iterations.  ``error_before`` / ``error_after``
     are the Huber cost over all observations (gtsam's ``graph.error`` convention)."""
-    import time
-
     from .kernels.ba import solve
 
     t0 = time.perf_counter()
@@ -330,8 +327,6 @@ def local_ba_gtsam(p: LocalBAProblem) -> LocalBAResult:
     batch constructor for stereo factors (monocular ones go in per keyframe and level
     through ``gtsam.utilities.insertProjectionFactors``).
     """
-    import time
-
     import gtsam
 
     t0 = time.perf_counter()

@@ -23,6 +23,7 @@ from typing import Any
 from ..config import SlamConfig, orbslam2_slam_values
 from ..errors import ConfigError
 from ..datatypes import StereoCalibration
+from ..io.calib import RawStereoCalibration, load_orbslam2_settings, orbslam2_calibration
 
 
 def slam_config_from_orbslam(
@@ -49,8 +50,6 @@ def load_orbslam_settings(
     sequence with it through ``dynastereo.io`` (which rectifies) and pass
     ``sequence.calibration`` to ``System`` instead.
     """
-    from ..io.calib import RawStereoCalibration, load_orbslam2_settings, orbslam2_calibration
-
     p = Path(path)
     settings = load_orbslam2_settings(p)
     calib = orbslam2_calibration(settings, p, image_size)

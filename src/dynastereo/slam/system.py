@@ -21,7 +21,7 @@ A pose is accepted only with enough support: after local-map tracking at least
 last tracked frames.  A jump the motion model cannot follow (a revisit fed as
 ``--frames 0-98,40-60``, a gap) leaves a wrong prediction with a few chance inliers on far
 points: such a pose is refused, and a prior-free search over the map's keyframes runs
-instead (``Tracker.relocalize``: bag-of-words candidate keyframes, PnP-RANSAC,
+instead (``relocalization.relocalize_frame``: bag-of-words candidate keyframes, PnP-RANSAC,
 motion-only BA, local map; ``reloc_min_inliers`` needed).  A frame placed that way is
 ``tracked`` with method ``reloc`` (or ``reference`` when the reference keyframe's
 descriptors already placed it); the velocity is not taken across such a jump.
@@ -64,12 +64,15 @@ from ..errors import ConfigError
 from ..timing import StageTimer
 from ..datatypes import StereoCalibration, StereoFrame, StereoMasks
 from .active_map import ActiveMap
+from .dynamic import forget_region
 from .keyframe_database import KeyFrameDatabase
 from .local_mapping import BARunner, LocalMapper
 from .loop_closing import LoopCloser, LoopEvent, LoopStats
 from .map import Map
+from .map_io import check_compatible, load_map, map_file_from_system, orb_settings, save_map
 from .orb import ORBExtractor
 from .selfcal import SelfCalibration
+from .settings import load_orbslam_settings
 from .tracking import Recovery, Tracker, TrackingMethod, TrackingState, TrackResult
 from .vocabulary import BowVector, Vocabulary
 
@@ -168,8 +171,6 @@ class System:
     @classmethod
     def from_orbslam_settings(cls, path: str, base: Config | None = None) -> "System":
         """A System configured from an ORB-SLAM2 stereo settings file (camera included)."""
-        from .settings import load_orbslam_settings
-
         base_cfg = base or Config()
         slam, calib = load_orbslam_settings(path, base_cfg.slam)
         return cls(slam, calib, seed=base_cfg.seed)
@@ -232,8 +233,6 @@ class System:
         """Remove from the map the points that project, from the last tracked frame, into
         the left-image pixels ``region`` (bool) at depths ``[z_min, z_max]`` m -- an
         object that turned out to move (``slam.dynamic``); returns how many."""
-        from .dynamic import forget_region
-
         return forget_region(self.map, self.tracker.last, region, z_min, z_max)
 
     # ---------------------------------------------------------------- results
@@ -316,8 +315,6 @@ class System:
         a final bundle adjustment over the whole map -- self-calibrating, so the disparity
         offset is refined over all keyframes -- makes the map the best it can be for reuse
         (the frame poses, ``trajectory()``, follow it)."""
-        from .map_io import map_file_from_system, save_map
-
         active, n = self.active, self.tracker.n
         if not self.localize_only:
             if active.closer is not None:
@@ -340,8 +337,6 @@ class System:
         frame.  ``localize_only``: track in it without adding keyframes or points (no
         local mapping, no loop closing); the first frame is placed by relocalization.
         Otherwise mapping (and loop closing) go on in the loaded map."""
-        from .map_io import check_compatible, load_map, orb_settings
-
         if self.tracker.n:
             raise RuntimeError("System.load_map must be called before the first frame")
         mf = load_map(path)

@@ -12,7 +12,7 @@ tracking state -- last frame, velocity, reference keyframe -- held once, here.
    motion-only BA after each matching step.  A pose is accepted only with enough
    support: at least ``min_inliers`` inliers after local-map tracking and at least
    ``min_inlier_fraction`` of the median of the last tracked frames.  Otherwise a
-   prior-free search over the map's keyframes runs (relocalization: bag-of-words
+   prior-free search over the map's keyframes runs (:mod:`.relocalization`: bag-of-words
    candidates, PnP-RANSAC, motion-only BA, local map; ``reloc_min_inliers`` needed);
 3. **keyframe decision** (``need_new_keyframe``) and the keyframe handed to local
    mapping and loop closing (:class:`~.active_map.ActiveMap`);
@@ -24,32 +24,29 @@ tracking state -- last frame, velocity, reference keyframe -- held once, here.
 from __future__ import annotations
 
 import logging
-import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
-import cv2
 import numpy as np
 
 from ..config import SlamConfig
 from ..timing import StageTimer
 from ..datatypes import StereoCalibration, StereoFrame, StereoMasks
+from .active_map import ActiveMap
 from .frame import Frame
-from .geometry import desc_u64, inv_T, orthonormalize
+from .geometry import desc_u64, inv_T, orthonormalize, pnp_ransac
 from .keyframe import KeyFrame
 from .map import Map
-from .matcher import TH_HIGH, TH_LOW, keyframe_point_matches, search_by_projection, stereo_match
+from .matcher import TH_HIGH, keyframe_point_matches, search_by_projection, stereo_match
 from .optimizer import optimize_pose, project
 from .orb import ORBExtractor
+from .relocalization import relocalize_frame
 from .selfcal import SelfCalibration
 from .trajectory import FrameTrajectory
 from .vocabulary import Vocabulary
-
-if TYPE_CHECKING:
-    from .active_map import ActiveMap
 
 log = logging.getLogger("dynastereo.slam")
 
@@ -101,30 +98,6 @@ class Recovery:
     lost_frames: int  # lost frames just before it
     method: TrackingMethod  # found in the same map (reloc / reference / motion) or INIT (a new map)
     map_id: int
-
-
-def pnp_ransac(
-    X: np.ndarray, uv: np.ndarray, K: np.ndarray, seed: int, iterations: int = 200, min_inliers: int = 10
-) -> tuple[np.ndarray | None, int]:
-    """Prior-free PnP-RANSAC (EPnP, 3 px, fixed seed): ``(T_cw or None, inliers)``; None
-    with fewer than ``min_inliers`` inliers."""
-    cv2.setRNGSeed(seed)
-    okp, rvec, tvec, inl = cv2.solvePnPRansac(
-        X.astype(np.float64),
-        uv.astype(np.float64),
-        K,
-        None,
-        iterationsCount=iterations,
-        reprojectionError=3.0,
-        confidence=0.999,
-        flags=cv2.SOLVEPNP_EPNP,
-    )
-    if not okp or inl is None or len(inl) < min_inliers:
-        return None, 0 if inl is None else len(inl)
-    T = np.eye(4)
-    T[:3, :3] = cv2.Rodrigues(rvec)[0]
-    T[:3, 3] = tvec.ravel()
-    return T, len(inl)
 
 
 class Tracker:
@@ -181,7 +154,7 @@ class Tracker:
         self.initialized = False
         self.recent_inliers: deque[int] = deque(maxlen=5)
 
-    def attach(self, active: "ActiveMap", initialized: bool = False) -> None:
+    def attach(self, active: ActiveMap, initialized: bool = False) -> None:
         """Track in ``active`` from now on (a new map; ``initialized``: a loaded one)."""
         if self.active is not None:
             self.trajectory.bake(self.active.map)  # the old map's frame poses made absolute
@@ -401,7 +374,7 @@ class Tracker:
                 f"{ref:.0f} (< {100.0 * cfg.min_inlier_fraction:.0f}%)"
             )
         if cfg.reloc_candidates > 0:
-            found, kid = self._relocalize(f)
+            found, kid = relocalize_frame(self, f)
             if found and self.n_inliers >= max(cfg.reloc_min_inliers, cfg.min_inliers):
                 log.info(
                     "frame %d: %s; relocalized against keyframe %d (%d inliers)", frame_index, why, kid, self.n_inliers
@@ -413,23 +386,6 @@ class Tracker:
                 else "; relocalization found no keyframe"
             )
         return False, method, why
-
-    def _relocalize(self, f: Frame) -> tuple[bool, int]:
-        """:meth:`relocalize` on the bag-of-words candidates (ORB-SLAM2's
-        ``DetectRelocalizationCandidates``); when none of them holds, on the keyframes
-        that see most of a sample of the frame's descriptors (brute force)."""
-        t0 = time.perf_counter()
-        mp, n = self.active.map, self.cfg.reloc_candidates
-        bow, _ = self.vocab.transform(f.desc)
-        cands = [k for k in self.active.kfdb.detect_relocalization_candidates(bow, mp.best_covisibles)
-                 if k in mp.keyframes]
-        found, kid = self.relocalize(mp, f, cands[:n])
-        if not found or self.n_inliers < max(self.cfg.reloc_min_inliers, self.cfg.min_inliers):
-            more = [k for k in self.candidate_keyframes(mp, f, n) if k not in cands[:n]]
-            if more:
-                found, kid = self.relocalize(mp, f, more)
-        self.reloc_ms.append((time.perf_counter() - t0) * 1e3)
-        return found, kid
 
     # ------------------------------------------------------------ keyframes
     def _initialize(self, f: Frame, first: bool) -> bool:
@@ -496,7 +452,7 @@ class Tracker:
         self.active.place_keyframe(kf, f.index, self.vocab)
 
     # ----------------------------------------------------------------- helpers
-    def _optimize(self, mp: Map, frame: Frame) -> int:
+    def optimize_frame(self, mp: Map, frame: Frame) -> int:
         """Motion-only BA on the frame's matches; outliers are unmatched.  Returns the
         number of inlier matches to real map points."""
         idx = np.flatnonzero(frame.matched)
@@ -535,7 +491,7 @@ class Tracker:
         pts = np.concatenate([pid[idx_mp], np.full(len(tmp), -1, np.int64)])
         return kp_idx, X, d64, pts
 
-    def _assign(self, frame: Frame, kp: np.ndarray, pts: np.ndarray, X: np.ndarray) -> None:
+    def assign_matches(self, frame: Frame, kp: np.ndarray, pts: np.ndarray, X: np.ndarray) -> None:
         frame.point_ids[kp] = pts
         frame.match_xyz[kp] = X
         frame.outlier[kp] = False
@@ -590,13 +546,10 @@ class Tracker:
             return False
         q = sel[matches.query]
         frame.clear_matches(np.arange(len(frame)))
-        self._assign(frame, matches.kp, pts[q], X[q])
-        n = self._optimize(mp, frame)
+        self.assign_matches(frame, matches.kp, pts[q], X[q])
+        n = self.optimize_frame(mp, frame)
         n_all = int(frame.matched.sum())
         return n_all >= 10 if n < 10 else True
-
-    def _pnp(self, X: np.ndarray, uv: np.ndarray, frame: Frame) -> tuple[np.ndarray | None, int]:
-        return pnp_ransac(X, uv, frame.calib.K, self.seed)
 
     def track_reference_keyframe(self, mp: Map, frame: Frame, T_guess: np.ndarray | None) -> bool:
         """Descriptor matching against the reference keyframe's map points, pose from
@@ -608,96 +561,16 @@ class Tracker:
         if len(ki) < 15:
             return False
         X = mp.points.pos[pts]
-        T, _ = self._pnp(X, frame.uv[ki], frame)
+        T, _ = pnp_ransac(X, frame.uv[ki], frame.calib.K, self.seed)
         if T is None:
             if T_guess is None:
                 return False
             T = T_guess.copy()
         frame.T_cw = T
         frame.clear_matches(np.arange(len(frame)))
-        self._assign(frame, ki, pts, X)
-        n = self._optimize(mp, frame)
+        self.assign_matches(frame, ki, pts, X)
+        n = self.optimize_frame(mp, frame)
         return n >= 10
-
-    # --------------------------------------------------------------- relocalization
-    def candidate_keyframes(self, mp: Map, frame: Frame, n: int = 3, max_points: int = 20000) -> list[int]:
-        """Keyframes of the map most likely to see the frame's place: a sample of the
-        frame's descriptors is matched to the map's points (nearest, <= TH_LOW) and every
-        keyframe gets a vote per matched point it observes (a brute-force stand-in for
-        ORB-SLAM2's bag-of-words keyframe database, cheap on maps of a few dozen keyframes)."""
-        if len(frame) < 10 or not mp.keyframes:
-            return []
-        pts = np.flatnonzero(~mp.points.bad[: mp.points.n] & (mp.points.nobs[: mp.points.n] > 0))
-        if len(pts) == 0:
-            return []
-        if len(pts) > max_points:  # newest points (deterministic)
-            pts = pts[-max_points:]
-        step = max(1, len(frame) // 400)
-        sample = np.arange(0, len(frame), step)
-        dnn, inn = cv2.batchDistance(frame.desc[sample], mp.points.desc[pts], cv2.CV_32S, normType=cv2.NORM_HAMMING, K=1)
-        good = (inn[:, 0] >= 0) & (dnn[:, 0] <= TH_LOW)
-        matched = np.unique(pts[inn[good, 0]])
-        counts = mp.covisible_counts(matched)
-        ranked = sorted(
-            ((c, k) for k, c in counts.items() if k in mp.keyframes and c >= 5), key=lambda t: (-t[0], -t[1])
-        )
-        return [k for _, k in ranked[:n]]
-
-    def relocalize(self, mp: Map, frame: Frame, candidates: list[int]) -> tuple[bool, int]:
-        """Prior-free pose of the frame in the map (ORB-SLAM2 ``Relocalization``): for each
-        candidate keyframe (from the bag-of-words database, or ``candidate_keyframes``),
-        descriptor matches + PnP-RANSAC + motion-only BA + local-map tracking; the
-        hypothesis with most inliers wins.  Returns ``(found, keyframe id)``; the frame /
-        tracker hold the best hypothesis (or are left as they were when none is found)."""
-        saved = (
-            frame.T_cw.copy() if frame.T_cw is not None else None,
-            frame.point_ids.copy(),
-            frame.match_xyz.copy(),
-            frame.outlier.copy(),
-            self.ref_kf,
-            list(self.local_kfs),
-            self.n_inliers,
-        )
-        best: tuple | None = None
-        for kid in candidates:
-            kf = mp.keyframes.get(kid)
-            if kf is None:
-                continue
-            ki, pts = keyframe_point_matches(mp, kf, frame)
-            if len(ki) < 15:
-                continue
-            X = mp.points.pos[pts]
-            T, _ = self._pnp(X, frame.uv[ki], frame)
-            if T is None:
-                continue
-            frame.T_cw = T
-            frame.clear_matches(np.arange(len(frame)))
-            self._assign(frame, ki, pts, X)
-            if self._optimize(mp, frame) < 10:
-                continue
-            self.ref_kf = kf
-            self.track_local_map(mp, frame, count=False)
-            if best is None or self.n_inliers > best[0]:
-                best = (
-                    self.n_inliers,
-                    kid,
-                    frame.T_cw.copy(),
-                    frame.point_ids.copy(),
-                    frame.match_xyz.copy(),
-                    frame.outlier.copy(),
-                    self.ref_kf,
-                    list(self.local_kfs),
-                )
-        if best is None:
-            (frame.T_cw, frame.point_ids, frame.match_xyz, frame.outlier, self.ref_kf, self.local_kfs,
-             self.n_inliers) = saved
-            return False, -1
-        n, kid, frame.T_cw, frame.point_ids, frame.match_xyz, frame.outlier, self.ref_kf, self.local_kfs = best
-        self.n_inliers = n
-        inl = frame.point_ids[frame.point_ids >= 0]
-        mp.points.mark_found(inl)
-        mp.points.mark_visible(inl)
-        return True, kid
 
     def update_local_keyframes(self, mp: Map, frame: Frame) -> list[int]:
         pid = frame.point_ids
@@ -765,11 +638,11 @@ class Tracker:
                     ratio=0.8,
                 )
                 q = sel[m.query]
-                self._assign(frame, m.kp, ids[q], Xw[q])
+                self.assign_matches(frame, m.kp, ids[q], Xw[q])
         # refresh the positions of all map-point matches (the map may have moved)
         has = frame.point_ids >= 0
         frame.match_xyz[has] = mp.points.pos[frame.point_ids[has]]
-        n = self._optimize(mp, frame)
+        n = self.optimize_frame(mp, frame)
         if count:
             mp.points.mark_found(frame.point_ids[frame.point_ids >= 0])
         self.n_inliers = n

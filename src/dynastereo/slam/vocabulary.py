@@ -38,17 +38,22 @@ generator (licence-clean and reproducible: ``benchmarks/bench_vocab.py --train-d
 
 from __future__ import annotations
 
+import glob
 import hashlib
 import json
 import zipfile
 from dataclasses import dataclass
+from importlib.resources import files
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
+from ..config import SlamConfig
 from ..errors import InputError, VocabularyError
 from ..io.outputs import atomic_open
+from ..io.images import IMAGE_SUFFIXES, list_images, read_image
+from .orb import ORBExtractor
 
 FORMAT_NAME = "dynastereo-orb-vocabulary"
 FORMAT_VERSION = 1
@@ -426,8 +431,6 @@ class Vocabulary:
     @classmethod
     def default_path(cls) -> Path:
         """Path of the vocabulary shipped with the package."""
-        from importlib.resources import files
-
         return Path(str(files("dynastereo.slam") / "data" / DEFAULT_VOCABULARY))
 
     @classmethod
@@ -568,10 +571,6 @@ def collect_images(specs: Sequence[str | Path]) -> list[Path]:
     (``**`` recurses), in the given order, sorted within a folder / pattern, duplicates
     dropped.  A missing path, an empty folder or a pattern matching no image raises
     :class:`~dynastereo.errors.InputError`."""
-    import glob
-
-    from ..io.images import IMAGE_SUFFIXES, list_images
-
     out: list[Path] = []
     for spec in specs:
         p = Path(spec)
@@ -611,10 +610,6 @@ def train_from_images(
     ``"train"`` per tree level.  An unreadable image raises
     :class:`~dynastereo.errors.ImageReadError` naming it.
     """
-    from ..config import SlamConfig
-    from ..io.images import read_image
-    from .orb import ORBExtractor
-
     paths = [Path(p) for p in paths]
     if not paths:
         raise InputError("no images given")

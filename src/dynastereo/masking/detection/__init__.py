@@ -15,6 +15,7 @@ from pathlib import Path
 from ...config import DetectorConfig
 from ...errors import ModelError
 from ...models.registry import KNOWN_MODELS, ModelSpec, note_unregistered, resolve_models_dir, verify_at_load
+from ...models.sizecheck import check_darknet_weights, check_onnx_size
 from ..base import Detector
 from .classes import COCO_CLASSES, canonical_name, dynamic_class_mask
 from .common import BoxTransform, RawOutput, YoloDetectorBase, letterbox, to_bgr
@@ -108,13 +109,9 @@ def create_detector(cfg: DetectorConfig | None = None, models_dir: Path | str | 
             weights = p.with_suffix(".weights")
             if not weights.is_file():
                 raise ModelError(f"Darknet weights not found beside the cfg (expected {weights.name})", weights)
-            from ...models.sizecheck import check_darknet_weights
-
             check_darknet_weights(p, weights)  # a truncated file: refused before any warning
             note_unregistered(p, weights)
             return DarknetDetector(p, weights, None, cfg, name=p.stem)
-        from ...models.sizecheck import check_onnx_size
-
         check_onnx_size(p)
         note_unregistered(p)
         return _onnx_detector(p, cfg, p.stem)

@@ -17,9 +17,11 @@ import numpy as np
 from ...config import DetectorConfig
 from ...errors import ConfigError, ModelError
 from ...datatypes import Detections
+from ...models.sizecheck import check_onnx_size
 from .classes import resolve_class_names
 from .common import BoxTransform, RawOutput, YoloDetectorBase, letterbox, to_bgr
 from .postprocess import ULTRALYTICS_LAYOUT, YOLOX_LAYOUT, PostResult
+from .rewrite import rewrite
 from .runtime import OpenVinoSession, RuntimeChoice, _note_once, resolve_runtime
 
 STRIDES = (8, 16, 32)
@@ -40,8 +42,6 @@ def make_session(path: Path, threads: int, model_bytes: bytes | None = None,
     if model_bytes is None and not Path(path).is_file():
         raise ModelError("ONNX model file not found", path)
     if model_bytes is None:
-        from ...models.sizecheck import check_onnx_size
-
         check_onnx_size(path)  # a truncated file: expected and actual size named
     if choice is not None and choice.runtime == "openvino":
         try:
@@ -178,8 +178,6 @@ class OnnxDetectorBase(YoloDetectorBase):
         (the graph rewritten exactly, :mod:`.rewrite`); ``self`` when that is its canvas."""
         if (width, height, batch) == (self.input_w, self.input_h, self.batch):
             return self
-        from .rewrite import rewrite
-
         if not self.can_rewrite:
             raise ModelError(f"{type(self).__name__} cannot run at another canvas", self.onnx_path)
         data = rewrite(self.onnx_path, self.onnx_layout, width, height, batch)
