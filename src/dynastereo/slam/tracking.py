@@ -45,7 +45,7 @@ from .optimizer import optimize_pose, project
 from .orb import ORBExtractor
 from .relocalization import relocalize_frame
 from .selfcal import SelfCalibration
-from .trajectory import FrameTrajectory
+from .frame_trajectory import FrameTrajectory
 from .vocabulary import Vocabulary
 
 log = logging.getLogger("dynastereo.slam")

@@ -17,6 +17,7 @@ import numpy as np
 from ...datatypes import StereoCalibration
 from ...errors import CalibrationError
 from .common import _number, _numbers, _size_from
+from ...dotted import flatten_dotted
 from .opencv_yaml import read_yaml_file
 from .raw import RawStereoCalibration
 
@@ -25,17 +26,7 @@ def load_orbslam2_settings(path: str | Path) -> dict[str, Any]:
     """Every key of an ORB-SLAM2 settings file, flat as written (``"Camera.fx"``, ``"ThDepth"``,
     ``"ORBextractor.nFeatures"``, ``"LEFT.K"`` -> 3x3 ``np.ndarray`` ...)."""
     path = Path(path)
-    d = read_yaml_file(path)
-    flat: dict[str, Any] = {}
-
-    def walk(prefix: str, v: Any) -> None:  # files written as nested maps are flattened with dots
-        if isinstance(v, dict):
-            for k, vv in v.items():
-                walk(f"{prefix}.{k}" if prefix else str(k), vv)
-        else:
-            flat[prefix] = v
-
-    walk("", d)
+    flat = flatten_dotted(read_yaml_file(path))  # files written as nested maps are flattened with dots
     if "Camera.fx" not in flat:
         raise CalibrationError("not an ORB-SLAM2 settings file: key 'Camera.fx' is missing", path)
     return flat
