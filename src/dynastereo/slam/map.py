@@ -105,11 +105,17 @@ class Map:
         """(keyframe, its keypoints) of the observation rows, per keyframe still in the
         map (a loop over keyframes, not rows)."""
         kps = self.obs.kp[rows]
+        for kf, sel in self.keyframe_groups(rows):
+            if kf is not None:
+                yield kf, kps[sel]
+
+    def keyframe_groups(self, rows: np.ndarray):
+        """(keyframe or None, the positions in ``rows`` of its rows) per keyframe id of
+        the observation rows ``rows``, ascending, each group in ``rows``' order (one
+        compiled grouping, then a loop over keyframes, not rows)."""
         order, ids, starts = by_keyframe(self.obs.kf[rows])
         for g, kid in enumerate(ids.tolist()):
-            kf = self.keyframes.get(kid)
-            if kf is not None:
-                yield kf, kps[order[starts[g]:starts[g + 1]]]
+            yield self.keyframes.get(kid), order[starts[g]:starts[g + 1]]
 
     def set_bad(self, pts: np.ndarray) -> None:
         P = self.points
@@ -255,10 +261,7 @@ class Map:
         centers = np.empty((len(rows), 3))
         levels = np.empty(len(rows), np.int64)
         descs = np.empty((len(rows), 32), np.uint8)
-        order, ids, starts = by_keyframe(kf_ids)
-        for g, kid in enumerate(ids.tolist()):
-            kf = self.keyframes[kid]
-            sel = order[starts[g]:starts[g + 1]]
+        for kf, sel in self.keyframe_groups(rows):
             k = kps[sel]
             centers[sel] = kf.center
             levels[sel] = kf.octave[k]

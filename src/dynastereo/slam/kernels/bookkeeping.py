@@ -82,6 +82,22 @@ def by_keyframe(kfs):
 
 
 @jit
+def unseen_good(pts, bad, kf_point_ids):
+    """Mask of ``pts``: a good point (``>= 0``, not bad) that the keyframe whose
+    per-keypoint points are ``kf_point_ids`` does not observe."""
+    own = np.sort(kf_point_ids)
+    m = own.shape[0]
+    out = np.zeros(pts.shape[0], np.bool_)
+    for i in range(pts.shape[0]):
+        p = pts[i]
+        if p < 0 or bad[p]:
+            continue
+        j = np.searchsorted(own, p)
+        out[i] = not (j < m and own[j] == p)
+    return out
+
+
+@jit
 def new_observations(kf_point_ids, kp, pts, bad):
     """Which pairs ``(kp[i], pts[i])`` keyframe a keyframe takes, as a mask: its keypoint
     is free, the point is good and not yet observed by the keyframe; of pairs naming the
@@ -89,29 +105,13 @@ def new_observations(kf_point_ids, kp, pts, bad):
     the one with the lowest point id (``np.unique``'s first occurrence, in that order)."""
     n = kp.shape[0]
     keep = np.zeros(n, np.bool_)
-    # the keyframe's points, sorted (the isin test by binary search)
-    m = 0
-    for j in range(kf_point_ids.shape[0]):
-        if kf_point_ids[j] >= 0:
-            m += 1
-    own = np.empty(m, np.int64)
-    m = 0
-    for j in range(kf_point_ids.shape[0]):
-        if kf_point_ids[j] >= 0:
-            own[m] = kf_point_ids[j]
-            m += 1
-    own.sort()
+    fresh = unseen_good(pts, bad, kf_point_ids)
     cand = np.empty(n, np.int64)
     c = 0
     for i in range(n):
-        p = pts[i]
-        if kf_point_ids[kp[i]] >= 0 or p < 0 or bad[p]:
-            continue
-        j = np.searchsorted(own, p)
-        if j < m and own[j] == p:
-            continue
-        cand[c] = i
-        c += 1
+        if fresh[i] and kf_point_ids[kp[i]] < 0:
+            cand[c] = i
+            c += 1
     if c == 0:
         return keep
     cand = cand[:c]
@@ -225,3 +225,24 @@ def update_points(pts, rows, ptr, kf_ids, centers, levels, descs, w, pos, ref_kf
         for q in range(32):
             desc[pid, q] = descs[rb, q]
     return nv
+
+
+@jit
+def redundant_points(pts, lev_pts, ptr, lev_rows, th_obs):
+    """How many of the points ``pts`` (distinct) are observed, at level ``lev_rows <=
+    lev_pts + 1``, by at least ``th_obs`` of the rows ``(ptr, lev_rows)`` (the other
+    keyframes' observations): ``LocalMapping::KeyFrameCulling``'s redundancy count."""
+    n = pts.shape[0]
+    order = np.argsort(pts)
+    sp = pts[order]
+    cnt = np.zeros(n, np.int64)
+    for r in range(ptr.shape[0]):
+        j = np.searchsorted(sp, ptr[r])
+        if j < n and sp[j] == ptr[r] and lev_rows[r] <= lev_pts[order[j]] + 1:
+            cnt[j] += 1
+    out = 0
+    for j in range(n):
+        if cnt[j] >= th_obs:
+            out += 1
+    return out
+
