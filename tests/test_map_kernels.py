@@ -164,6 +164,12 @@ def test_rows_of_equals_the_list_walk(seed: int) -> None:
         np.testing.assert_array_equal(got, ref_rows_of(mp.obs, pts))
         assert got.dtype == np.int64
     np.testing.assert_array_equal(mp.obs.rows_of(np.arange(mp.points.n)), np.flatnonzero(mp.obs.alive[: mp.obs.n]))
+    # what the rows give: covisibility counts, the points of keyframes
+    pts = rng.integers(0, mp.points.n, 300)
+    ids, counts = np.unique(mp.obs.kf[ref_rows_of(mp.obs, pts)], return_counts=True)
+    assert mp.covisible_counts(pts) == dict(zip(ids.tolist(), counts.tolist()))
+    allp = np.unique(np.concatenate([mp.keyframes[k].point_ids for k in (1, 4, 5)]))
+    np.testing.assert_array_equal(mp.points_of([1, 4, 5]), allp[mp.points.good(allp)])
     with pytest.raises(IndexError):
         mp.obs.rows_of(np.array([mp.points.n]))
 
@@ -181,6 +187,8 @@ def test_new_observations_keep_the_same_pairs(seed: int) -> None:
                                       ref_new_observations(kf_point_ids, kp, pts, bad))
         good = (pts >= 0) & ~bad[np.maximum(pts, 0)] & ~np.isin(pts, kf_point_ids)
         np.testing.assert_array_equal(bk.unseen_good(pts, bad, kf_point_ids), good)
+        u = np.unique(pts)
+        np.testing.assert_array_equal(bk.unique_good(pts, bad), u[(u >= 0) & ~bad[np.maximum(u, 0)]])
 
 
 def _same_points(a: Map, b: Map) -> None:

@@ -37,7 +37,7 @@ from .geometry import (
 )
 from .keyframe import KeyFrame
 from .map import Map
-from .kernels.bookkeeping import redundant_points, unseen_good
+from .kernels.bookkeeping import redundant_points, unique_good, unseen_good
 from .kernels.hamming import knn_hamming
 from .matcher import TH_LOW, search_by_projection
 from .optimizer import LocalBAProblem, LocalBAResult, reprojection_chi2, run_ba
@@ -435,9 +435,8 @@ class LocalMapper:
             fused += self._fuse_into(mp.keyframes[k], kf.point_ids[kf.point_ids >= 0])
         cand = [mp.keyframes[k].point_ids for k in targets if k in mp.keyframes]
         if cand:
-            pts = np.unique(np.concatenate(cand))
-            pts = pts[pts >= 0]
-            fused += self._fuse_into(kf, pts)
+            # (bad points would be dropped by _fuse_into as well)
+            fused += self._fuse_into(kf, unique_good(np.concatenate(cand), mp.points.bad))
         self.stats.points_fused += fused
         mp.update_points(kf.point_ids[kf.point_ids >= 0])
         for k in targets:

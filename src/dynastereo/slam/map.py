@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import MapFileError
 from .geometry import desc_u64
-from .kernels.bookkeeping import by_keyframe, new_observations
+from .kernels.bookkeeping import by_keyframe, new_observations, unique_good
 from .kernels.bookkeeping import update_points as _update_points
 from .keyframe import KeyFrame
 from .map_points import MapPoints
@@ -194,8 +194,7 @@ class Map:
 
     def points_of(self, kf_ids) -> np.ndarray:
         """The good map points observed by the keyframes ``kf_ids`` (sorted, unique)."""
-        pts = np.unique(np.concatenate([self.keyframes[k].point_ids for k in kf_ids]))
-        return pts[self.points.good(pts)]
+        return unique_good(np.concatenate([self.keyframes[k].point_ids for k in kf_ids]), self.points.bad)
 
     def best_covisibles(self, kf_id: int, n: int = 10) -> list[int]:
         """The ``n`` strongest covisible keyframes of keyframe ``kf_id`` still in the map
@@ -211,8 +210,8 @@ class Map:
             kfs = kfs[kfs != exclude]
         if len(kfs) == 0:
             return {}
-        ids, counts = np.unique(kfs, return_counts=True)
-        return {int(i): int(c) for i, c in zip(ids, counts)}
+        _, ids, starts = by_keyframe(kfs)
+        return dict(zip(ids.tolist(), np.diff(starts).tolist()))
 
     def update_connections(self, kf: KeyFrame) -> None:
         """Covisibility edges of ``kf`` (>= 15 shared points, else the best one)."""
@@ -248,8 +247,7 @@ class Map:
     def update_points(self, pts: np.ndarray, max_obs: int = 12) -> None:
         """Viewing normal, scale-invariance distances and distinctive descriptor of points
         (``MapPoint::UpdateNormalAndDepth`` / ``ComputeDistinctiveDescriptors``), at once."""
-        pts = np.unique(np.asarray(pts, np.int64))
-        pts = pts[(pts >= 0) & ~self.points.bad[pts]]
+        pts = unique_good(np.ascontiguousarray(pts, np.int64), self.points.bad)
         if len(pts) == 0:
             return
         rows = self.obs.rows_of(pts)

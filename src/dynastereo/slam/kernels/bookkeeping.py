@@ -84,16 +84,52 @@ def by_keyframe(kfs):
 @jit
 def unseen_good(pts, bad, kf_point_ids):
     """Mask of ``pts``: a good point (``>= 0``, not bad) that the keyframe whose
-    per-keypoint points are ``kf_point_ids`` does not observe."""
-    own = np.sort(kf_point_ids)
-    m = own.shape[0]
-    out = np.zeros(pts.shape[0], np.bool_)
-    for i in range(pts.shape[0]):
-        p = pts[i]
-        if p < 0 or bad[p]:
+    per-keypoint points are ``kf_point_ids`` does not observe.  The queried points are
+    sorted, not the keyframe's: a pass over the keyframe's keypoints with a binary
+    search each (``pts`` is often a handful, the keyframe's keypoints thousands)."""
+    n = pts.shape[0]
+    out = np.zeros(n, np.bool_)
+    if n == 0:
+        return out
+    order = np.argsort(pts)
+    sp = pts[order]
+    seen = np.zeros(n, np.bool_)  # by sorted position
+    for j in range(kf_point_ids.shape[0]):
+        q = kf_point_ids[j]
+        if q < 0:
             continue
-        j = np.searchsorted(own, p)
-        out[i] = not (j < m and own[j] == p)
+        t = np.searchsorted(sp, q)
+        while t < n and sp[t] == q and not seen[t]:
+            seen[t] = True
+            t += 1
+    for t in range(n):
+        i = order[t]
+        p = sp[t]
+        out[i] = p >= 0 and not bad[p] and not seen[t]
+    return out
+
+
+@jit
+def unique_good(ids, bad):
+    """The distinct good points (``>= 0``, not bad) of ``ids``, sorted, as
+    ``np.unique`` then the good test (a mark per point id, then one pass over them)."""
+    top = -1
+    for i in range(ids.shape[0]):
+        if ids[i] > top:
+            top = ids[i]
+    mark = np.zeros(top + 1, np.bool_)
+    m = 0
+    for i in range(ids.shape[0]):
+        p = ids[i]
+        if p >= 0 and not mark[p] and not bad[p]:
+            mark[p] = True
+            m += 1
+    out = np.empty(m, np.int64)
+    k = 0
+    for p in range(top + 1):
+        if mark[p]:
+            out[k] = p
+            k += 1
     return out
 
 
