@@ -26,9 +26,11 @@ from ._numba import jit, popcount64
 @jit
 def rows_of(head, next_row, alive, pts):
     """Alive rows of the points ``pts`` (any order, duplicates and ``-1`` allowed),
-    sorted: the union of their lists, as ``Observations.rows_of``."""
+    sorted: the union of their lists, as ``Observations.rows_of``.  Sorted by marking
+    them over the rows when there are many (a pass over the table), else by a sort."""
     s = np.sort(pts)
     total = 0
+    top = -1
     prev = -1
     for i in range(s.shape[0]):
         p = s[i]
@@ -39,8 +41,14 @@ def rows_of(head, next_row, alive, pts):
         while r >= 0:
             if alive[r]:
                 total += 1
+                if r > top:
+                    top = r
             r = next_row[r]
     out = np.empty(total, np.int64)
+    if total == 0:
+        return out
+    use_marks = 6.0 * total * np.log2(total + 1.0) > top + 1
+    mark = np.zeros(top + 1 if use_marks else 0, np.bool_)
     k = 0
     prev = -1
     for i in range(s.shape[0]):
@@ -51,33 +59,55 @@ def rows_of(head, next_row, alive, pts):
         r = head[p]
         while r >= 0:
             if alive[r]:
+                if use_marks:
+                    mark[r] = True
+                else:
+                    out[k] = r
+                    k += 1
+            r = next_row[r]
+    if use_marks:
+        for r in range(top + 1):
+            if mark[r]:
                 out[k] = r
                 k += 1
-            r = next_row[r]
-    out.sort()
+    else:
+        out.sort()
     return out
 
 
 @jit
 def by_keyframe(kfs):
-    """(order, keyframe ids, starts): ``kfs[order]`` grouped by keyframe id, ascending,
-    each group in the rows' own order (a stable sort); group ``g`` is
-    ``order[starts[g]:starts[g + 1]]``."""
+    """(order, keyframe ids, starts): ``kfs[order]`` grouped by keyframe id (ids >= 0),
+    ascending, each group in the rows' own order (a counting sort, stable); group ``g``
+    is ``order[starts[g]:starts[g + 1]]``."""
     n = kfs.shape[0]
-    order = np.argsort(kfs, kind="mergesort")
-    ng = 0
+    top = -1
     for i in range(n):
-        if i == 0 or kfs[order[i]] != kfs[order[i - 1]]:
+        if kfs[i] > top:
+            top = kfs[i]
+    cnt = np.zeros(top + 2, np.int64)
+    for i in range(n):
+        cnt[kfs[i] + 1] += 1
+    ng = 0
+    for k in range(top + 1):
+        if cnt[k + 1] > 0:
             ng += 1
     ids = np.empty(ng, np.int64)
     starts = np.empty(ng + 1, np.int64)
     g = 0
-    for i in range(n):
-        if i == 0 or kfs[order[i]] != kfs[order[i - 1]]:
-            ids[g] = kfs[order[i]]
-            starts[g] = i
+    for k in range(top + 1):  # cnt becomes each id's first position
+        c = cnt[k + 1]
+        if c > 0:
+            ids[g] = k
+            starts[g] = cnt[k]
             g += 1
+        cnt[k + 1] = cnt[k] + c
     starts[ng] = n
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        k = kfs[i]
+        order[cnt[k]] = i
+        cnt[k] += 1
     return order, ids, starts
 
 
