@@ -240,6 +240,14 @@ STAGES = [
     ("dynastereo.slam.local_mapping", "run_ba", "local BA: solve"),
     ("dynastereo.slam.local_mapping", "LocalMapper._apply", "local BA: apply"),
     ("dynastereo.slam.active_map", "ActiveMap.place_keyframe", "loop closing + keyframe DB"),
+    # the map's bookkeeping, wherever it is called from (nested: its time leaves the caller's)
+    ("dynastereo.slam.map", "Map.update_points", "map: normals, distances, descriptors (update_points)"),
+    ("dynastereo.slam.map", "Map.add_observations", "map: add / erase / fuse observations"),
+    ("dynastereo.slam.map", "Map.erase_observations", "map: add / erase / fuse observations"),
+    ("dynastereo.slam.map", "Map.set_bad", "map: add / erase / fuse observations"),
+    ("dynastereo.slam.map", "Map.replace", "map: add / erase / fuse observations"),
+    ("dynastereo.slam.map", "Map.update_connections", "map: covisibility (update_connections)"),
+    ("dynastereo.slam.observations", "Observations.rows_of", "map: observation rows (rows_of)"),
     ("dynastereo.slam.loop_closing", "LoopCloser.collect", "loop closing + keyframe DB"),
 ]
 OTHER = "other"

@@ -38,6 +38,7 @@ from .geometry import (
 )
 from .keyframe import KeyFrame
 from .map import Map
+from .kernels.bookkeeping import redundant_points, unique_good, unseen_good
 from .kernels.hamming import knn_hamming
 from .matcher import TH_LOW, search_by_projection
 from .optimizer import LocalBAProblem, LocalBAResult, reprojection_chi2, run_ba
@@ -375,8 +376,7 @@ class LocalMapper:
     def _fuse_into(self, target: KeyFrame, pts: np.ndarray) -> int:
         """Project ``pts`` into ``target``; merge with / attach to the matched keypoints."""
         mp = self.mp
-        pts = pts[mp.points.good(pts)]
-        pts = pts[~np.isin(pts, target.point_ids)]
+        pts = pts[unseen_good(pts, mp.points.bad, target.point_ids)]
         if len(pts) == 0:
             return 0
         f = mp.in_frustum(pts, target.T_cw, target.center, target.calib)
@@ -432,9 +432,8 @@ class LocalMapper:
             fused += self._fuse_into(mp.keyframes[k], kf.point_ids[kf.point_ids >= 0])
         cand = [mp.keyframes[k].point_ids for k in targets if k in mp.keyframes]
         if cand:
-            pts = np.unique(np.concatenate(cand))
-            pts = pts[pts >= 0]
-            fused += self._fuse_into(kf, pts)
+            # (bad points would be dropped by _fuse_into as well)
+            fused += self._fuse_into(kf, unique_good(np.concatenate(cand), mp.points.bad))
         self.stats.points_fused += fused
         mp.update_points(kf.point_ids[kf.point_ids >= 0])
         for k in targets:
@@ -520,12 +519,11 @@ class LocalMapper:
         uv = np.zeros((len(rows), 2))
         ur = np.zeros(len(rows))
         lev = np.zeros(len(rows), np.int64)
-        for k in all_kf:  # gather per keyframe
-            kfo = mp.keyframes[int(k)]
-            s = okf == k
-            uv[s] = kfo.uv[okp[s]]
-            ur[s] = kfo.u_right[okp[s]]
-            lev[s] = kfo.octave[okp[s]]
+        for kfo, s in mp.keyframe_groups(rows):  # gather per keyframe
+            k = okp[s]
+            uv[s] = kfo.uv[k]
+            ur[s] = kfo.u_right[k]
+            lev[s] = kfo.octave[k]
         # keep points seen by at least two of these keyframes: a point with a single
         # observation puts no constraint on any pose (and a monocular one has no depth)
         cnt = np.bincount(np.searchsorted(pts, opt), minlength=len(pts))
@@ -639,14 +637,11 @@ class LocalMapper:
         # outlier observations: chi2 above the 95% bound or behind the camera
         pts = res.pt_ids[ok]
         rows = mp.obs.rows_of(pts)
-        okf = mp.obs.kf[rows]
         okp = mp.obs.kp[rows]
         bad_rows: list[tuple[KeyFrame, np.ndarray]] = []
-        for k in np.unique(okf):
-            kf = mp.keyframes.get(int(k))
+        for kf, s in mp.keyframe_groups(rows):
             if kf is None:
                 continue
-            s = okf == k
             kp = okp[s]
             ptk = mp.obs.pt[rows[s]]
             chi2, front = reprojection_chi2(
@@ -681,22 +676,13 @@ class LocalMapper:
             if len(pts) <= 0.9 * n_mps:
                 continue
             rows = mp.obs.rows_of(pts)
-            okf = mp.obs.kf[rows]
-            rows = rows[okf != k]
-            okf = okf[okf != k]
+            rows = rows[mp.obs.kf[rows] != k]
             lev_other = np.zeros(len(rows), np.int64)
-            for k3 in np.unique(okf):
-                kf3 = mp.keyframes.get(int(k3))
-                if kf3 is None:
-                    continue
-                s = okf == k3
-                lev_other[s] = kf3.octave[mp.obs.kp[rows[s]]]
-            lev_here = np.zeros(mp.points.n, np.int64)
-            lev_here[pts] = kf2.octave[idx]
-            ptr = mp.obs.pt[rows]
-            good = lev_other <= lev_here[ptr] + 1
-            cnt = np.bincount(ptr[good], minlength=mp.points.n)[pts]
-            n_red = int(np.count_nonzero(cnt >= th_obs))
+            okp = mp.obs.kp[rows]
+            for kf3, s in mp.keyframe_groups(rows):
+                if kf3 is not None:
+                    lev_other[s] = kf3.octave[okp[s]]
+            n_red = redundant_points(pts, kf2.octave[idx].astype(np.int64), mp.obs.pt[rows], lev_other, th_obs)
             if n_red > 0.9 * n_mps:
                 self._cull_keyframe(kf2)
 

@@ -19,6 +19,8 @@ import numpy as np
 
 from ..errors import MapFileError
 from .geometry import desc_u64
+from .kernels.bookkeeping import by_keyframe, new_observations, unique_good
+from .kernels.bookkeeping import update_points as _update_points
 from .keyframe import KeyFrame
 from .map_points import MapPoints
 from .observations import Observations
@@ -68,25 +70,15 @@ class Map:
     def add_observations(self, kf: KeyFrame, kp: np.ndarray, pts: np.ndarray) -> np.ndarray:
         """Add observations (kf, kp[i]) -> pts[i]; skips keypoints already used, points
         already observed by ``kf``, duplicates and bad points.  Returns the kept mask."""
-        kp = np.asarray(kp, np.int64)
-        pts = np.asarray(pts, np.int64)
-        keep = (kf.point_ids[kp] < 0) & self.points.good(pts)
-        keep &= ~np.isin(pts, kf.point_ids[kf.point_ids >= 0])
-        if keep.any():
-            # one keypoint per point and one point per keypoint
-            idx = np.flatnonzero(keep)
-            _, first = np.unique(pts[idx], return_index=True)
-            idx = idx[first]
-            _, first = np.unique(kp[idx], return_index=True)
-            idx = idx[first]
-            keep[:] = False
-            keep[idx] = True
+        kp = np.ascontiguousarray(kp, np.int64)
+        pts = np.ascontiguousarray(pts, np.int64)
+        keep = new_observations(kf.point_ids, kp, pts, self.points.bad)
         kp_k, pt_k = kp[keep], pts[keep]
         if len(kp_k) == 0:
             return keep
         kf.point_ids[kp_k] = pt_k
         kf.obs_row[kp_k] = self.obs.add(kf.id, kp_k, pt_k)  # pt_k has no duplicates
-        np.add.at(self.points.nobs, pt_k, 1 + (kf.u_right[kp_k] >= 0))
+        self.points.nobs[pt_k] += 1 + (kf.u_right[kp_k] >= 0)  # (as np.add.at: pt_k is unique)
         return keep
 
     def erase_observations(self, kf: KeyFrame, kp: np.ndarray, cull: bool = True) -> None:
@@ -113,12 +105,18 @@ class Map:
     def _by_keyframe(self, rows: np.ndarray):
         """(keyframe, its keypoints) of the observation rows, per keyframe still in the
         map (a loop over keyframes, not rows)."""
-        kfs = self.obs.kf[rows]
         kps = self.obs.kp[rows]
-        for kid in np.unique(kfs):
-            kf = self.keyframes.get(int(kid))
+        for kf, sel in self.keyframe_groups(rows):
             if kf is not None:
-                yield kf, kps[kfs == kid]
+                yield kf, kps[sel]
+
+    def keyframe_groups(self, rows: np.ndarray):
+        """(keyframe or None, the positions in ``rows`` of its rows) per keyframe id of
+        the observation rows ``rows``, ascending, each group in ``rows``' order (one
+        compiled grouping, then a loop over keyframes, not rows)."""
+        order, ids, starts = by_keyframe(self.obs.kf[rows])
+        for g, kid in enumerate(ids.tolist()):
+            yield self.keyframes.get(kid), order[starts[g]:starts[g + 1]]
 
     def set_bad(self, pts: np.ndarray) -> None:
         P = self.points
@@ -197,8 +195,7 @@ class Map:
 
     def points_of(self, kf_ids) -> np.ndarray:
         """The good map points observed by the keyframes ``kf_ids`` (sorted, unique)."""
-        pts = np.unique(np.concatenate([self.keyframes[k].point_ids for k in kf_ids]))
-        return pts[self.points.good(pts)]
+        return unique_good(np.concatenate([self.keyframes[k].point_ids for k in kf_ids]), self.points.bad)
 
     def best_covisibles(self, kf_id: int, n: int = 10) -> list[int]:
         """The ``n`` strongest covisible keyframes of keyframe ``kf_id`` still in the map
@@ -214,8 +211,8 @@ class Map:
             kfs = kfs[kfs != exclude]
         if len(kfs) == 0:
             return {}
-        ids, counts = np.unique(kfs, return_counts=True)
-        return {int(i): int(c) for i, c in zip(ids, counts)}
+        _, ids, starts = by_keyframe(kfs)
+        return dict(zip(ids.tolist(), np.diff(starts).tolist()))
 
     def update_connections(self, kf: KeyFrame) -> None:
         """Covisibility edges of ``kf`` (>= 15 shared points, else the best one)."""
@@ -251,8 +248,7 @@ class Map:
     def update_points(self, pts: np.ndarray, max_obs: int = 12) -> None:
         """Viewing normal, scale-invariance distances and distinctive descriptor of points
         (``MapPoint::UpdateNormalAndDepth`` / ``ComputeDistinctiveDescriptors``), at once."""
-        pts = np.unique(np.asarray(pts, np.int64))
-        pts = pts[(pts >= 0) & ~self.points.bad[pts]]
+        pts = unique_good(np.ascontiguousarray(pts, np.int64), self.points.bad)
         if len(pts) == 0:
             return
         rows = self.obs.rows_of(pts)
@@ -260,71 +256,19 @@ class Map:
             return
         kf_ids = self.obs.kf[rows]
         kps = self.obs.kp[rows]
-        ptr = self.obs.pt[rows]
-        # gather per-row camera centres, levels and descriptors (loop over keyframes)
-        centers = np.zeros((len(rows), 3))
-        levels = np.zeros(len(rows), np.int64)
-        descs = np.zeros((len(rows), 32), np.uint8)
-        for kid in np.unique(kf_ids):
-            kf = self.keyframes[int(kid)]
-            sel = kf_ids == kid
+        # gather per-row camera centres, levels and descriptors (a loop over keyframes)
+        centers = np.empty((len(rows), 3))
+        levels = np.empty(len(rows), np.int64)
+        descs = np.empty((len(rows), 32), np.uint8)
+        for kf, sel in self.keyframe_groups(rows):
+            k = kps[sel]
             centers[sel] = kf.center
-            levels[sel] = kf.octave[kps[sel]]
-            descs[sel] = kf.desc[kps[sel]]
-        # normals
-        v = self.points.pos[ptr] - centers
-        nv = np.linalg.norm(v, axis=1, keepdims=True)
-        v /= np.maximum(nv, 1e-12)
-        loc = np.searchsorted(pts, ptr)
-        acc = np.zeros((len(pts), 3))
-        np.add.at(acc, loc, v)
-        cnt = np.bincount(loc, minlength=len(pts))
-        acc /= np.maximum(cnt, 1)[:, None]
-        nrm = np.linalg.norm(acc, axis=1, keepdims=True)
-        has = cnt > 0
-        self.points.normal[pts[has]] = acc[has] / np.maximum(nrm[has], 1e-12)
-        # depth range from the reference keyframe's observation
-        is_ref = self.points.ref_kf[ptr] == kf_ids
-        missing = np.setdiff1d(pts, ptr[is_ref])
-        if len(missing):
-            self._reassign_ref(missing)
-            is_ref = self.points.ref_kf[ptr] == kf_ids
-        r_idx = np.flatnonzero(is_ref)
-        dist = nv[r_idx, 0]
-        max_d = dist * self.scales[levels[r_idx]]
-        self.points.max_dist[ptr[r_idx]] = max_d
-        self.points.min_dist[ptr[r_idx]] = max_d / self.scales[-1]
-        # distinctive descriptor: the observation with least median distance to the others
-        order = np.lexsort((-rows, loc))  # newest observations first within each point
-        loc_s = loc[order]
-        start = np.searchsorted(loc_s, np.arange(len(pts)))
-        rank = np.arange(len(order)) - start[loc_s]
-        keep = rank < max_obs
-        order, loc_s, rank = order[keep], loc_s[keep], rank[keep]
-        K = int(rank.max()) + 1
-        P = len(pts)
-        D = np.zeros((P, K, 4), np.uint64)
-        valid = np.zeros((P, K), bool)
-        D[loc_s, rank] = desc_u64(descs[order])
-        valid[loc_s, rank] = True
-        dd = np.zeros((P, K, K), np.int32)
-        for w in range(4):
-            dd += np.bitwise_count(np.bitwise_xor(D[:, :, None, w], D[:, None, :, w])).astype(np.int32)
-        big = 1 << 20
-        dd = np.where(valid[:, None, :], dd, big)
-        dd.sort(axis=2)
-        nv_ = valid.sum(axis=1)
-        med_idx = np.maximum((nv_ - 1) // 2, 0)
-        med = np.take_along_axis(dd, np.broadcast_to(med_idx[:, None, None], (P, K, 1)), axis=2)[:, :, 0]
-        med = np.where(valid, med, big)
-        best = np.argmin(med, axis=1)
-        sel_desc = np.zeros((P, 32), np.uint8)
-        src = np.full((P, K), -1, np.int64)
-        src[loc_s, rank] = order
-        bi = src[np.arange(P), best]
-        okp = bi >= 0
-        sel_desc[okp] = descs[bi[okp]]
-        self.points.desc[pts[okp]] = sel_desc[okp]
+            levels[sel] = kf.octave[k]
+            descs[sel] = kf.desc[k]
+        # normals, distances (reference keyframes fixed first), descriptors: one kernel
+        P = self.points
+        _update_points(pts, rows, self.obs.pt[rows], kf_ids, centers, levels, descs, desc_u64(descs), P.pos,
+                       P.ref_kf, P.normal, P.max_dist, P.min_dist, P.desc, self.scales, int(max_obs))
 
     def in_frustum(self, pts: np.ndarray, T_cw: np.ndarray, center: np.ndarray, calib) -> "Frustum":
         """ORB-SLAM2's ``isInFrustum`` for points ``pts`` seen from a camera at ``T_cw``

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import MapFileError
+from .kernels.bookkeeping import rows_of as _rows_of
 from .table import Column, Table, check_entry, grow
 
 _I8, _B = np.dtype("<i8"), np.dtype("?")
@@ -55,21 +56,14 @@ class Observations(Table):
         self.alive[rows] = False
 
     def rows_of(self, pts: np.ndarray) -> np.ndarray:
-        """Alive observation rows of the given points (sorted), walking the per-point
-        lists: cost proportional to those points' observations, not to the map size."""
-        pts = np.asarray(pts, np.int64)
-        cur = self.head[np.unique(pts[pts >= 0])]
-        out = []
-        while len(cur):
-            cur = cur[cur >= 0]
-            if not len(cur):
-                break
-            out.append(cur)
-            cur = self.next_row[cur]
-        if not out:
-            return np.zeros(0, np.int64)
-        r = np.concatenate(out)
-        return np.sort(r[self.alive[r]])
+        """Alive observation rows of the given points (sorted; duplicates and -1 in
+        ``pts`` are ignored), walking the per-point lists (one compiled call,
+        ``kernels.bookkeeping.rows_of``): cost proportional to those points'
+        observations, not to the map size."""
+        pts = np.ascontiguousarray(pts, np.int64)
+        if len(pts) and int(pts.max()) >= self.n_points:
+            raise IndexError(f"point id {int(pts.max())} beyond the {self.n_points} points of the observation lists")
+        return _rows_of(self.head, self.next_row, self.alive, pts)
 
     def first_observers(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(points, keyframe ids): the first alive observer (lowest row) of each of the
