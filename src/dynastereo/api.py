@@ -21,7 +21,7 @@ from .io.outputs import check_output_file
 from .observers import FrameObserver
 from .runtime import BagRunResult, BagSpec, JobKind, JobSpec, MaskJobResult, OutputSpec, SlamJobResult, SourceSpec
 from .runtime import run as run_job
-from .runtime.finish import resolve_ground_truth  # noqa: F401 -- part of the API
+from .runtime.finish import resolve_ground_truth  # noqa: F401 -- part of the API (re-exported)
 from .runtime.spec import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC
 from .viz.viewers import viewers  # noqa: F401 -- part of the API
 
@@ -231,7 +231,7 @@ def run_bag(
     viewer: bool = False,
     rrd: str | Path | None = None,
     save_cloud: str | Path | None = None,
-):
+) -> BagRunResult:
     """Mask and track a stereo bag (ROS 1 .bag, ROS 2 .db3, .mcap); results as for
     :func:`run_sequence` plus ``out/output.<fmt>`` and ``out/bag.json``.  Calibration:
     ``calib`` (YAML) > the bag's CameraInfo > ``config_path`` when it is an ORB-SLAM2

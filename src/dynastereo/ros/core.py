@@ -53,17 +53,17 @@ from typing import Any, Iterator, Protocol
 import numpy as np
 
 from ..config import Config, to_dict
-from ..dotted import flatten_dotted
 from ..datatypes import StereoCalibration, StereoFrame, StereoMasks
+from ..dotted import flatten_dotted
 from ..errors import ConfigError
 from ..io.calib import RawStereoCalibration
+from ..io.queues import DropOldestQueue  # noqa: F401 -- re-exported (tests, adapters)
 from ..io.rectify import Rectifier
 from ..io.stereo_check import StereoWatch
 from ..runtime.loop import FrameLoop
 from ..runtime.pipelining import block_sigint
 from ..runtime.processor import FrameItem, FrameProcessor, Processed
 from ..runtime.results import new_run_timer
-from ..io.queues import DropOldestQueue  # noqa: F401 -- re-exported (tests, adapters)
 from ..runtime.sources import LiveSource, StereoInput
 from ..timing import StageTimer
 from .convert import twist_between

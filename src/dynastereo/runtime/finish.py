@@ -191,7 +191,7 @@ def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> SlamJobResul
     late = _write_run_json(job, loop, error, stats, map_out, fps, wall) or late
     if late is not None and first_error is None:
         raise late
-    if "save_error" in map_out:
+    if "save_error" in map_out and first_error is None:  # else the run's own error is the one raised
         raise DynastereoError(f"{job.spec.outputs.save_map}: saving the map failed ({map_out['save_error']})")
     lost = system.lost_frames() if n_done else []
     return SlamJobResult(out, poses, list(job.frames[:n_done]), stats, timer, wall, fps, lost)

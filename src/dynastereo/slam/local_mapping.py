@@ -252,7 +252,7 @@ class LocalMapper:
         c = kf1.calib
         K = c.K
         Kinv = np.linalg.inv(K)
-        fx, fy, cx, cy, bf, b = K[0, 0], K[1, 1], K[0, 2], K[1, 2], c.bf, c.baseline
+        bf, b = c.bf, c.baseline
         created: list[np.ndarray] = []
         C1 = kf1.center
         R1w, t1w = kf1.T_cw[:3, :3], kf1.T_cw[:3, 3]
