@@ -255,12 +255,15 @@ def main() -> int:
                 cfg.slam.n_features = args.features
             if args.levels:
                 cfg.slam.n_levels = args.levels
+            def new_masker():  # one per run: a masker carries boxes and track ids from frame to frame
+                return None if kind == "none" else build_masker(cfg, seq.calibration, models_dir=models)
+
             try:
-                masker = None if kind == "none" else build_masker(cfg, seq.calibration, models_dir=models)
+                new_masker()
             except ModelError as e:
                 print(f"skip {seq_name}/{kind}: {e}")
                 continue
-            runs = [run_once(frames, seq.calibration, cfg, masker) for _ in range(max(1, args.repeats))]
+            runs = [run_once(frames, seq.calibration, cfg, new_masker()) for _ in range(max(1, args.repeats))]
             traj = runs[0][0]
             for other in runs[1:]:
                 if not np.array_equal(other[0], traj):
