@@ -355,7 +355,12 @@ class StereoNodeCore:
 
     def _run_loop(self) -> None:
         block_sigint()
-        self.loop.run()
+        try:
+            self.loop.run()  # frames that fail are counted (``_error``) and the loop goes on
+        except BaseException as e:  # noqa: BLE001 -- never silently: the node would stop tracking
+            self.stats.last_error = f"the frame loop stopped: {type(e).__name__}: {e}"
+            log.critical("%s", self.stats.last_error, exc_info=True)
+            raise
 
     def wait_idle(self, timeout: float = 30.0) -> bool:
         """Wait until every submitted pair is processed or dropped; False on timeout."""
