@@ -22,7 +22,7 @@ from .observers import FrameObserver
 from .runtime import BagRunResult, BagSpec, JobKind, JobSpec, MaskJobResult, OutputSpec, SlamJobResult, SourceSpec
 from .runtime import run as run_job
 from .runtime.finish import resolve_ground_truth  # noqa: F401 -- part of the API (re-exported)
-from .runtime.spec import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC
+from .runtime.spec import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC, settings_calibration
 from .viz.viewers import viewers  # noqa: F401 -- part of the API
 
 
@@ -237,14 +237,8 @@ def run_bag(
     ``calib`` (YAML) > the bag's CameraInfo > ``config_path`` when it is an ORB-SLAM2
     settings file.  ``overwrite`` / ``stereo_check`` / ``report`` / ``viewer`` / ``rrd`` /
     ``gt`` as for :func:`run_sequence`.  The output bag's content: :class:`dynastereo.ros.bagrun.BagOutput`."""
-    fallback = None
-    if config_path is not None:
-        from .io.calib import is_orbslam2_settings, read_yaml_file
-
-        if is_orbslam2_settings(read_yaml_file(config_path)):
-            fallback = Path(config_path)
     bag_spec = BagSpec(Path(bag), left_topic or DEFAULT_LEFT_TOPIC, right_topic or DEFAULT_RIGHT_TOPIC, left_info,
-                       right_info, tolerance_s, rectify, fallback, outputs)
+                       right_info, tolerance_s, rectify, settings_calibration(config_path), outputs)
     spec = JobSpec(JobKind.RUN, SourceSpec(bag=bag_spec, calib=Path(calib) if calib else None),
                    OutputSpec(Path(out), overwrite=overwrite, save_masks=save_masks, save_cloud=save_cloud,
                               report=report, viewer=viewer, rrd=rrd),

@@ -184,17 +184,14 @@ def _run_source(sequence, bag, calib, rate, config, left_topic, right_topic, lef
     (its CameraInfo topics ``auto`` / ``none`` / a topic; an ORB-SLAM2 settings file given as
     ``--config`` is its calibration when it has no CameraInfo)."""
     from ..runtime import BagSpec, SourceSpec
+    from ..runtime.spec import settings_calibration
 
     if bag is None or sequence is not None:
         return SourceSpec(path=sequence, bag=None if bag is None else BagSpec(bag), calib=calib, rate=rate)
-    fallback = None
-    if config is not None:
-        from ..io.calib import is_orbslam2_settings, read_yaml_file
-
-        fallback = config if is_orbslam2_settings(read_yaml_file(config)) else None
     info = {"auto": "auto", "none": None}
     spec = BagSpec(bag, left_topic, right_topic, info.get(left_info.lower(), left_info),
-                   info.get(right_info.lower(), right_info), sync_tolerance / 1000.0, rectify, fallback, bag_outputs)
+                   info.get(right_info.lower(), right_info), sync_tolerance / 1000.0, rectify,
+                   settings_calibration(config), bag_outputs)
     return SourceSpec(bag=spec, calib=calib, rate=rate)
 
 

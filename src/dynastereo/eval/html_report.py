@@ -122,9 +122,6 @@ def partial_reason(run_dir: str | Path) -> str | None:
         return None
 
 
-#: the name ``api.resolve_ground_truth`` calls; the rule is :func:`~.trajectory.find_ground_truth`
-
-
 # --------------------------------------------------------------------------- HTML pieces
 
 

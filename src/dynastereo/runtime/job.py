@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from contextlib import ExitStack
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from ..errors import as_interrupt
@@ -63,27 +64,32 @@ def run(spec: JobSpec, *, progress: Progress | None = None, observers: tuple[Fra
     configuration builds (e.g. ground-truth masks in a benchmark)."""
     seq = open_sequence_source(spec.source)
     try:
+        gt = _ground_truth(spec, seq)
         with ExitStack() as stack:
-            obs = stack.enter_context(_viewers(spec, seq, observers))
+            obs = stack.enter_context(_viewers(spec, observers, gt))
             job = assemble(spec, seq, obs, masker)
             stack.callback(_close_sinks, job)
             result = execute(job, progress)
-        return _after(spec, job, result)
+        return _after(spec, job, result, gt)
     finally:
         if spec.source.bag is not None:
             seq.close()
 
 
-def _viewers(spec: JobSpec, seq: Sequence, observers: tuple[FrameObserver, ...]):
+def _ground_truth(spec: JobSpec, seq: Sequence) -> Path | None:
+    """A run's ground truth for the viewer and the report: ``--gt``, else the sequence's own
+    (a bag: ``--gt`` only); None for a mask job."""
+    if spec.kind is not JobKind.RUN:
+        return None
+    return spec.gt if spec.source.bag is not None else finish.resolve_ground_truth(spec.gt, seq)
+
+
+def _viewers(spec: JobSpec, observers: tuple[FrameObserver, ...], gt: Path | None):
     from ..viz.viewers import viewers
 
-    o = spec.outputs
     name = {JobKind.MASK: "dynastereo mask", JobKind.RUN: "dynastereo run"}[spec.kind]
-    gt = None
-    if spec.kind is JobKind.RUN:
-        gt = spec.gt if spec.source.bag is not None else finish.resolve_ground_truth(spec.gt, seq)
-        name += " --bag" if spec.source.bag is not None else ""
-    return viewers(observers, viewer=o.viewer, rrd=o.rrd, gt=gt, name=name)
+    name += " --bag" if spec.source.bag is not None else ""
+    return viewers(observers, viewer=spec.outputs.viewer, rrd=spec.outputs.rrd, gt=gt, name=name)
 
 
 def _checked_frames(spec: JobSpec, seq: Sequence, masker: Any = None) -> tuple[list[int], Any]:
@@ -225,12 +231,11 @@ def execute(job: Job, progress: Progress | None) -> MaskJobResult | SlamJobResul
     return result
 
 
-def _after(spec: JobSpec, job: Job, result: Any) -> Any:
+def _after(spec: JobSpec, job: Job, result: Any, gt: Path | None) -> Any:
     """The report and a bag run's bag.json, once the job's files are written."""
     if spec.outputs.report:
         from ..eval.html_report import build_report
 
-        gt = spec.gt if spec.source.bag is not None else finish.resolve_ground_truth(spec.gt, job.sequence)
         result.report = build_report(spec.outputs.dir, gt, None)
     if job.bag_output is None:
         return result

@@ -17,6 +17,7 @@ from typing import Any
 
 from ..config import Config
 from ..errors import ConfigError
+from ..io.calib import is_orbslam2_settings, read_yaml_file
 
 DEFAULT_LEFT_TOPIC = "/camera/left/image_raw"
 DEFAULT_RIGHT_TOPIC = "/camera/right/image_raw"
@@ -42,6 +43,14 @@ def parse_bag_outputs(spec: str | list[str] | tuple[str, ...] | None) -> tuple[s
 
         raise InputError(f"unknown bag output(s) {', '.join(bad)}; choose from {', '.join(BAG_OUTPUTS)} or 'all'")
     return tuple(items)
+
+
+def settings_calibration(config: str | Path | None) -> Path | None:
+    """``config`` when it is an ORB-SLAM2 settings file, else None: the calibration of a bag
+    that has no CameraInfo (``run --bag IN.bag --config settings.yaml``)."""
+    if config is None or not is_orbslam2_settings(read_yaml_file(config)):
+        return None
+    return Path(config)
 
 
 @dataclass(frozen=True)
