@@ -7,6 +7,7 @@ over all 51 frames of KITTI 06."""
 from __future__ import annotations
 
 import ast
+import json
 import threading
 from pathlib import Path
 
@@ -207,6 +208,26 @@ def test_prefetch_on_and_off_give_the_same_run(kitti06: Path, models_dir: Path, 
         assert len(res.frames) == 51
         outs[prefetch] = _files(out)
     assert len(outs[True]) == 5 + 2 * 51
+    assert outs[True] == outs[False]
+
+
+def test_features_ahead_and_the_mapping_thread_give_the_serial_run(kitti06: Path, tmp_path: Path) -> None:
+    """``--masker none``, all 51 frames: features and stereo matches computed ahead on the
+    prefetch thread and local mapping on its own thread, against everything on one
+    thread (no prefetch, mapping inline) -- byte-identical trajectories."""
+    from dynastereo.runtime import run
+
+    outs = {}
+    for threaded in (True, False):
+        cfg = Config()
+        cfg.masker.kind = "none"
+        cfg.slam.local_mapping = "thread" if threaded else "inline"
+        out = tmp_path / f"threaded_{threaded}"
+        res = run(JobSpec(JobKind.RUN, SourceSpec(path=kitti06), OutputSpec(out), cfg, prefetch=threaded))
+        assert len(res.frames) == 51 and res.stats["keyframes_created"] >= 10
+        outs[threaded] = {n: (out / n).read_bytes() for n in ("trajectory.kitti.txt", "trajectory.frames.txt")}
+        ms = json.loads((out / "timing.json").read_text())["frames"][5]["ms"]
+        assert {"features", "stereo", "track"} <= set(ms)
     assert outs[True] == outs[False]
 
 

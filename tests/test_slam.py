@@ -567,6 +567,55 @@ def test_deterministic_with_the_ba_thread():
     np.testing.assert_array_equal(a.trajectory(), b.trajectory())
 
 
+def test_the_mapping_thread_gives_the_inline_result():
+    """A keyframe's local mapping and loop closing on their own thread, beside the next
+    frame's features (joined before that frame is tracked): the inline run's trajectory
+    and map, bit for bit -- also with the features computed ahead (System.features)."""
+    frames, _ = _sequence()
+    a = _run(frames[:20], _cfg(local_mapping="inline"))
+    b = _run(frames[:20], _cfg(local_mapping="thread"))
+    sa, sb = a.stats(), b.stats()
+    assert sa.keyframes_created >= 4 and sa.keyframes_created == sb.keyframes_created
+    assert sb.local_mapping_ms_median > 0 and sa.local_mapping_wait_ms_median == 0.0
+    np.testing.assert_array_equal(a.trajectory(), b.trajectory())
+    np.testing.assert_array_equal(a.map_points(), b.map_points())
+    c = System(_cfg(local_mapping="thread"), CALIB)
+    try:
+        for f in frames[:20]:
+            c.track(f, None, features=c.features(f))  # while the last keyframe is mapped
+    finally:
+        c.shutdown()
+    np.testing.assert_array_equal(a.trajectory(), c.trajectory())
+
+
+def test_features_of_another_frame_are_refused():
+    frames, _ = _sequence()
+    sysm = System(_cfg(), CALIB)
+    try:
+        with pytest.raises(ValueError, match="features of frame 1 given with frame 0"):
+            sysm.track(frames[0], None, features=sysm.features(frames[1]))
+    finally:
+        sysm.shutdown()
+
+
+def test_an_error_in_the_mapping_thread_is_raised_by_the_next_call():
+    frames, _ = _sequence()
+    sysm = System(_cfg(local_mapping="thread"), CALIB)
+
+    def broken(*args, **kw):
+        raise RuntimeError("mapping broke")
+
+    try:
+        sysm.track(frames[0])  # the map's first keyframe: mapped inline
+        sysm.active.mapper.process = broken
+        with pytest.raises(RuntimeError, match="mapping broke"):
+            for f in frames[1:12]:
+                sysm.track(f)
+        assert sysm.tracker.keyframes_created >= 2  # it was a later keyframe's mapping
+    finally:
+        sysm.shutdown()
+
+
 def test_timer_of_the_caller_gets_the_stages():
     frames, _ = _sequence()
     sysm = System(_cfg(), CALIB)
@@ -640,6 +689,8 @@ def test_yaml_slam_section_and_validation(tmp_path: Path):
     assert cfg.slam.n_features == 3000 and cfg.slam.local_ba == "inline"
     with pytest.raises(ConfigError, match="local_ba"):
         System(_cfg(local_ba="sometimes"), CALIB)
+    with pytest.raises(ConfigError, match="slam.local_mapping"):
+        SlamConfig(local_mapping="process")
     with pytest.raises(ConfigError, match="StereoCalibration"):
         System(_cfg(), None)
     sysm = System(Config(), CALIB)  # a whole Config works too

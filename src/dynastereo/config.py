@@ -432,6 +432,8 @@ class MotionConfig:
 # "process": the former worker process, now the same as "thread" (old configuration files)
 LocalBAMode = Literal["thread", "inline", "off", "process"]
 LOCAL_BA_MODES: tuple[str, ...] = typing.get_args(LocalBAMode)
+LocalMappingMode = Literal["thread", "inline"]
+LOCAL_MAPPING_MODES: tuple[str, ...] = typing.get_args(LocalMappingMode)
 
 
 @dataclass
@@ -481,6 +483,10 @@ class SlamConfig:
     min_frames: int = 0
     # local mapping
     local_ba: LocalBAMode = "thread"  # in a thread beside tracking, inline, or none
+    # a new keyframe's local mapping and loop closing: in their own thread beside the next
+    # frame's features and stereo matching (joined before that frame is tracked: the same
+    # result as inline), or inline
+    local_mapping: LocalMappingMode = "thread"
     ba_iterations: int = 5  # robust (Huber) LM iterations per local BA (ORB-SLAM2: 5)
     ba_refine_iterations: int = 10  # then outliers dropped, iterations without the kernel (ORB-SLAM2: 10)
     # bound on the wait for a local BA's result when it is due; past it the BA is aborted
@@ -541,6 +547,8 @@ class SlamConfig:
             self.local_ba = "thread"
         if self.local_ba not in LOCAL_BA_MODES:
             raise _bad(key("local_ba"), "one of " + ", ".join(LOCAL_BA_MODES), self.local_ba)
+        if self.local_mapping not in LOCAL_MAPPING_MODES:
+            raise _bad(key("local_mapping"), "one of " + ", ".join(LOCAL_MAPPING_MODES), self.local_mapping)
         if self.th_depth <= 0:
             raise _bad(key("th_depth"), "positive", self.th_depth)
         if not 0.0 <= self.min_inlier_fraction < 1.0:

@@ -5,7 +5,9 @@ on a folder, a video, a camera or a bag, the benchmarks and the live node.  Its 
 run on two threads when the job is pipelined (:mod:`dynastereo.runtime.pipelining`):
 
 * :meth:`FrameProcessor.mask` -- read the frame from the source, mask both images, and
-  measure the objects' flow for the motion test (``motion_flow``); its own timer;
+  measure the objects' flow for the motion test (``motion_flow``); its own timer.  When
+  what SLAM will be given is known here (no masker, or every detection masked), the SLAM's
+  features and stereo matches of the frame too (``System.features``: they read no map);
 * :meth:`FrameProcessor.track` -- give SLAM the masks of the objects judged moving or not
   yet judged (``motion.select``: the verdicts up to the previous frame), track, update the
   verdicts with this frame's camera motion (``motion``) and place the objects in the world
@@ -59,6 +61,7 @@ class Masked:
     frame: StereoFrame
     masks: StereoMasks | None  # every object, with its verdict so far (None: unmasked job)
     ms: dict[str, float] = field(default_factory=dict)  # the masking stages of this frame
+    features: Any = None  # the SLAM's features of the frame, when computed ahead (FrameFeatures)
 
 
 @dataclass
@@ -101,7 +104,12 @@ class FrameProcessor:
         if motion is not None and masks is not None:
             with t.stage("motion_flow"):
                 motion.measure(frame, masks)
-        return Masked(item, frame, masks, t.end_frame()["ms"])
+        feats = None
+        if self.system is not None and (masks is None or motion is None):
+            # what SLAM will be given is known now (no motion test's selection to wait
+            # for): its features and stereo matches too, beside the tracking of the frame before
+            feats = self.system.features(frame, masks, t)
+        return Masked(item, frame, masks, t.end_frame()["ms"], feats)
 
     def track(self, m: Masked, timer: StageTimer, position: int) -> Processed:
         """Track one masked frame; its stages go into ``timer`` (the job's), whose frame the
@@ -118,7 +126,7 @@ class FrameProcessor:
         if self.system is None:
             return Processed(position, item.index, stamp, frame, masks, slam_masks, None, "", payload=item.payload)
         with self.lock:
-            tracked = self.system.track(frame, slam_masks, timer)
+            tracked = self.system.track(frame, slam_masks, timer, features=m.features)
             if motion is not None:
                 with timer.stage("motion"):
                     motion.update(masks, tracked, self.system)

@@ -32,7 +32,7 @@ policy.
 from .settings import load_orbslam_settings
 from .loop_closing import LoopEvent
 from .system import System, SystemStats
-from .tracking import Recovery, TrackingMethod, TrackingState, TrackResult
+from .tracking import FrameFeatures, Recovery, TrackingMethod, TrackingState, TrackResult
 
-__all__ = ["System", "SystemStats", "TrackResult", "TrackingState", "TrackingMethod", "Recovery", "LoopEvent",
+__all__ = ["System", "SystemStats", "TrackResult", "FrameFeatures", "TrackingState", "TrackingMethod", "Recovery", "LoopEvent",
            "load_orbslam_settings"]

@@ -73,7 +73,7 @@ from .map_io import check_compatible, load_map, map_file_from_system, orb_settin
 from .orb import ORBExtractor
 from .selfcal import SelfCalibration
 from .settings import load_orbslam_settings
-from .tracking import Recovery, Tracker, TrackingMethod, TrackingState, TrackResult
+from .tracking import FrameFeatures, Recovery, Tracker, TrackingMethod, TrackingState, TrackResult
 from .vocabulary import BowVector, Vocabulary
 
 log = logging.getLogger("dynastereo.slam")
@@ -91,6 +91,10 @@ class SystemStats:
     keyframes_created: int
     keyframes_loaded: int
     map_points: int
+    # a keyframe's local mapping + loop closing (wall ms, on the mapping thread or inline),
+    # and how long tracking waited for it (slam.local_mapping "thread")
+    local_mapping_ms_median: float
+    local_mapping_wait_ms_median: float
     local_ba_runs: int
     local_ba_ms_median: float
     local_ba_wait_ms_median: float
@@ -154,12 +158,14 @@ class System:
         )
         self.selfcal = SelfCalibration(cfg, calibration.bf)
         self._threads = ThreadPoolExecutor(max_workers=2, thread_name_prefix="features") if cfg.threads > 1 else None
+        self._mapping = (ThreadPoolExecutor(max_workers=1, thread_name_prefix="local-mapping")
+                         if cfg.local_mapping == "thread" else None)
         self.runner = BARunner(cfg.local_ba, cfg.ba_wait_s)
         self.runner.warm_up()
         self.timer = StageTimer()
         self.vocab = Vocabulary.load(cfg.vocabulary) if cfg.vocabulary else Vocabulary.default()
         self.tracker = Tracker(cfg, calibration, self.extractor, self.selfcal, self.vocab, seed=self.seed,
-                               reset_map=self._new_map, threads=self._threads)
+                               reset_map=self._new_map, threads=self._threads, mapping=self._mapping)
         self.th_depth_m = self.tracker.th_depth_m  # "close" stereo points: th_depth baselines
         self._loop_events: list[LoopEvent] = []
         self._loop_stats = LoopStats()
@@ -178,7 +184,8 @@ class System:
     # ------------------------------------------------------------------ maps
     @property
     def map(self) -> Map:
-        """The map being built (or localized in)."""
+        """The map being built (or localized in); the keyframe being mapped is waited for."""
+        self.tracker.join_mapping()
         return self.active.map
 
     @property
@@ -195,6 +202,7 @@ class System:
         map's frame poses are made absolute first."""
         old = self.active
         if old is not None:
+            self.tracker.join_mapping()
             old.shutdown()
         mp = mp if mp is not None else Map(self.extractor.scales)
         self.selfcal.new_map()
@@ -209,14 +217,29 @@ class System:
         self.tracker.attach(self.active, initialized=initialized)
 
     # ------------------------------------------------------------------ track
+    def features(self, frame: StereoFrame, masks: StereoMasks | None = None,
+                 timer: StageTimer | None = None) -> FrameFeatures:
+        """ORB features and stereo matches of ``frame`` (masked by ``masks``), computed
+        ahead of :meth:`track` -- on another thread if wanted: they read no map and no
+        tracking state.  Give them to ``track(frame, masks, features=...)`` with the same
+        masks; the result is the same as without."""
+        if self._closed:
+            raise RuntimeError("System.features called after shutdown()")
+        if timer is None:  # stage times not wanted
+            timer = StageTimer()
+            timer.start_frame(frame.index if frame.index is not None else -1)
+        return self.tracker.features(frame, masks, timer)
+
     def track(
-        self, frame: StereoFrame, masks: StereoMasks | None = None, timer: StageTimer | None = None
+        self, frame: StereoFrame, masks: StereoMasks | None = None, timer: StageTimer | None = None,
+        features: FrameFeatures | None = None,
     ) -> TrackResult:
         """Track one rectified stereo frame: its :class:`~.tracking.TrackResult` (``pose``:
         3x4 camera-to-world of the left camera).
 
         ``masks`` (255 = dynamic) keep the detector off dynamic objects in each image.
         Stage times go to ``timer`` (the caller's frame) or to ``self.timer``.
+        ``features``: the frame's :meth:`features`, if computed ahead.
         """
         if self._closed:
             raise RuntimeError("System.track called after shutdown()")
@@ -224,7 +247,7 @@ class System:
         tm = self.timer if own else timer
         if own:
             tm.start_frame(frame.index)
-        res = self.tracker.track(frame, masks, tm)
+        res = self.tracker.track(frame, masks, tm, features)
         if own:
             tm.end_frame(status=res.status)
         return res
@@ -267,6 +290,7 @@ class System:
         return [s.index for s in self.tracker.results if s.status == TrackingState.LOST]
 
     def stats(self) -> SystemStats:
+        self.tracker.join_mapping()
         ms = self.active.mapper.stats
         tr = self.tracker
         st = tr.results
@@ -279,6 +303,8 @@ class System:
             keyframes_created=tr.keyframes_created,
             keyframes_loaded=self._kf_loaded,
             map_points=self.map.stats()["map_points"],
+            local_mapping_ms_median=_median(tr.mapping_ms),
+            local_mapping_wait_ms_median=_median(tr.mapping_wait_ms),
             local_ba_runs=ms.ba_runs,
             local_ba_ms_median=_median(ms.ba_ms),
             local_ba_wait_ms_median=_median(ms.ba_wait_ms),
@@ -301,6 +327,7 @@ class System:
 
     def loops(self) -> list[LoopEvent]:
         """The loops closed so far (all maps)."""
+        self.tracker.join_mapping()
         return list(self._loop_events)
 
     def recoveries(self) -> list[Recovery]:
@@ -368,10 +395,14 @@ class System:
         """Apply the pending BAs (each wait bounded) and stop the threads."""
         if self._closed:
             return
-        self.active.shutdown()
-        self.runner.shutdown()
-        if self._threads is not None:
-            self._threads.shutdown(wait=True)
+        try:
+            self.tracker.join_mapping()
+        finally:
+            self.active.shutdown()
+            self.runner.shutdown()
+            for pool in (self._threads, self._mapping):
+                if pool is not None:
+                    pool.shutdown(wait=True)
         self._closed = True
 
     def __enter__(self) -> "System":

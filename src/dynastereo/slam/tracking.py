@@ -24,8 +24,9 @@ tracking state -- last frame, velocity, reference keyframe -- held once, here.
 from __future__ import annotations
 
 import logging
+import time
 from collections import deque
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Callable
@@ -42,7 +43,7 @@ from .keyframe import KeyFrame
 from .map import Map
 from .matcher import TH_HIGH, keyframe_point_matches, search_by_projection, stereo_match
 from .optimizer import optimize_pose, project
-from .orb import ORBExtractor
+from .orb import Features, ORBExtractor
 from .relocalization import relocalize_frame
 from .selfcal import SelfCalibration
 from .frame_trajectory import FrameTrajectory
@@ -67,6 +68,17 @@ class TrackingMethod(StrEnum):
     REFERENCE = "reference"  # the reference keyframe's descriptors + PnP-RANSAC
     RELOC = "reloc"  # prior-free search over the map's keyframes
     NONE = ""  # lost
+
+
+@dataclass
+class FrameFeatures:
+    """A frame's ORB features (left image) and their stereo matches (``Tracker.features``):
+    what needs no map, so it may be computed ahead of tracking, on another thread."""
+
+    index: int | None  # the frame's index (None: a live frame not numbered yet)
+    left: Features
+    u_right: np.ndarray  # (N,) right-image u of each left keypoint, -1 none
+    depth: np.ndarray  # (N,) metres, -1 none
 
 
 @dataclass
@@ -116,6 +128,7 @@ class Tracker:
         seed: int = 0,
         reset_map: Callable[[], None] | None = None,
         threads: ThreadPoolExecutor | None = None,
+        mapping: ThreadPoolExecutor | None = None,
     ) -> None:
         self.cfg = cfg
         self.calib = calib
@@ -126,6 +139,14 @@ class Tracker:
         self.th_depth_m = cfg.th_depth * calib.baseline
         self._reset_map = reset_map
         self._threads = threads
+        # local mapping of a new keyframe: on this one-thread pool (slam.local_mapping
+        # "thread") while the next frame's features and stereo matches are computed, or
+        # inline (None); joined before anything reads the map again (join_mapping)
+        self._mapping = mapping
+        self._mapping_due: tuple[ActiveMap, KeyFrame, np.ndarray, int] | None = None
+        self._mapping_job: Future | None = None
+        self.mapping_ms: list[float] = []  # each keyframe's local mapping + loop closing, wall ms
+        self.mapping_wait_ms: list[float] = []  # tracking's wait for it (thread mode)
         self.localize_only = False
         self.active: ActiveMap | None = None
         # tracking state: kept across maps
@@ -156,6 +177,7 @@ class Tracker:
 
     def attach(self, active: ActiveMap, initialized: bool = False) -> None:
         """Track in ``active`` from now on (a new map; ``initialized``: a loaded one)."""
+        self.join_mapping()
         if self.active is not None:
             self.trajectory.bake(self.active.map)  # the old map's frame poses made absolute
         self.active = active
@@ -175,9 +197,9 @@ class Tracker:
             return fl, fr.result(), left, right
         return ex.extract(left, ml), ex.extract(right, mr), left, right
 
-    def make_frame(self, frame: StereoFrame, masks: StereoMasks | None, tm: StageTimer) -> tuple[Frame, float]:
-        """Features and stereo matches of ``frame`` (``features`` / ``stereo`` stages):
-        ``(Frame, the disparity offset its matches carry)``."""
+    def features(self, frame: StereoFrame, masks: StereoMasks | None, tm: StageTimer) -> FrameFeatures:
+        """ORB features of both images and their stereo matches (``features`` / ``stereo``
+        stages).  Reads no map and no tracking state: it may run ahead, on another thread."""
         c = self.calib
         if frame.left.shape[:2] != (c.height, c.width):
             raise ValueError(
@@ -190,16 +212,31 @@ class Tracker:
             st = stereo_match(
                 fl.uv, fl.octave, fl.desc, fr.uv, fr.octave, fr.desc, pl, pr, self.orb.scales, c.fx, c.bf
             )
-            offset_used = self.selfcal.on_frame(fl.uv, st.u_right, st.depth)
-            f = Frame.from_features(self.n, fl, st.u_right, st.depth, c)
+        return FrameFeatures(frame.index, fl, st.u_right, st.depth)
+
+    def make_frame(self, frame: StereoFrame, masks: StereoMasks | None, tm: StageTimer,
+                   feats: FrameFeatures | None = None) -> tuple[Frame, float]:
+        """``(Frame, the disparity offset its matches carry)`` from ``feats`` (computed
+        now when None), with the disparity offset applied."""
+        if feats is None:
+            feats = self.features(frame, masks, tm)
+        elif feats.index is not None and frame.index is not None and feats.index != frame.index:
+            raise ValueError(f"features of frame {feats.index} given with frame {frame.index}")
+        with tm.stage("stereo"):
+            offset_used = self.selfcal.on_frame(feats.left.uv, feats.u_right, feats.depth)
+            f = Frame.from_features(self.n, feats.left, feats.u_right, feats.depth, self.calib)
         return f, offset_used
 
     # ------------------------------------------------------------------ track
-    def track(self, frame: StereoFrame, masks: StereoMasks | None, tm: StageTimer) -> TrackResult:
-        """Track one rectified stereo frame (module doc); stage times go to ``tm``."""
+    def track(self, frame: StereoFrame, masks: StereoMasks | None, tm: StageTimer,
+              feats: FrameFeatures | None = None) -> TrackResult:
+        """Track one rectified stereo frame (module doc); stage times go to ``tm``.
+        ``feats``: its :meth:`features`, if computed ahead (with the same ``masks``)."""
         assert self.active is not None, "Tracker.attach(map) first"
         n = self.n
-        f, offset_used = self.make_frame(frame, masks, tm)
+        f, offset_used = self.make_frame(frame, masks, tm, feats)
+        with tm.stage("local_mapping"):
+            self.join_mapping()  # the last keyframe's local mapping ran beside make_frame
         self._refresh_last_pose()
         n_stereo = int(np.count_nonzero(f.depth > 0))
         status, method, is_kf = TrackingState.TRACKED, TrackingMethod.NONE, False
@@ -261,6 +298,7 @@ class Tracker:
                           inv_T(T_cw)[:3].copy())
         self.results.append(res)
         self.n += 1
+        self._start_mapping()
         return res
 
     def _lost(self, f: Frame, frame_index: int, reason: str, n_stereo: int, tm: StageTimer,
@@ -311,9 +349,9 @@ class Tracker:
         """The frame's trajectory row, relative to its reference keyframe when it has one."""
         ref = self.ref_kf
         if status != TrackingState.LOST and ref is not None and ref.id in self.active.map.keyframes:
-            # a keyframe's own frame follows the keyframe exactly (an inline local BA may
-            # already have moved it)
-            T_rel = np.eye(4) if (is_kf and ref.frame_index == n) else T_cw @ inv_T(ref.T_cw)
+            # a keyframe's own frame follows the keyframe exactly (its local BA or a loop
+            # may move it)
+            T_rel = np.eye(4) if is_kf else T_cw @ inv_T(ref.T_cw)
             self.trajectory.add(T_rel, ref.id)
         else:
             self.trajectory.add(T_cw.copy())
@@ -448,8 +486,39 @@ class Tracker:
             ids = ids[keep]
         self.ref_kf = kf
         self.last_kf_frame = f.index
-        self.active.mapper.process(kf, ids, f.index)
-        self.active.place_keyframe(kf, f.index, self.vocab)
+        self._mapping_due = (self.active, kf, ids, f.index)
+        if self._mapping is None:
+            self._start_mapping()
+
+    # ----------------------------------------------------------- local mapping
+    def _map_keyframe(self, active: ActiveMap, kf: KeyFrame, ids: np.ndarray, frame_index: int) -> None:
+        """Local mapping of a new keyframe, then loop closing (or the keyframe database)."""
+        t0 = time.perf_counter()
+        active.mapper.process(kf, ids, frame_index)
+        active.place_keyframe(kf, frame_index, self.vocab)
+        self.mapping_ms.append((time.perf_counter() - t0) * 1e3)
+
+    def _start_mapping(self) -> None:
+        """Map the keyframe this frame made: inline, or on the mapping thread once the frame
+        is done (the frame's own bookkeeping reads nothing local mapping writes)."""
+        due, self._mapping_due = self._mapping_due, None
+        if due is None:
+            return
+        if self._mapping is None:
+            self._map_keyframe(*due)
+        else:
+            self._mapping_job = self._mapping.submit(self._map_keyframe, *due)
+
+    def join_mapping(self) -> None:
+        """Wait for the keyframe being mapped (its error, if any, is raised here).  Every
+        reader of the map calls it first, so a run is the same as with inline mapping."""
+        job, self._mapping_job = self._mapping_job, None
+        if job is not None:
+            t0 = time.perf_counter()
+            try:
+                job.result()
+            finally:
+                self.mapping_wait_ms.append((time.perf_counter() - t0) * 1e3)
 
     # ----------------------------------------------------------------- helpers
     def optimize_frame(self, mp: Map, frame: Frame) -> int:
