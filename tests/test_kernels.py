@@ -207,6 +207,63 @@ def test_search_by_projection_empty():
 
 
 # ------------------------------------------------------------------------------ cache
+# ------------------------------------------------------------------------------ bucketing
+def _bucket_lexsort(u, v, resp, lev, quota, W, H):
+    """The corner bucketing as it was written in numpy (two lexsorts): the reference."""
+    L = len(quota)
+    lev = np.clip(lev, 0, L - 1)
+    cell = np.sqrt(W * H / np.maximum(quota, 1))[lev]
+    ncx = np.ceil(W / cell).astype(np.int64)
+    cx = np.minimum((u / cell).astype(np.int64), ncx - 1)
+    cy = (v / cell).astype(np.int64)
+    cid = (lev * 1_000_000 + cy * ncx + cx).astype(np.int64)
+    order = np.lexsort((-resp, cid))
+    c_sorted = cid[order]
+    start = np.ones(len(order), bool)
+    start[1:] = c_sorted[1:] != c_sorted[:-1]
+    first_pos = np.maximum.accumulate(np.where(start, np.arange(len(order)), 0))
+    rank = np.empty(len(order), np.int64)
+    rank[order] = np.arange(len(order)) - first_pos
+    o2 = np.lexsort((-resp, rank, lev))
+    l2 = lev[o2]
+    lstart = np.searchsorted(l2, np.arange(L))
+    keep = o2[(np.arange(len(o2)) - lstart[l2]) < quota[l2]]
+    return np.sort(keep)
+
+
+@pytest.mark.parametrize("integral", [True, False])
+def test_corner_bucketing_agrees_with_the_lexsort_reference(integral):
+    from dynastereo.slam.kernels.bucketing import bucket_corners
+
+    rng = np.random.default_rng(11 + integral)
+    for trial in range(150):
+        n = int(rng.integers(0, 4000))
+        W, H = int(rng.integers(64, 1300)), int(rng.integers(48, 400))
+        ex = ORBExtractor(int(rng.integers(50, 3000)), n_levels=int(rng.integers(1, 9)))
+        u, v = rng.random(n) * W, rng.random(n) * (H + 2)  # coarse levels reach past the last row
+        resp = (rng.integers(0, 40, n) if integral else rng.random(n) * 5).astype(np.float32)
+        lev = rng.integers(-1, 10, n).astype(np.int32)
+        want = _bucket_lexsort(u, v, resp, lev, ex.quota, W, H)
+        got = bucket_corners(u, v, resp, lev, ex.quota, W, H)
+        np.testing.assert_array_equal(got, want)
+        assert len(got) <= ex.quota.sum()
+
+
+def test_corner_bucketing_spreads_and_prefers_strong_corners():
+    """One cell's strong corners do not crowd out the other cells: each cell gives its
+    strongest first."""
+    from dynastereo.slam.kernels.bucketing import bucket_corners
+
+    W, H = 200, 100
+    quota = np.array([8], np.int64)  # cells of 50 px: 4 x 2
+    # 40 strong corners in the top-left cell, one weak corner in each other cell
+    u = np.r_[np.linspace(1, 40, 40), [60, 110, 160, 10, 60, 110, 160]]
+    v = np.r_[np.full(40, 10.0), [10, 10, 10, 60, 60, 60, 60]]
+    resp = np.r_[np.full(40, 50.0), np.full(7, 5.0)].astype(np.float32)
+    keep = bucket_corners(u, v, resp, np.zeros(47, np.int32), quota, W, H)
+    assert len(keep) == 8 and set(range(40, 47)) <= set(keep.tolist())
+
+
 def test_numba_cache_falls_back_when_nothing_is_writable(monkeypatch, tmp_path):
     monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
     monkeypatch.setattr(_numba._config, "CACHE_DIR", "")

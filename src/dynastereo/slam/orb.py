@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .kernels.bucketing import bucket_corners
+
 EDGE_THRESHOLD = 19
 PATCH_SIZE = 31
 
@@ -195,26 +197,9 @@ class ORBExtractor:
     def _bucket(self, u: np.ndarray, v: np.ndarray, resp: np.ndarray, lev: np.ndarray, shape) -> np.ndarray:
         """Indices of the kept corners: per level, grid cells of about one quota-th of
         the image; rank corners within their cell by response; take rank 0 of every cell,
-        then rank 1, ..., strongest first, until the level's quota is met."""
+        then rank 1, ..., strongest first, until the level's quota is met (one compiled
+        call, :func:`.kernels.bucketing.bucket_corners`)."""
         H, W = shape
-        lev = np.clip(lev, 0, self.n_levels - 1)
-        quota = self.quota
-        cell = np.sqrt(W * H / np.maximum(quota, 1))[lev]  # level-0 pixels
-        ncx = np.ceil(W / cell).astype(np.int64)
-        cx = np.minimum((u / cell).astype(np.int64), ncx - 1)
-        cy = (v / cell).astype(np.int64)
-        cid = (lev * 1_000_000 + cy * ncx + cx).astype(np.int64)
-        order = np.lexsort((-resp, cid))
-        c_sorted = cid[order]
-        start = np.ones(len(order), bool)
-        start[1:] = c_sorted[1:] != c_sorted[:-1]
-        first_pos = np.maximum.accumulate(np.where(start, np.arange(len(order)), 0))
-        rank = np.empty(len(order), np.int64)
-        rank[order] = np.arange(len(order)) - first_pos
-        # order by level, then rank, then response; take the first quota[level] of each level
-        o2 = np.lexsort((-resp, rank, lev))
-        l2 = lev[o2]
-        lstart = np.searchsorted(l2, np.arange(self.n_levels))
-        pos_in_level = np.arange(len(o2)) - lstart[l2]
-        keep = o2[pos_in_level < quota[l2]]
-        return np.sort(keep)
+        return bucket_corners(np.ascontiguousarray(u, np.float64), np.ascontiguousarray(v, np.float64),
+                              np.ascontiguousarray(resp, np.float32), np.ascontiguousarray(lev, np.int32),
+                              self.quota, int(W), int(H))
