@@ -70,12 +70,17 @@ class TrackingMethod(StrEnum):
     NONE = ""  # lost
 
 
+def _numbered(index: int | None) -> bool:
+    """A frame index that is set (a live frame is numbered when it is tracked: None or -1 before)."""
+    return index is not None and index >= 0
+
+
 @dataclass
 class FrameFeatures:
     """A frame's ORB features (left image) and their stereo matches (``Tracker.features``):
     what needs no map, so it may be computed ahead of tracking, on another thread."""
 
-    index: int | None  # the frame's index (None: a live frame not numbered yet)
+    index: int | None  # the frame's index (None or -1: a live frame not numbered yet)
     left: Features
     u_right: np.ndarray  # (N,) right-image u of each left keypoint, -1 none
     depth: np.ndarray  # (N,) metres, -1 none
@@ -220,7 +225,7 @@ class Tracker:
         now when None), with the disparity offset applied."""
         if feats is None:
             feats = self.features(frame, masks, tm)
-        elif feats.index is not None and frame.index is not None and feats.index != frame.index:
+        elif _numbered(feats.index) and _numbered(frame.index) and feats.index != frame.index:
             raise ValueError(f"features of frame {feats.index} given with frame {frame.index}")
         with tm.stage("stereo"):
             offset_used = self.selfcal.on_frame(feats.left.uv, feats.u_right, feats.depth)
