@@ -141,6 +141,7 @@ class Vocabulary:
                 raise ValueError(f"vocabulary: level {lvl} arrays have the wrong size")
         # distance penalty of invalid children, per level (added to the Hamming distance)
         self._penalty = [np.where(v, 0, _BIG).astype(np.int32) for v in self._valid]
+        self._centres_t, self._penalty_t = tuple(self._centres), tuple(self._penalty)  # the descent kernel's
         leaf_valid = self._valid[-1].reshape(-1)
         self.leaf_slots = np.flatnonzero(leaf_valid).astype(np.int64)
         self.n_words = int(len(self.leaf_slots))
@@ -193,19 +194,16 @@ class Vocabulary:
 
     # ------------------------------------------------------------------ lookup
     def _descend(self, d64: np.ndarray, record_level: int | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-        """Leaf slot per descriptor (and the slot at ``record_level``)."""
-        n = len(d64)
-        node = np.zeros(n, np.int64)
-        recorded = node.copy() if record_level == 0 else None
-        d = d64[:, None, :]
-        for lvl in range(1, self.levels + 1):
-            C = self._centres[lvl - 1][node]  # (N, k, 4)
-            dist = _popsum(np.bitwise_count(C ^ d))
-            dist += self._penalty[lvl - 1][node]
-            node = node * self.k + dist.argmin(axis=1)
-            if lvl == record_level:
-                recorded = node
-        return node, recorded
+        """Leaf slot per descriptor (and the slot at ``record_level``): one compiled call
+        (:func:`.kernels.hamming.descend_tree`)."""
+        from .kernels.hamming import descend_tree
+
+        inside = record_level is not None and 1 <= record_level <= self.levels
+        leaf, rec = descend_tree(np.ascontiguousarray(d64, np.uint64), self._centres_t, self._penalty_t, self.k,
+                                 int(record_level) if inside else -1)
+        if record_level == 0:
+            return leaf, np.zeros(len(d64), np.int64)
+        return leaf, (rec if inside else None)
 
     def words_of(self, desc: np.ndarray) -> np.ndarray:
         """Word id (leaf) of every descriptor: (N,) int64."""

@@ -59,3 +59,35 @@ def knn_hamming(a: np.ndarray, b: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
     if k > 0 and len(a64):
         _knn(a64, np.ascontiguousarray(b64.T), k, dist, idx)
     return dist, idx
+
+
+@jit
+def descend_tree(d64, centres, penalty, k, record_level):
+    """A vocabulary tree's descent (``Vocabulary._descend``) for every descriptor:
+    ``d64`` (N, 4) words; ``centres[l]`` ((k**l, k, 4) words) and ``penalty[l]``
+    ((k**l, k) int32, large for an invalid child) of level ``l + 1``.  At each level the
+    nearest child (Hamming + penalty; ties to the lower child, as ``argmin``).  Returns
+    (leaf slot, slot at ``record_level``) per descriptor."""
+    n = d64.shape[0]
+    leaf = np.zeros(n, np.int64)
+    rec = np.zeros(n, np.int64)
+    levels = len(centres)
+    for i in range(n):
+        a0, a1, a2, a3 = d64[i, 0], d64[i, 1], d64[i, 2], d64[i, 3]
+        node = np.int64(0)
+        for lv in range(levels):
+            C = centres[lv]
+            P = penalty[lv]
+            best = np.int32(0)
+            bd = np.int32(0)
+            for c in range(k):
+                d = np.int32(popcount64(a0 ^ C[node, c, 0]) + popcount64(a1 ^ C[node, c, 1])
+                             + popcount64(a2 ^ C[node, c, 2]) + popcount64(a3 ^ C[node, c, 3])) + P[node, c]
+                if c == 0 or d < bd:
+                    bd = d
+                    best = c
+            node = node * k + best
+            if lv + 1 == record_level:
+                rec[i] = node
+        leaf[i] = node
+    return leaf, rec
