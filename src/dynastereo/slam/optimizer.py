@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -259,10 +260,12 @@ def self_calibrating_ba(p: LocalBAProblem, abort: np.ndarray | None = None) -> L
     -0.03 +- 0.07 px) gives ``offset = None`` and the solve at offset 0."""
     t0 = time.perf_counter()
     grid = np.asarray(p.offset_grid, np.float64)
-    sols = [
-        local_ba(dataclasses.replace(p, ur=shift_disparity(p.uv[:, 0], p.ur, float(d)), offset_grid=None), abort)
-        for d in grid
-    ]
+    problems = [dataclasses.replace(p, ur=shift_disparity(p.uv[:, 0], p.ur, float(d)), offset_grid=None)
+                for d in grid]
+    # the solves are independent and the kernel releases the GIL: side by side, each
+    # on its own thread (the same results; half the wait where a core is free)
+    with ThreadPoolExecutor(max_workers=len(problems), thread_name_prefix="selfcal-ba") as pool:
+        sols = list(pool.map(lambda q: local_ba(q, abort), problems))
     c = np.array([r.error_after for r in sols])
     a, b, c0 = np.polyfit(grid, c, 2)
     curv = 2.0 * a
