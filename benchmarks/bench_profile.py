@@ -32,8 +32,9 @@ benchmarks/results/profile.json.
 
 **The SLAM's stages** (``--part stages``, issue 23's "profile first"): the SLAM alone
 (``masker none``) driven frame by frame from this process, with ``slam.threads 1`` (the
-right image's ORB not on a second thread) and ``slam.local_ba inline`` (the BA solve in
-this thread, not the worker process), so that every stage's CPU is this thread's.  Each
+right image's ORB not on a second thread), ``slam.local_ba inline`` (the BA solve in
+this thread) and ``slam.local_mapping inline`` (local mapping in this thread), so that every
+stage's CPU is this thread's.  Each
 stage is an entry point of the SLAM (``STAGES``: a method or module function, patched
 with a thin timing wrapper); its CPU (``time.process_time``, so native pools count too)
 is *exclusive*: what a nested stage spends is its own, not its caller's, and what no
@@ -88,7 +89,7 @@ def _thread_cpu() -> dict[str, float]:
             continue
         cpu = (int(fields[11]) + int(fields[12])) / TICK  # utime + stime
         name = names.get(int(d.name), f"native:{comm}")
-        key = name.rsplit("_", 1)[0] if name.startswith(("prefetch", "features")) else name
+        key = name.rsplit("_", 1)[0] if name.startswith(("prefetch", "features", "local-mapping", "selfcal-ba")) else name
         key = "prefetch" if key == "dynastereo-mask" else key  # the runtime's masking thread
         out[key] = out.get(key, 0.0) + cpu
     return out
@@ -330,7 +331,8 @@ def stages_once(seq_dir: Path, count_calls: bool) -> dict:
     from dynastereo.slam import System
 
     seq = open_sequence(seq_dir)
-    cfg = Config().with_overrides({"masker.kind": "none", "slam.threads": 1, "slam.local_ba": "inline"})
+    cfg = Config().with_overrides({"masker.kind": "none", "slam.threads": 1, "slam.local_ba": "inline",
+                                   "slam.local_mapping": "inline"})
     clock = StageClock()
     n = len(seq)
     with hooked(clock) as missing:
@@ -402,7 +404,7 @@ def main() -> None:
     kept = json.loads(args.out.read_text()) if args.out.exists() else {}
     if args.part in ("all", "stages"):
         stages = {"method": "exclusive process CPU per SLAM entry point (bench_profile.py doc), masker none, "
-                            "slam.threads 1, slam.local_ba inline; calls: sys.setprofile call + c_call events",
+                            "slam.threads 1, slam.local_ba inline, slam.local_mapping inline; calls: sys.setprofile call + c_call events",
                   "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_before": os.getloadavg()[0],
                   "sequences": {}}
         for name in args.sequences.split(","):
