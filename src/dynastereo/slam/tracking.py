@@ -24,6 +24,7 @@ tracking state -- last frame, velocity, reference keyframe -- held once, here.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -150,6 +151,7 @@ class Tracker:
         self._mapping = mapping
         self._mapping_due: tuple[ActiveMap, KeyFrame, np.ndarray, int] | None = None
         self._mapping_job: Future | None = None
+        self._mapping_lock = threading.Lock()
         self.mapping_ms: list[float] = []  # each keyframe's local mapping + loop closing, wall ms
         self.mapping_wait_ms: list[float] = []  # tracking's wait for it (thread mode)
         self.localize_only = False
@@ -517,13 +519,14 @@ class Tracker:
     def join_mapping(self) -> None:
         """Wait for the keyframe being mapped (its error, if any, is raised here).  Every
         reader of the map calls it first, so a run is the same as with inline mapping."""
-        job, self._mapping_job = self._mapping_job, None
-        if job is not None:
-            t0 = time.perf_counter()
-            try:
-                job.result()
-            finally:
-                self.mapping_wait_ms.append((time.perf_counter() - t0) * 1e3)
+        with self._mapping_lock:  # a second reader (another thread) waits here until it is done
+            job, self._mapping_job = self._mapping_job, None
+            if job is not None:
+                t0 = time.perf_counter()
+                try:
+                    job.result()
+                finally:
+                    self.mapping_wait_ms.append((time.perf_counter() - t0) * 1e3)
 
     # ----------------------------------------------------------------- helpers
     def optimize_frame(self, mp: Map, frame: Frame) -> int:
