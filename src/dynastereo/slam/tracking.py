@@ -238,7 +238,16 @@ class Tracker:
     def track(self, frame: StereoFrame, masks: StereoMasks | None, tm: StageTimer,
               feats: FrameFeatures | None = None) -> TrackResult:
         """Track one rectified stereo frame (module doc); stage times go to ``tm``.
-        ``feats``: its :meth:`features`, if computed ahead (with the same ``masks``)."""
+        ``feats``: its :meth:`features`, if computed ahead (with the same ``masks``).
+        A keyframe it made is mapped afterwards (on the mapping thread), even if the
+        frame failed after making it."""
+        try:
+            return self._track(frame, masks, tm, feats)
+        finally:
+            self._start_mapping()
+
+    def _track(self, frame: StereoFrame, masks: StereoMasks | None, tm: StageTimer,
+               feats: FrameFeatures | None) -> TrackResult:
         assert self.active is not None, "Tracker.attach(map) first"
         n = self.n
         f, offset_used = self.make_frame(frame, masks, tm, feats)
@@ -305,7 +314,6 @@ class Tracker:
                           inv_T(T_cw)[:3].copy())
         self.results.append(res)
         self.n += 1
-        self._start_mapping()
         return res
 
     def _lost(self, f: Frame, frame_index: int, reason: str, n_stereo: int, tm: StageTimer,
