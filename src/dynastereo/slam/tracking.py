@@ -3,8 +3,10 @@ tracking state -- last frame, velocity, reference keyframe -- held once, here.
 
 ``Tracker.track(frame, masks) -> TrackResult`` per frame:
 
-1. **features** (left and right ORB outside the masks) and **stereo** row matching,
-   with the disparity offset of :mod:`.selfcal` applied;
+1. **features** (left and right ORB outside the masks) and **stereo** row matching
+   (``Tracker.features``: no map, so they may be computed ahead on another thread), with
+   the disparity offset of :mod:`.selfcal` applied; then the last keyframe's local
+   mapping, if it runs on its thread, is waited for (``join_mapping``);
 2. **pose**: constant-velocity prediction + projection matching of the last frame's
    points (map points and temporary stereo "visual odometry" points), or, when that
    fails, descriptor matching against the reference keyframe with PnP-RANSAC; then
@@ -15,7 +17,8 @@ tracking state -- last frame, velocity, reference keyframe -- held once, here.
    prior-free search over the map's keyframes runs (:mod:`.relocalization`: bag-of-words
    candidates, PnP-RANSAC, motion-only BA, local map; ``reloc_min_inliers`` needed);
 3. **keyframe decision** (``need_new_keyframe``) and the keyframe handed to local
-   mapping and loop closing (:class:`~.active_map.ActiveMap`);
+   mapping and loop closing (:class:`~.active_map.ActiveMap`): inline, or on the
+   ``local-mapping`` thread once the frame is done (``slam.local_mapping``);
 4. **lost**: when no pose is supported the frame's pose is the constant-velocity
    prediction; with ``min_init_points`` stereo points a new map is started there
    (``reset_map``, the System's), else the map is kept to relocalize the next frames in.
