@@ -616,6 +616,35 @@ def test_an_error_in_the_mapping_thread_is_raised_by_the_next_call():
         sysm.shutdown()
 
 
+def test_an_interrupted_wait_for_the_mapping_thread_keeps_the_job():
+    """A signal while tracking waits for the keyframe being mapped: the job is still
+    waited for by the next reader (shutdown, the trajectory), not forgotten."""
+    from concurrent.futures import Future
+
+    sysm = System(_cfg(local_mapping="thread"), CALIB)
+    fut: Future = Future()
+    real = fut.result
+    calls = []
+
+    def result(timeout=None):
+        calls.append(1)
+        if len(calls) == 1:
+            raise KeyboardInterrupt
+        return real(timeout)
+
+    fut.result = result
+    try:
+        sysm.tracker._mapping_job = fut
+        with pytest.raises(KeyboardInterrupt):
+            sysm.tracker.join_mapping()
+        assert sysm.tracker._mapping_job is fut
+        fut.set_result(None)
+        sysm.tracker.join_mapping()
+        assert sysm.tracker._mapping_job is None and len(calls) == 2
+    finally:
+        sysm.shutdown()
+
+
 def test_timer_of_the_caller_gets_the_stages():
     frames, _ = _sequence()
     sysm = System(_cfg(), CALIB)

@@ -531,13 +531,19 @@ class Tracker:
         """Wait for the keyframe being mapped (its error, if any, is raised here).  Every
         reader of the map calls it first, so a run is the same as with inline mapping."""
         with self._mapping_lock:  # a second reader (another thread) waits here until it is done
-            job, self._mapping_job = self._mapping_job, None
-            if job is not None:
-                t0 = time.perf_counter()
-                try:
-                    job.result()
-                finally:
-                    self.mapping_wait_ms.append((time.perf_counter() - t0) * 1e3)
+            job = self._mapping_job
+            if job is None:
+                return
+            t0 = time.perf_counter()
+            try:
+                job.result()
+            except BaseException:
+                if job.done():  # the mapping's own error: raised once
+                    self._mapping_job = None
+                raise  # else the wait was interrupted (a signal): the next reader waits again
+            finally:
+                self.mapping_wait_ms.append((time.perf_counter() - t0) * 1e3)
+            self._mapping_job = None
 
     # ----------------------------------------------------------------- helpers
     def optimize_frame(self, mp: Map, frame: Frame) -> int:
