@@ -259,11 +259,12 @@ def main() -> int:
                 return None if kind == "none" else build_masker(cfg, seq.calibration, models_dir=models)
 
             try:
-                new_masker()
+                first = new_masker()
             except ModelError as e:
                 print(f"skip {seq_name}/{kind}: {e}")
                 continue
-            runs = [run_once(frames, seq.calibration, cfg, new_masker()) for _ in range(max(1, args.repeats))]
+            runs = [run_once(frames, seq.calibration, cfg, first if r == 0 else new_masker())
+                    for r in range(max(1, args.repeats))]
             traj = runs[0][0]
             for other in runs[1:]:
                 if not np.array_equal(other[0], traj):

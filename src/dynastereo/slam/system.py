@@ -225,9 +225,6 @@ class System:
         masks; the result is the same as without."""
         if self._closed:
             raise RuntimeError("System.features called after shutdown()")
-        if timer is None:  # stage times not wanted
-            timer = StageTimer()
-            timer.start_frame(frame.index if frame.index is not None else -1)
         return self.tracker.features(frame, masks, timer)
 
     def track(
@@ -403,7 +400,7 @@ class System:
             for pool in (self._threads, self._mapping):
                 if pool is not None:
                     pool.shutdown(wait=True)
-        self._closed = True
+            self._closed = True  # also when the mapping thread's error is raised here: once
 
     def __enter__(self) -> "System":
         return self

@@ -38,7 +38,7 @@ from typing import Callable
 import numpy as np
 
 from ..config import SlamConfig
-from ..timing import StageTimer
+from ..timing import StageTimer, timed
 from ..datatypes import StereoCalibration, StereoFrame, StereoMasks
 from .active_map import ActiveMap
 from .frame import Frame
@@ -186,8 +186,8 @@ class Tracker:
         self.recent_inliers: deque[int] = deque(maxlen=5)
 
     def attach(self, active: ActiveMap, initialized: bool = False) -> None:
-        """Track in ``active`` from now on (a new map; ``initialized``: a loaded one)."""
-        self.join_mapping()
+        """Track in ``active`` from now on (a new map; ``initialized``: a loaded one); the
+        caller (``System._new_map``) has waited for the old map's mapping first."""
         if self.active is not None:
             self.trajectory.bake(self.active.map)  # the old map's frame poses made absolute
         self.active = active
@@ -207,18 +207,19 @@ class Tracker:
             return fl, fr.result(), left, right
         return ex.extract(left, ml), ex.extract(right, mr), left, right
 
-    def features(self, frame: StereoFrame, masks: StereoMasks | None, tm: StageTimer) -> FrameFeatures:
+    def features(self, frame: StereoFrame, masks: StereoMasks | None, tm: StageTimer | None = None) -> FrameFeatures:
         """ORB features of both images and their stereo matches (``features`` / ``stereo``
-        stages).  Reads no map and no tracking state: it may run ahead, on another thread."""
+        stages of ``tm``, if given).  Reads no map and no tracking state: it may run ahead,
+        on another thread."""
         c = self.calib
         if frame.left.shape[:2] != (c.height, c.width):
             raise ValueError(
                 f"frame {frame.index}: image size {frame.left.shape[1]}x{frame.left.shape[0]} differs from the "
                 f"calibration's {c.width}x{c.height}"
             )
-        with tm.stage("features"):
+        with timed(tm, "features"):
             fl, fr, pl, pr = self._features(frame, masks)
-        with tm.stage("stereo"):
+        with timed(tm, "stereo"):
             st = stereo_match(
                 fl.uv, fl.octave, fl.desc, fr.uv, fr.octave, fr.desc, pl, pr, self.orb.scales, c.fx, c.bf
             )

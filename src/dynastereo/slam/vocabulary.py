@@ -134,14 +134,13 @@ class Vocabulary:
             raise ValueError(f"vocabulary: need k >= 2, levels >= 1 and k**levels <= {_MAX_SLOTS}, got k={k} levels={levels}")
         if len(centres) != self.levels or len(valid) != self.levels:
             raise ValueError("vocabulary: one centre array per level expected")
-        self._centres = [np.ascontiguousarray(c, np.uint64).reshape(-1, self.k, 4) for c in centres]
+        self._centres = tuple(np.ascontiguousarray(c, np.uint64).reshape(-1, self.k, 4) for c in centres)
         self._valid = [np.asarray(v, bool).reshape(-1, self.k) for v in valid]
         for lvl, (c, v) in enumerate(zip(self._centres, self._valid), start=1):
             if c.shape[0] * self.k != self.k**lvl or v.shape != c.shape[:2]:
                 raise ValueError(f"vocabulary: level {lvl} arrays have the wrong size")
         # distance penalty of invalid children, per level (added to the Hamming distance)
-        self._penalty = [np.where(v, 0, _BIG).astype(np.int32) for v in self._valid]
-        self._centres_t, self._penalty_t = tuple(self._centres), tuple(self._penalty)  # the descent kernel's
+        self._penalty = tuple(np.where(v, 0, _BIG).astype(np.int32) for v in self._valid)  # tuples: the descent kernel's
         leaf_valid = self._valid[-1].reshape(-1)
         self.leaf_slots = np.flatnonzero(leaf_valid).astype(np.int64)
         self.n_words = int(len(self.leaf_slots))
@@ -199,7 +198,7 @@ class Vocabulary:
         from .kernels.hamming import descend_tree
 
         inside = record_level is not None and 1 <= record_level <= self.levels
-        leaf, rec = descend_tree(np.ascontiguousarray(d64, np.uint64), self._centres_t, self._penalty_t, self.k,
+        leaf, rec = descend_tree(np.ascontiguousarray(d64, np.uint64), self._centres, self._penalty, self.k,
                                  int(record_level) if inside else -1)
         if record_level == 0:
             return leaf, np.zeros(len(d64), np.int64)
