@@ -9,6 +9,7 @@ import pytest
 
 from dynastereo.slam.geometry import desc_u64, se3_exp
 from dynastereo.slam.kernels import _numba
+from dynastereo.slam.kernels.epipolar import epipolar_best
 from dynastereo.slam.kernels.hamming import knn_hamming
 from dynastereo.slam.matcher import (
     KeypointGrid,
@@ -92,6 +93,71 @@ def test_knn_hamming_matches_opencv_and_brute_force(na, nb, k):
     if na:
         dc, ic = cv2.batchDistance(a, b, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=min(k, nb))
         assert np.array_equal(d, dc) and np.array_equal(i, ic)
+
+
+# ----------------------------------------------------------------------- epipolar search
+def _brute_epipolar(d1, uv1, m1, d2, uv2, m2, th2, near2, F, ep, max_dist):
+    """Plain reference of ``epipolar_best``: all distances, the line and epipole tests on
+    all pairs, the first smallest distance per row."""
+    D = np.unpackbits(d1[:, None, :] ^ d2[None, :, :], axis=2).sum(axis=2).astype(np.int64)
+    L = np.c_[uv1, np.ones(len(uv1))] @ F.T
+    num = L @ np.c_[uv2, np.ones(len(uv2))].T
+    ok = (num**2 < th2[None, :] * (L[:, :1] ** 2 + L[:, 1:2] ** 2)) & (D <= max_dist)
+    if ep is not None:
+        near = (uv2[:, 0] - ep[0]) ** 2 + (uv2[:, 1] - ep[1]) ** 2 < near2
+        ok &= ~(m1[:, None] & m2[None, :] & near[None, :])
+    Dm = np.where(ok, D, 1 << 20)
+    best = Dm.argmin(axis=1)
+    hit = Dm.min(axis=1) < (1 << 20)
+    return np.where(hit, best, -1), np.where(hit, Dm.min(axis=1), -1)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_epipolar_best_matches_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    n1, n2 = int(rng.integers(1, 150)), int(rng.integers(1, 200))
+    d1 = rng.integers(0, 256, (n1, 32), dtype=np.uint8)
+    d2 = rng.integers(0, 256, (n2, 32), dtype=np.uint8)
+    k = min(n1, n2) // 2
+    d2[:k] = d1[:k] ^ np.packbits(rng.random((k, 256)) < 0.1, axis=1)  # near copies: matches to find
+    if n2 > 9:
+        d2[5:9] = d2[4]  # exact ties: the lower index wins
+    uv1, uv2 = rng.uniform(0, 600, (n1, 2)), rng.uniform(0, 600, (n2, 2))
+    F = rng.normal(size=(3, 3)) * np.array([[1e-6, 1e-5, 1e-3], [1e-5, 1e-6, 1e-2], [1e-3, 1e-2, 1.0]])
+    L = np.c_[uv1[:k], np.ones(k)] @ F.T  # the near copies on (or close to) their epipolar line
+    uv2[:k, 1] = -(L[:, 0] * uv2[:k, 0] + L[:, 2]) / L[:, 1] + rng.normal(0, 2, k)
+    m1, m2 = rng.random(n1) < 0.5, rng.random(n2) < 0.5
+    th2, near2 = rng.uniform(1, 50, n2), rng.uniform(100, 40000, n2)
+    ep = (300.0, 300.0) if seed % 2 else None
+    got = epipolar_best(d1, uv1, m1, d2, uv2, m2, th2, near2, F, ep, 60)
+    ref = _brute_epipolar(d1, uv1, m1, d2, uv2, m2, th2, near2, F, ep, 60)
+    assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])
+    assert (got[0] >= 0).sum() > 0
+
+
+def test_epipolar_best_known_geometry():
+    """A rig moved 1 m sideways sees points at known depths: each keypoint's match is its
+    own point (on its epipolar line), not an identical descriptor off the line, nor one
+    on the line but too far in bits."""
+    rng = np.random.default_rng(1)
+    Kc = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    X = np.c_[rng.uniform(-4, 4, 40), rng.uniform(-2, 2, 40), rng.uniform(5, 30, 40)]
+    t21 = np.array([-1.0, 0.0, 0.0])  # camera 2 one metre to the right of camera 1
+    x1 = X @ Kc.T
+    x2 = (X + t21) @ Kc.T
+    uv1, uv2 = x1[:, :2] / x1[:, 2:], x2[:, :2] / x2[:, 2:]
+    Ki = np.linalg.inv(Kc)
+    F = Ki.T @ np.array([[0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]]) @ Ki  # [t21]x R21 (R21 = I)
+    d1 = rng.integers(0, 256, (40, 32), dtype=np.uint8)
+    d2 = d1 ^ np.packbits(rng.random((40, 256)) < 0.05, axis=1)
+    decoy = np.r_[d1[:10], d1[10:12]]  # exact copies, 30 px off the line; two on it but 90 bits away
+    uv_decoy = np.r_[uv2[:10] + [0.0, 30.0], uv2[10:12] + [5.0, 0.0]]
+    decoy[10:] ^= np.packbits(np.r_[np.ones(90, bool), np.zeros(166, bool)])
+    th2 = np.full(52, 3.84)
+    best, dist = epipolar_best(d1, uv1, np.zeros(40, bool), np.r_[d2, decoy], np.r_[uv2, uv_decoy],
+                               np.zeros(52, bool), th2, np.zeros(52), F, None, 50)
+    assert np.array_equal(best, np.arange(40))
+    assert (dist <= 50).all()
 
 
 # ----------------------------------------------------------------------------- stereo
