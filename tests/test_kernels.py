@@ -96,20 +96,23 @@ def test_knn_hamming_matches_opencv_and_brute_force(na, nb, k):
 
 
 # ----------------------------------------------------------------------- epipolar search
-def _brute_epipolar(d1, uv1, m1, d2, uv2, m2, th2, near2, F, ep, max_dist):
-    """Plain reference of ``epipolar_best``: all distances, the line and epipole tests on
-    all pairs, the first smallest distance per row."""
-    D = np.unpackbits(d1[:, None, :] ^ d2[None, :, :], axis=2).sum(axis=2).astype(np.int64)
-    L = np.c_[uv1, np.ones(len(uv1))] @ F.T
-    num = L @ np.c_[uv2, np.ones(len(uv2))].T
-    ok = (num**2 < th2[None, :] * (L[:, :1] ** 2 + L[:, 1:2] ** 2)) & (D <= max_dist)
-    if ep is not None:
-        near = (uv2[:, 0] - ep[0]) ** 2 + (uv2[:, 1] - ep[1]) ** 2 < near2
-        ok &= ~(m1[:, None] & m2[None, :] & near[None, :])
-    Dm = np.where(ok, D, 1 << 20)
-    best = Dm.argmin(axis=1)
-    hit = Dm.min(axis=1) < (1 << 20)
-    return np.where(hit, best, -1), np.where(hit, Dm.min(axis=1), -1)
+def _brute_epipolar(d1, uv1, m1, d2, uv2, m2, th2, near2, F, ep, max_dist, k_nn=4):
+    """Plain reference of ``epipolar_best``, as local mapping did it before the kernel:
+    the ``k_nn`` nearest descriptors of each row (``_brute_knn``), then the distance bound,
+    the line and the epipole tests on them, the first smallest distance."""
+    dk, ik = _brute_knn(d1, d2, min(k_nn, len(d2))) if k_nn else (None, None)
+    best, dist = np.full(len(d1), -1), np.full(len(d1), -1)
+    for i in range(len(d1)):
+        x1 = np.array([uv1[i, 0], uv1[i, 1], 1.0])
+        l = F @ x1
+        js = ik[i] if k_nn else np.arange(len(d2))
+        ds = dk[i] if k_nn else np.unpackbits(d1[i] ^ d2, axis=1).sum(axis=1)
+        for j, d in zip(js, ds):  # nearest first
+            on = (l[0] * uv2[j, 0] + l[1] * uv2[j, 1] + l[2]) ** 2 / (l[0] ** 2 + l[1] ** 2) < th2[j]
+            near = ep is not None and m1[i] and m2[j] and (uv2[j, 0] - ep[0]) ** 2 + (uv2[j, 1] - ep[1]) ** 2 < near2[j]
+            if d <= max_dist and on and not near and (best[i] < 0 or d < dist[i]):
+                best[i], dist[i] = j, d
+    return best, dist
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -129,16 +132,17 @@ def test_epipolar_best_matches_brute_force(seed):
     m1, m2 = rng.random(n1) < 0.5, rng.random(n2) < 0.5
     th2, near2 = rng.uniform(1, 50, n2), rng.uniform(100, 40000, n2)
     ep = (300.0, 300.0) if seed % 2 else None
-    got = epipolar_best(d1, uv1, m1, d2, uv2, m2, th2, near2, F, ep, 60)
-    ref = _brute_epipolar(d1, uv1, m1, d2, uv2, m2, th2, near2, F, ep, 60)
-    assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])
-    assert (got[0] >= 0).sum() > 0
+    for k_nn in (4, 1, 0):
+        got = epipolar_best(d1, uv1, m1, d2, uv2, m2, th2, near2, F, ep, 60, k_nn=k_nn)
+        ref = _brute_epipolar(d1, uv1, m1, d2, uv2, m2, th2, near2, F, ep, 60, k_nn=k_nn)
+        assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1]), k_nn
+        assert (got[0] >= 0).sum() > 0
 
 
 def test_epipolar_best_known_geometry():
     """A rig moved 1 m sideways sees points at known depths: each keypoint's match is its
     own point (on its epipolar line), not an identical descriptor off the line, nor one
-    on the line but too far in bits."""
+    on the line but too far in bits; and only when it is among the 4 nearest descriptors."""
     rng = np.random.default_rng(1)
     Kc = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
     X = np.c_[rng.uniform(-4, 4, 40), rng.uniform(-2, 2, 40), rng.uniform(5, 30, 40)]
@@ -153,11 +157,17 @@ def test_epipolar_best_known_geometry():
     decoy = np.r_[d1[:10], d1[10:12]]  # exact copies, 30 px off the line; two on it but 90 bits away
     uv_decoy = np.r_[uv2[:10] + [0.0, 30.0], uv2[10:12] + [5.0, 0.0]]
     decoy[10:] ^= np.packbits(np.r_[np.ones(90, bool), np.zeros(166, bool)])
-    th2 = np.full(52, 3.84)
-    best, dist = epipolar_best(d1, uv1, np.zeros(40, bool), np.r_[d2, decoy], np.r_[uv2, uv_decoy],
-                               np.zeros(52, bool), th2, np.zeros(52), F, None, 50)
-    assert np.array_equal(best, np.arange(40))
-    assert (dist <= 50).all()
+    # keypoint 20 has 4 exact copies off its line, keypoint 21 three: 20's match is not
+    # among its 4 nearest descriptors (refused), 21's is (kept)
+    decoy = np.r_[decoy, np.repeat(d1[20:21], 4, axis=0), np.repeat(d1[21:22], 3, axis=0)]
+    uv_decoy = np.r_[uv_decoy, np.repeat(uv2[20:21] + [0.0, 40.0], 4, axis=0), np.repeat(uv2[21:22] + [0.0, 40.0], 3, axis=0)]
+    n2 = 40 + len(decoy)
+    args = (d1, uv1, np.zeros(40, bool), np.r_[d2, decoy], np.r_[uv2, uv_decoy], np.zeros(n2, bool),
+            np.full(n2, 3.84), np.zeros(n2), F, None, 50)
+    best, dist = epipolar_best(*args)
+    assert np.array_equal(best, np.where(np.arange(40) == 20, -1, np.arange(40)))
+    assert (dist[best >= 0] <= 50).all()
+    assert np.array_equal(epipolar_best(*args, k_nn=0)[0], np.arange(40))
 
 
 # ----------------------------------------------------------------------------- stereo

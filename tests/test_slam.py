@@ -588,20 +588,6 @@ def test_the_mapping_thread_gives_the_inline_result():
     np.testing.assert_array_equal(a.trajectory(), c.trajectory())
 
 
-def test_triangulation_searches_agree():
-    """Triangulation's candidates from the epipolar kernel (the default: the best
-    descriptor on the line) and from the 4 nearest descriptors of the keyframe: as many
-    new points within 10 %, the same keyframes, trajectories within 2 cm."""
-    frames, _ = _sequence()
-    a = _run(frames[:20], _cfg(triangulation_search="epipolar"))
-    b = _run(frames[:20], _cfg(triangulation_search="knn"))
-    sa, sb = a.stats(), b.stats()
-    assert sa.points_triangulated > 100 and abs(sa.points_triangulated - sb.points_triangulated) \
-        <= 0.1 * sb.points_triangulated
-    assert sa.keyframes_created == sb.keyframes_created and sa.lost == sb.lost == 0
-    assert np.abs(a.trajectory()[:, :3, 3] - b.trajectory()[:, :3, 3]).max() < 0.02
-
-
 def test_features_of_another_frame_are_refused():
     frames, _ = _sequence()
     sysm = System(_cfg(), CALIB)
@@ -734,8 +720,6 @@ def test_yaml_slam_section_and_validation(tmp_path: Path):
         System(_cfg(local_ba="sometimes"), CALIB)
     with pytest.raises(ConfigError, match="slam.local_mapping"):
         SlamConfig(local_mapping="process")
-    with pytest.raises(ConfigError, match="slam.triangulation_search"):
-        SlamConfig(triangulation_search="bow")
     with pytest.raises(ConfigError, match="StereoCalibration"):
         System(_cfg(), None)
     sysm = System(Config(), CALIB)  # a whole Config works too

@@ -434,8 +434,6 @@ LocalBAMode = Literal["thread", "inline", "off", "process"]
 LOCAL_BA_MODES: tuple[str, ...] = typing.get_args(LocalBAMode)
 LocalMappingMode = Literal["thread", "inline"]
 LOCAL_MAPPING_MODES: tuple[str, ...] = typing.get_args(LocalMappingMode)
-TriangulationSearch = Literal["epipolar", "knn"]
-TRIANGULATION_SEARCHES: tuple[str, ...] = typing.get_args(TriangulationSearch)
 
 
 @dataclass
@@ -499,9 +497,6 @@ class SlamConfig:
     ba_max_fixed: int = 10  # fixed keyframes that anchor the local window
     ba_lag_frames: int = 2  # a local BA submitted at frame k is applied after tracking frame k+lag
     triangulation_neighbours: int = 6  # covisible keyframes searched for new points
-    # triangulation's candidates: the best descriptor on the epipolar line (one kernel a
-    # keyframe pair), or the 4 nearest descriptors of the whole keyframe, then the line
-    triangulation_search: TriangulationSearch = "epipolar"
     fuse_neighbours: int = 6  # covisible keyframes searched for duplicate points
     keyframe_culling: bool = True
     # loop closing and place recognition (bag of words)
@@ -552,9 +547,6 @@ class SlamConfig:
             self.local_ba = "thread"
         if self.local_ba not in LOCAL_BA_MODES:
             raise _bad(key("local_ba"), "one of " + ", ".join(LOCAL_BA_MODES), self.local_ba)
-        if self.triangulation_search not in TRIANGULATION_SEARCHES:
-            raise _bad(key("triangulation_search"), "one of " + ", ".join(TRIANGULATION_SEARCHES),
-                       self.triangulation_search)
         if self.local_mapping not in LOCAL_MAPPING_MODES:
             raise _bad(key("local_mapping"), "one of " + ", ".join(LOCAL_MAPPING_MODES), self.local_mapping)
         if self.th_depth <= 0:

@@ -40,7 +40,6 @@ from .keyframe import KeyFrame
 from .map import Map
 from .kernels.bookkeeping import redundant_points, unique_good, unseen_good
 from .kernels.epipolar import epipolar_best
-from .kernels.hamming import knn_hamming
 from .matcher import TH_LOW, search_by_projection
 from .optimizer import LocalBAProblem, LocalBAResult, reprojection_chi2, run_ba
 from .orb import ORBExtractor
@@ -276,23 +275,16 @@ class LocalMapper:
             # a keypoint of kf2 too close to the epipole is ambiguous (both monocular)
             ep = K @ (R2w @ C1 + t2w)
             epipole = (ep[0] / ep[2], ep[1] / ep[2]) if abs(ep[2]) > 1e-9 else None
-            if self.cfg.triangulation_search == "epipolar":
-                # the best descriptor on the epipolar line (one compiled call a pair)
-                o2 = kf2.octave[i2]
-                best, bdist = epipolar_best(kf1.desc[i1], kf1.uv[i1], kf1.u_right[i1] < 0, kf2.desc[i2], kf2.uv[i2],
-                                            kf2.u_right[i2] < 0, 3.84 * self.orb.sigma2[o2],
-                                            100 * self.orb.scales[o2], F21, epipole, TH_LOW)
-                has = best >= 0
-                if not has.any():
-                    continue
-                k1, k2, dist = i1[has], i2[best[has]], bdist[has]
-            else:
-                k1, k2, dist = self._knn_candidates(kf1, kf2, i1, i2, F21, epipole)
-                if len(k1) == 0:
-                    continue
-                # best per kf1 keypoint
-                sel = unique_best(k1, dist)
-                k1, k2, dist = k1[sel], k2[sel], dist[sel]
+            # per kf1 keypoint the best descriptor on its epipolar line among its 4 nearest
+            # in kf2 (one compiled call a pair)
+            o2 = kf2.octave[i2]
+            best, bdist = epipolar_best(kf1.desc[i1], kf1.uv[i1], kf1.u_right[i1] < 0, kf2.desc[i2], kf2.uv[i2],
+                                        kf2.u_right[i2] < 0, 3.84 * self.orb.sigma2[o2], 100 * self.orb.scales[o2],
+                                        F21, epipole, TH_LOW, k_nn=4)
+            has = best >= 0
+            if not has.any():
+                continue
+            k1, k2, dist = i1[has], i2[best[has]], bdist[has]
             # then one per kf2 keypoint, rotation consistency
             sel = unique_best(k2, dist)
             k1, k2, dist = k1[sel], k2[sel], dist[sel]
@@ -330,34 +322,6 @@ class LocalMapper:
         mp.update_points(out)
         self.stats.points_triangulated += len(out)
         return out
-
-    def _knn_candidates(self, kf1: KeyFrame, kf2: KeyFrame, i1: np.ndarray, i2: np.ndarray, F21: np.ndarray,
-                        epipole) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``slam.triangulation_search: knn``: the K nearest descriptors of each kf1
-        keypoint (brute force, as cv2.batchDistance) within TH_LOW, then the epipolar
-        constraint and the epipole test on them."""
-        K_nn = min(4, len(i2))
-        dnn, inn = knn_hamming(kf1.desc[i1], kf2.desc[i2], K_nn)
-        a = np.repeat(np.arange(len(i1)), K_nn)
-        bb = inn.reshape(-1)
-        dist = dnn.reshape(-1)
-        ok = (bb >= 0) & (dist <= TH_LOW)
-        a, bb, dist = a[ok], bb[ok], dist[ok]
-        k1, k2 = i1[a], i2[bb]
-        x1 = np.c_[kf1.uv[k1], np.ones(len(k1))]
-        x2 = np.c_[kf2.uv[k2], np.ones(len(k2))]
-        lines = x1 @ F21.T
-        num = (lines * x2).sum(axis=1)
-        den = lines[:, 0] ** 2 + lines[:, 1] ** 2
-        with np.errstate(divide="ignore", invalid="ignore"):
-            d2 = num**2 / den
-        ok = d2 < 3.84 * self.orb.sigma2[kf2.octave[k2]]
-        if epipole is not None:
-            ex, ey = epipole
-            mono_pair = (kf1.u_right[k1] < 0) & (kf2.u_right[k2] < 0)
-            near = (kf2.uv[k2, 0] - ex) ** 2 + (kf2.uv[k2, 1] - ey) ** 2 < 100 * self.orb.scales[kf2.octave[k2]]
-            ok &= ~(mono_pair & near)
-        return k1[ok], k2[ok], dist[ok]
 
     def _triangulate(self, kf1: KeyFrame, kf2: KeyFrame, k1: np.ndarray, k2: np.ndarray, Kinv: np.ndarray):
         """ORB-SLAM2's choice: linear triangulation when the rays' parallax beats the
