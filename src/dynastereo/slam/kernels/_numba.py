@@ -66,6 +66,10 @@ if _config.DISABLE_JIT:  # NUMBA_DISABLE_JIT=1 (debugging): the kernels run as p
     def popcount64(x):
         return int(x).bit_count()
 
+    def cttz64(x):
+        x = int(x)
+        return (x & -x).bit_length() - 1 if x else 64
+
 else:
 
     @intrinsic
@@ -78,5 +82,19 @@ else:
         def codegen(context, builder, signature, args):
             v = context.cast(builder, args[0], signature.args[0], types.uint64)
             return builder.ctpop(v)
+
+        return sig, codegen
+
+
+    @intrinsic
+    def cttz64(typingctx, x):
+        """Trailing zero bits of a uint64 (LLVM ``cttz``: one TZCNT instruction where the CPU has it; 64 for 0)."""
+        if not isinstance(x, types.Integer):
+            return None
+        sig = types.uint64(types.uint64)
+
+        def codegen(context, builder, signature, args):
+            v = context.cast(builder, args[0], signature.args[0], types.uint64)
+            return builder.cttz(v, context.get_constant(types.boolean, False))
 
         return sig, codegen

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._numba import jit, popcount64
+from ._numba import cttz64, jit, popcount64
 from .hamming import desc_words
 
 
@@ -42,20 +42,23 @@ def _epipolar_best(a, bt, u1, v1, mono1, u2, v2, mono2, th2, near2, F, ex, ey, h
         l1 = F[1, 0] * u1[i] + F[1, 1] * v1[i] + F[1, 2]
         l2 = F[2, 0] * u1[i] + F[2, 1] * v1[i] + F[2, 2]
         den = l0 * l0 + l1 * l1
-        for j in range(n2):  # vectorizes: no branch
+        wide = den * (1.0 + 1e-9)
+        for j in range(n2):  # vectorizes: no branch, no division (a slightly wider band)
             num = l0 * u2[j] + l1 * v2[j] + l2
-            flags[j] = num * num / den < th2[j]
+            flags[j] = num * num < th2[j] * wide
         a0, a1, a2, a3 = a[i, 0], a[i, 1], a[i, 2], a[i, 3]
         bd = max_dist + 1
         bj = -1
-        for w in range(nw):  # 8 flags a word: the few on the line found without a branch each
-            if words[w] == 0:
-                continue
-            for j in range(8 * w, min(8 * w + 8, n2)):
-                if flags[j] == 0:
-                    continue
+        for w in range(nw):  # 8 flag bytes a word: the few on the line, by their set bits
+            x = words[w]
+            while x != 0:
+                j = 8 * w + np.int64(cttz64(x) >> np.uint64(3))
+                x &= x - np.uint64(1)
                 d = popcount64(a0 ^ b0[j]) + popcount64(a1 ^ b1[j]) + popcount64(a2 ^ b2[j]) + popcount64(a3 ^ b3[j])
                 if d >= bd:
+                    continue
+                num = l0 * u2[j] + l1 * v2[j] + l2
+                if not num * num / den < th2[j]:  # the exact test, as numpy wrote it
                     continue
                 if has_ep and mono1[i] and mono2[j]:
                     dx = u2[j] - ex
