@@ -7,7 +7,10 @@ kernel's result drives the run, the old one is only timed and compared:
 * ``stereo``: ``matcher.stereo_match`` (kernel) vs ``matcher._stereo_match_numpy``;
 * ``pose``: ``optimizer.optimize_pose`` (kernel) vs ``optimizer._optimize_pose_numpy``;
 * ``knn``: ``kernels.hamming.knn_hamming`` vs ``cv2.batchDistance`` (the descriptor
-  candidates of ``create_new_points`` and ``keyframe_point_matches``);
+  candidates of ``keyframe_point_matches``);
+* ``epipolar``: ``kernels.epipolar.epipolar_best`` (triangulation's candidates in
+  ``create_new_points``) vs what local mapping did before it (:func:`epipolar_old`: the 4
+  nearest descriptors by ``knn_hamming``, then the line and epipole tests in numpy, the best);
 * ``projection``: ``matcher.search_by_projection`` (kernel) vs
   ``matcher._search_by_projection_numpy`` (tracking's last-frame and local-map searches
   and local mapping's fusion).
@@ -51,6 +54,33 @@ ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "results" / "kernels.json"
 SEQS = {"06": "kitti_odometry/dataset/sequences/06", "03": "kitti_odometry/dataset/sequences/03"}
 
+
+
+def epipolar_old(d1, uv1, m1, d2, uv2, m2, th2, near2, F21, epipole, max_dist, k_nn=4):
+    """Triangulation's candidates as local mapping found them before ``epipolar_best``: the
+    ``k_nn`` nearest descriptors of keyframe 2 (``knn_hamming``), within ``max_dist``, on the
+    epipolar line, not a monocular pair near the epipole; the nearest left per row."""
+    from dynastereo.slam.kernels.hamming import knn_hamming
+
+    best, dist = np.full(len(d1), -1, np.int64), np.full(len(d1), -1, np.int64)
+    K = min(k_nn, len(d2))
+    if K == 0 or len(d1) == 0:
+        return best, dist
+    dnn, inn = knn_hamming(d1, d2, K)
+    a, b, d = np.repeat(np.arange(len(d1)), K), inn.reshape(-1), dnn.reshape(-1)
+    ok = (b >= 0) & (d <= max_dist)
+    a, b, d = a[ok], b[ok], d[ok]
+    lines = np.c_[uv1[a], np.ones(len(a))] @ F21.T
+    num = (lines * np.c_[uv2[b], np.ones(len(b))]).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ok = num**2 / (lines[:, 0] ** 2 + lines[:, 1] ** 2) < th2[b]
+    if epipole is not None:
+        near = (uv2[b, 0] - epipole[0]) ** 2 + (uv2[b, 1] - epipole[1]) ** 2 < near2[b]
+        ok &= ~(m1[a] & m2[b] & near)
+    a, b, d = a[ok], b[ok], d[ok]
+    first = np.unique(a, return_index=True)[1]  # the nearest first within each row
+    best[a[first]], dist[a[first]] = b[first], d[first]
+    return best, dist
 
 class SideBySide:
     """Wraps the replaced functions; per frame CPU ms of new and old, and mismatches."""
@@ -131,8 +161,16 @@ class SideBySide:
             sbs.diff["knn"].append(dict(same=bool(np.array_equal(dn, do) and np.array_equal(iN, io))))
             return dn, iN
 
-        local_mapping.knn_hamming = knn
         matcher.knn_hamming = knn
+        new_epi = local_mapping.epipolar_best
+
+        def epi(*a, **k):
+            (bn, dn), (bo, do) = sbs._both("epipolar", lambda: new_epi(*a, **k), lambda: epipolar_old(*a, **k))
+            sbs.diff["epipolar"].append(dict(same=bool(np.array_equal(bn, bo) and np.array_equal(dn, do)),
+                                             matches=int((bn >= 0).sum())))
+            return bn, dn
+
+        local_mapping.epipolar_best = epi
 
         if hasattr(matcher, "_search_by_projection_numpy"):
             new_sp, old_sp = matcher.search_by_projection, matcher._search_by_projection_numpy
@@ -215,28 +253,9 @@ def whole_run(seq: Path, src: Path, out: Path) -> dict:
 
 def warm_all() -> None:
     """One small call of every kernel, with the argument types of a real run."""
-    from dynastereo.slam.geometry import desc_u64
-    from dynastereo.slam.kernels.hamming import knn_hamming
-    from dynastereo.slam.matcher import KeypointGrid, search_by_projection, stereo_match
-    from dynastereo.slam.optimizer import optimize_pose
+    from dynastereo.slam.warmup import warm_up_kernels
 
-    rng = np.random.default_rng(0)
-    img = rng.integers(0, 255, (60, 120), dtype=np.uint8)
-    uv = np.c_[rng.uniform(20, 100, 30), rng.uniform(10, 50, 30)]
-    octv = np.zeros(30, np.int32)
-    desc = rng.integers(0, 255, (30, 32), dtype=np.uint8)
-    scales = 1.2 ** np.arange(8)
-    stereo_match(uv, octv, desc, uv - [5.0, 0.0], octv, desc, img, img, scales, 100.0, 50.0)
-    K = np.array([[100.0, 0, 60], [0, 100.0, 30], [0, 0, 1]])
-    X = np.c_[rng.uniform(-1, 1, (30, 2)), rng.uniform(4, 8, 30)]
-    optimize_pose(np.eye(4), X, uv, uv[:, 0] - 5, np.ones(30), K, 50.0)
-    knn_hamming(desc, desc, 2)
-    g = KeypointGrid(uv, 120, 60)
-    d64 = desc_u64(desc)
-    search_by_projection(g, octv, d64, uv[:, 0] - 5, np.ones(30, bool), uv[:, 0], uv[:, 1], np.full(30, 4.0), d64,
-                         min_level=np.zeros(30, np.int64), max_level=np.ones(30, np.int64), u_right=uv[:, 0] - 5,
-                         ratio=0.8, reproj_check=(uv, np.ones(30)))
-    search_by_projection(g, octv, d64, uv[:, 0] - 5, None, uv[:, 0], uv[:, 1], np.full(30, 4.0), d64)
+    warm_up_kernels(ba=False)
 
 
 def compile_times(old_src: Path) -> dict:

@@ -189,6 +189,25 @@ def test_stage_interval_schedule_carries_boxes_between_runs():
     assert det.calls == 4
 
 
+def test_stage_warm_up_runs_the_network_once_and_changes_nothing():
+    """The detector's first (slow) call made before the frame loop: one inference on a
+    black frame of the frame's size; the schedule and the carried boxes as if it never ran."""
+    rng = np.random.default_rng(1)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (192, 640), dtype=np.uint8), (3, 3), 0)
+    cfg = DetectorConfig(canvas="frame", schedule="interval", interval=3, contrast="none")
+    runs = []
+    for warm in (False, True):
+        det = PartsDetector(img, [([100.0, 60.0, 180.0, 120.0], CAR)])
+        stage = DetectionStage(det, cfg)
+        if warm:
+            stage.warm_up(192, 640)
+            assert det.calls == 1
+        runs.append(([stage.detect_frame(_frame(k, img)) for k in range(4)], det.calls - warm))
+    (a, ca), (b, cb) = runs
+    assert ca == cb == 2  # frames 0 and 3, either way
+    assert all(np.array_equal(x.boxes, y.boxes) and np.array_equal(x.carried, y.carried) for x, y in zip(a, b))
+
+
 def test_stage_rotate_searches_one_tile_per_frame():
     img = np.random.default_rng(2).integers(0, 255, (376, 1241), dtype=np.uint8)
     det = PartsDetector(img, [([30.0, 100.0, 150.0, 200.0], CAR), ([1000.0, 100.0, 1150.0, 220.0], CAR)])

@@ -171,6 +171,13 @@ class _DisparityMasker:
         self.full_disparity = bool(full_disparity) or self.stereo.region == "full"
         self.scale = int(self.stereo.scale)
 
+    def warm_up(self, height: int, width: int) -> None:
+        """The detector's first (slow) call on a black frame of this size, before the frame
+        loop (:meth:`DetectionStage.warm_up`); no state changes."""
+        warm = getattr(self.detector, "warm_up", None)
+        if warm is not None:
+            warm(height, width)
+
     def mask_detections(
         self, frame: StereoFrame, dets: Detections, timer: StageTimer | None = None
     ) -> StereoMasks:

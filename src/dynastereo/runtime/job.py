@@ -5,7 +5,8 @@ an earlier run there is cleared only once the inputs proved good):
 
 1. the source (:func:`~dynastereo.runtime.sources.open_sequence_source`);
 2. the map and cloud files writable; the frames; the stereo pair (``io.stereo_check``);
-3. the masker (:func:`dynastereo.masking.build_masker`, which verifies the model);
+3. the masker (:func:`dynastereo.masking.build_masker`, which verifies the model), its
+   detector's first (slow, lazily initialized) inference made on a black frame;
 4. the output folder (``io.outputs.prepare_output_dir``);
 5. the SLAM system (optionally from a saved map), the motion test, the objects' world tracker;
 6. the sinks and observers (a bag's writer, the viewer, the periodic stereo check).
@@ -108,6 +109,9 @@ def _checked_frames(spec: JobSpec, seq: Sequence, masker: Any = None) -> tuple[l
     truth = None if spec.source.bag is not None else getattr(seq, "path", None)
     if masker is None:
         masker = build_masker(spec.config, seq.calibration, models_dir=spec.models_dir, ground_truth=truth)
+    c = getattr(seq, "calibration", None)
+    if hasattr(masker, "warm_up") and c is not None:  # not in the frame loop: its FPS, a camera's first frames
+        masker.warm_up(c.height, c.width)
     prepare_output_dir(o.dir, overwrite=o.overwrite)
     return indices, masker
 

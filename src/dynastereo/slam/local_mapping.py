@@ -44,6 +44,7 @@ from .matcher import TH_LOW, search_by_projection
 from .optimizer import LocalBAProblem, LocalBAResult, reprojection_chi2, run_ba
 from .orb import ORBExtractor
 from .selfcal import MAX_POINTS, SelfCalibration
+from .warmup import warm_up_kernels
 
 log = logging.getLogger("dynastereo.slam")
 
@@ -121,23 +122,23 @@ class BARunner:
         self._warmup: threading.Thread | None = None
 
     def warm_up(self) -> None:
-        """Compile (first run) or load from numba's cache the BA kernel, in a daemon
-        thread, so that the first local BA does not stall tracking."""
-        if self.mode == "off" or self._ready is not None:
+        """Compile (first run) or load from numba's cache the SLAM's kernels, the BA's
+        included (:mod:`.warmup`), in a daemon thread, so that neither the first frames
+        nor the first local BA stall on it."""
+        if self._ready is not None:
             return
         ready = self._ready = threading.Event()
+        ba = self.mode != "off"
 
         def run() -> None:
             try:
-                from .kernels.ba import warm_up
-
-                warm_up()
-            except Exception as e:  # noqa: BLE001 -- the first BA reports it again
-                log.warning("local BA kernel warm-up failed: %s", e)
+                warm_up_kernels(ba=ba)
+            except Exception as e:  # noqa: BLE001 -- the first call reports it again
+                log.warning("SLAM kernel warm-up failed: %s", e)
             finally:
                 ready.set()
 
-        self._warmup = threading.Thread(target=run, name="local-ba-warmup", daemon=True)
+        self._warmup = threading.Thread(target=run, name="slam-warmup", daemon=True)
         self._warmup.start()
 
     def submit(self, problem: LocalBAProblem) -> BAJob | LocalBAResult:

@@ -122,6 +122,15 @@ class DetectionStage:
         with _stage(timer, "carry"):
             return self.tracker.update(frame.left_gray, dets, region=region)
 
+    def warm_up(self, height: int, width: int) -> None:
+        """One inference on a black ``height`` x ``width`` frame, before the first real one: a
+        network's first call initializes lazily (onnxruntime: ~0.4 s on KITTI frames), which
+        would otherwise land in the frame loop (a live source's first frames, an offline
+        run's FPS).  The schedule and the carried boxes are untouched; nothing for the
+        oracle or a test double."""
+        if self.network and height > 0 and width > 0:
+            self.detector.detect(np.zeros((int(height), int(width), 3), np.uint8))
+
     def detect(self, image: np.ndarray) -> Detections:
         """One image alone (no schedule, no carrying): the detector at its scale."""
         if self.contrast is not None:
