@@ -85,7 +85,6 @@ else:
 
         return sig, codegen
 
-
     @intrinsic
     def cttz64(typingctx, x):
         """Trailing zero bits of a uint64 (LLVM ``cttz``: one TZCNT instruction where the CPU has it; 64 for 0)."""
