@@ -72,28 +72,24 @@ if _config.DISABLE_JIT:  # NUMBA_DISABLE_JIT=1 (debugging): the kernels run as p
 
 else:
 
-    @intrinsic
-    def popcount64(typingctx, x):
-        """Number of set bits of a uint64 (LLVM ``ctpop``: one POPCNT instruction where the CPU has it)."""
-        if not isinstance(x, types.Integer):
-            return None
-        sig = types.uint64(types.uint64)
+    def _u64_op(emit, doc: str):
+        """An intrinsic ``uint64 -> uint64`` whose body is ``emit(builder, value)`` (one LLVM
+        instruction), for any integer argument."""
 
-        def codegen(context, builder, signature, args):
-            v = context.cast(builder, args[0], signature.args[0], types.uint64)
-            return builder.ctpop(v)
+        def typer(typingctx, x):
+            if not isinstance(x, types.Integer):
+                return None
+            sig = types.uint64(types.uint64)
 
-        return sig, codegen
+            def codegen(context, builder, signature, args):
+                return emit(context, builder, context.cast(builder, args[0], signature.args[0], types.uint64))
 
-    @intrinsic
-    def cttz64(typingctx, x):
-        """Trailing zero bits of a uint64 (LLVM ``cttz``: one TZCNT instruction where the CPU has it; 64 for 0)."""
-        if not isinstance(x, types.Integer):
-            return None
-        sig = types.uint64(types.uint64)
+            return sig, codegen
 
-        def codegen(context, builder, signature, args):
-            v = context.cast(builder, args[0], signature.args[0], types.uint64)
-            return builder.cttz(v, context.get_constant(types.boolean, False))
+        typer.__doc__ = doc
+        return intrinsic(typer)
 
-        return sig, codegen
+    popcount64 = _u64_op(lambda ctx, b, v: b.ctpop(v),
+                         "Number of set bits of a uint64 (LLVM ``ctpop``: one POPCNT instruction where the CPU has it).")
+    cttz64 = _u64_op(lambda ctx, b, v: b.cttz(v, ctx.get_constant(types.boolean, False)),
+                     "Trailing zero bits of a uint64 (LLVM ``cttz``: one TZCNT where the CPU has it; 64 for 0).")
