@@ -34,6 +34,8 @@ from pathlib import Path
 import numpy as np
 
 TARGET_MEDIAN_MS = 100.0
+TARGET_P95_MS = 100.0  # issue 24: image stamp -> odometry p95, no drops
+SETTLE = 5  # odometry messages left out of the "after start-up" figures: the first CameraInfo builds the SLAM
 HARNESS = Path(__file__).resolve().parents[1] / "tests" / "ros_harness.py"  # test code, not in the package
 
 
@@ -73,6 +75,7 @@ def main() -> None:
     rows = []
     for mode in [m.strip() for m in args.modes.split(",") if m.strip()]:
         lat: list[float] = []
+        settled: list[float] = []  # without each run's first SETTLE frames (the start-up transient)
         runs = []
         for r in range(args.repeats):
             res = run_once(seq, args.frames, args.rate, mode == "pipelined", args.timeout)
@@ -89,26 +92,34 @@ def main() -> None:
                 "loadavg": os.getloadavg()[0],
             })
             lat += res["latency_ms"]
+            settled += res["latency_ms"][SETTLE:]
             print(f"  {mode} run {r + 1}: median {runs[-1]['median_ms']:.1f} ms, p95 {runs[-1]['p95_ms']:.1f} ms, "
                   f"dropped {st['dropped']}, transport lost {runs[-1]['transport_lost']}, "
                   f"load {runs[-1]['loadavg']:.1f}", flush=True)
         a = np.asarray(lat)
+        b = np.asarray(settled) if settled else a
         rows.append({
             "mode": mode, "rate_hz": args.rate, "frames_per_run": args.frames, "repeats": args.repeats,
             "latency_median_ms": round(float(np.median(a)), 1), "latency_p95_ms": round(float(np.percentile(a, 95)), 1),
             "latency_max_ms": round(float(a.max()), 1),
+            "after_start_median_ms": round(float(np.median(b)), 1),
+            "after_start_p95_ms": round(float(np.percentile(b, 95)), 1),
+            "after_start_max_ms": round(float(b.max()), 1),
             "dropped": int(sum(r["dropped"] for r in runs)), "transport_lost": int(sum(r["transport_lost"] for r in runs)),
             "frames_total": int(sum(r["published"] for r in runs)),
             "median_of_run_medians_ms": float(np.median([r["median_ms"] for r in runs])),
             "pass": bool(np.median(a) <= TARGET_MEDIAN_MS and sum(r["dropped"] for r in runs) == 0),
+            "pass_p95": bool(np.percentile(a, 95) <= TARGET_P95_MS and sum(r["dropped"] for r in runs) == 0),
             "runs": runs,
         })
     print(f"\nROS 1 node latency, image stamp -> odometry receipt, KITTI 06 1226x370 at {args.rate:g} Hz, "
           f"queue_size 1 (target: median <= {TARGET_MEDIAN_MS:g} ms, no drops)")
-    print(f"{'mode':10s} {'median':>8s} {'p95':>8s} {'max':>8s} {'dropped':>8s} {'lost(tr)':>8s} {'frames':>7s}  pass")
+    print(f"{'mode':10s} {'median':>8s} {'p95':>8s} {'max':>8s} {'dropped':>8s} {'lost(tr)':>8s} {'frames':>7s}  pass"
+          f"  | after start-up (frames {SETTLE}+ of each run): median / p95 / max")
     for r in rows:
         print(f"{r['mode']:10s} {r['latency_median_ms']:8.1f} {r['latency_p95_ms']:8.1f} {r['latency_max_ms']:8.1f} "
-              f"{r['dropped']:8d} {r['transport_lost']:8d} {r['frames_total']:7d}  {r['pass']}")
+              f"{r['dropped']:8d} {r['transport_lost']:8d} {r['frames_total']:7d}  {r['pass']}"
+              f"  | {r['after_start_median_ms']:.1f} / {r['after_start_p95_ms']:.1f} / {r['after_start_max_ms']:.1f}")
     for r in rows:
         st = r["runs"][0]["stages_median_ms"]
         keep = ("detect", "disparity", "outline", "transfer", "features", "stereo", "track", "local_mapping", "total")
@@ -118,7 +129,7 @@ def main() -> None:
         "benchmark": "ros_latency",
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
                     "loadavg_at_end": list(os.getloadavg())},
-        "target": {"median_ms": TARGET_MEDIAN_MS, "drops": 0},
+        "target": {"median_ms": TARGET_MEDIAN_MS, "p95_ms": TARGET_P95_MS, "drops": 0},
         "sequence": "KITTI 06 (gray 1226x370)",
         "config": "default (outline masker, yolox-nano, StereoBM, 2000 ORB features); queue_size 1",
         "results": rows,
