@@ -129,6 +129,32 @@ def test_core_drops_the_oldest_when_busy(kitti06: Path, pipelined: bool) -> None
     assert st["latency_receipt_ms"]["n"] == 2
 
 
+def test_core_warm_up_goes_through_the_masker(kitti06: Path) -> None:
+    """The node's warm-up runs the masker's detection stage (the frames' own tiles and batch):
+    on a 640x480 black frame before the calibration is known, at the camera's size after."""
+
+    class _WarmMasker(_BlockingMasker):
+        def __init__(self) -> None:
+            super().__init__()
+            self.warmed: list[tuple[int, int]] = []
+
+        def warm_up(self, height: int, width: int) -> None:
+            self.warmed.append((height, width))
+
+    seq = KittiSequence(kitti06)
+    masker = _WarmMasker()
+    core = StereoNodeCore(Config(), masker=masker, pipelined=False, sink=_Sink())
+    try:
+        core.warm_up()
+        core.set_calibration(seq.calibration)
+        core.warm_up()
+    finally:
+        core.shutdown()
+    c = seq.calibration
+    assert masker.warmed == [(480, 640), (c.height, c.width)]
+    assert not masker.entered.is_set()  # no frame was masked
+
+
 def test_core_live_parameters(kitti06: Path, models_dir: Path, tmp_path: Path) -> None:
     seq = KittiSequence(kitti06)
     core = StereoNodeCore(Config(), calibration=seq.calibration, models_dir=models_dir, pipelined=False)

@@ -56,6 +56,7 @@ import numpy as np
 from ..config import Config, load_config, to_dict
 from ..dotted import flatten_dotted, nest_dotted
 from ..errors import DynastereoError, RosUnavailable
+from ..slam.warmup import warm_up_kernels
 from .convert import CameraInfoData, ImageDecoder, calibration_from_camera_info, masked_image, stamp_split
 from .core import LIVE_SECTIONS, NodeResult, StereoInput, StereoNodeCore, flatten_live
 from .messages import (
@@ -195,7 +196,7 @@ class Ros1Node:
 
             calibration = load_stereo_yaml(config_file)  # an ORB-SLAM2 settings file carries the camera
         self.core = StereoNodeCore(self.cfg, models_dir=models_dir, queue_size=int(p("~queue_size", 1)),
-                                   pipelined=bool(p("~pipelined", False)), sink=self,
+                                   pipelined=bool(p("~pipelined", True)), sink=self,
                                    odom_frame=str(p("~odom_frame", ODOM_FRAME)), camera_frame=str(p("~camera_frame", "")))
         self.decoder = ImageDecoder(p("~mono16_shift", None))
         self._info0: tuple[CameraInfoData, CameraInfoData] | None = None
@@ -238,6 +239,9 @@ class Ros1Node:
             self.core.set_calibration(calibration)
             self.core.warm_up()
             self.pub_ready.publish(Bool(True))
+        else:  # before the first CameraInfo: what does not need the camera's size
+            self.core.warm_up()
+            warm_up_kernels()
 
         # subscriptions
         compressed = bool(p("~compressed", False))
