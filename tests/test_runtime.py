@@ -181,6 +181,31 @@ def test_every_entry_point_runs_the_one_runtime(kitti06: Path, tmp_path: Path, m
     core.shutdown()
 
 
+def test_a_job_warms_its_masker_before_the_first_frame(kitti06: Path, tmp_path: Path) -> None:
+    """The detector's first (lazily initialized) inference is made by the job's assembly, on
+    a black frame of the sequence's size, before the frame loop -- not inside it."""
+    from dynastereo.datatypes import StereoMasks
+    from dynastereo.io import KittiSequence
+    from dynastereo.runtime import run
+
+    events: list[tuple] = []
+
+    class _Masker:
+        name = "counting"
+
+        def warm_up(self, height: int, width: int) -> None:
+            events.append(("warm", height, width))
+
+        def mask(self, frame, timer=None):
+            events.append(("mask", frame.index))
+            return StereoMasks.empty(frame.shape)
+
+    spec = JobSpec(JobKind.MASK, SourceSpec(path=kitti06), OutputSpec(tmp_path / "m"), Config(), frames="0-2")
+    run(spec, masker=_Masker())
+    c = KittiSequence(kitti06).calibration
+    assert events == [("warm", c.height, c.width), ("mask", 0), ("mask", 1), ("mask", 2)]
+
+
 # --------------------------------------------------------------------------- bit for bit, all of KITTI 06
 
 
