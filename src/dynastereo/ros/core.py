@@ -280,15 +280,14 @@ class StereoNodeCore:
     def warm_up(self) -> None:
         """Run the detector once on a black image (its first call is slow: lazy
         initialization), so the first real frame does not pay for it.  No state changes.
-        Through the masker's detection stage, so that the frames' own canvas, tiles and batch
-        are what is initialized; before the calibration is known, on a 640x480 image (the
-        slowest part, the runtime's start in the process, does not depend on the size)."""
+        Through the masker's detection stage (``warm_up`` of the outline and box maskers, the
+        ones with a detector), so that the frames' own canvas, tiles and batch are what is
+        initialized; before the calibration is known, on a 640x480 image (the slowest part,
+        the runtime's start in the process, does not depend on the size)."""
         h, w = (self.calibration.height, self.calibration.width) if self.calibration is not None else (480, 640)
-        warm = getattr(self._masker, "warm_up", None)  # through the masker: the frames' own tiles and batch
+        warm = getattr(self._masker, "warm_up", None)
         if warm is not None:
             warm(h, w)
-        elif self._detector is not None:
-            self._detector.detect(np.zeros((h, w, 3), np.uint8))
 
     @property
     def ready(self) -> bool:
