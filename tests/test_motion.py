@@ -170,6 +170,43 @@ def test_lost_frames_give_no_evidence() -> None:
     assert masks.objects[1].moving is None and masks.objects[1].masked
 
 
+def test_a_walker_too_far_to_tell_from_rest_stays_undecided() -> None:
+    """Three objects at rest, seen by the camera driving forward: a person and a car 45 m
+    ahead and a person 12 m ahead.  At 45 m (fx 370 px, baseline 0.54 m) the stereo noise
+    of a velocity over the whole window is ~1.4 m/s: the test cannot tell a standing person
+    from a walking one (``rest_resolution`` 2 m/s, twice the noise), so the far person stays
+    undecided -- masked -- while the far car (vehicles are told at any range) and the near
+    person are judged static."""
+    rng = np.random.default_rng(3)
+    judge = MotionJudge(MotionConfig(), CALIB)
+    pts = {1: np.array([-4.0, 0.5, 45.0]), 2: np.array([4.0, 0.5, 45.0]), 3: np.array([2.0, 0.5, 12.0])}
+    labels = {1: "car", 2: "person", 3: "person"}
+    X = {t: c + rng.uniform(-0.5, 0.5, (30, 3)) * [0.6, 1.6, 0.4] for t, c in pts.items()}
+    lab = np.zeros((192, 640), np.int32)
+    for i in range(3):
+        lab[:, i * 200:(i + 1) * 200] = i + 1
+    m = (lab > 0).astype(np.uint8) * 255
+    for k in range(10):
+        flows = []
+        if k > 0:
+            for t in pts:
+                uv0, d0 = _uvd(X[t], _camera(k - 1, 5.0), rng)
+                uv1, d1 = _uvd(X[t], _camera(k, 5.0), rng)
+                flows.append(ObjectFlow(t, t - 1, uv0, d0, uv1, d1))
+        objs = [ObjectMask((i * 200.0, 0.0, (i + 1) * 200.0, 192.0), labels[i + 1], 1.0, MaskMethod.OUTLINE, 10.0, 1,
+                           1, i + 1) for i in range(3)]
+        masks = StereoMasks(m, m.copy(), objs, labels_left=lab, labels_right=lab, flow=FrameFlow(k, DT, flows))
+        judge.select(masks)
+        judge.update(masks, _camera(k, 5.0)[:3], ok=True)
+    assert [o.moving for o in masks.objects] == [False, None, False]
+    judge.select(masks)
+    assert [o.masked for o in masks.objects] == [False, True, False]
+    # with a coarser resolution asked for, the far person is told static too
+    loose = MotionJudge(MotionConfig(rest_resolution=4.0), CALIB)
+    assert loose._resolvable(np.full(30, CALIB.bf / 45.0), np.zeros(30, np.int64), np.array([True]), DT)[0]
+    assert not judge._resolvable(np.full(30, CALIB.bf / 45.0), np.zeros(30, np.int64), np.array([True]), DT)[0]
+
+
 def test_motion_config_is_validated() -> None:
     with pytest.raises(ConfigError, match="motion.mode"):
         Config().with_overrides({"motion.mode": "some"})
@@ -179,6 +216,8 @@ def test_motion_config_is_validated() -> None:
         MotionConfig(confirm_frames=0)
     with pytest.raises(ConfigError, match="motion.duplicate_iou"):
         MotionConfig(duplicate_iou=0.0)
+    with pytest.raises(ConfigError, match="motion.rest_resolution"):
+        MotionConfig(rest_resolution=0.0)
 
 
 # ----------------------------------------------------------------------------- pipeline

@@ -365,7 +365,10 @@ class MotionConfig:
     frame): chi-square ``object_chi2``.  A frame is evidence of motion when at least
     ``moving_fraction`` of the points exceed (1) or the velocity exceeds (2); of rest
     when at most ``static_fraction`` of the points exceed (1), the velocity's chi-square
-    is at most ``object_chi2_static`` and there are ``min_points`` points.
+    is at most ``object_chi2_static``, there are ``min_points`` points, and -- for the
+    slow road users, persons and bicycles -- it is near enough for the window test to tell
+    rest from ``rest_resolution`` m/s at all (twice the stereo noise of a velocity over
+    the whole window at its distance; a farther walker or cyclist stays undecided, masked).
     ``confirm_frames`` frames of evidence in a row decide an undecided object or turn a
     static one moving (its map points are then removed, ``forget_points``); a moving one
     is judged static again after ``release_frames`` frames of rest in a row.  A frame in
@@ -386,6 +389,7 @@ class MotionConfig:
     max_points: int = 20  # corners followed per object
     object_chi2: float = 11.34
     object_chi2_static: float = 6.25
+    rest_resolution: float = 2.0  # m/s
     object_points: int = 10
     window_frames: int = 15
     confirm_frames: int = 2
@@ -405,7 +409,7 @@ class MotionConfig:
                               f"{self.object_chi2_static!r} > {self.object_chi2!r}")
         if self.object_points < 1:
             raise _bad("motion.object_points", ">= 1", self.object_points)
-        for k in ("sigma_px", "sigma_disparity", "chi2", "object_chi2", "object_chi2_static"):
+        for k in ("sigma_px", "sigma_disparity", "chi2", "object_chi2", "object_chi2_static", "rest_resolution"):
             if not getattr(self, k) > 0:
                 raise _bad(f"motion.{k}", "> 0", getattr(self, k))
         for k in ("moving_fraction", "static_fraction"):

@@ -15,7 +15,7 @@ from ...datatypes import StereoCalibration, StereoMasks
 from ..boxes import box_iou
 from ..detection.classes import canonical_name, class_group_index
 from .flow import FrameFlow, ObjectFlow
-from .stats import _mahalanobis, _object_velocities, _point_velocities, static_residuals
+from .stats import _group_median, _mahalanobis, _object_velocities, _point_velocities, static_residuals
 
 # class groups whose names a detector swaps on one object (the box tracker's)
 _GROUP_OF = class_group_index()
@@ -25,6 +25,10 @@ _GROUP_OF = class_group_index()
 def _group(label: str):
     """The class group of a detector label (its own name outside the groups)."""
     return _GROUP_OF.get(canonical_name(label), label)
+
+
+# the slow road users, whose rest the test must tell from a walking or cycling pace
+SLOW_GROUPS = frozenset({_group("person"), _group("bicycle")})
 
 
 
@@ -123,15 +127,20 @@ class MotionJudge:
         return StereoMasks(left, right, masks.objects, masks.detections, masks.disparity, masks.ground,
                            masks.labels_left, masks.labels_right, masks.box_disparity, masks.flow)
 
-    def _evidence(self, n: np.ndarray, frac: np.ndarray, chi_velocity: np.ndarray) -> list[bool | None]:
+    def _evidence(self, n: np.ndarray, frac: np.ndarray, chi_velocity: np.ndarray,
+                  resolved: np.ndarray | None = None) -> list[bool | None]:
         """Per object, this frame's evidence from its points tested (``n``), the fraction
-        of them over ``chi2`` and its velocity's chi-square: True motion, False rest, None
-        neither (too few points; half of ``min_points`` suffice to keep an object masked)."""
+        of them over ``chi2``, its velocity's chi-square and whether rest can be told at all
+        (``resolved``, default all; :meth:`_resolvable`): True motion, False rest, None
+        neither (too few points, or too far; half of ``min_points`` suffice to keep an
+        object masked)."""
         c = self.cfg
         enough = n >= max(3, c.min_points // 2)
         moving = enough & ((frac >= c.moving_fraction) | (chi_velocity > c.object_chi2))
         rest = (enough & ~moving & (n >= c.min_points) & (frac <= c.static_fraction)
                 & (chi_velocity <= c.object_chi2_static))
+        if resolved is not None:
+            rest &= resolved
         return [True if m else (False if r else None) for m, r in zip(moving, rest)]
 
     def _step(self, t: _TrackState, e: bool | None) -> bool:
@@ -147,9 +156,33 @@ class MotionJudge:
             t.moving = False
         return was is False and t.moving is True
 
-    def _weigh(self, flow: FrameFlow, T0: np.ndarray, T1: np.ndarray) -> list[int]:
+    def _resolvable(self, d: np.ndarray, owner: np.ndarray, slow: np.ndarray, dt: float) -> np.ndarray:
+        """(G,) bool: whether the window test can tell each object at rest at all.  For the
+        slow road users (``slow``: persons, bicycles -- a walker at 1.4 m/s, a cyclist at 4):
+        whether, at its distance (the median disparity ``d`` of its points, ``owner`` their
+        objects), the stereo noise of a velocity over the whole window (``window_frames``
+        frames of ``dt`` s, ``object_points`` points) resolves ``rest_resolution`` m/s:
+        ``2 sigma <= rest_resolution`` with ``sigma = sqrt(2) sigma_Z / (window dt)
+        sqrt(pi / 2 / object_points)``, ``sigma_Z = Z^2 sigma_d / bf``.  Vehicles, and an
+        object without points: True (a parked car far away is still told by the test)."""
+        c = self.cfg
+        G = len(slow)
+        out = np.ones(G, bool)
+        if not len(d) or not slow.any():
+            return out
+        counts = np.bincount(owner, minlength=G)
+        has = counts > 0
+        starts = np.concatenate([[0], np.cumsum(counts[has])[:-1]])
+        dm = _group_median(d[:, None], owner, starts, counts[has])[:, 0]
+        z = self.calib.bf / np.maximum(dm, 1e-6)
+        sigma = np.sqrt(2.0) * z * z * c.sigma_disparity / self.calib.bf / (c.window_frames * dt)
+        out[has] = (2.0 * sigma * np.sqrt(0.5 * np.pi / c.object_points) <= c.rest_resolution) | ~slow[has]
+        return out
+
+    def _weigh(self, flow: FrameFlow, T0: np.ndarray, T1: np.ndarray, labels: list[str]) -> list[int]:
         """The evidence of one frame's flow under the camera motion ``T0`` -> ``T1``: every
-        object's points tested at once, per object only the hysteresis."""
+        object's points tested at once, per object only the hysteresis; ``labels``: the
+        frame's objects' labels (``ObjectFlow.index`` into them)."""
         c = self.cfg
         objs = flow.objects
         if not objs:
@@ -170,6 +203,8 @@ class MotionJudge:
         vel = np.zeros((G, 3))
         nvel = np.zeros(G, np.int64)
         chi_v = np.zeros(G)
+        slow = np.array([_group(labels[of.index]) in SLOW_GROUPS for of in objs], bool)
+        resolved = self._resolvable(cat.d1, owner, slow, flow.dt)
         if flow.seq in self._poses:
             S = np.array([c.sigma_px**2, c.sigma_px**2, c.sigma_disparity**2])
             use, V, Cv, age, X1 = _point_velocities(cat, flow.seq, self._poses, self.calib, S)
@@ -178,7 +213,7 @@ class MotionJudge:
                     V, Cv, age, X1, owner[use], G, T1[:3, :3], c.object_points, np.radians(c.sigma_pose_deg),
                     c.sigma_pose_m)
                 chi_v[has] = np.einsum("gi,gi->g", vel[has], np.linalg.solve(Cm, vel[has][:, :, None])[:, :, 0])
-        evidence = self._evidence(n, frac, chi_v)
+        evidence = self._evidence(n, frac, chi_v, resolved)
         states = [self.tracks[of.track] for of in objs]
         # the camera's motion itself is suspect when most objects judged static seem to move
         # at once (a bad pose): no evidence from this frame
@@ -220,7 +255,7 @@ class MotionJudge:
             for k in [k for k in self._poses if k < flow.seq - self.cfg.window_frames - 1]:
                 del self._poses[k]
         if flow is not None and last is not None and ok and last[0] == flow.seq - 1:
-            turned = self._weigh(flow, last[1], T_wc)
+            turned = self._weigh(flow, last[1], T_wc, [o.label for o in masks.objects])
         for o, v in zip(masks.objects, self.verdicts(masks.objects)):
             t = self.tracks.get(int(o.track_id)) if o.track_id >= 0 else None
             o.moving = v
