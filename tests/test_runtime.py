@@ -206,6 +206,41 @@ def test_a_job_warms_its_masker_before_the_first_frame(kitti06: Path, tmp_path: 
     assert events == [("warm", c.height, c.width), ("mask", 0), ("mask", 1), ("mask", 2)]
 
 
+def test_a_run_loads_the_slam_kernels_before_the_first_frame(kitti06: Path, tmp_path: Path, monkeypatch) -> None:
+    """The SLAM's compiled kernels load on a background thread from the System's making;
+    a run waits for them before its frame loop (start-up, not the loop: its FPS, a camera's
+    first frames), and the System's ``wait_ready`` then returns at once."""
+    from dynastereo.runtime import run
+    from dynastereo.slam import system as slam_system
+    from dynastereo.slam.local_mapping import BARunner
+
+    events: list[str] = []
+    loaded: list[bool] = []
+    orig_wait, orig_track = slam_system.System.wait_ready, slam_system.System.track
+
+    def wait_ready(self):
+        events.append("wait")
+        out = orig_wait(self)
+        loaded.append(self.runner._ready.is_set())
+        return out
+
+    def track(self, frame, *a, **k):
+        events.append(f"track {frame.index}")
+        return orig_track(self, frame, *a, **k)
+
+    monkeypatch.setattr(slam_system.System, "wait_ready", wait_ready)
+    monkeypatch.setattr(slam_system.System, "track", track)
+    spec = JobSpec(JobKind.RUN, SourceSpec(path=kitti06), OutputSpec(tmp_path / "r"),
+                   Config().with_overrides({"masker.kind": "none"}), frames="0-1")
+    run(spec)
+    assert events == ["wait", "track 0", "track 1"] and loaded == [True]
+    r = BARunner("thread", 1.0)
+    assert r._ready is None and r.wait_warm_up() < 0.05  # never started: no wait
+    r.warm_up()
+    r.wait_warm_up()
+    assert r._ready.is_set()
+
+
 # --------------------------------------------------------------------------- bit for bit, all of KITTI 06
 
 

@@ -207,6 +207,8 @@ def execute(job: Job, progress: Progress | None) -> MaskJobResult | SlamJobResul
     spec = job.spec
     run_job = spec.kind is JobKind.RUN
     timer = new_run_timer() if run_job else new_mask_timer()
+    if job.processor.system is not None:  # start-up, not the frame loop (its FPS, a camera's first frames)
+        job.processor.system.wait_ready()
     observers = ObserverSink(job.observers, job.processor.system, job.sequence.calibration)
     loop = FrameLoop(job.processor, timer, observers=observers, pipelined=run_job and spec.prefetch,
                      progress=progress, total=len(job.frames))

@@ -141,6 +141,16 @@ class BARunner:
         self._warmup = threading.Thread(target=run, name="slam-warmup", daemon=True)
         self._warmup.start()
 
+    def wait_warm_up(self) -> float:
+        """Wait for :meth:`warm_up` to end (at once when it has, or never started);
+        returns the seconds waited."""
+        t0 = time.perf_counter()
+        if self._ready is not None and not self._ready.is_set():
+            if not self._ready.wait(2.0):
+                log.info("loading the SLAM kernels (the first run after an install compiles them: ~15 s)")
+                self._ready.wait()
+        return time.perf_counter() - t0
+
     def submit(self, problem: LocalBAProblem) -> BAJob | LocalBAResult:
         if self.mode == "thread":
             self._jobs = [j for j in self._jobs if not j.done()]

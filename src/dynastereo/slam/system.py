@@ -217,6 +217,13 @@ class System:
         self.tracker.attach(self.active, initialized=initialized)
 
     # ------------------------------------------------------------------ track
+    def wait_ready(self) -> float:
+        """Wait until the SLAM's compiled kernels are loaded (started in the background
+        when the System is made; compiled on the first run after an install), so that the
+        first frames do not share the CPU with their loading; returns the seconds waited.
+        Optional: a frame tracked before waits for the kernels it calls."""
+        return self.runner.wait_warm_up()
+
     def features(self, frame: StereoFrame, masks: StereoMasks | None = None,
                  timer: StageTimer | None = None) -> FrameFeatures:
         """ORB features and stereo matches of ``frame`` (masked by ``masks``), computed
