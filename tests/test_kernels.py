@@ -350,3 +350,38 @@ def test_numba_cache_falls_back_when_nothing_is_writable(monkeypatch, tmp_path):
     monkeypatch.setattr(_numba, "_writable", lambda d: True)
     monkeypatch.setattr(_numba._config, "CACHE_DIR", "")
     assert _numba.cache_dir_fallback() is None
+
+
+def _kernel_signatures() -> dict[str, set[str]]:
+    """Every compiled kernel of the SLAM (``slam.kernels.*``) and its loaded overloads."""
+    import importlib
+    import pkgutil
+
+    from numba.core.registry import CPUDispatcher
+
+    from dynastereo.slam import kernels
+
+    out: dict[str, set[str]] = {}
+    for m in pkgutil.iter_modules(kernels.__path__):
+        mod = importlib.import_module(f"dynastereo.slam.kernels.{m.name}")
+        for name, f in vars(mod).items():
+            if isinstance(f, CPUDispatcher) and f.__module__ == mod.__name__:
+                out[f"{m.name}.{name}"] = {str(s) for s in f.signatures}
+    return out
+
+
+def test_the_warm_up_loads_every_kernel_a_run_calls(kitti06, tmp_path):
+    """After ``warm_up_kernels`` (start-up), the whole of KITTI 06 tracked and mapped loads
+    no kernel overload of its own: none is loaded from numba's cache (tens of ms, holding
+    the GIL) or compiled inside the frame loop."""
+    from dynastereo.api import run_sequence
+    from dynastereo.config import Config
+    from dynastereo.slam.warmup import warm_up_kernels
+
+    warm_up_kernels()
+    before = _kernel_signatures()
+    run_sequence(kitti06, tmp_path / "r", Config().with_overrides({"masker.kind": "none"}), stereo_check=False)
+    after = _kernel_signatures()
+    called = {k: v for k, v in after.items() if v}
+    assert len(called) >= 15  # the run went through the kernels
+    assert {k: sorted(v - before.get(k, set())) for k, v in after.items() if v - before.get(k, set())} == {}

@@ -10,12 +10,14 @@ live node's first frames, an offline run's frame rate.  Nothing here keeps state
 from __future__ import annotations
 
 import numpy as np
+from numba import types as nt
 
 from .geometry import desc_u64
 from .kernels.ba import warm_up as warm_up_ba
+from .kernels import bookkeeping
 from .kernels.bucketing import bucket_corners
 from .kernels.epipolar import epipolar_best
-from .kernels.hamming import knn_hamming
+from .kernels.hamming import descend_tree, knn_hamming
 from .matcher import KeypointGrid, search_by_projection, stereo_match
 from .optimizer import optimize_pose
 
@@ -44,5 +46,26 @@ def warm_up_kernels(ba: bool = True) -> None:
                          min_level=np.zeros(30, np.int64), max_level=np.ones(30, np.int64), u_right=uv[:, 0] - 5,
                          ratio=0.8, reproj_check=(uv, np.ones(30)))
     search_by_projection(g, octv, d64, uv[:, 0] - 5, None, uv[:, 0], uv[:, 1], np.full(30, 4.0), d64)
+    _load_by_signature()
     if ba:
         warm_up_ba()
+
+
+def _load_by_signature() -> None:
+    """The map's bookkeeping kernels and the vocabulary's descent: loaded (or compiled) for
+    the argument types a run passes, without a call -- their inputs are the map's own
+    tables, which a made-up problem would have to build whole."""
+    i1, b1, f1 = nt.int64[::1], nt.boolean[::1], nt.float64[::1]
+    f2, u8, u64 = nt.float64[:, ::1], nt.uint8[:, ::1], nt.uint64[:, ::1]
+    for kernel, sig in (
+        (bookkeeping.rows_of, (i1, i1, b1, i1)),
+        (bookkeeping.by_keyframe, (i1,)),
+        (bookkeeping.unseen_good, (i1, b1, i1)),
+        (bookkeeping.unique_good, (i1, b1)),
+        (bookkeeping.new_observations, (i1, i1, i1, b1)),
+        (bookkeeping.update_points, (i1, i1, i1, i1, f2, i1, u8, u64, f2, i1, f2, f1, f1, u8, f1, nt.int64)),
+        (bookkeeping.redundant_points, (i1, i1, i1, i1, nt.int64)),
+        (descend_tree, (u64, nt.UniTuple(nt.uint64[:, :, ::1], 4), nt.UniTuple(nt.int32[:, ::1], 4), nt.int64,
+                        nt.int64)),
+    ):
+        kernel.compile(sig)
