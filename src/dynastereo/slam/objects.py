@@ -69,6 +69,8 @@ BIN = 1.0 / 16.0  # px, disparity histogram bin
 N_BINS = 4096  # disparities up to 256 px
 AB_STEP = 0.02  # m, top-view histogram bin
 AB_BINS = 2500  # +-25 m around the median point
+N_STATS = 14  # columns of _object_stats' output
+MIN_VALID_FRACTION = 0.3  # of an outline's pixels with a disparity: fewer, no measurement
 GATE = 40.0  # chi-square (3 dof) of an innovation that restarts the track
 VERTICAL = np.diag([1.0, 1e-3, 1.0])  # the filter's acceleration noise per world axis (y: down)
 MOVING_HEADING_SPEED = 1.0  # m/s: above it, the velocity gives the heading
@@ -132,9 +134,11 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
                   xs0, xs1, out):  # pragma: no cover - compiled
     """Per object k (boxes int (N, 4) clipped x0, y0, x1, y1; ``head`` (N, 2) its heading
     (x, z) in the camera's top view; ``need_ab``: whether it needs the second pass): out[k]
-    = (pixels with a disparity, median, p10, p90 disparity, then the p10 / p90 of its
-    pixels' top-view coordinates along the heading (a) and across it (b), metres), from
-    histograms ``hist`` (N, bins), ``hist_a`` / ``hist_b`` (N, AB bins) (module doc).
+    (``N_STATS`` columns) = (0: pixels with a disparity, 1: median, 2: p10, 3: p90
+    disparity; then its pixels' top-view coordinates along the heading (a) -- 4: median,
+    5: p10, 6: p90, 7: p5, 8: p95 -- and across it (b) -- 9: p10, 10: p90, 11: p5, 12:
+    p95 -- metres; 13: its outline's pixels, with a disparity or not), from histograms
+    ``hist`` (N, bins), ``hist_a`` / ``hist_b`` (N, AB bins) (module doc).
     With instance labels every pixel of the boxes' union is visited once (its label names
     its object); without, each box's pixels within 15 % of the object's peak disparity."""
     n_obj = boxes.shape[0]
@@ -143,7 +147,7 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
     half = 0.5 * na * AB_STEP
     h = disp.shape[0]
     for k in range(n_obj):
-        for c in range(8):
+        for c in range(N_STATS):
             out[k, c] = 0.0
     if n_obj == 0:
         return
@@ -163,6 +167,7 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
                     lab = labels[y, x]
                     if lab <= 0 or lab > n_obj:
                         continue
+                    out[lab - 1, 13] += 1
                     d = disp[y, x]
                     if d <= 0.0:
                         continue
@@ -185,6 +190,7 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
                     b = min(int(d * 16.0), nb - 1)
                     hist[k, b] += 1
                     out[k, 0] += 1
+                    out[k, 13] += 1
                     bmin[k] = min(bmin[k], b)
                     bmax[k] = max(bmax[k], b)
     am = np.zeros(n_obj)
@@ -233,8 +239,11 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
                 hist_b[k, ib] += 1
                 a0, a1, c0, c1 = min(a0, ia), max(a1, ia), min(c0, ib), max(c1, ib)
         n = int(out[k, 0])
-        _quantiles(hist_a[k], n, 0.1, 0.9, am[k] - half, AB_STEP, out, k, 4, a0, a1)
-        _quantiles(hist_b[k], n, 0.1, 0.9, bm[k] - half, AB_STEP, out, k, 6, c0, c1)
+        _quantiles(hist_a[k], n, 0.5, 0.5, am[k] - half, AB_STEP, out, k, 4, a0, a1)
+        _quantiles(hist_a[k], n, 0.1, 0.9, am[k] - half, AB_STEP, out, k, 5, a0, a1)
+        _quantiles(hist_a[k], n, 0.05, 0.95, am[k] - half, AB_STEP, out, k, 7, a0, a1)
+        _quantiles(hist_b[k], n, 0.1, 0.9, bm[k] - half, AB_STEP, out, k, 9, c0, c1)
+        _quantiles(hist_b[k], n, 0.05, 0.95, bm[k] - half, AB_STEP, out, k, 11, c0, c1)
 
 
 @njit(nogil=True, cache=True)
@@ -424,7 +433,7 @@ class WorldObjects:
         _object_stats(np.zeros((1, 1), np.int32), np.zeros((1, 1), np.float32), np.zeros((0, 4), np.int64),
                       np.zeros(0), True, np.zeros((0, 2)), np.zeros(0, np.bool_), 1.0, 1.0, 0.0,
                       np.zeros((0, N_BINS), np.int32), np.zeros((0, AB_BINS), np.int32),
-                      np.zeros((0, AB_BINS), np.int32), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 8)))
+                      np.zeros((0, AB_BINS), np.int32), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, N_STATS)))
 
     def outside_movers(self, points: np.ndarray, margin: float = 0.5) -> np.ndarray:
         """(M,) bool: the world ``points`` (M, 3) outside every box (grown by ``margin`` m)
@@ -452,46 +461,58 @@ class WorldObjects:
     def measure(self, masks: StereoMasks, head_c: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, ...]:
         """Per object (``head_c`` (N, 2): heading (x, z) in the camera's top view; ``sizes``
         (N, 3) width, height, length): (valid (N,), centre in the camera (N, 3), range sigma
-        of the median disparity (N,), box width / height at unit depth (N, 2)): module doc."""
+        of the median disparity (N,), box width / height at unit depth (N, 2), cut by the
+        image's left / right side (N,)): module doc."""
         c = self.calib
         objs = masks.objects
         N = len(objs)
         disp = masks.box_disparity if masks.box_disparity is not None else masks.disparity
         boxes = np.array([o.box for o in objs], np.float64).reshape(N, 4)
-        out = np.zeros((N, 8))
+        h_img, w_img = (disp.shape[:2] if disp is not None else (c.height, c.width))
+        cut = (boxes[:, 0] <= 1.0) | (boxes[:, 2] >= w_img - 1.0)
+        small = sizes[:, 2] < 1.0  # a person: no length to speak of
+        static = np.array([o.moving is False for o in objs], bool)
+        top_view = cut | small | static  # the rest (moving or undecided vehicles in full view): the ray
+        out = np.zeros((N, N_STATS))
+        use = False
         if disp is not None and N:
-            h, w = disp.shape[:2]
             bi = np.empty((N, 4), np.int64)
-            bi[:, 0] = np.clip(np.floor(boxes[:, 0]), 0, w)
-            bi[:, 1] = np.clip(np.floor(boxes[:, 1]), 0, h)
-            bi[:, 2] = np.clip(np.ceil(boxes[:, 2]), 0, w)
-            bi[:, 3] = np.clip(np.ceil(boxes[:, 3]), 0, h)
+            bi[:, 0] = np.clip(np.floor(boxes[:, 0]), 0, w_img)
+            bi[:, 1] = np.clip(np.floor(boxes[:, 1]), 0, h_img)
+            bi[:, 2] = np.clip(np.ceil(boxes[:, 2]), 0, w_img)
+            bi[:, 3] = np.clip(np.ceil(boxes[:, 3]), 0, h_img)
             labels = masks.labels_left
             use = labels is not None and labels.shape == disp.shape
             peak = np.array([o.disparity for o in objs], np.float64)
-            need_ab = (boxes[:, 0] <= 1.0) | (boxes[:, 2] >= w - 1.0) | (sizes[:, 2] < 1.0)
-            n_ab = int(need_ab.sum())
+            n_ab = int(top_view.sum())
             _object_stats(labels if use else np.zeros((1, 1), np.int32), np.ascontiguousarray(disp, np.float32),
-                          bi, peak, use, np.ascontiguousarray(head_c, np.float64), need_ab, c.bf, c.fx, c.cx,
+                          bi, peak, use, np.ascontiguousarray(head_c, np.float64), top_view, c.bf, c.fx, c.cx,
                           np.zeros((N, N_BINS), np.int32), np.zeros((N if n_ab else 0, AB_BINS), np.int32),
                           np.zeros((N if n_ab else 0, AB_BINS), np.int32), np.zeros(N, np.int64),
                           np.zeros(N, np.int64), out)
         n, dmed = out[:, 0], out[:, 1]
-        a_lo, a_hi, b_lo, b_hi = out[:, 4], out[:, 5], out[:, 6], out[:, 7]
-        valid = (n >= 10) & (dmed > 0.5)
+        # an outline mostly without disparity (occluded, or another object's disparity
+        # leaking in): no measurement
+        valid = (n >= 10) & (dmed > 0.5) & (n >= MIN_VALID_FRACTION * out[:, 13])
         w_, l_ = sizes[:, 0], sizes[:, 2]
-        # along the heading (length l) and across it (width w): the face toward the camera
-        # (at 0) is the visible extreme; a camera within the object's span sees both ends
-        a_mid, b_mid = 0.5 * (a_lo + a_hi), 0.5 * (b_lo + b_hi)
+        # top view: per axis (along the heading, extent l; across it, extent w) the face
+        # toward the camera (at 0) plus half the extent; a camera within the object's span
+        # (5th / 95th percentiles' middle) sees both ends: their middle
+        a_med, a_lo, a_hi, a_5, a_95 = out[:, 4], out[:, 5], out[:, 6], out[:, 7], out[:, 8]
+        b_lo, b_hi, b_5, b_95 = out[:, 9], out[:, 10], out[:, 11], out[:, 12]
+        a_mid, b_mid = 0.5 * (a_5 + a_95), 0.5 * (b_5 + b_95)
         a_c = np.where(np.abs(a_mid) < 0.5 * l_, a_mid, np.where(a_mid > 0, a_lo + 0.5 * l_, a_hi - 0.5 * l_))
         b_c = np.where(np.abs(b_mid) < 0.5 * w_, b_mid, np.where(b_mid > 0, b_lo + 0.5 * w_, b_hi - 0.5 * w_))
+        # cut by the image's side, the near end is out of view: the far end minus half the length
+        far = cut & ~small
+        a_c[far] = np.where(a_med > 0, a_95 - 0.5 * l_, a_5 + 0.5 * l_)[far]
         hx, hz = head_c[:, 0], head_c[:, 1]
         X = np.empty((N, 3))
         X[:, 0] = a_c * hx + b_c * hz
         X[:, 2] = a_c * hz - b_c * hx
         dm = np.where(valid, dmed, 1.0)
-        # whole in view: the box centre's ray, at the nearest point (p90 disparity) plus half
-        # the box's extent along the ray
+        # whole in view and not known static: the box centre's ray, at the nearest point
+        # (p90 disparity) plus half the box's extent along the ray
         u = 0.5 * (boxes[:, 0] + boxes[:, 2])
         v = 0.5 * (boxes[:, 1] + boxes[:, 3])
         ray = np.column_stack([(u - c.cx) / c.fx, np.zeros(N), np.ones(N)])
@@ -501,15 +522,15 @@ class WorldObjects:
         r_near = c.bf / np.where(valid, np.maximum(out[:, 3], 0.5), 1.0) / ray[:, 2]
         r_med = c.bf / dm / ray[:, 2]
         X_ray = ray * np.maximum(r_near + 0.5 * e, r_med)[:, None]
-        h_img, w_img = (disp.shape[:2] if disp is not None else (c.height, c.width))
-        cut = (boxes[:, 0] <= 1.0) | (boxes[:, 2] >= w_img - 1.0)
-        small = l_ < 1.0  # a person: no length to speak of
-        use_ray = ~cut & ~small
-        X[use_ray] = X_ray[use_ray]
+        X[~top_view] = X_ray[~top_view]
+        # vertical: the box centre's row; a box cut by the image's bottom (a person close by)
+        # hangs half the class height below its top row
         X[:, 1] = (v - c.cy) / c.fy * X[:, 2]
+        bottom_cut = (boxes[:, 3] >= h_img - 1.0) & (boxes[:, 1] > 1.0)
+        X[bottom_cut, 1] = ((boxes[:, 1] - c.cy) / c.fy * X[:, 2] + 0.5 * sizes[:, 1])[bottom_cut]
         sigma_r = (c.bf / dm) * self.sigma_d / dm
         size_unit = np.column_stack([(boxes[:, 2] - boxes[:, 0]) / c.fx, (boxes[:, 3] - boxes[:, 1]) / c.fy])
-        return valid & (X[:, 2] > 0), X, sigma_r, size_unit
+        return valid & (X[:, 2] > 0), X, sigma_r, size_unit, cut
 
     # ------------------------------------------------------------------ the frame
     def update(self, masks: StereoMasks | None, pose: np.ndarray, ok: bool = True,
@@ -542,7 +563,7 @@ class WorldObjects:
         head_c = head_w @ R  # into the camera: R^T h
         head_c[:, 1] = 0.0
         head_c /= np.maximum(np.linalg.norm(head_c, axis=1), 1e-9)[:, None]
-        valid, X_c, sigma_r, size_unit = self.measure(masks, head_c[:, [0, 2]], sizes)
+        valid, X_c, sigma_r, size_unit, cut = self.measure(masks, head_c[:, [0, 2]], sizes)
         r_c = np.linalg.norm(X_c, axis=1)
         ray = X_c / np.maximum(r_c, 1e-9)[:, None]
         sig_along = np.sqrt(sigma_r**2 + (0.1 * sizes[:, 2]) ** 2)
@@ -564,11 +585,16 @@ class WorldObjects:
         still = np.array([objs[k].moving is False for k in rows], bool)
         vel = self._filter(tracks[rows], Xw[rows], Cw[rows], stamp, speed, still) if len(rows) else None
         world_sigma = np.sqrt(np.einsum("kii->ki", Cw))
-        if vel is not None:  # the tracked objects: the filter's position, velocity, speed (all rows at once)
+        if vel is not None:  # the tracked objects: the filter's velocity, speed (all rows at once)
             xs, Ps, ns = vel
-            Xw[rows] = xs[:, :3]
-            X_c[rows] = (xs[:, :3] - t_c) @ R
-            world_sigma[rows] = np.sqrt(np.einsum("kii->ki", Ps[:, :3, :3]))
+            # position: the measurement of an object in full view (the filter would add the
+            # systematic, range-dependent errors of earlier frames and SLAM's drift to it);
+            # the filter's of one cut by the image's side (it keeps what the full view gave)
+            fc = cut[rows]
+            fr = rows[fc]
+            Xw[fr] = xs[fc, :3]
+            X_c[fr] = (xs[fc, :3] - t_c) @ R
+            world_sigma[fr] = np.sqrt(np.einsum("kii->ki", Ps[fc, :3, :3]))
             Pv = Ps[:, 3:, 3:]
             v = xs[:, 3:]
             sp = np.linalg.norm(v, axis=1)
