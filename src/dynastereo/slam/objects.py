@@ -75,6 +75,7 @@ GATE = 40.0  # chi-square (3 dof) of an innovation that restarts the track
 VERTICAL = np.diag([1.0, 1e-3, 1.0])  # the filter's acceleration noise per world axis (y: down)
 MOVING_HEADING_SPEED = 1.0  # m/s: above it, the velocity gives the heading
 _NO_V = np.zeros(3)
+_EXP: dict = {}
 _I3 = np.eye(3)
 SPEED_DIRECTION = 0.3  # m/s: the filter's velocity gives a direction for the motion test's speed above it
 SPEED_SIGMA = 0.3  # m/s, the motion test's speed (plus 10 %)
@@ -523,9 +524,10 @@ class WorldObjects:
         r_med = c.bf / dm / ray[:, 2]
         X_ray = ray * np.maximum(r_near + 0.5 * e, r_med)[:, None]
         X[~top_view] = X_ray[~top_view]
-        # vertical: the box centre's row; a box cut by the image's bottom (a person close by)
-        # hangs half the class height below its top row
-        X[:, 1] = (v - c.cy) / c.fy * X[:, 2]
+        # vertical: the box centre's row at the depth of the surface seen (the median
+        # disparity's: the box spans the near surface, not the centre's depth); a box cut by
+        # the image's bottom (a person close by) hangs half the class height below its top row
+        X[:, 1] = (v - c.cy) / c.fy * (c.bf / dm)
         bottom_cut = (boxes[:, 3] >= h_img - 1.0) & (boxes[:, 1] > 1.0)
         X[bottom_cut, 1] = ((boxes[:, 1] - c.cy) / c.fy * X[:, 2] + 0.5 * sizes[:, 1])[bottom_cut]
         sigma_r = (c.bf / dm) * self.sigma_d / dm
