@@ -162,7 +162,8 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
     disparity; then its pixels' top-view coordinates along the heading (a) -- 4: median,
     5: p10, 6: p90, 7: p5, 8: p95 -- and across it (b) -- 9: p10, 10: p90, 11: p5, 12:
     p95 -- metres; 13: its outline's pixels, with a disparity or not), from histograms
-    ``hist`` (N, bins), ``hist_a`` / ``hist_b`` (N, AB bins) (module doc).
+    ``hist`` (N, bins), ``hist_a`` / ``hist_b`` (N, AB bins) (module doc), which must come
+    in zeroed and are left zeroed (the bins used are cleared: buffers reused frame to frame).
     With instance labels every pixel of the boxes' union is visited once (its label names
     its object); without, each box's pixels within 15 % of the object's peak disparity."""
     n_obj = boxes.shape[0]
@@ -226,6 +227,7 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
             continue
         _quantiles(hist[k], n, 0.5, 0.5, 0.0, BIN, out, k, 1, bmin[k], bmax[k])
         _quantiles(hist[k], n, 0.1, 0.9, 0.0, BIN, out, k, 2, bmin[k], bmax[k])
+        hist[k, bmin[k]:bmax[k] + 1] = 0  # left zeroed for the next frame
         if need_ab[k]:
             any_ab = True
             zm = bf / max(out[k, 1], 1e-3)
@@ -268,6 +270,8 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, bf, fx, 
         _quantiles(hist_a[k], n, 0.05, 0.95, am[k] - half, AB_STEP, out, k, 7, a0, a1)
         _quantiles(hist_b[k], n, 0.1, 0.9, bm[k] - half, AB_STEP, out, k, 9, c0, c1)
         _quantiles(hist_b[k], n, 0.05, 0.95, bm[k] - half, AB_STEP, out, k, 11, c0, c1)
+        hist_a[k, a0:a1 + 1] = 0
+        hist_b[k, c0:c1 + 1] = 0
 
 
 @njit(nogil=True, cache=True)
@@ -451,6 +455,8 @@ class WorldObjects:
         self._P: dict[int, np.ndarray] = {}  # track -> covariance (6, 6)
         self._t: dict[int, float] = {}  # track -> stamp of its last update
         self._n: dict[int, int] = {}
+        self._hist = np.zeros((0, N_BINS), np.int32)  # the kernel's histograms (module doc)
+        self._hist_ab = np.zeros((2, 0, AB_BINS), np.int32)
         self.last: list[ObjectState | None] = []
         self._mover_boxes: deque = deque(maxlen=20000)  # (centre, extent, heading) of movers, every frame
         # the compiled kernel loaded (or compiled) now, not in the first frame
@@ -508,11 +514,12 @@ class WorldObjects:
             labels = masks.labels_left
             use = labels is not None and labels.shape == disp.shape
             peak = np.array([o.disparity for o in objs], np.float64)
-            n_ab = int(top_view.sum())
+            if self._hist.shape[0] < N:  # the kernel leaves them zeroed: allocated once
+                self._hist = np.zeros((N, N_BINS), np.int32)
+                self._hist_ab = np.zeros((2, N, AB_BINS), np.int32)
             _object_stats(labels if use else np.zeros((1, 1), np.int32), np.ascontiguousarray(disp, np.float32),
                           bi, peak, use, np.ascontiguousarray(head_c, np.float64), top_view, c.bf, c.fx, c.cx,
-                          np.zeros((N, N_BINS), np.int32), np.zeros((N if n_ab else 0, AB_BINS), np.int32),
-                          np.zeros((N if n_ab else 0, AB_BINS), np.int32), np.zeros(N, np.int64),
+                          self._hist[:N], self._hist_ab[0, :N], self._hist_ab[1, :N], np.zeros(N, np.int64),
                           np.zeros(N, np.int64), out)
         n, dmed = out[:, 0], out[:, 1]
         # an outline mostly without disparity (occluded, or another object's disparity
