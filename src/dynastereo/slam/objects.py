@@ -22,8 +22,9 @@ the trajectory's frame (the first camera's: x right, y down, z forward):
     their top-view coordinates along the heading (a) and across it (b); per axis the face
     toward the camera (the 10th / 90th percentile) plus half the footprint, or both ends'
     middle (5th / 95th percentiles) when the camera is within the object's span.  For a
-    vehicle cut by the image's side the near end is out of view: along the heading, its
-    far end (the 95th / 5th percentile) minus half the class length.
+    vehicle cut by the image's side one end is out of view: along the heading, the end
+    seen (the 95th / 5th percentile, the one away from the cut side: a parked car's far
+    end, a crossing car's front as it comes in) minus half the class length.
   - *view ray* (moving or undecided vehicles in full view: their heading comes from the
     filter's velocity, 15-25 degrees off for a crossing truck, which the top view turns
     into a metre): the box's extent along the ray through the box centre is ``e = l|cos
@@ -534,9 +535,16 @@ class WorldObjects:
         a_mid, b_mid = 0.5 * (a_5 + a_95), 0.5 * (b_5 + b_95)
         a_c = np.where(np.abs(a_mid) < 0.5 * l_, a_mid, np.where(a_mid > 0, a_lo + 0.5 * l_, a_hi - 0.5 * l_))
         b_c = np.where(np.abs(b_mid) < 0.5 * w_, b_mid, np.where(b_mid > 0, b_lo + 0.5 * w_, b_hi - 0.5 * w_))
-        # cut by the image's side, the near end is out of view: the far end minus half the length
-        far = cut & ~small
-        a_c[far] = np.where(a_med > 0, a_95 - 0.5 * l_, a_5 + 0.5 * l_)[far]
+        # cut by the image's side, one end is out of view: along the heading, the end seen
+        # (the one away from the cut side) minus half the length.  Along the heading the
+        # image column grows with a where the object lies at b < 0 (u ~ x / z: d(x/z)/da =
+        # -b / z^2), so the end seen is the high one (the 95th percentile) for a box cut
+        # by the left side at b < 0 or by the right side at b > 0 (a parked car's far end,
+        # a crossing car's front as it comes in), else the low one (the 5th)
+        left, right = boxes[:, 0] <= 1.0, boxes[:, 2] >= w_img - 1.0
+        high = np.where(left, b_mid < 0, b_mid > 0)
+        far = cut & ~small & ~(left & right)
+        a_c[far] = np.where(high, a_95 - 0.5 * l_, a_5 + 0.5 * l_)[far]
         hx, hz = head_c[:, 0], head_c[:, 1]
         X = np.empty((N, 3))
         X[:, 0] = a_c * hx + b_c * hz
