@@ -121,3 +121,19 @@ def test_full_view_position_is_the_measurement_a_cut_one_the_filters():
     assert s_full.camera[2] == pytest.approx(13.0 + L / 2, abs=0.1)
     assert s_full.speed < 0.3 and s_full.updates == 11  # the filter still runs (velocity)
     assert s_cut.camera[2] < 9.4 - L / 2 + 0.8
+
+
+def test_crossing_vehicle_heading_from_its_points():
+    """A truck crossing 12 m ahead, its side in view and its velocity not yet known: the
+    heading comes from its points (they spread 8 m across the view), so its centre is
+    half its width behind the side -- not half its length behind, as the camera's axis
+    for a heading would have it.  A car seen from behind (points spread over its width
+    only) keeps the heading it had."""
+    Wt = CLASS_SIZE["truck"][0]
+    f = _frame([dict(label="truck", track=3, moving=True, face=np.array([0.0, 0.2, 12.0]), w=8.0, h=3.0),
+                dict(label="car", track=4, moving=True, face=np.array([-4.5, 0.5, 9.0]), w=1.8, h=1.5)])
+    truck, car = WorldObjects(CALIB).update(f, np.eye(4), True, 0.0)
+    assert abs(truck.heading[0]) == pytest.approx(1.0, abs=0.01)
+    assert truck.camera[2] == pytest.approx(12.0 + Wt / 2, abs=0.15)
+    assert truck.camera[0] == pytest.approx(0.0, abs=0.15)
+    assert car.heading[2] == pytest.approx(1.0, abs=1e-6)
