@@ -137,3 +137,16 @@ def test_crossing_vehicle_heading_from_its_points():
     assert truck.camera[2] == pytest.approx(12.0 + Wt / 2, abs=0.15)
     assert truck.camera[0] == pytest.approx(0.0, abs=0.15)
     assert car.heading[2] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_cut_vehicle_background_in_its_outline_stays_bounded():
+    """An outline that takes in background past the end seen (a real detector's): the far
+    end's percentile runs off, but the centre stays within half the length of the other
+    visible end (here the car's true centre is 7.2 m ahead; unbounded, 20 m)."""
+    L = CLASS_SIZE["car"][2]
+    f = _frame([dict(label="car", track=4, moving=False, side=True, x=-6.0, z0=9.4 - L, z1=9.4, y=0.9, h=1.5)])
+    ys, xs = np.nonzero(f.labels_left == 1)
+    far = xs >= np.percentile(xs, 85)  # the columns next to the far end: background 25 m away
+    f.box_disparity[ys[far], xs[far]] = FX * B / 25.0
+    s = WorldObjects(CALIB).update(f, np.eye(4), True, 0.0)[0]
+    assert 7.0 < s.camera[2] < 8.0 + L / 2  # the near visible end (7.5 m) + L / 2 at most
