@@ -32,7 +32,9 @@ the trajectory's frame (the first camera's: x right, y down, z forward):
     middle (5th / 95th percentiles) when the camera is within the object's span.  For a
     vehicle cut by the image's side one end is out of view: along the heading, the end
     seen (the 95th / 5th percentile, the one away from the cut side: a parked car's far
-    end, a crossing car's front as it comes in) minus half the class length.
+    end, a crossing car's front as it comes in) minus half the class length, but no
+    farther from the other visible end than half the length (a detector's outline that
+    takes in background past the end seen put cut cars 10 m off on KITTI raw 0001).
   - *view ray* (the other moving or undecided vehicles in full view, whose heading is the
     filter's velocity's; seen from behind or ahead, the ray is insensitive to its error):
     the box's extent along the ray through the box centre is ``e = l|cos φ| + w|sin φ|``,
@@ -67,7 +69,7 @@ the trajectory's frame (the first camera's: x right, y down, z forward):
   all measured, 0.30-0.33 m all filtered with ``accel_noise`` 50-2; static cars in the
   convoy 0.27 m measured, 0.71 m filtered).  An object cut by the image's side gets the
   filter's position, which keeps what the full view gave (cut static cars 0.37 m, 0.59 m
-  measured).
+  measured).  ``world_sigma`` is the measurement's or the filter's accordingly.
 * **Extent**: the box's width and height at the centre's depth, and the class length.
 
 Frames whose pose was lost are skipped (the filter only predicts over the gap).  Objects
