@@ -1,0 +1,152 @@
+"""Where slam/objects.py puts an object's centre (issue 26): the top view for static
+vehicles, the far end of a vehicle cut by the image's side, the top row of a box cut by
+the image's bottom, no measurement from an outline mostly without disparity, and the
+measurement (not the filter's position) as the position of an object in full view."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dynastereo.datatypes import MaskMethod, ObjectMask, StereoCalibration, StereoMasks
+from dynastereo.slam.objects import CLASS_SIZE, WorldObjects
+
+W, H = 640, 240
+FX = 400.0
+B = 0.5
+CALIB = StereoCalibration(np.array([[FX, 0, W / 2], [0, FX, H / 2], [0, 0, 1]]), B, W, H)
+
+
+def _frame(objs: list[dict]) -> StereoMasks:
+    """One frame of flat objects: per object a dict with ``label``, ``track``, ``moving``
+    and either ``face`` (camera-frame centre of a face square to the view, ``w``, ``h``)
+    or ``side`` (a face along the view: ``x``, ``z0``, ``z1``, centre height ``y``, ``h``);
+    ``holes``: the share of its pixels without a disparity."""
+    labels = np.zeros((H, W), np.int32)
+    disp = np.zeros((H, W), np.float32)
+    out = []
+    for k, o in enumerate(objs):
+        if "face" in o:
+            X, w, h = o["face"], o["w"], o["h"]
+            u0, u1 = FX * (X[0] - w / 2) / X[2] + W / 2, FX * (X[0] + w / 2) / X[2] + W / 2
+            v0, v1 = FX * (X[1] - h / 2) / X[2] + H / 2, FX * (X[1] + h / 2) / X[2] + H / 2
+            x0, x1 = max(int(round(u0)), 0), min(int(round(u1)), W)
+            y0, y1 = max(int(round(v0)), 0), min(int(round(v1)), H)
+            labels[y0:y1, x0:x1] = k + 1
+            disp[y0:y1, x0:x1] = FX * B / X[2]
+        else:  # a plane x = const from z0 to z1, column by column
+            x, z0, z1, y, h = o["x"], o["z0"], o["z1"], o["y"], o["h"]
+            us = np.arange(W)
+            with np.errstate(divide="ignore"):
+                z = FX * x / (us + 0.5 - W / 2)
+            cols = np.flatnonzero((z >= z0) & (z <= z1))
+            x0, x1 = int(cols.min()), int(cols.max()) + 1
+            y0, y1 = H, 0
+            for u in cols:
+                a = max(int(round(FX * (y - h / 2) / z[u] + H / 2)), 0)
+                b = min(int(round(FX * (y + h / 2) / z[u] + H / 2)), H)
+                labels[a:b, u] = k + 1
+                disp[a:b, u] = FX * B / z[u]
+                y0, y1 = min(y0, a), max(y1, b)
+        if o.get("holes"):
+            ys, xs = np.nonzero(labels == k + 1)
+            drop = np.random.default_rng(0).random(len(ys)) < o["holes"]
+            disp[ys[drop], xs[drop]] = 0.0
+        d = float(np.median(disp[(labels == k + 1) & (disp > 0)])) if ((labels == k + 1) & (disp > 0)).any() else 0.0
+        m = ObjectMask((x0, y0, x1, y1), o["label"], 0.9, MaskMethod.OUTLINE, d, int((labels == k + 1).sum()), 0,
+                       track_id=o.get("track", -1))
+        m.moving = o.get("moving")
+        out.append(m)
+    return StereoMasks(labels.astype(np.uint8), labels.astype(np.uint8), out, labels_left=labels,
+                       labels_right=labels, box_disparity=disp)
+
+
+def test_static_vehicle_centre_from_the_top_view():
+    """A parked car judged static, its rear face seen: the centre is half the class
+    length behind the face along the heading (the camera's axis) and half its width
+    beyond the face's near edge; the box's row at the face's depth gives its height."""
+    L = CLASS_SIZE["car"][2]
+    s = WorldObjects(CALIB).update(_frame([dict(label="car", track=2, moving=False, face=np.array([3.5, 0.5, 15.0]),
+                                                w=1.8, h=1.5)]), np.eye(4), True, 0.0)[0]
+    assert s.camera[2] == pytest.approx(15.0 + L / 2, abs=0.1)
+    assert s.camera[0] == pytest.approx(3.5, abs=0.25)  # the face's 10th percentile + w / 2
+    assert s.camera[1] == pytest.approx(0.5, abs=0.02)
+
+
+def test_vehicle_cut_by_the_image_side_from_its_far_end():
+    """A static car alongside, its near end out of the image's left side: along the
+    heading its centre is the far end seen minus half the class length; across, the
+    side seen plus half the class width (the 95th percentile of the pixels' depths falls
+    short of the far end by a few cm here: their density falls as 1 / z^3)."""
+    Wc, _, L = CLASS_SIZE["car"]
+    x, z1 = -6.0, 9.4
+    f = _frame([dict(label="car", track=4, moving=False, side=True, x=x, z0=z1 - L, z1=z1, y=0.9, h=1.5)])
+    assert f.objects[0].box[0] == 0  # cut
+    s = WorldObjects(CALIB).update(f, np.eye(4), True, 0.0)[0]
+    assert s.camera[2] == pytest.approx(z1 - L / 2, abs=0.2)
+    assert s.camera[0] == pytest.approx(x - Wc / 2, abs=0.1)
+
+
+def test_box_cut_by_the_image_bottom_hangs_from_its_top_row():
+    """A person 4 m ahead: feet below the image's bottom; the centre is half the class
+    height below the head, not at the box's (cut) centre row."""
+    Hc = CLASS_SIZE["person"][1]
+    f = _frame([dict(label="person", track=5, moving=True, face=np.array([0.3, 0.5, 4.0]), w=0.5, h=Hc)])
+    assert f.objects[0].box[3] == H
+    s = WorldObjects(CALIB).update(f, np.eye(4), True, 0.0)[0]
+    assert s.camera[1] == pytest.approx(0.5, abs=0.05)
+    assert s.camera[2] == pytest.approx(4.0 + CLASS_SIZE["person"][2] / 2, abs=0.1)
+
+
+def test_outline_mostly_without_disparity_gives_no_measurement():
+    face = dict(label="car", track=1, face=np.array([0.0, 0.5, 12.0]), w=1.8, h=1.5)
+    wo = WorldObjects(CALIB)
+    assert wo.update(_frame([dict(face, holes=0.85)]), np.eye(4), True, 0.0) == [None]
+    assert wo.update(_frame([dict(face, holes=0.5)]), np.eye(4), True, 0.1)[0] is not None
+
+
+def test_full_view_position_is_the_measurement_a_cut_one_the_filters():
+    """A parked car seen 10 frames at the same place, then 1 m farther (within the gate):
+    in full view the position jumps with the measurement (the filter would move a
+    fraction); cut by the image's side, the filter's position moves less."""
+    L = CLASS_SIZE["car"][2]
+    full = dict(label="car", track=1, moving=False, w=1.8, h=1.5)
+    side = dict(label="car", track=2, moving=False, side=True, x=-6.0, y=0.9, h=1.5)
+    wo = WorldObjects(CALIB)
+    for f in range(10):
+        wo.update(_frame([dict(full, face=np.array([0.0, 0.5, 12.0])), dict(side, z0=9.4 - L, z1=9.4)]),
+                  np.eye(4), True, 0.1 * f)
+    s_full, s_cut = wo.update(_frame([dict(full, face=np.array([0.0, 0.5, 13.0])), dict(side, z0=10.4 - L, z1=10.4)]),
+                              np.eye(4), True, 1.0)
+    assert s_full.camera[2] == pytest.approx(13.0 + L / 2, abs=0.1)
+    assert s_full.speed < 0.3 and s_full.updates == 11  # the filter still runs (velocity)
+    assert s_cut.camera[2] < 9.4 - L / 2 + 0.8
+
+
+def test_crossing_vehicle_heading_from_its_points():
+    """A truck crossing 12 m ahead, its side in view and its velocity not yet known: the
+    heading comes from its points (they spread 8 m across the view), so its centre is
+    half its width behind the side -- not half its length behind, as the camera's axis
+    for a heading would have it.  A car seen from behind (points spread over its width
+    only) keeps the heading it had."""
+    Wt = CLASS_SIZE["truck"][0]
+    f = _frame([dict(label="truck", track=3, moving=True, face=np.array([0.0, 0.2, 12.0]), w=8.0, h=3.0),
+                dict(label="car", track=4, moving=True, face=np.array([-4.5, 0.5, 9.0]), w=1.8, h=1.5)])
+    truck, car = WorldObjects(CALIB).update(f, np.eye(4), True, 0.0)
+    assert abs(truck.heading[0]) == pytest.approx(1.0, abs=0.01)
+    assert truck.camera[2] == pytest.approx(12.0 + Wt / 2, abs=0.15)
+    assert truck.camera[0] == pytest.approx(0.0, abs=0.15)
+    assert car.heading[2] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_cut_vehicle_background_in_its_outline_stays_bounded():
+    """An outline that takes in background past the end seen (a real detector's): the far
+    end's percentile runs off, but the centre stays within half the length of the other
+    visible end (here the car's true centre is 7.2 m ahead; unbounded, 20 m)."""
+    L = CLASS_SIZE["car"][2]
+    f = _frame([dict(label="car", track=4, moving=False, side=True, x=-6.0, z0=9.4 - L, z1=9.4, y=0.9, h=1.5)])
+    ys, xs = np.nonzero(f.labels_left == 1)
+    far = xs >= np.percentile(xs, 85)  # the columns next to the far end: background 25 m away
+    f.box_disparity[ys[far], xs[far]] = FX * B / 25.0
+    s = WorldObjects(CALIB).update(f, np.eye(4), True, 0.0)[0]
+    assert 7.0 < s.camera[2] < 8.0 + L / 2  # the near visible end (7.5 m) + L / 2 at most
