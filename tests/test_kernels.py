@@ -353,7 +353,8 @@ def test_numba_cache_falls_back_when_nothing_is_writable(monkeypatch, tmp_path):
 
 
 def _kernel_signatures() -> dict[str, set[str]]:
-    """Every compiled kernel of the SLAM (``slam.kernels.*``) and its loaded overloads."""
+    """Every compiled kernel of the SLAM (``slam.kernels.*``, ``slam.objects``) and its
+    loaded overloads."""
     import importlib
     import pkgutil
 
@@ -361,27 +362,32 @@ def _kernel_signatures() -> dict[str, set[str]]:
 
     from dynastereo.slam import kernels
 
+    names = [f"dynastereo.slam.kernels.{m.name}" for m in pkgutil.iter_modules(kernels.__path__)]
     out: dict[str, set[str]] = {}
-    for m in pkgutil.iter_modules(kernels.__path__):
-        mod = importlib.import_module(f"dynastereo.slam.kernels.{m.name}")
+    for mod in map(importlib.import_module, names + ["dynastereo.slam.objects"]):
         for name, f in vars(mod).items():
             if isinstance(f, CPUDispatcher) and f.__module__ == mod.__name__:
-                out[f"{m.name}.{name}"] = {str(s) for s in f.signatures}
+                out[f"{mod.__name__}.{name}"] = {str(s) for s in f.signatures}
     return out
 
 
-def test_the_warm_up_loads_every_kernel_a_run_calls(kitti06, tmp_path):
-    """After ``warm_up_kernels`` (start-up), the whole of KITTI 06 tracked and mapped loads
-    no kernel overload of its own: none is loaded from numba's cache (tens of ms, holding
-    the GIL) or compiled inside the frame loop."""
+def test_the_warm_up_loads_every_kernel_a_run_calls(kitti06, models_dir, tmp_path):
+    """After the start-up warm-ups (``warm_up_kernels``, the objects' in ``WorldObjects``),
+    the whole of KITTI 06 tracked and mapped, and its first frames with the default masking
+    (objects placed), load no kernel overload of their own: none is loaded from numba's
+    cache (tens of ms, holding the GIL) or compiled inside the frame loop."""
     from dynastereo.api import run_sequence
     from dynastereo.config import Config
+    from dynastereo.io import KittiSequence
+    from dynastereo.slam.objects import WorldObjects
     from dynastereo.slam.warmup import warm_up_kernels
 
     warm_up_kernels()
+    WorldObjects(KittiSequence(kitti06).calibration)
     before = _kernel_signatures()
     run_sequence(kitti06, tmp_path / "r", Config().with_overrides({"masker.kind": "none"}), stereo_check=False)
+    run_sequence(kitti06, tmp_path / "m", Config(), stereo_check=False, frames="0-12", models_dir=models_dir)
     after = _kernel_signatures()
     called = {k: v for k, v in after.items() if v}
-    assert len(called) >= 15  # the run went through the kernels
+    assert len(called) >= 17 and any("objects._kalman" in k for k in called)  # the runs went through them
     assert {k: sorted(v - before.get(k, set())) for k, v in after.items() if v - before.get(k, set())} == {}

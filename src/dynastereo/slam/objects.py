@@ -553,12 +553,14 @@ class WorldObjects:
         self._hist_ab = np.zeros((2, 0, AB_BINS), np.int32)
         self.last: list[ObjectState | None] = []
         self._mover_boxes: deque = deque(maxlen=20000)  # (centre, extent, heading) of movers, every frame
-        # the compiled kernel loaded (or compiled) now, not in the first frame
+        # the compiled kernels loaded (or compiled) now, not in the first frames
         _object_stats(np.zeros((1, 1), np.int32), np.zeros((1, 1), np.float32), np.zeros((0, 4), np.int64),
                       np.zeros(0), True, np.zeros((0, 2)), np.zeros(0, np.bool_), np.zeros(0, np.bool_), np.zeros(0),
                       np.zeros(0, np.bool_), 1.0, 1.0, 0.0,
                       np.zeros((0, N_BINS), np.int32), np.zeros((0, AB_BINS), np.int32),
                       np.zeros((0, AB_BINS), np.int32), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, N_STATS)))
+        _kalman(np.zeros((0, 6)), np.zeros((0, 6, 6)), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.ones(3),
+                np.zeros(0), np.zeros(0, np.bool_), SPEED_DIRECTION, SPEED_SIGMA, STILL_SIGMA, np.zeros(0))
 
     def outside_movers(self, points: np.ndarray, margin: float = 0.5) -> np.ndarray:
         """(M,) bool: the world ``points`` (M, 3) outside every box (grown by ``margin`` m)
@@ -602,7 +604,7 @@ class WorldObjects:
         static = np.array([o.moving is False for o in objs], bool)
         top_view = cut | small | static  # the rest (moving or undecided vehicles in full view): the ray
         moving = np.array([o.moving is True for o in objs], bool)
-        head_c = np.array(head_c, np.float64).reshape(N, 2)  # the kernel may replace a heading
+        head_c = np.array(head_c, np.float64, order="C").reshape(N, 2)  # a copy: the kernel may replace a heading
         v_known = np.zeros(N, np.bool_) if v_known is None else np.asarray(v_known, np.bool_)
         out = np.zeros((N, N_STATS))
         use = False
