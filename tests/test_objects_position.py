@@ -150,3 +150,23 @@ def test_cut_vehicle_background_in_its_outline_stays_bounded():
     f.box_disparity[ys[far], xs[far]] = FX * B / 25.0
     s = WorldObjects(CALIB).update(f, np.eye(4), True, 0.0)[0]
     assert 7.0 < s.camera[2] < 8.0 + L / 2  # the near visible end (7.5 m) + L / 2 at most
+
+
+def test_an_object_without_a_measurement_coasts_on_its_filter():
+    """A car driving away at 5 m/s, measured for 12 frames; then its outline has almost
+    no disparity: its filter's prediction (flagged ``predicted``), still moving on at its
+    speed; once more than ``COAST_S`` has passed since its last measurement: no position."""
+    from dynastereo.slam.objects import COAST_S
+
+    car = dict(label="car", track=3, moving=True, w=1.8, h=1.5)
+    wo = WorldObjects(CALIB)
+    for f in range(12):
+        s = wo.update(_frame([dict(car, face=np.array([0.0, 0.5, 10.0 + 0.5 * f]))]), np.eye(4), True, 0.1 * f)[0]
+    assert s is not None and not s.predicted and s.speed == pytest.approx(5.0, abs=0.5)
+    z_last = s.camera[2]
+    p = wo.update(_frame([dict(car, face=np.array([0.0, 0.5, 16.0]), holes=0.9)]), np.eye(4), True, 1.2)[0]
+    assert p is not None and p.predicted and p.to_dict()["predicted"] is True
+    assert p.camera[2] == pytest.approx(z_last + 0.5, abs=0.15)  # one frame on at 5 m/s
+    late = 1.1 + COAST_S + 0.1
+    assert wo.update(_frame([dict(car, face=np.array([0.0, 0.5, 16.0]), holes=0.9)]), np.eye(4), True, late) == [None]
+    assert "predicted" not in s.to_dict()

@@ -70,6 +70,11 @@ the trajectory's frame (the first camera's: x right, y down, z forward):
   convoy 0.27 m measured, 0.71 m filtered).  An object cut by the image's side gets the
   filter's position, which keeps what the full view gave (cut static cars 0.37 m, 0.59 m
   measured).  ``world_sigma`` is the measurement's or the filter's accordingly.
+* **No measurement** (an outline mostly without disparity): a track whose filter took a
+  measurement within ``COAST_S`` (1 s) gets the filter's prediction, ``p + v dt`` with
+  covariance ``P_p + dt^2 P_v``, flagged ``predicted`` -- as a tracker coasts; without one,
+  no position (dev seeds 10-12: 95 % of the object-frames within 30 m placed instead of
+  79 %, and the median with the rest counted as misses 0.32 m instead of 0.35).
 * **Extent**: the box's width and height at the centre's depth, and the class length.
 
 Frames whose pose was lost are skipped (the filter only predicts over the gap).  Objects
@@ -113,6 +118,7 @@ AXIS_EXTENT = 1.5  # the heading from the points: their spread along it, class w
 AXIS_RATIO = 4.0  # ... over their spread across it (variances, at least)
 AXIS_AGREE = np.radians(40.0)  # ... within this of the velocity's heading, where known
 MIN_VALID_FRACTION = 0.3  # of an outline's pixels with a disparity: fewer, no measurement
+COAST_S = 1.0  # s: an object without a measurement gets its filter's prediction this long after its last update
 GATE = 40.0  # chi-square (3 dof) of an innovation that restarts the track
 VERTICAL = np.diag([1.0, 1e-3, 1.0])  # the filter's acceleration noise per world axis (y: down)
 MOVING_HEADING_SPEED = 1.0  # m/s: above it, the velocity gives the heading
@@ -494,6 +500,7 @@ class ObjectState:
     speed: float | None = None
     speed_sigma: float | None = None
     updates: int = 1  # measurements the track's filter has taken
+    predicted: bool = False  # no measurement this frame: the filter's prediction
 
     def to_dict(self) -> dict[str, Any]:
         r = lambda a, n=3: [round(float(v), n) for v in a]  # noqa: E731
@@ -504,6 +511,8 @@ class ObjectState:
         if self.velocity is not None:
             d.update(velocity=r(self.velocity), velocity_sigma=r(self.velocity_sigma),
                      speed=round(float(self.speed), 3), speed_sigma=round(float(self.speed_sigma), 3))
+        if self.predicted:
+            d["predicted"] = True
         return d
 
 
@@ -757,6 +766,7 @@ class WorldObjects:
                 st.velocity, st.velocity_sigma = v[j], v_sigma[j]
                 st.speed, st.speed_sigma, st.updates = float(sp[j]), float(sp_sigma[j]), int(ns[j])
             states[k] = st
+        self._coast(states, tracks, valid, size_unit, sizes, head_w, stamp, R, t_c)
         for o, st in zip(objs, states):
             o.world = st
             if st is not None and o.moving is not False:  # moving, or undecided (masked): never in the map
@@ -767,6 +777,32 @@ class WorldObjects:
                 d.pop(k, None)
         self.last = states
         return states
+
+    def _coast(self, states: list, tracks: np.ndarray, valid: np.ndarray, size_unit: np.ndarray, sizes: np.ndarray,
+               head_w: np.ndarray, stamp: float, R: np.ndarray, t_c: np.ndarray) -> None:
+        """In place: an object without a measurement this frame (an outline mostly without
+        disparity) whose track's filter was updated within ``COAST_S``: the filter's
+        prediction (``p + v dt``, covariance ``P_p + dt^2 P_v``), as a tracker coasts."""
+        ks = [k for k in np.flatnonzero(~valid).tolist()
+              if int(tracks[k]) in self._x and stamp - self._t[int(tracks[k])] <= COAST_S]
+        if not ks:
+            return
+        x = np.array([self._x[int(tracks[k])] for k in ks])
+        P = np.array([self._P[int(tracks[k])] for k in ks])
+        dt = np.array([stamp - self._t[int(tracks[k])] for k in ks])
+        Xw = x[:, :3] + dt[:, None] * x[:, 3:]
+        Pp = P[:, :3, :3] + dt[:, None, None] ** 2 * P[:, 3:, 3:]
+        X_c = (Xw - t_c) @ R
+        v, Pv = x[:, 3:], P[:, 3:, 3:]
+        sp = np.linalg.norm(v, axis=1)
+        vPv = np.einsum("ki,kij,kj->k", v, Pv, v)
+        sp_sigma = np.where(sp > 1e-6, np.sqrt(vPv) / np.maximum(sp, 1e-6), np.sqrt(np.einsum("kii->k", Pv) / 3))
+        for i, k in enumerate(ks):
+            t = int(tracks[k])
+            extent = np.array([*(size_unit[k] * max(X_c[i, 2], 0.0)), sizes[k, 2]])
+            states[k] = ObjectState(t, Xw[i], np.sqrt(np.diag(Pp[i])), extent, head_w[k], float(np.linalg.norm(X_c[i])),
+                                    X_c[i], v[i], np.sqrt(np.diag(Pv[i])), float(sp[i]), float(sp_sigma[i]),
+                                    self._n.get(t, 1), predicted=True)
 
     def _filter(self, tracks: np.ndarray, z: np.ndarray, Rz: np.ndarray, stamp: float,
                 speed: np.ndarray | None = None, still: np.ndarray | None = None):
