@@ -641,7 +641,7 @@ class WorldObjects:
         # top view: per axis (along the heading, extent l; across it, extent w) the face
         # toward the camera (at 0) plus half the extent; a camera within the object's span
         # (5th / 95th percentiles' middle) sees both ends: their middle
-        a_med, a_lo, a_hi, a_5, a_95 = out[:, 4], out[:, 5], out[:, 6], out[:, 7], out[:, 8]
+        a_lo, a_hi, a_5, a_95 = out[:, 5], out[:, 6], out[:, 7], out[:, 8]  # (column 4, the median: unused here)
         b_lo, b_hi, b_5, b_95 = out[:, 9], out[:, 10], out[:, 11], out[:, 12]
         a_mid, b_mid = 0.5 * (a_5 + a_95), 0.5 * (b_5 + b_95)
         a_c = np.where(np.abs(a_mid) < 0.5 * l_, a_mid, np.where(a_mid > 0, a_lo + 0.5 * l_, a_hi - 0.5 * l_))

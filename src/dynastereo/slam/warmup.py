@@ -13,8 +13,8 @@ import numpy as np
 from numba import types as nt
 
 from .geometry import desc_u64
-from .kernels.ba import warm_up as warm_up_ba
 from .kernels import bookkeeping
+from .kernels.ba import warm_up as warm_up_ba
 from .kernels.bucketing import bucket_corners
 from .kernels.epipolar import epipolar_best
 from .kernels.hamming import descend_tree, knn_hamming

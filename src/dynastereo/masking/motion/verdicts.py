@@ -31,7 +31,6 @@ def _group(label: str):
 SLOW_GROUPS = frozenset({_group("person"), _group("bicycle")})
 
 
-
 def _median3(v) -> float:
     """``np.median`` of a few numbers (the last speeds), without numpy's overhead."""
     v = sorted(v)
