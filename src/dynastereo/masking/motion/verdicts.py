@@ -169,13 +169,16 @@ class MotionJudge:
         out = np.ones(G, bool)
         if not len(d) or not slow.any():
             return out
-        counts = np.bincount(owner, minlength=G)
+        mine = slow[owner]  # the slow objects' points only (owner non-decreasing: so is owner[mine])
+        counts = np.bincount(owner[mine], minlength=G)
         has = counts > 0
+        if not has.any():
+            return out
         starts = np.concatenate([[0], np.cumsum(counts[has])[:-1]])
-        dm = _group_median(d[:, None], owner, starts, counts[has])[:, 0]
+        dm = _group_median(d[mine][:, None], owner[mine], starts, counts[has])[:, 0]
         z = self.calib.bf / np.maximum(dm, 1e-6)
         sigma = np.sqrt(2.0) * z * z * c.sigma_disparity / self.calib.bf / (c.window_frames * dt)
-        out[has] = (2.0 * sigma * np.sqrt(0.5 * np.pi / c.object_points) <= c.rest_resolution) | ~slow[has]
+        out[has] = 2.0 * sigma * np.sqrt(0.5 * np.pi / c.object_points) <= c.rest_resolution
         return out
 
     def _weigh(self, flow: FrameFlow, T0: np.ndarray, T1: np.ndarray, labels: list[str]) -> list[int]:
