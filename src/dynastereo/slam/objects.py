@@ -177,6 +177,13 @@ def _row_spans(boxes, y, xs0, xs1):  # pragma: no cover - compiled
     return n
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _median_point(boxes, out, k, bf, fx, cx):  # pragma: no cover - compiled
+    """(x, z) in the camera's top view of object k's median disparity on its box centre's column."""
+    zm = bf / max(out[k, 1], 1e-3)
+    return (0.5 * (boxes[k, 0] + boxes[k, 2]) - cx) * zm / fx, zm
+
+
 @njit(nogil=True, cache=True)
 def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, axis, width, v_known, bf, fx, cx, hist,
                   hist_a, hist_b, xs0, xs1, out):  # pragma: no cover - compiled
@@ -266,8 +273,7 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, axis, wi
     for k in range(n_obj):
         if not axis[k] or out[k, 0] < 30:
             continue
-        zm = bf / max(out[k, 1], 1e-3)
-        xm = (0.5 * (boxes[k, 0] + boxes[k, 2]) - cx) * zm / fx
+        xm, zm = _median_point(boxes, out, k, bf, fx, cx)
         lo = out[k, 15] - 0.5 * BIN
         hi = out[k, 16] + 0.5 * BIN
         m0 = 0.0
@@ -325,8 +331,7 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, axis, wi
     for k in range(n_obj):
         if need_ab[k] and out[k, 0] > 0:
             any_ab = True
-            zm = bf / max(out[k, 1], 1e-3)
-            xm = (0.5 * (boxes[k, 0] + boxes[k, 2]) - cx) * zm / fx
+            xm, zm = _median_point(boxes, out, k, bf, fx, cx)
             am[k] = xm * head[k, 0] + zm * head[k, 1]
             bm[k] = xm * head[k, 1] - zm * head[k, 0]
     if not any_ab:
@@ -535,6 +540,16 @@ def box_corners(centre: np.ndarray, extent: np.ndarray, heading: np.ndarray) -> 
     return centre + (sx.reshape(-1, 1) * w * across + sy.reshape(-1, 1) * hh * up + sz.reshape(-1, 1) * l * h)
 
 
+def _speed_stats(v: np.ndarray, Pv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per track, from the filter's velocities ``v`` (G, 3) and their covariances ``Pv``
+    (G, 3, 3): speed ``|v|``, its sigma ``sqrt(vᵀ P_v v) / |v|`` (at rest: the mean axis
+    sigma) and the velocity's sigmas per axis."""
+    sp = np.linalg.norm(v, axis=1)
+    vPv = np.einsum("ki,kij,kj->k", v, Pv, v)
+    sp_sigma = np.where(sp > 1e-6, np.sqrt(vPv) / np.maximum(sp, 1e-6), np.sqrt(np.einsum("kii->k", Pv) / 3))
+    return sp, sp_sigma, np.sqrt(np.einsum("kii->ki", Pv))
+
+
 def _class_size(label: str) -> tuple[float, float, float]:
     return CLASS_SIZE.get(str(label).lower(), DEFAULT_SIZE)
 
@@ -608,7 +623,8 @@ class WorldObjects:
         disp = masks.box_disparity if masks.box_disparity is not None else masks.disparity
         boxes = np.array([o.box for o in objs], np.float64).reshape(N, 4)
         h_img, w_img = (disp.shape[:2] if disp is not None else (c.height, c.width))
-        cut = (boxes[:, 0] <= 1.0) | (boxes[:, 2] >= w_img - 1.0)
+        left, right = boxes[:, 0] <= 1.0, boxes[:, 2] >= w_img - 1.0  # cut by the image's left / right side
+        cut = left | right
         small = sizes[:, 2] < 1.0  # a person: no length to speak of
         static = np.array([o.moving is False for o in objs], bool)
         top_view = cut | small | static  # the rest (moving or undecided vehicles in full view): the ray
@@ -655,7 +671,6 @@ class WorldObjects:
         # holds its visible points: its centre no farther from the cut side's visible end
         # than half the length (a real detector's outline takes in background past the
         # end seen: up to 10 m on KITTI raw 0001)
-        left, right = boxes[:, 0] <= 1.0, boxes[:, 2] >= w_img - 1.0
         high = np.where(left, b_mid < 0, b_mid > 0)
         far = cut & ~small & ~(left & right)
         a_end = np.where(high, np.minimum(a_95 - 0.5 * l_, a_5 + 0.5 * l_), np.maximum(a_5 + 0.5 * l_, a_95 - 0.5 * l_))
@@ -751,12 +766,8 @@ class WorldObjects:
             Xw[fr] = xs[fc, :3]
             X_c[fr] = (xs[fc, :3] - t_c) @ R
             world_sigma[fr] = np.sqrt(np.einsum("kii->ki", Ps[fc, :3, :3]))
-            Pv = Ps[:, 3:, 3:]
             v = xs[:, 3:]
-            sp = np.linalg.norm(v, axis=1)
-            vPv = np.einsum("ki,kij,kj->k", v, Pv, v)
-            sp_sigma = np.where(sp > 1e-6, np.sqrt(vPv) / np.maximum(sp, 1e-6), np.sqrt(np.einsum("kii->k", Pv) / 3))
-            v_sigma = np.sqrt(np.einsum("kii->ki", Pv))
+            sp, sp_sigma, v_sigma = _speed_stats(v, Ps[:, 3:, 3:])
             # per object: its track's row (a second detection under the same id shares it)
             row_of = dict(zip(tracks[rows].tolist(), range(len(rows))))
         for k in np.flatnonzero(valid).tolist():
@@ -793,15 +804,13 @@ class WorldObjects:
         Xw = x[:, :3] + dt[:, None] * x[:, 3:]
         Pp = P[:, :3, :3] + dt[:, None, None] ** 2 * P[:, 3:, 3:]
         X_c = (Xw - t_c) @ R
-        v, Pv = x[:, 3:], P[:, 3:, 3:]
-        sp = np.linalg.norm(v, axis=1)
-        vPv = np.einsum("ki,kij,kj->k", v, Pv, v)
-        sp_sigma = np.where(sp > 1e-6, np.sqrt(vPv) / np.maximum(sp, 1e-6), np.sqrt(np.einsum("kii->k", Pv) / 3))
+        v = x[:, 3:]
+        sp, sp_sigma, v_sigma = _speed_stats(v, P[:, 3:, 3:])
         for i, k in enumerate(ks):
             t = int(tracks[k])
             extent = np.array([*(size_unit[k] * max(X_c[i, 2], 0.0)), sizes[k, 2]])
             states[k] = ObjectState(t, Xw[i], np.sqrt(np.diag(Pp[i])), extent, head_w[k], float(np.linalg.norm(X_c[i])),
-                                    X_c[i], v[i], np.sqrt(np.diag(Pv[i])), float(sp[i]), float(sp_sigma[i]),
+                                    X_c[i], v[i], v_sigma[i], float(sp[i]), float(sp_sigma[i]),
                                     self._n.get(t, 1), predicted=True)
 
     def _filter(self, tracks: np.ndarray, z: np.ndarray, Rz: np.ndarray, stamp: float,

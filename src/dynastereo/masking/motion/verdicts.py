@@ -127,19 +127,17 @@ class MotionJudge:
                            masks.labels_left, masks.labels_right, masks.box_disparity, masks.flow)
 
     def _evidence(self, n: np.ndarray, frac: np.ndarray, chi_velocity: np.ndarray,
-                  resolved: np.ndarray | None = None) -> list[bool | None]:
+                  resolved: np.ndarray) -> list[bool | None]:
         """Per object, this frame's evidence from its points tested (``n``), the fraction
         of them over ``chi2``, its velocity's chi-square and whether rest can be told at all
-        (``resolved``, default all; :meth:`_resolvable`): True motion, False rest, None
+        (``resolved``, :meth:`_resolvable`): True motion, False rest, None
         neither (too few points, or too far; half of ``min_points`` suffice to keep an
         object masked)."""
         c = self.cfg
         enough = n >= max(3, c.min_points // 2)
         moving = enough & ((frac >= c.moving_fraction) | (chi_velocity > c.object_chi2))
         rest = (enough & ~moving & (n >= c.min_points) & (frac <= c.static_fraction)
-                & (chi_velocity <= c.object_chi2_static))
-        if resolved is not None:
-            rest &= resolved
+                & (chi_velocity <= c.object_chi2_static) & resolved)
         return [True if m else (False if r else None) for m, r in zip(moving, rest)]
 
     def _step(self, t: _TrackState, e: bool | None) -> bool:
