@@ -118,6 +118,7 @@ AXIS_EXTENT = 1.5  # the heading from the points: their spread along it, class w
 AXIS_RATIO = 4.0  # ... over their spread across it (variances, at least)
 AXIS_AGREE = np.radians(40.0)  # ... within this of the velocity's heading, where known
 MIN_VALID_FRACTION = 0.3  # of an outline's pixels with a disparity: fewer, no measurement
+MIN_VISIBLE_HEIGHT = 0.3  # of the class height at the depth measured: a shorter box (not cut), no measurement
 COAST_S = 1.0  # s: an object without a measurement gets its filter's prediction this long after its last update
 GATE = 40.0  # chi-square (3 dof) of an innovation that restarts the track
 VERTICAL = np.diag([1.0, 1e-3, 1.0])  # the filter's acceleration noise per world axis (y: down)
@@ -573,6 +574,7 @@ class WorldObjects:
         self._P: dict[int, np.ndarray] = {}  # track -> covariance (6, 6)
         self._t: dict[int, float] = {}  # track -> stamp of its last update
         self._n: dict[int, int] = {}
+        self._full: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # static track -> last full view's (world, sigma)
         self._hist = np.zeros((0, N_BINS), np.int32)  # the kernel's histograms (module doc)
         self._hist_ab = np.zeros((2, 0, AB_BINS), np.int32)
         self.last: list[ObjectState | None] = []
@@ -607,6 +609,7 @@ class WorldObjects:
         self._P.clear()
         self._t.clear()
         self._n.clear()
+        self._full.clear()
 
     # ------------------------------------------------------------------ measurement
     def measure(self, masks: StereoMasks, head_c: np.ndarray, sizes: np.ndarray,
@@ -653,6 +656,13 @@ class WorldObjects:
         # an outline mostly without disparity (occluded, or another object's disparity
         # leaking in): no measurement
         valid = (n >= 10) & (dmed > 0.5) & (n >= MIN_VALID_FRACTION * out[:, 13])
+        # ... nor from a box too short for its class at the depth measured (under
+        # MIN_VISIBLE_HEIGHT of the class height, not cut by the image's top or bottom): a
+        # sliver beside a nearer object whose disparity leaked in (stereo matching fattens a
+        # near object's edges), not its own
+        v_cut = (boxes[:, 1] <= 1.0) | (boxes[:, 3] >= h_img - 1.0)
+        tall = (boxes[:, 3] - boxes[:, 1]) >= MIN_VISIBLE_HEIGHT * sizes[:, 1] * c.fy * np.maximum(dmed, 0.0) / c.bf
+        valid &= v_cut | tall
         w_, l_ = sizes[:, 0], sizes[:, 2]
         # top view: per axis (along the heading, extent l; across it, extent w) the face
         # toward the camera (at 0) plus half the extent; a camera within the object's span
@@ -756,6 +766,8 @@ class WorldObjects:
         still = np.array([objs[k].moving is False for k in rows], bool)
         vel = self._filter(tracks[rows], Xw[rows], Cw[rows], stamp, speed, still) if len(rows) else None
         world_sigma = np.sqrt(np.einsum("kii->ki", Cw))
+        still_all = np.array([o.moving is False for o in objs], bool)
+        self._keep_full_views(tracks, valid & ~cut & still_all, ~still_all, Xw, world_sigma)
         if vel is not None:  # the tracked objects: the filter's velocity, speed (all rows at once)
             xs, Ps, ns = vel
             # position: the measurement of an object in full view (the filter would add the
@@ -770,6 +782,9 @@ class WorldObjects:
             sp, sp_sigma, v_sigma = _speed_stats(v, Ps[:, 3:, 3:])
             # per object: its track's row (a second detection under the same id shares it)
             row_of = dict(zip(tracks[rows].tolist(), range(len(rows))))
+        # an object judged static, cut by the image's side: where its last full view put it
+        self._full_view_positions(np.flatnonzero(valid & cut & still_all & (tracks >= 0)), tracks, Xw, X_c,
+                                  world_sigma, R, t_c)
         for k in np.flatnonzero(valid).tolist():
             st = ObjectState(int(tracks[k]), Xw[k], world_sigma[k], extent[k], head_w[k], float(r_c[k]), X_c[k])
             j = row_of.get(int(tracks[k])) if vel is not None and tracks[k] >= 0 else None
@@ -777,23 +792,46 @@ class WorldObjects:
                 st.velocity, st.velocity_sigma = v[j], v_sigma[j]
                 st.speed, st.speed_sigma, st.updates = float(sp[j]), float(sp_sigma[j]), int(ns[j])
             states[k] = st
-        self._coast(states, tracks, valid, size_unit, sizes, head_w, stamp, R, t_c)
+        self._coast(states, tracks, valid, still_all, size_unit, sizes, head_w, stamp, R, t_c)
         for o, st in zip(objs, states):
             o.world = st
             if st is not None and o.moving is not False:  # moving, or undecided (masked): never in the map
                 self._mover_boxes.append((st.world, st.extent, st.heading))
         stale = [k for k, t in self._t.items() if stamp - t > self.max_gap]
         for k in stale:
-            for d in (self._x, self._P, self._t, self._n):
+            for d in (self._x, self._P, self._t, self._n, self._full):
                 d.pop(k, None)
         self.last = states
         return states
 
-    def _coast(self, states: list, tracks: np.ndarray, valid: np.ndarray, size_unit: np.ndarray, sizes: np.ndarray,
-               head_w: np.ndarray, stamp: float, R: np.ndarray, t_c: np.ndarray) -> None:
+    def _keep_full_views(self, tracks: np.ndarray, full: np.ndarray, moving: np.ndarray, Xw: np.ndarray,
+                         sigma: np.ndarray) -> None:
+        """Each static object's last full view (``full``: measured, judged static, not cut by
+        the image's side): its world position and sigma, kept per track; a track judged
+        moving or undecided (``moving``) forgets it."""
+        for k in np.flatnonzero(tracks >= 0).tolist():
+            t = int(tracks[k])
+            if full[k]:
+                self._full[t] = (Xw[k].copy(), sigma[k].copy())
+            elif moving[k]:
+                self._full.pop(t, None)
+
+    def _full_view_positions(self, ks: np.ndarray, tracks: np.ndarray, Xw: np.ndarray, X_c: np.ndarray,
+                             sigma: np.ndarray, R: np.ndarray, t_c: np.ndarray) -> None:
+        """In place, for the objects ``ks`` (judged static) whose track has a full view
+        kept: that view's world position and sigma (module doc)."""
+        ks = np.array([k for k in np.asarray(ks).tolist() if int(tracks[k]) in self._full], np.int64)
+        for k in ks.tolist():
+            Xw[k], sigma[k] = self._full[int(tracks[k])]
+        if len(ks):
+            X_c[ks] = (Xw[ks] - t_c) @ R
+
+    def _coast(self, states: list, tracks: np.ndarray, valid: np.ndarray, still: np.ndarray, size_unit: np.ndarray,
+               sizes: np.ndarray, head_w: np.ndarray, stamp: float, R: np.ndarray, t_c: np.ndarray) -> None:
         """In place: an object without a measurement this frame (an outline mostly without
         disparity) whose track's filter was updated within ``COAST_S``: the filter's
-        prediction (``p + v dt``, covariance ``P_p + dt^2 P_v``), as a tracker coasts."""
+        prediction (``p + v dt``, covariance ``P_p + dt^2 P_v``), as a tracker coasts; one
+        judged static with a full view kept: that view's position."""
         ks = [k for k in np.flatnonzero(~valid).tolist()
               if int(tracks[k]) in self._x and stamp - self._t[int(tracks[k])] <= COAST_S]
         if not ks:
@@ -803,13 +841,15 @@ class WorldObjects:
         dt = np.array([stamp - self._t[int(tracks[k])] for k in ks])
         Xw = x[:, :3] + dt[:, None] * x[:, 3:]
         Pp = P[:, :3, :3] + dt[:, None, None] ** 2 * P[:, 3:, 3:]
+        sig = np.sqrt(np.einsum("kii->ki", Pp))
         X_c = (Xw - t_c) @ R
+        self._full_view_positions(np.flatnonzero(still[ks]), tracks[ks], Xw, X_c, sig, R, t_c)
         v = x[:, 3:]
         sp, sp_sigma, v_sigma = _speed_stats(v, P[:, 3:, 3:])
         for i, k in enumerate(ks):
             t = int(tracks[k])
             extent = np.array([*(size_unit[k] * max(X_c[i, 2], 0.0)), sizes[k, 2]])
-            states[k] = ObjectState(t, Xw[i], np.sqrt(np.diag(Pp[i])), extent, head_w[k], float(np.linalg.norm(X_c[i])),
+            states[k] = ObjectState(t, Xw[i], sig[i], extent, head_w[k], float(np.linalg.norm(X_c[i])),
                                     X_c[i], v[i], v_sigma[i], float(sp[i]), float(sp_sigma[i]),
                                     self._n.get(t, 1), predicted=True)
 
