@@ -170,3 +170,46 @@ def test_an_object_without_a_measurement_coasts_on_its_filter():
     late = 1.1 + COAST_S + 0.1
     assert wo.update(_frame([dict(car, face=np.array([0.0, 0.5, 16.0]), holes=0.9)]), np.eye(4), True, late) == [None]
     assert "predicted" not in s.to_dict()
+
+
+def test_a_static_object_cut_by_the_side_keeps_its_last_full_view():
+    """A parked car measured in full view, then -- the camera 9 m on -- cut by the image's
+    side, with a far end 1 m off (a measurement biased by the end it cannot see), then
+    without a measurement: both times it stays where its last full view put it in the
+    world.  Judged moving once, it forgets that view."""
+    car = dict(label="car", track=7, moving=False, w=1.8, h=1.5)
+    wo = WorldObjects(CALIB)
+    for f in range(5):
+        s = wo.update(_frame([dict(car, face=np.array([-5.0, 0.9, 14.0]))]), np.eye(4), True, 0.1 * f)[0]
+    seen = s.world.copy()
+    pose = np.eye(4)
+    pose[2, 3] = 9.0
+    cut = _frame([dict(car, side=True, x=-5.1, z0=5.0, z1=10.4, y=0.9, h=1.5)])
+    assert cut.objects[0].box[0] == 0
+    alone = WorldObjects(CALIB).update(cut, pose, True, 0.5)[0]  # what the cut view alone gives
+    assert np.linalg.norm(alone.world - seen) > 0.5
+    s = wo.update(cut, pose, True, 0.5)[0]
+    assert s.world == pytest.approx(seen, abs=1e-9)
+    assert s.camera == pytest.approx(seen - pose[:3, 3], abs=1e-9)
+    p = wo.update(_frame([dict(car, face=np.array([-5.0, 0.9, 5.0]), holes=0.9)]), pose, True, 0.6)[0]
+    assert p.predicted and p.world == pytest.approx(seen, abs=1e-9)
+    wo.update(_frame([dict(car, moving=None, face=np.array([-5.0, 0.9, 5.5]))]), pose, True, 0.7)
+    m = wo.update(cut, pose, True, 0.8)[0]
+    assert np.linalg.norm(m.world - seen) > 1e-3  # the filter's position now
+
+
+def test_a_sliver_with_a_nearer_objects_disparity_gives_no_measurement():
+    """A box a few pixels across beside a truck 4.5 m away, its pixels carrying the
+    truck's disparity (stereo matching fattens a near object's edges): at that depth a
+    car would be 133 px tall, the box is 12 -- no measurement, where it would have put a
+    car 20 m away at 4.5 m.  A whole car 20 m away, and a person whose box is cut by the
+    image's bottom, are measured."""
+    sliver = _frame([dict(label="car", track=1, face=np.array([-2.0, 0.2, 20.0]), w=0.15, h=0.55)])
+    sliver.box_disparity[sliver.labels_left == 1] = FX * B / 4.5
+    assert sliver.objects[0].box[3] - sliver.objects[0].box[1] == 12
+    assert WorldObjects(CALIB).update(sliver, np.eye(4), True, 0.0) == [None]
+    whole = _frame([dict(label="car", track=2, face=np.array([-2.0, 0.5, 20.0]), w=1.8, h=1.5)])
+    assert WorldObjects(CALIB).update(whole, np.eye(4), True, 0.0)[0].camera[2] == pytest.approx(20.0 + 2.2, abs=0.3)
+    low = _frame([dict(label="person", track=3, face=np.array([0.3, 1.0, 3.0]), w=0.5, h=0.4)])  # feet and legs only
+    assert low.objects[0].box[3] == H
+    assert WorldObjects(CALIB).update(low, np.eye(4), True, 0.0)[0] is not None
