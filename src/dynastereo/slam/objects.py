@@ -76,7 +76,7 @@ the trajectory's frame (the first camera's: x right, y down, z forward):
   measured).  An object judged static keeps the world position of its last full view
   when it is cut by the image's side or has no measurement: a parked car does not move,
   and the cut view's measurement is biased by the end it cannot see (dev seeds 10-12,
-  replayed: static cars cut by the side 0.37-0.49 -> 0.19-0.23 m; all objects within 30 m,
+  replayed: static cars cut by the side 0.30-0.49 -> 0.19-0.23 m; all objects within 30 m,
   misses counted, 0.327 -> 0.273 m, the median over the runs).  ``world_sigma`` is the
   measurement's, the filter's or the kept view's accordingly.
 * **No measurement** (an outline mostly without disparity): a track whose filter took a
