@@ -772,10 +772,10 @@ class WorldObjects:
         _, first = np.unique(tracks[use], return_index=True) if use.any() else (None, np.zeros(0, np.int64))
         rows = np.flatnonzero(use)[first]
         speed = np.array([np.nan if objs[k].speed_mps is None else objs[k].speed_mps for k in rows])
-        still = np.array([objs[k].moving is False for k in rows], bool)
+        still_all = np.array([o.moving is False for o in objs], bool)
+        still = still_all[rows]
         vel = self._filter(tracks[rows], Xw[rows], Cw[rows], stamp, speed, still) if len(rows) else None
         world_sigma = np.sqrt(np.einsum("kii->ki", Cw))
-        still_all = np.array([o.moving is False for o in objs], bool)
         self._keep_full_views(tracks, valid & ~cut & still_all, ~still_all, Xw, world_sigma)
         if vel is not None:  # the tracked objects: the filter's velocity, speed (all rows at once)
             xs, Ps, ns = vel
@@ -818,20 +818,22 @@ class WorldObjects:
         """Each static object's last full view (``full``: measured, judged static, not cut by
         the image's side): its world position and sigma, kept per track; a track judged
         moving or undecided (``moving``) forgets it."""
-        for k in np.flatnonzero(tracks >= 0).tolist():
-            t = int(tracks[k])
-            if full[k]:
-                self._full[t] = (Xw[k].copy(), sigma[k].copy())
-            elif moving[k]:
+        ks = np.flatnonzero(full & (tracks >= 0))
+        for t, x, s in zip(tracks[ks].tolist(), Xw[ks], sigma[ks]):
+            self._full[t] = (x, s)
+        if self._full:
+            for t in tracks[moving & ~full & (tracks >= 0)].tolist():
                 self._full.pop(t, None)
 
     def _full_view_positions(self, ks: np.ndarray, tracks: np.ndarray, Xw: np.ndarray, X_c: np.ndarray,
                              sigma: np.ndarray, R: np.ndarray, t_c: np.ndarray) -> None:
         """In place, for the objects ``ks`` (judged static) whose track has a full view
         kept: that view's world position and sigma (module doc)."""
-        ks = np.array([k for k in np.asarray(ks).tolist() if int(tracks[k]) in self._full], np.int64)
-        for k in ks.tolist():
-            Xw[k], sigma[k] = self._full[int(tracks[k])]
+        if not self._full or not len(ks):
+            return
+        ks = np.array([k for k, t in zip(ks.tolist(), tracks[ks].tolist()) if t in self._full], np.int64)
+        for k, t in zip(ks.tolist(), tracks[ks].tolist()):
+            Xw[k], sigma[k] = self._full[t]
         if len(ks):
             X_c[ks] = (Xw[ks] - t_c) @ R
 
@@ -841,13 +843,14 @@ class WorldObjects:
         disparity) whose track's filter was updated within ``COAST_S``: the filter's
         prediction (``p + v dt``, covariance ``P_p + dt^2 P_v``), as a tracker coasts; one
         judged static with a full view kept: that view's position."""
-        ks = [k for k in np.flatnonzero(~valid).tolist()
-              if int(tracks[k]) in self._x and stamp - self._t[int(tracks[k])] <= COAST_S]
+        ks = [k for k, t in zip(np.flatnonzero(~valid).tolist(), tracks[~valid].tolist())
+              if t in self._x and stamp - self._t[t] <= COAST_S]
         if not ks:
             return
-        x = np.array([self._x[int(tracks[k])] for k in ks])
-        P = np.array([self._P[int(tracks[k])] for k in ks])
-        dt = np.array([stamp - self._t[int(tracks[k])] for k in ks])
+        ts = tracks[ks].tolist()
+        x = np.array([self._x[t] for t in ts])
+        P = np.array([self._P[t] for t in ts])
+        dt = stamp - np.array([self._t[t] for t in ts])
         Xw = x[:, :3] + dt[:, None] * x[:, 3:]
         Pp = P[:, :3, :3] + dt[:, None, None] ** 2 * P[:, 3:, 3:]
         sig = np.sqrt(np.einsum("kii->ki", Pp))
@@ -855,12 +858,11 @@ class WorldObjects:
         self._full_view_positions(np.flatnonzero(still[ks]), tracks[ks], Xw, X_c, sig, R, t_c)
         v = x[:, 3:]
         sp, sp_sigma, v_sigma = _speed_stats(v, P[:, 3:, 3:])
-        for i, k in enumerate(ks):
-            t = int(tracks[k])
-            extent = np.array([*(size_unit[k] * max(X_c[i, 2], 0.0)), sizes[k, 2]])
-            states[k] = ObjectState(t, Xw[i], sig[i], extent, head_w[k], float(np.linalg.norm(X_c[i])),
-                                    X_c[i], v[i], v_sigma[i], float(sp[i]), float(sp_sigma[i]),
-                                    self._n.get(t, 1), predicted=True)
+        extent = np.column_stack([size_unit[ks] * np.maximum(X_c[:, 2], 0.0)[:, None], sizes[ks, 2]])
+        r = np.linalg.norm(X_c, axis=1).tolist()
+        for i, (k, t) in enumerate(zip(ks, ts)):
+            states[k] = ObjectState(t, Xw[i], sig[i], extent[i], head_w[k], r[i], X_c[i], v[i], v_sigma[i],
+                                    float(sp[i]), float(sp_sigma[i]), self._n.get(t, 1), predicted=True)
 
     def _filter(self, tracks: np.ndarray, z: np.ndarray, Rz: np.ndarray, stamp: float,
                 speed: np.ndarray | None = None, still: np.ndarray | None = None):
