@@ -390,6 +390,11 @@ class MotionConfig:
     object_chi2: float = 11.34
     object_chi2_static: float = 6.25
     rest_resolution: float = 2.0  # m/s
+    # the same rule for vehicles (m/s; None: vehicles are judged at any range)
+    rest_resolution_vehicle: float | None = None
+    # the velocity noise the rule weighs: "window" = a full window's at the object's distance,
+    # "measured" = the object's own velocity covariance this frame (its points' actual ages)
+    rest_sigma: str = "window"
     object_points: int = 10
     window_frames: int = 15
     confirm_frames: int = 2
@@ -412,6 +417,11 @@ class MotionConfig:
         for k in ("sigma_px", "sigma_disparity", "chi2", "object_chi2", "object_chi2_static", "rest_resolution"):
             if not getattr(self, k) > 0:
                 raise _bad(f"motion.{k}", "> 0", getattr(self, k))
+        if self.rest_sigma not in ("window", "measured"):
+            raise _bad("motion.rest_sigma", "window or measured", self.rest_sigma)
+        if self.rest_resolution_vehicle is not None and not self.rest_resolution_vehicle > 0:
+            raise _bad("motion.rest_resolution_vehicle", "> 0 (or null: vehicles judged at any range)",
+                       self.rest_resolution_vehicle)
         for k in ("moving_fraction", "static_fraction"):
             if not 0.0 <= getattr(self, k) <= 1.0:
                 raise _bad(f"motion.{k}", "in [0, 1]", getattr(self, k))
