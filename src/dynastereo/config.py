@@ -145,7 +145,8 @@ class DetectorConfig:
     tile_overlap: float = 0.2  # share of a tile's width overlapping each neighbour
     # canvas frame/tiles: the top fraction of the frame left out (sky).  0 by default: 0.25
     # (and carry_downscale 2, runtime auto) cost masking CPU less but moved raw 0001's ATE
-    # from 0.054 to 0.077 m (medians over n_features variants; README, Detectors)
+    # from 0.056 to 0.070 m (medians over n_features variants, session 12; README, "The
+    # runtime, canvas and carrying rows")
     band_top: float = 0.0
     contrast: DetectorContrast = "clahe"  # the detector's input only
     # When the network runs: "every" frame, every `interval`-th frame ("interval"), or
@@ -368,7 +369,9 @@ class MotionConfig:
     is at most ``object_chi2_static``, there are ``min_points`` points, and -- for the
     slow road users, persons and bicycles -- it is near enough for the window test to tell
     rest from ``rest_resolution`` m/s at all (twice the stereo noise of a velocity over
-    the whole window at its distance; a farther walker or cyclist stays undecided, masked).
+    the whole window at its distance; a farther walker or cyclist stays undecided, masked;
+    opt-in, off by default: ``rest_resolution_vehicle`` the same for vehicles, and
+    ``rest_sigma: measured`` the object's own velocity noise instead of a whole window's).
     ``confirm_frames`` frames of evidence in a row decide an undecided object or turn a
     static one moving (its map points are then removed, ``forget_points``); a moving one
     is judged static again after ``release_frames`` frames of rest in a row.  A frame in

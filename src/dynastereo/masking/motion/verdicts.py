@@ -153,6 +153,23 @@ class MotionJudge:
             t.moving = False
         return was is False and t.moving is True
 
+    def _measured_sigma(self, Cv: np.ndarray, age: np.ndarray, group: np.ndarray, counts: np.ndarray,
+                        T1: np.ndarray, X1: np.ndarray) -> np.ndarray:
+        """Per object with points (``group`` non-decreasing, ``counts`` its points): the
+        standard deviation (m a frame) of its median velocity along its worst direction,
+        from its points' own covariances (``Cv``: stereo at both ends over their ages):
+        the median point's largest variance * (pi / 2) / n (n at most ``object_points``),
+        plus the camera's pose error over the median age -- the median, not the mean, as
+        the velocity is a median: a few points first seen a frame ago do not make it noisy."""
+        c = self.cfg
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        lam = np.linalg.eigvalsh(Cv)[:, -1]
+        med = _group_median(np.column_stack([lam, age]), group, starts, counts)
+        n = np.minimum(counts, c.object_points).astype(np.float64)
+        X = np.add.reduceat(X1, starts) / counts[:, None]
+        pose = np.radians(c.sigma_pose_deg) ** 2 * np.einsum("gi,gi->g", X, X) + c.sigma_pose_m ** 2
+        return np.sqrt(med[:, 0] * (0.5 * np.pi) / n + pose / med[:, 1])
+
     def _rest_limits(self, slow: np.ndarray) -> np.ndarray:
         """(G,) m/s: per object, the speed its rest must be told from (``rest_resolution``
         for the slow road users, ``rest_resolution_vehicle`` for the others; inf: none)."""
@@ -226,7 +243,7 @@ class MotionJudge:
                     c.sigma_pose_m)
                 chi_v[has] = np.einsum("gi,gi->g", vel[has], np.linalg.solve(Cm, vel[has][:, :, None])[:, :, 0])
                 if measured:
-                    sig_v[has] = np.sqrt(np.linalg.eigvalsh(Cm)[:, -1]) / flow.dt
+                    sig_v[has] = self._measured_sigma(Cv, age, owner[use], nvel[has], T1, X1) / flow.dt
         if measured:
             resolved = 2.0 * sig_v <= self._rest_limits(slow)
         evidence = self._evidence(n, frac, chi_v, resolved)
