@@ -170,15 +170,12 @@ def test_lost_frames_give_no_evidence() -> None:
     assert masks.objects[1].moving is None and masks.objects[1].masked
 
 
-def test_a_walker_too_far_to_tell_from_rest_stays_undecided() -> None:
-    """Three objects at rest, seen by the camera driving forward: a person and a car 45 m
-    ahead and a person 12 m ahead.  At 45 m (fx 370 px, baseline 0.54 m) the stereo noise
-    of a velocity over the whole window is ~1.4 m/s: the test cannot tell a standing person
-    from a walking one (``rest_resolution`` 2 m/s, twice the noise), so the far person stays
-    undecided -- masked -- while the far car (vehicles are told at any range) and the near
-    person are judged static."""
+def _far_scene(cfg: MotionConfig, anchored: bool = False) -> tuple[MotionJudge, StereoMasks]:
+    """Three objects at rest, seen by the camera driving forward for 10 frames: a car and a
+    person 45 m ahead and a person 12 m ahead; the judge and the last frame's masks.
+    ``anchored``: the points followed since frame 0 (else first seen a frame before)."""
     rng = np.random.default_rng(3)
-    judge = MotionJudge(MotionConfig(), CALIB)
+    judge = MotionJudge(cfg, CALIB)
     pts = {1: np.array([-4.0, 0.5, 45.0]), 2: np.array([4.0, 0.5, 45.0]), 3: np.array([2.0, 0.5, 12.0])}
     labels = {1: "car", 2: "person", 3: "person"}
     X = {t: c + rng.uniform(-0.5, 0.5, (30, 3)) * [0.6, 1.6, 0.4] for t, c in pts.items()}
@@ -186,18 +183,30 @@ def test_a_walker_too_far_to_tell_from_rest_stays_undecided() -> None:
     for i in range(3):
         lab[:, i * 200:(i + 1) * 200] = i + 1
     m = (lab > 0).astype(np.uint8) * 255
+    first = {t: _uvd(X[t], _camera(0, 5.0), rng) for t in pts}
     for k in range(10):
         flows = []
         if k > 0:
             for t in pts:
                 uv0, d0 = _uvd(X[t], _camera(k - 1, 5.0), rng)
                 uv1, d1 = _uvd(X[t], _camera(k, 5.0), rng)
-                flows.append(ObjectFlow(t, t - 1, uv0, d0, uv1, d1))
+                seen = (first[t][0], first[t][1], np.zeros(len(d0), np.int64)) if anchored else (None, None, None)
+                flows.append(ObjectFlow(t, t - 1, uv0, d0, uv1, d1, *seen))
         objs = [ObjectMask((i * 200.0, 0.0, (i + 1) * 200.0, 192.0), labels[i + 1], 1.0, MaskMethod.OUTLINE, 10.0, 1,
                            1, i + 1) for i in range(3)]
         masks = StereoMasks(m, m.copy(), objs, labels_left=lab, labels_right=lab, flow=FrameFlow(k, DT, flows))
         judge.select(masks)
         judge.update(masks, _camera(k, 5.0)[:3], ok=True)
+    return judge, masks
+
+
+def test_a_walker_too_far_to_tell_from_rest_stays_undecided() -> None:
+    """At 45 m (fx 370 px, baseline 0.54 m) the stereo noise of a velocity over the whole
+    window is ~1.4 m/s: the test cannot tell a standing person from a walking one
+    (``rest_resolution`` 2 m/s, twice the noise), so the far person stays undecided --
+    masked -- while the far car (vehicles are told at any range) and the near person are
+    judged static."""
+    judge, masks = _far_scene(MotionConfig())
     assert [o.moving for o in masks.objects] == [False, None, False]
     judge.select(masks)
     assert [o.masked for o in masks.objects] == [False, True, False]
@@ -205,6 +214,26 @@ def test_a_walker_too_far_to_tell_from_rest_stays_undecided() -> None:
     loose = MotionJudge(MotionConfig(rest_resolution=4.0), CALIB)
     assert loose._resolvable(np.full(30, CALIB.bf / 45.0), np.zeros(30, np.int64), np.array([True]), DT)[0]
     assert not judge._resolvable(np.full(30, CALIB.bf / 45.0), np.zeros(30, np.int64), np.array([True]), DT)[0]
+
+
+def test_the_rest_rule_for_vehicles_and_from_the_measured_velocity_noise() -> None:
+    """``rest_resolution_vehicle`` puts the far car under the walker's rule (undecided at
+    45 m at 2 m/s, judged at 4 m/s); ``rest_sigma: measured`` weighs the object's own
+    velocity covariance (its points' actual ages) instead of a whole window's: with every
+    point first seen a frame before (0.1 s of baseline) not even the near person is told
+    from a walker; with the points followed since frame 0 the near one is, the far ones
+    still are not."""
+    assert [o.moving for o in _far_scene(MotionConfig(rest_resolution_vehicle=2.0))[1].objects] == [None, None, False]
+    assert [o.moving for o in _far_scene(MotionConfig(rest_resolution_vehicle=4.0))[1].objects] == [False, None, False]
+    assert [o.moving for o in _far_scene(MotionConfig(rest_sigma="measured"))[1].objects] == [False, None, None]
+    for anchored in (False, True):  # the default: the same verdicts either way
+        assert [o.moving for o in _far_scene(MotionConfig(), anchored)[1].objects] == [False, None, False]
+    measured = _far_scene(MotionConfig(rest_sigma="measured"), anchored=True)[1].objects
+    assert [o.moving for o in measured] == [False, None, False]  # vehicles: still at any range
+    measured = _far_scene(MotionConfig(rest_sigma="measured", rest_resolution_vehicle=2.0), anchored=True)[1].objects
+    assert [o.moving for o in measured] == [None, None, False]
+    judge = MotionJudge(MotionConfig(), CALIB)
+    assert list(judge._rest_limits(np.array([True, False]))) == [2.0, np.inf]
 
 
 def test_motion_config_is_validated() -> None:
@@ -218,6 +247,10 @@ def test_motion_config_is_validated() -> None:
         MotionConfig(duplicate_iou=0.0)
     with pytest.raises(ConfigError, match="motion.rest_resolution"):
         MotionConfig(rest_resolution=0.0)
+    with pytest.raises(ConfigError, match="motion.rest_resolution_vehicle"):
+        MotionConfig(rest_resolution_vehicle=0.0)
+    with pytest.raises(ConfigError, match="motion.rest_sigma"):
+        MotionConfig(rest_sigma="nominal")
 
 
 # ----------------------------------------------------------------------------- pipeline

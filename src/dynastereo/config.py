@@ -145,7 +145,8 @@ class DetectorConfig:
     tile_overlap: float = 0.2  # share of a tile's width overlapping each neighbour
     # canvas frame/tiles: the top fraction of the frame left out (sky).  0 by default: 0.25
     # (and carry_downscale 2, runtime auto) cost masking CPU less but moved raw 0001's ATE
-    # from 0.054 to 0.077 m (medians over n_features variants; README, Detectors)
+    # from 0.056 to 0.070 m (medians over n_features variants, session 12; README, "The
+    # runtime, canvas and carrying rows")
     band_top: float = 0.0
     contrast: DetectorContrast = "clahe"  # the detector's input only
     # When the network runs: "every" frame, every `interval`-th frame ("interval"), or
@@ -368,7 +369,9 @@ class MotionConfig:
     is at most ``object_chi2_static``, there are ``min_points`` points, and -- for the
     slow road users, persons and bicycles -- it is near enough for the window test to tell
     rest from ``rest_resolution`` m/s at all (twice the stereo noise of a velocity over
-    the whole window at its distance; a farther walker or cyclist stays undecided, masked).
+    the whole window at its distance; a farther walker or cyclist stays undecided, masked;
+    opt-in, off by default: ``rest_resolution_vehicle`` the same for vehicles, and
+    ``rest_sigma: measured`` the object's own velocity noise instead of a whole window's).
     ``confirm_frames`` frames of evidence in a row decide an undecided object or turn a
     static one moving (its map points are then removed, ``forget_points``); a moving one
     is judged static again after ``release_frames`` frames of rest in a row.  A frame in
@@ -390,6 +393,11 @@ class MotionConfig:
     object_chi2: float = 11.34
     object_chi2_static: float = 6.25
     rest_resolution: float = 2.0  # m/s
+    # the same rule for vehicles (m/s; None: vehicles are judged at any range)
+    rest_resolution_vehicle: float | None = None
+    # the velocity noise the rule weighs: "window" = a full window's at the object's distance,
+    # "measured" = the object's own velocity covariance this frame (its points' actual ages)
+    rest_sigma: str = "window"
     object_points: int = 10
     window_frames: int = 15
     confirm_frames: int = 2
@@ -412,6 +420,11 @@ class MotionConfig:
         for k in ("sigma_px", "sigma_disparity", "chi2", "object_chi2", "object_chi2_static", "rest_resolution"):
             if not getattr(self, k) > 0:
                 raise _bad(f"motion.{k}", "> 0", getattr(self, k))
+        if self.rest_sigma not in ("window", "measured"):
+            raise _bad("motion.rest_sigma", "window or measured", self.rest_sigma)
+        if self.rest_resolution_vehicle is not None and not self.rest_resolution_vehicle > 0:
+            raise _bad("motion.rest_resolution_vehicle", "> 0 (or null: vehicles judged at any range)",
+                       self.rest_resolution_vehicle)
         for k in ("moving_fraction", "static_fraction"):
             if not 0.0 <= getattr(self, k) <= 1.0:
                 raise _bad(f"motion.{k}", "in [0, 1]", getattr(self, k))

@@ -153,6 +153,30 @@ class MotionJudge:
             t.moving = False
         return was is False and t.moving is True
 
+    def _measured_sigma(self, Cv: np.ndarray, age: np.ndarray, group: np.ndarray, counts: np.ndarray,
+                        T1: np.ndarray, X1: np.ndarray) -> np.ndarray:
+        """Per object with points (``group`` non-decreasing, ``counts`` its points): the
+        standard deviation (m a frame) of its median velocity along its worst direction,
+        from its points' own covariances (``Cv``: stereo at both ends over their ages):
+        the median point's largest variance * (pi / 2) / n (n at most ``object_points``),
+        plus the camera's pose error over the median age -- the median, not the mean, as
+        the velocity is a median: a few points first seen a frame ago do not make it noisy."""
+        c = self.cfg
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        lam = np.linalg.eigvalsh(Cv)[:, -1]
+        med = _group_median(np.column_stack([lam, age]), group, starts, counts)
+        n = np.minimum(counts, c.object_points).astype(np.float64)
+        X = np.add.reduceat(X1, starts) / counts[:, None]
+        pose = np.radians(c.sigma_pose_deg) ** 2 * np.einsum("gi,gi->g", X, X) + c.sigma_pose_m ** 2
+        return np.sqrt(med[:, 0] * (0.5 * np.pi) / n + pose / med[:, 1])
+
+    def _rest_limits(self, slow: np.ndarray) -> np.ndarray:
+        """(G,) m/s: per object, the speed its rest must be told from (``rest_resolution``
+        for the slow road users, ``rest_resolution_vehicle`` for the others; inf: none)."""
+        c = self.cfg
+        return np.where(slow, c.rest_resolution,
+                        np.inf if c.rest_resolution_vehicle is None else c.rest_resolution_vehicle)
+
     def _resolvable(self, d: np.ndarray, owner: np.ndarray, slow: np.ndarray, dt: float) -> np.ndarray:
         """(G,) bool: whether the window test can tell each object at rest at all.  For the
         slow road users (``slow``: persons, bicycles -- a walker at 1.4 m/s, a cyclist at 4):
@@ -160,14 +184,17 @@ class MotionJudge:
         objects), the stereo noise of a velocity over the whole window (``window_frames``
         frames of ``dt`` s, ``object_points`` points) resolves ``rest_resolution`` m/s:
         ``2 sigma <= rest_resolution`` with ``sigma = sqrt(2) sigma_Z / (window dt)
-        sqrt(pi / 2 / object_points)``, ``sigma_Z = Z^2 sigma_d / bf``.  Vehicles, and an
-        object without points: True (a parked car far away is still told by the test)."""
+        sqrt(pi / 2 / object_points)``, ``sigma_Z = Z^2 sigma_d / bf``.  Vehicles: the same
+        with ``rest_resolution_vehicle`` where it is set, else True (judged at any range).
+        An object without points: True."""
         c = self.cfg
         G = len(slow)
         out = np.ones(G, bool)
-        if not len(d) or not slow.any():
+        limit = self._rest_limits(slow)
+        judged = np.isfinite(limit)
+        if not len(d) or not judged.any():
             return out
-        mine = slow[owner]  # the slow objects' points only (owner non-decreasing: so is owner[mine])
+        mine = judged[owner]  # the judged objects' points only (owner non-decreasing: so is owner[mine])
         counts = np.bincount(owner[mine], minlength=G)
         has = counts > 0
         if not has.any():
@@ -176,7 +203,7 @@ class MotionJudge:
         dm = _group_median(d[mine][:, None], owner[mine], starts, counts[has])[:, 0]
         z = self.calib.bf / np.maximum(dm, 1e-6)
         sigma = np.sqrt(2.0) * z * z * c.sigma_disparity / self.calib.bf / (c.window_frames * dt)
-        out[has] = 2.0 * sigma * np.sqrt(0.5 * np.pi / c.object_points) <= c.rest_resolution
+        out[has] = 2.0 * sigma * np.sqrt(0.5 * np.pi / c.object_points) <= limit[has]
         return out
 
     def _weigh(self, flow: FrameFlow, T0: np.ndarray, T1: np.ndarray, labels: list[str]) -> list[int]:
@@ -204,7 +231,9 @@ class MotionJudge:
         nvel = np.zeros(G, np.int64)
         chi_v = np.zeros(G)
         slow = np.array([_group(labels[of.index]) in SLOW_GROUPS for of in objs], bool)
-        resolved = self._resolvable(cat.d1, owner, slow, flow.dt)
+        measured = c.rest_sigma == "measured"
+        resolved = np.ones(G, bool) if measured else self._resolvable(cat.d1, owner, slow, flow.dt)
+        sig_v = np.full(G, np.inf)  # m/s: the velocity's largest standard deviation ("measured")
         if flow.seq in self._poses:
             S = np.array([c.sigma_px**2, c.sigma_px**2, c.sigma_disparity**2])
             use, V, Cv, age, X1 = _point_velocities(cat, flow.seq, self._poses, self.calib, S)
@@ -213,6 +242,10 @@ class MotionJudge:
                     V, Cv, age, X1, owner[use], G, T1[:3, :3], c.object_points, np.radians(c.sigma_pose_deg),
                     c.sigma_pose_m)
                 chi_v[has] = np.einsum("gi,gi->g", vel[has], np.linalg.solve(Cm, vel[has][:, :, None])[:, :, 0])
+                if measured:
+                    sig_v[has] = self._measured_sigma(Cv, age, owner[use], nvel[has], T1, X1) / flow.dt
+        if measured:
+            resolved = 2.0 * sig_v <= self._rest_limits(slow)
         evidence = self._evidence(n, frac, chi_v, resolved)
         states = [self.tracks[of.track] for of in objs]
         # the camera's motion itself is suspect when most objects judged static seem to move
