@@ -390,6 +390,99 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, axis, wi
 
 
 @njit(nogil=True, cache=True)
+def _centres(out, boxes, sizes, head, left, right, small, top_view, cx, cy, fx, fy, bf, h_img, sigma_d, X, valid,
+             sigma_r, size_unit):  # pragma: no cover - compiled
+    """Per object k, from :func:`_object_stats`' ``out[k]`` (module doc, "Centre, not
+    surface"): whether it gives a measurement (``valid[k]``: a disparity on at least
+    ``MIN_VALID_FRACTION`` of its outline, and a box not shorter than ``MIN_VISIBLE_HEIGHT``
+    of its class height at that depth unless cut by the image's top or bottom), its centre
+    in the camera ``X[k]`` (the top view -- per axis the face toward the camera plus half
+    the footprint, both ends' middle when the camera is within the object's span, the end
+    seen for a vehicle cut by the image's side, bounded by the other visible end -- or, for
+    the others (``top_view[k]`` False), the box centre's ray at the nearest point plus half
+    the box's extent along it; vertically the box centre's row at the surface's depth, or
+    half the class height below the top row of a box cut by the image's bottom), the range
+    sigma of the median disparity ``sigma_r[k]`` and the box's width / height at unit
+    depth ``size_unit[k]``.  ``sizes`` (N, 3) width, height, length; ``head`` (N, 2) the
+    heading (x, z) in the camera's top view; ``boxes`` (N, 4) float."""
+    for k in range(boxes.shape[0]):
+        x0, y0, x1, y1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
+        w_, h_, l_ = sizes[k, 0], sizes[k, 1], sizes[k, 2]
+        n, dmed = out[k, 0], out[k, 1]
+        # an outline mostly without disparity (occluded, or another object's disparity
+        # leaking in): no measurement; nor from a box too short for its class at the depth
+        # measured, not cut by the image's top or bottom: a sliver beside a nearer object
+        # whose disparity leaked in (stereo matching fattens a near object's edges)
+        ok = n >= 10 and dmed > 0.5 and n >= MIN_VALID_FRACTION * out[k, 13]
+        v_cut = y0 <= 1.0 or y1 >= h_img - 1.0
+        tall = (y1 - y0) >= MIN_VISIBLE_HEIGHT * h_ * fy * max(dmed, 0.0) / bf
+        ok = ok and (v_cut or tall)
+        # top view: per axis (along the heading, extent l; across it, extent w) the face
+        # toward the camera (at 0) plus half the extent; a camera within the object's span
+        # (5th / 95th percentiles' middle) sees both ends: their middle
+        a_lo, a_hi, a_5, a_95 = out[k, 5], out[k, 6], out[k, 7], out[k, 8]
+        b_lo, b_hi, b_5, b_95 = out[k, 9], out[k, 10], out[k, 11], out[k, 12]
+        a_mid = 0.5 * (a_5 + a_95)
+        b_mid = 0.5 * (b_5 + b_95)
+        if abs(a_mid) < 0.5 * l_:
+            a_c = a_mid
+        elif a_mid > 0:
+            a_c = a_lo + 0.5 * l_
+        else:
+            a_c = a_hi - 0.5 * l_
+        if abs(b_mid) < 0.5 * w_:
+            b_c = b_mid
+        elif b_mid > 0:
+            b_c = b_lo + 0.5 * w_
+        else:
+            b_c = b_hi - 0.5 * w_
+        # cut by the image's side, one end is out of view: along the heading, the end seen
+        # (the one away from the cut side) minus half the length.  Along the heading the
+        # image column grows with a where the object lies at b < 0 (u ~ x / z: d(x/z)/da =
+        # -b / z^2), so the end seen is the high one (the 95th percentile) for a box cut
+        # by the left side at b < 0 or by the right side at b > 0 (a parked car's far end,
+        # a crossing car's front as it comes in), else the low one (the 5th).  The object
+        # holds its visible points: its centre no farther from the cut side's visible end
+        # than half the length (a real detector's outline takes in background past the
+        # end seen: up to 10 m on KITTI raw 0001)
+        if (left[k] or right[k]) and not small[k] and not (left[k] and right[k]):
+            high = b_mid < 0 if left[k] else b_mid > 0
+            if high:
+                a_c = min(a_95 - 0.5 * l_, a_5 + 0.5 * l_)
+            else:
+                a_c = max(a_5 + 0.5 * l_, a_95 - 0.5 * l_)
+        hx, hz = head[k, 0], head[k, 1]
+        dm = dmed if ok else 1.0
+        if top_view[k]:
+            X[k, 0] = a_c * hx + b_c * hz
+            X[k, 2] = a_c * hz - b_c * hx
+        else:
+            # whole in view and not known static: the box centre's ray, at the nearest
+            # point (p90 disparity) plus half the box's extent along the ray
+            rx = (0.5 * (x0 + x1) - cx) / fx
+            nr = np.sqrt(rx * rx + 1.0)
+            rx /= nr
+            rz = 1.0 / nr
+            cos_phi = abs(rx * hx + rz * hz)
+            e = l_ * cos_phi + w_ * np.sqrt(max(1.0 - cos_phi * cos_phi, 0.0))
+            r_near = bf / (max(out[k, 3], 0.5) if ok else 1.0) / rz
+            r = max(r_near + 0.5 * e, bf / dm / rz)
+            X[k, 0] = rx * r
+            X[k, 2] = rz * r
+        # vertical: the box centre's row at the depth of the surface seen (the median
+        # disparity's: the box spans the near surface, not the centre's depth); a box cut by
+        # the image's bottom (a person close by) hangs half the class height below its top row
+        if y1 >= h_img - 1.0 and y0 > 1.0:
+            X[k, 1] = (y0 - cy) / fy * X[k, 2] + 0.5 * h_
+        else:
+            X[k, 1] = (0.5 * (y0 + y1) - cy) / fy * (bf / dm)
+        valid[k] = ok and X[k, 2] > 0
+        sigma_r[k] = (bf / dm) * sigma_d / dm
+        size_unit[k, 0] = (x1 - x0) / fx
+        size_unit[k, 1] = (y1 - y0) / fy
+
+
+@njit(nogil=True, cache=True)
 def _inv3(S, out):  # pragma: no cover - compiled
     a, b, c = S[0, 0], S[0, 1], S[0, 2]
     d, e, f = S[1, 0], S[1, 1], S[1, 2]
@@ -594,6 +687,9 @@ class WorldObjects:
                       np.zeros(0, np.bool_), 1.0, 1.0, 0.0,
                       np.zeros((0, N_BINS), np.int32), np.zeros((0, AB_BINS), np.int32),
                       np.zeros((0, AB_BINS), np.int32), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, N_STATS)))
+        _centres(np.zeros((0, N_STATS)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0, np.bool_),
+                 np.zeros(0, np.bool_), np.zeros(0, np.bool_), np.zeros(0, np.bool_), 0.0, 0.0, 1.0, 1.0, 1.0, 1.0,
+                 1.0, np.zeros((0, 3)), np.zeros(0, np.bool_), np.zeros(0), np.zeros((0, 2)))
         _kalman(np.zeros((0, 6)), np.zeros((0, 6, 6)), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.ones(3),
                 np.zeros(0), np.zeros(0, np.bool_), SPEED_DIRECTION, SPEED_SIGMA, STILL_SIGMA, np.zeros(0))
 
@@ -661,65 +757,13 @@ class WorldObjects:
                           bi, peak, use, head_c, top_view, moving & ~small, np.ascontiguousarray(sizes[:, 0]),
                           v_known, c.bf, c.fx, c.cx, self._hist[:N], self._hist_ab[0, :N], self._hist_ab[1, :N], np.zeros(N, np.int64),
                           np.zeros(N, np.int64), out)
-        n, dmed = out[:, 0], out[:, 1]
-        # an outline mostly without disparity (occluded, or another object's disparity
-        # leaking in): no measurement
-        valid = (n >= 10) & (dmed > 0.5) & (n >= MIN_VALID_FRACTION * out[:, 13])
-        # ... nor from a box too short for its class at the depth measured (under
-        # MIN_VISIBLE_HEIGHT of the class height, not cut by the image's top or bottom): a
-        # sliver beside a nearer object whose disparity leaked in (stereo matching fattens a
-        # near object's edges), not its own
-        v_cut = (boxes[:, 1] <= 1.0) | (boxes[:, 3] >= h_img - 1.0)
-        tall = (boxes[:, 3] - boxes[:, 1]) >= MIN_VISIBLE_HEIGHT * sizes[:, 1] * c.fy * np.maximum(dmed, 0.0) / c.bf
-        valid &= v_cut | tall
-        w_, l_ = sizes[:, 0], sizes[:, 2]
-        # top view: per axis (along the heading, extent l; across it, extent w) the face
-        # toward the camera (at 0) plus half the extent; a camera within the object's span
-        # (5th / 95th percentiles' middle) sees both ends: their middle
-        a_lo, a_hi, a_5, a_95 = out[:, 5], out[:, 6], out[:, 7], out[:, 8]  # (column 4, the median: unused here)
-        b_lo, b_hi, b_5, b_95 = out[:, 9], out[:, 10], out[:, 11], out[:, 12]
-        a_mid, b_mid = 0.5 * (a_5 + a_95), 0.5 * (b_5 + b_95)
-        a_c = np.where(np.abs(a_mid) < 0.5 * l_, a_mid, np.where(a_mid > 0, a_lo + 0.5 * l_, a_hi - 0.5 * l_))
-        b_c = np.where(np.abs(b_mid) < 0.5 * w_, b_mid, np.where(b_mid > 0, b_lo + 0.5 * w_, b_hi - 0.5 * w_))
-        # cut by the image's side, one end is out of view: along the heading, the end seen
-        # (the one away from the cut side) minus half the length.  Along the heading the
-        # image column grows with a where the object lies at b < 0 (u ~ x / z: d(x/z)/da =
-        # -b / z^2), so the end seen is the high one (the 95th percentile) for a box cut
-        # by the left side at b < 0 or by the right side at b > 0 (a parked car's far end,
-        # a crossing car's front as it comes in), else the low one (the 5th).  The object
-        # holds its visible points: its centre no farther from the cut side's visible end
-        # than half the length (a real detector's outline takes in background past the
-        # end seen: up to 10 m on KITTI raw 0001)
-        high = np.where(left, b_mid < 0, b_mid > 0)
-        far = cut & ~small & ~(left & right)
-        a_end = np.where(high, np.minimum(a_95 - 0.5 * l_, a_5 + 0.5 * l_), np.maximum(a_5 + 0.5 * l_, a_95 - 0.5 * l_))
-        a_c[far] = a_end[far]
-        hx, hz = head_c[:, 0], head_c[:, 1]
         X = np.empty((N, 3))
-        X[:, 0] = a_c * hx + b_c * hz
-        X[:, 2] = a_c * hz - b_c * hx
-        dm = np.where(valid, dmed, 1.0)
-        # whole in view and not known static: the box centre's ray, at the nearest point
-        # (p90 disparity) plus half the box's extent along the ray
-        u = 0.5 * (boxes[:, 0] + boxes[:, 2])
-        v = 0.5 * (boxes[:, 1] + boxes[:, 3])
-        ray = np.column_stack([(u - c.cx) / c.fx, np.zeros(N), np.ones(N)])
-        ray /= np.linalg.norm(ray, axis=1)[:, None]
-        cos_phi = np.abs(ray[:, 0] * hx + ray[:, 2] * hz)
-        e = l_ * cos_phi + w_ * np.sqrt(np.maximum(1.0 - cos_phi**2, 0.0))
-        r_near = c.bf / np.where(valid, np.maximum(out[:, 3], 0.5), 1.0) / ray[:, 2]
-        r_med = c.bf / dm / ray[:, 2]
-        X_ray = ray * np.maximum(r_near + 0.5 * e, r_med)[:, None]
-        X[~top_view] = X_ray[~top_view]
-        # vertical: the box centre's row at the depth of the surface seen (the median
-        # disparity's: the box spans the near surface, not the centre's depth); a box cut by
-        # the image's bottom (a person close by) hangs half the class height below its top row
-        X[:, 1] = (v - c.cy) / c.fy * (c.bf / dm)
-        bottom_cut = (boxes[:, 3] >= h_img - 1.0) & (boxes[:, 1] > 1.0)
-        X[bottom_cut, 1] = ((boxes[:, 1] - c.cy) / c.fy * X[:, 2] + 0.5 * sizes[:, 1])[bottom_cut]
-        sigma_r = (c.bf / dm) * self.sigma_d / dm
-        size_unit = np.column_stack([(boxes[:, 2] - boxes[:, 0]) / c.fx, (boxes[:, 3] - boxes[:, 1]) / c.fy])
-        return valid & (X[:, 2] > 0), X, sigma_r, size_unit, cut, head_c
+        valid = np.empty(N, np.bool_)
+        sigma_r = np.empty(N)
+        size_unit = np.empty((N, 2))
+        _centres(out, boxes, np.ascontiguousarray(sizes, np.float64), head_c, left, right, small, top_view,
+                 c.cx, c.cy, c.fx, c.fy, c.bf, float(h_img), self.sigma_d, X, valid, sigma_r, size_unit)
+        return valid, X, sigma_r, size_unit, cut, head_c
 
     # ------------------------------------------------------------------ the frame
     def update(self, masks: StereoMasks | None, pose: np.ndarray, ok: bool = True,
