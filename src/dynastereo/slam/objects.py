@@ -5,7 +5,8 @@ disparity in its box (``StereoMasks.box_disparity``); SLAM gives the frame's cam
 :class:`WorldObjects` turns them, per frame and object, into an :class:`ObjectState` in
 the trajectory's frame (the first camera's: x right, y down, z forward):
 
-* **Measurement** (one compiled pass over the objects' boxes, :func:`_object_stats`): the
+* **Measurement** (one compiled pass over the objects' boxes, :func:`_object_stats`, then
+  one over the objects for the geometry below, :func:`_centres`): the
   disparities of the object's own outline pixels (with a box masker: the box's pixels
   within 15 % of the object's peak disparity) go into a histogram of 1/16 px bins, giving
   the median and the 10th / 90th percentiles.  An outline with a disparity on fewer than
