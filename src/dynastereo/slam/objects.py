@@ -390,6 +390,16 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, axis, wi
         hist_b[k, c0:c1 + 1] = 0
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _axis_centre(mid, lo, hi, extent):  # pragma: no cover - compiled
+    """The centre along one top-view axis: both ends' middle ``mid`` when the camera is
+    within the object's span, else the face toward the camera (``lo`` beyond it, ``hi``
+    before it) plus half the ``extent``."""
+    if abs(mid) < 0.5 * extent:
+        return mid
+    return lo + 0.5 * extent if mid > 0 else hi - 0.5 * extent
+
+
 @njit(nogil=True, cache=True)
 def _centres(out, boxes, sizes, head, left, right, small, top_view, cx, cy, fx, fy, bf, h_img, sigma_d, X, valid,
              sigma_r, size_unit):  # pragma: no cover - compiled
@@ -425,18 +435,8 @@ def _centres(out, boxes, sizes, head, left, right, small, top_view, cx, cy, fx, 
         b_lo, b_hi, b_5, b_95 = out[k, 9], out[k, 10], out[k, 11], out[k, 12]
         a_mid = 0.5 * (a_5 + a_95)
         b_mid = 0.5 * (b_5 + b_95)
-        if abs(a_mid) < 0.5 * l_:
-            a_c = a_mid
-        elif a_mid > 0:
-            a_c = a_lo + 0.5 * l_
-        else:
-            a_c = a_hi - 0.5 * l_
-        if abs(b_mid) < 0.5 * w_:
-            b_c = b_mid
-        elif b_mid > 0:
-            b_c = b_lo + 0.5 * w_
-        else:
-            b_c = b_hi - 0.5 * w_
+        a_c = _axis_centre(a_mid, a_lo, a_hi, l_)
+        b_c = _axis_centre(b_mid, b_lo, b_hi, w_)
         # cut by the image's side, one end is out of view: along the heading, the end seen
         # (the one away from the cut side) minus half the length.  Along the heading the
         # image column grows with a where the object lies at b < 0 (u ~ x / z: d(x/z)/da =
