@@ -322,3 +322,47 @@ def test_box_iou_and_params_validation():
         TrackerParams(match_iou=0.0)
     with pytest.raises(ValueError):
         TrackerParams(min_points=10, max_points=5)
+
+
+def _median_flow_reference(p0, p1, owner, good, T, min_points, min_pair_dist, lo, hi):
+    """The per-track median flow as plain numpy (the form it had before its kernel)."""
+    aff = np.tile(np.array([1.0, 0.0, 0.0]), (T, 1))
+    ok = np.zeros(T, bool)
+    for i in range(T):
+        sel = good & (owner == i)
+        if np.count_nonzero(sel) < min_points:
+            continue
+        a, b = p0[sel], p1[sel]
+        iu, ju = np.triu_indices(len(a), 1)
+        d0 = np.linalg.norm(a[iu] - a[ju], axis=1)
+        d1 = np.linalg.norm(b[iu] - b[ju], axis=1)
+        use = d0 >= min_pair_dist
+        s = float(np.clip(np.median(d1[use] / d0[use]), lo, hi)) if np.any(use) else 1.0
+        t = np.median(b - s * a, axis=0)
+        aff[i] = (s, t[0], t[1])
+        ok[i] = True
+    return aff, ok
+
+
+def test_median_flow_kernel_agrees_with_the_reference():
+    """The compiled median flow (scale from pairwise distances, translation) gives the
+    plain numpy version's boxes bit for bit on random point sets: tracks with too few
+    good points, points too close for a pair, odd and even counts, clamped scales."""
+    from dynastereo.masking.detection.box_tracker import _median_flow
+
+    rng = np.random.default_rng(1)
+    for _ in range(300):
+        T = int(rng.integers(1, 6))
+        n = int(rng.integers(0, 60))
+        p0 = rng.uniform(0, 100, (n, 2)).astype(np.float32).astype(np.float64)
+        if rng.random() < 0.2:
+            p0 = np.round(p0 / 20) * 20  # coincident points: pairs below the distance
+        s = rng.uniform(0.5, 1.8)
+        p1 = (s * p0 + rng.uniform(-5, 5, 2) + rng.normal(0, 0.5, (n, 2))).astype(np.float32).astype(np.float64)
+        owner = np.sort(rng.integers(0, T, n)).astype(np.int64)
+        good = rng.random(n) < 0.8
+        aff = np.tile(np.array([1.0, 0.0, 0.0]), (T, 1))
+        ok = np.zeros(T, bool)
+        _median_flow(p0, p1, owner, good, T, 4, 3.0, 1 / 1.5, 1.5, aff, ok)
+        ref_aff, ref_ok = _median_flow_reference(p0, p1, owner, good, T, 4, 3.0, 1 / 1.5, 1.5)
+        assert np.array_equal(ok, ref_ok) and np.array_equal(aff, ref_aff)

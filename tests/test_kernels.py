@@ -353,8 +353,8 @@ def test_numba_cache_falls_back_when_nothing_is_writable(monkeypatch, tmp_path):
 
 
 def _kernel_signatures() -> dict[str, set[str]]:
-    """Every compiled kernel of the SLAM (``slam.kernels.*``, ``slam.objects``) and its
-    loaded overloads."""
+    """Every compiled kernel of the SLAM (``slam.kernels.*``, ``slam.objects``) and of the
+    masking (the outlines', the box tracker's) and its loaded overloads."""
     import importlib
     import pkgutil
 
@@ -364,7 +364,8 @@ def _kernel_signatures() -> dict[str, set[str]]:
 
     names = [f"dynastereo.slam.kernels.{m.name}" for m in pkgutil.iter_modules(kernels.__path__)]
     out: dict[str, set[str]] = {}
-    for mod in map(importlib.import_module, names + ["dynastereo.slam.objects"]):
+    others = ["dynastereo.slam.objects", "dynastereo.masking.outline", "dynastereo.masking.detection.box_tracker"]
+    for mod in map(importlib.import_module, names + others):
         for name, f in vars(mod).items():
             if isinstance(f, CPUDispatcher) and f.__module__ == mod.__name__:
                 out[f"{mod.__name__}.{name}"] = {str(s) for s in f.signatures}
@@ -372,22 +373,27 @@ def _kernel_signatures() -> dict[str, set[str]]:
 
 
 def test_the_warm_up_loads_every_kernel_a_run_calls(kitti06, models_dir, tmp_path):
-    """After the start-up warm-ups (``warm_up_kernels``, the objects' in ``WorldObjects``),
-    the whole of KITTI 06 tracked and mapped, and its first frames with the default masking
-    (objects placed), load no kernel overload of their own: none is loaded from numba's
-    cache (tens of ms, holding the GIL) or compiled inside the frame loop."""
+    """After the start-up warm-ups (``warm_up_kernels``, the objects' in ``WorldObjects``,
+    the masker's ``warm_up`` that a job makes before its frame loop: the outlines' and the
+    box tracker's kernels), the whole of KITTI 06 tracked and mapped, and its first frames
+    with the default masking (objects placed), load no kernel overload of their own: none is
+    loaded from numba's cache (tens of ms, holding the GIL) or compiled inside the frame loop."""
     from dynastereo.api import run_sequence
     from dynastereo.config import Config
     from dynastereo.io import KittiSequence
+    from dynastereo.masking import build_masker
     from dynastereo.slam.objects import WorldObjects
     from dynastereo.slam.warmup import warm_up_kernels
 
     warm_up_kernels()
-    WorldObjects(KittiSequence(kitti06).calibration)
+    calib = KittiSequence(kitti06).calibration
+    WorldObjects(calib)
+    build_masker(Config(), calib, models_dir=models_dir).warm_up(calib.height, calib.width)
     before = _kernel_signatures()
     run_sequence(kitti06, tmp_path / "r", Config().with_overrides({"masker.kind": "none"}), stereo_check=False)
     run_sequence(kitti06, tmp_path / "m", Config(), stereo_check=False, frames="0-12", models_dir=models_dir)
     after = _kernel_signatures()
     called = {k: v for k, v in after.items() if v}
-    assert len(called) >= 17 and any("objects._kalman" in k for k in called)  # the runs went through them
+    assert len(called) >= 19 and any("objects._kalman" in k for k in called)  # the runs went through them
+    assert any("outline._fill_rows" in k for k in called) and any("_median_flow" in k for k in called)
     assert {k: sorted(v - before.get(k, set())) for k, v in after.items() if v - before.get(k, set())} == {}

@@ -36,6 +36,7 @@ from .outline import (
     OutlineResult,
     clip_boxes,
     dominant_disparity,
+    fill_invalid_rows,
     outline_objects,
     roi_disparity,
     tolerance,
@@ -173,7 +174,9 @@ class _DisparityMasker:
 
     def warm_up(self, height: int, width: int) -> None:
         """The detector's first (slow) call on a black frame of this size, before the frame
-        loop (:meth:`DetectionStage.warm_up`); no state changes."""
+        loop (:meth:`DetectionStage.warm_up`), and the outlines' compiled kernel loaded; no
+        state changes."""
+        fill_invalid_rows(np.zeros((1, 2), np.float32))
         warm = getattr(self.detector, "warm_up", None)
         if warm is not None:
             warm(height, width)

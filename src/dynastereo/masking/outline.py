@@ -57,6 +57,7 @@ import numpy as np
 
 from ..config import OutlineConfig
 from ..datatypes import MaskMethod
+from ..slam.kernels._numba import jit
 from .ground import GroundLine
 
 # A peak range ending this close (px) to the matcher's largest disparity reaches beyond it.
@@ -130,25 +131,52 @@ def fill_invalid_rows(d: np.ndarray) -> np.ndarray:
     touching an end of the row takes its only neighbour: inside a detected box that is
     mostly the object itself (a textureless car side reaching the box edge).
     """
+    d = np.ascontiguousarray(d, np.float32)
+    out = np.empty_like(d)
+    _fill_rows(d, out)
+    return out
+
+
+@jit
+def _fill_rows(d, out):  # pragma: no cover - compiled
+    """:func:`fill_invalid_rows` into ``out``, row by row: each invalid pixel's nearest
+    valid neighbours left (``lv``, 0 if none) and right (``rv``); both: the right value
+    where it is the nearer one and the pixel lies beyond the band ``rv - lv`` wide that
+    the near object hides, else the farther one; one: that one.  All valid or none: a
+    copy."""
     h, w = d.shape
-    valid = d > 0
-    if valid.all() or not valid.any():
-        return d.copy()
-    idx = np.arange(w, dtype=np.int32)[None, :]
-    li = np.where(valid, idx, np.int32(-1))  # nearest valid to the left (index), -1 if none
-    np.maximum.accumulate(li, axis=1, out=li)
-    ri = np.where(valid, idx, np.int32(w))[:, ::-1]  # nearest valid to the right, w if none
-    ri = np.minimum.accumulate(ri, axis=1)[:, ::-1]
-    dpad = np.zeros((h, w + 1), np.float32)  # column w (and -1 -> w) reads 0
-    dpad[:, :w] = d
-    li_safe = np.where(li >= 0, li, np.int32(w))
-    lv = np.take_along_axis(dpad, li_safe, axis=1)
-    rv = np.take_along_axis(dpad, ri, axis=1)
-    both = (lv > 0) & (rv > 0)
-    occluded = (idx - li) <= (rv - lv)  # within the hidden band right of the left value
-    two_sided = np.where((rv > lv) & ~occluded, rv, np.minimum(lv, rv))
-    filled = np.where(both, two_sided, np.maximum(lv, rv))
-    return np.where(valid, d, filled).astype(np.float32, copy=False)
+    n_valid = 0
+    for y in range(h):
+        for x in range(w):
+            if d[y, x] > 0:
+                n_valid += 1
+    if n_valid == 0 or n_valid == h * w:
+        out[:, :] = d
+        return
+    zero = np.float32(0.0)
+    for y in range(h):
+        # the nearest valid to the right of each pixel: a backward pass
+        ri = w
+        for x in range(w - 1, -1, -1):
+            if d[y, x] > 0:
+                ri = x
+            out[y, x] = d[y, ri] if ri < w else zero  # rv, for now
+        li = -1
+        for x in range(w):
+            v = d[y, x]
+            if v > 0:
+                li = x
+                out[y, x] = v
+                continue
+            rv = out[y, x]
+            lv = d[y, li] if li >= 0 else zero
+            if lv > 0 and rv > 0:
+                if rv > lv and not ((x - li) <= (rv - lv)):
+                    out[y, x] = rv
+                else:
+                    out[y, x] = min(lv, rv)
+            else:
+                out[y, x] = max(lv, rv)
 
 
 @dataclass(frozen=True)

@@ -68,6 +68,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ...datatypes import Detections
+from ...slam.kernels._numba import jit
 from ..boxes import box_iou
 from .classes import CLASS_GROUPS, canonical_name, class_group_index
 
@@ -239,19 +240,8 @@ class BoxTracker:
         fb = np.linalg.norm(p0 - p0b, axis=1)
         good = (st1.ravel() == 1) & (st2.ravel() == 1) & np.isfinite(fb) & (fb < p.fb_max_error * k)
         lo, hi = 1.0 / p.max_scale_change, p.max_scale_change
-        for i in range(T):
-            sel = good & (owner == i)
-            if np.count_nonzero(sel) < p.min_points:
-                continue
-            a, b = p0[sel].astype(np.float64), p1[sel].astype(np.float64)
-            iu, ju = np.triu_indices(len(a), 1)
-            d0 = np.linalg.norm(a[iu] - a[ju], axis=1)
-            d1 = np.linalg.norm(b[iu] - b[ju], axis=1)
-            use = d0 >= p.min_pair_dist
-            s = float(np.clip(np.median(d1[use] / d0[use]), lo, hi)) if np.any(use) else 1.0
-            t = np.median(b - s * a, axis=0)
-            aff[i] = (s, t[0], t[1])
-            ok[i] = True
+        _median_flow(p0.astype(np.float64), p1.astype(np.float64), owner.astype(np.int64), good, T, p.min_points,
+                     float(p.min_pair_dist), lo, hi, aff, ok)
         # A box whose own points are lost (too dark, too fast, too much scale change) is
         # moved by its velocity of the last frame when it has one, else by the motion of
         # all surviving points together (one scale + translation: the ego-motion's
@@ -431,3 +421,52 @@ class BoxTracker:
             np.array([t.id for t in self._tracks], np.int64).reshape(n),
             np.array([False] * len(out_tracks) + [True] * len(carried_tracks), bool).reshape(n),
         )
+
+
+def warm_up_kernels() -> None:
+    """Load (or compile) the tracker's compiled kernel now, not in the first frames."""
+    _median_flow(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros(0, np.bool_), 0, 1, 1.0, 0.5,
+                 2.0, np.zeros((0, 3)), np.zeros(0, np.bool_))
+
+
+@jit
+def _median_flow(p0, p1, owner, good, T, min_points, min_pair_dist, lo, hi, aff, ok):  # pragma: no cover - compiled
+    """Per track i with at least ``min_points`` good points (``owner`` == i, in order): the
+    scale ``s`` -- the median ratio of its points' pairwise distances (this frame over the
+    previous, pairs at least ``min_pair_dist`` apart), clamped to [lo, hi], 1 without such
+    pairs -- and the translation ``t = median(p1 - s p0)`` per axis, into ``aff[i]`` (s,
+    tx, ty), ``ok[i]`` set (median flow, one call a frame)."""
+    n = p0.shape[0]
+    for i in range(T):
+        m = 0
+        for j in range(n):
+            if good[j] and owner[j] == i:
+                m += 1
+        if m < min_points:
+            continue
+        a = np.empty((m, 2))
+        b = np.empty((m, 2))
+        q = 0
+        for j in range(n):
+            if good[j] and owner[j] == i:
+                a[q, 0], a[q, 1] = p0[j, 0], p0[j, 1]
+                b[q, 0], b[q, 1] = p1[j, 0], p1[j, 1]
+                q += 1
+        ratios = np.empty(m * (m - 1) // 2)
+        r = 0
+        for u in range(m):
+            for v in range(u + 1, m):
+                dx0, dy0 = a[u, 0] - a[v, 0], a[u, 1] - a[v, 1]
+                d0 = np.sqrt(dx0 * dx0 + dy0 * dy0)
+                if d0 >= min_pair_dist:
+                    dx1, dy1 = b[u, 0] - b[v, 0], b[u, 1] - b[v, 1]
+                    ratios[r] = np.sqrt(dx1 * dx1 + dy1 * dy1) / d0
+                    r += 1
+        s = min(max(np.median(ratios[:r]), lo), hi) if r > 0 else 1.0
+        tx = np.empty(m)
+        ty = np.empty(m)
+        for u in range(m):
+            tx[u] = b[u, 0] - s * a[u, 0]
+            ty[u] = b[u, 1] - s * a[u, 1]
+        aff[i, 0], aff[i, 1], aff[i, 2] = s, np.median(tx), np.median(ty)
+        ok[i] = True

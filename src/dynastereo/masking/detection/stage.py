@@ -127,7 +127,10 @@ class DetectionStage:
         network's first call initializes lazily (onnxruntime: ~0.4 s on KITTI frames), which
         would otherwise land in the frame loop (a live source's first frames, an offline
         run's FPS).  The schedule and the carried boxes are untouched; nothing for the
-        oracle or a test double."""
+        oracle or a test double.  The box tracker's compiled kernel is loaded too."""
+        from .box_tracker import warm_up_kernels
+
+        warm_up_kernels()
         if self.network and height > 0 and width > 0:
             self.detector.detect(np.zeros((int(height), int(width), 3), np.uint8))
 
