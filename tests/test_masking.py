@@ -187,6 +187,48 @@ def test_fill_invalid_rows_kernel_agrees_with_the_reference():
         out = fill_invalid_rows(d)
         assert out.dtype == np.float32 and np.array_equal(out, _fill_rows_reference(d))
 
+def test_plan_regions_kernel_agrees_with_the_reference():
+    """The compiled greedy merge plans the same regions as the plain Python one (each
+    pair's union costed with ``StereoMatcher.band_crop``) on random boxes, at both scales."""
+    def reference(matcher, rois, shape, scale, left_margin):
+        h, w = shape
+        regions = []
+        for x0, y0, x1, y1 in np.asarray(rois, int).reshape(-1, 4).tolist():
+            x0, y0, x1, y1 = max(0, x0 - left_margin), max(0, y0), min(w, x1), min(h, y1)
+            if x1 > x0 and y1 > y0:
+                regions.append((y0, y1, x0, x1))
+
+        def cost(rc):
+            cy0, cy1, cx0, cx1 = matcher.band_crop(shape, *rc, scale=scale)
+            return (cy1 - cy0) * (cx1 - cx0) + 4000 * scale * scale
+
+        while len(regions) > 1:
+            best = None
+            for i in range(len(regions)):
+                for j in range(i + 1, len(regions)):
+                    a, b = regions[i], regions[j]
+                    u = (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
+                    gain = cost(a) + cost(b) - cost(u)
+                    if gain >= 0 and (best is None or gain > best[0]):
+                        best = (gain, i, j, u)
+            if best is None:
+                break
+            regions[best[1]] = best[3]
+            del regions[best[2]]
+        return regions
+
+    rng = np.random.default_rng(0)
+    for scale in (1, 2):
+        matcher = StereoMatcher(StereoConfig())
+        for _ in range(150):
+            n = int(rng.integers(0, 14))
+            x0, y0 = rng.integers(-20, 1242, n), rng.integers(-20, 375, n)
+            rois = np.stack([x0, y0, x0 + rng.integers(1, 300, n), y0 + rng.integers(1, 200, n)], 1)
+            lm = int(rng.integers(0, 50))
+            assert plan_regions(matcher, rois, (375, 1242), scale, left_margin=lm) == reference(
+                matcher, rois, (375, 1242), scale, lm)
+
+
 def test_clip_boxes():
     r = clip_boxes(np.array([[-10.5, 5.2, 30.1, 500.0], [470.0, -3.0, 490.0, 9.9]]), (H, W))
     np.testing.assert_array_equal(r, [[0, 5, 31, H], [470, 0, W, 10]])

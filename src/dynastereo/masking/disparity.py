@@ -195,18 +195,23 @@ class StereoMatcher:
         return self.compute_band(left_gray, right_gray, 0, h, 0, w, scale=scale)
 
     # -- region -------------------------------------------------------------------
+    def crop_padding(self, scale: int = 1) -> tuple[int, int]:
+        """(left, other): the columns a region's crop takes left of it (the disparity
+        range, half a block and a margin), and the rows or columns on every other side."""
+        p = self.params(scale)
+        half = (p.block_size // 2) * scale
+        extra = (16 if self.algorithm == "bm" and not self.cfg.wls else 32) * scale
+        return (max(p.min_disparity, 0) + p.num_disparities) * scale + half + extra, half + extra
+
     def band_crop(self, shape: tuple[int, int], y0: int, y1: int, x0: int, x1: int,
                   scale: int = 1) -> tuple[int, int, int, int]:
         """The padded crop ``(cy0, cy1, cx0, cx1)`` handed to OpenCV for a region."""
         h, w = shape
-        p = self.params(scale)
-        half = (p.block_size // 2) * scale
-        extra = (16 if self.algorithm == "bm" and not self.cfg.wls else 32) * scale
-        left_pad = (max(p.min_disparity, 0) + p.num_disparities) * scale + half + extra
+        left_pad, pad = self.crop_padding(scale)
         cx0 = max(0, x0 - left_pad)
-        cx1 = min(w, x1 + half + extra)
-        cy0 = max(0, y0 - half - extra)
-        cy1 = min(h, y1 + half + extra)
+        cx1 = min(w, x1 + pad)
+        cy0 = max(0, y0 - pad)
+        cy1 = min(h, y1 + pad)
         if scale > 1:  # align the crop to the coarse grid
             cx0 -= cx0 % scale
             cy0 -= cy0 % scale

@@ -27,6 +27,7 @@ import numpy as np
 from ..config import OutlineConfig, StereoConfig
 from ..timing import StageTimer, timed
 from ..datatypes import Detections, MaskMethod, ObjectMask, StereoFrame, StereoMasks
+from ..slam.kernels._numba import jit
 from .boxes import box_iou_pairs
 from .base import Detector
 from .disparity import StereoMatcher
@@ -85,35 +86,56 @@ def plan_regions(
     if not rects:
         return []
 
-    memo: dict[tuple[int, int, int, int], int] = {}  # the greedy asks for the same regions again
+    left_pad, pad = matcher.crop_padding(scale)  # a region's crop, as StereoMatcher.band_crop makes it
+    out = _greedy_regions(np.array(rects, np.int64), h, w, left_pad, pad, scale)
+    return [(int(r[0]), int(r[1]), int(r[2]), int(r[3])) for r in out]
 
-    def cost(rc: tuple[int, int, int, int]) -> int:
-        c = memo.get(rc)
-        if c is None:
-            cy0, cy1, cx0, cx1 = matcher.band_crop(shape, *rc, scale=scale)
-            c = memo[rc] = (cy1 - cy0) * (cx1 - cx0) + 4000 * scale * scale  # + per-call overhead
-        return c
 
-    def union(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
-        return (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
+@jit
+def _greedy_regions(rects, h, w, left_pad, pad, scale):  # pragma: no cover - compiled
+    """:func:`plan_regions`' greedy merge over ``rects`` (n, 4) = (y0, y1, x0, x1): while
+    some pair's union costs no more than the two apart, merge the pair that saves most
+    (the first such pair in (i, j) order on a tie).  A region's cost: its padded crop's
+    area (columns from ``x0 - left_pad`` to ``pad`` beyond ``x1``, rows ``pad`` beyond both
+    ends, clipped to the image; aligned to ``scale``) plus ``4000 scale^2`` a call."""
+    regions = rects.copy()
+    n = regions.shape[0]
+    cost = np.empty(n, np.int64)
+    for i in range(n):
+        cost[i] = _crop_cost(regions[i, 0], regions[i, 1], regions[i, 2], regions[i, 3], h, w, left_pad, pad, scale)
+    while n > 1:
+        best_gain, bi, bj = -1, -1, -1
+        by0, by1, bx0, bx1, bcost = 0, 0, 0, 0, 0
+        for i in range(n):
+            for j in range(i + 1, n):
+                y0, y1 = min(regions[i, 0], regions[j, 0]), max(regions[i, 1], regions[j, 1])
+                x0, x1 = min(regions[i, 2], regions[j, 2]), max(regions[i, 3], regions[j, 3])
+                cu = _crop_cost(y0, y1, x0, x1, h, w, left_pad, pad, scale)
+                gain = cost[i] + cost[j] - cu
+                if gain >= 0 and (bi < 0 or gain > best_gain):
+                    best_gain, bi, bj = gain, i, j
+                    by0, by1, bx0, bx1, bcost = y0, y1, x0, x1, cu
+        if bi < 0:
+            break
+        regions[bi, 0], regions[bi, 1], regions[bi, 2], regions[bi, 3] = by0, by1, bx0, bx1
+        cost[bi] = bcost
+        for k in range(bj, n - 1):  # delete region bj, keeping the order
+            regions[k] = regions[k + 1]
+            cost[k] = cost[k + 1]
+        n -= 1
+    return regions[:n]
 
-    regions = list(rects)
-    merged = True
-    while merged and len(regions) > 1:
-        merged = False
-        best = None
-        for i in range(len(regions)):
-            for j in range(i + 1, len(regions)):
-                u = union(regions[i], regions[j])
-                gain = cost(regions[i]) + cost(regions[j]) - cost(u)
-                if gain >= 0 and (best is None or gain > best[0]):
-                    best = (gain, i, j, u)
-        if best is not None:
-            _, i, j, u = best
-            regions[i] = u
-            del regions[j]
-            merged = True
-    return regions
+
+@jit(inline="always")
+def _crop_cost(y0, y1, x0, x1, h, w, left_pad, pad, scale):  # pragma: no cover - compiled
+    cx0 = max(0, x0 - left_pad)
+    cx1 = min(w, x1 + pad)
+    cy0 = max(0, y0 - pad)
+    cy1 = min(h, y1 + pad)
+    if scale > 1:
+        cx0 -= cx0 % scale
+        cy0 -= cy0 % scale
+    return (cy1 - cy0) * (cx1 - cx0) + 4000 * scale * scale
 
 
 def region_disparity(
@@ -174,9 +196,10 @@ class _DisparityMasker:
 
     def warm_up(self, height: int, width: int) -> None:
         """The detector's first (slow) call on a black frame of this size, before the frame
-        loop (:meth:`DetectionStage.warm_up`), and the outlines' compiled kernel loaded; no
-        state changes."""
+        loop (:meth:`DetectionStage.warm_up`), and the outlines' and the region plan's compiled
+        kernels loaded; no state changes."""
         fill_invalid_rows(np.zeros((1, 2), np.float32))
+        plan_regions(self.matcher, np.array([[0, 0, 1, 1], [2, 2, 3, 3]]), (max(height, 4), max(width, 4)), self.scale)
         warm = getattr(self.detector, "warm_up", None)
         if warm is not None:
             warm(height, width)
