@@ -187,6 +187,59 @@ def test_fill_invalid_rows_kernel_agrees_with_the_reference():
         out = fill_invalid_rows(d)
         assert out.dtype == np.float32 and np.array_equal(out, _fill_rows_reference(d))
 
+def _dominant_reference(v, bw, rel, near_ratio, weights, extend_ratio):
+    """dominant_disparity as plain numpy (the form it had before its kernel): (d, n, lo, hi)."""
+    from dynastereo.masking.outline import _to_bins
+
+    u = _to_bins(v, bw, rel)
+    idx = (u - float(u.min())).astype(np.int64)
+    counts = np.bincount(idx, weights=weights).astype(np.float64)
+    sm = counts * 2.0
+    if counts.size >= 3:
+        sm[1:] += counts[:-1]
+        sm[:-1] += counts[1:]
+    else:
+        sm = counts
+    k = int(np.argmax(sm))
+    if near_ratio < 1.0 and sm.size >= 3:
+        cand = np.flatnonzero((sm >= np.r_[-1.0, sm[:-1]]) & (sm >= np.r_[sm[1:], -1.0]) & (sm >= near_ratio * sm[k]))
+        k = int(cand.max())
+    sel = (idx >= k - 1) & (idx <= k + 1)
+    d = float(np.average(v[sel], weights=weights[sel] + 1e-12)) if weights is not None else float(v[sel].mean())
+    lo = hi = d
+    if extend_ratio < 1.0:
+        below = np.flatnonzero(sm < extend_ratio * sm[k])
+        kl = int(below[below < k].max()) + 1 if np.any(below < k) else 0
+        kh = int(below[below > k].min()) - 1 if np.any(below > k) else sm.size - 1
+        if kl < k and np.any(idx == kl):
+            lo = float(v[idx == kl].min())
+        if kh > k and np.any(idx == kh):
+            hi = float(v[idx == kh].max())
+    return d, int(np.count_nonzero(sel)), min(lo, d), max(hi, d)
+
+
+def test_dominant_disparity_kernel_agrees_with_the_reference():
+    """The compiled histogram peak gives the plain numpy version's peak bit for bit on
+    random disparities: flat, peaked over background, on the 1/16 px grid; weighted or
+    not; the near-peak rule and the range extension on and off."""
+    rng = np.random.default_rng(0)
+    for _ in range(600):
+        n = int(rng.integers(1, 300))
+        kind = int(rng.integers(0, 3))
+        if kind == 0:
+            v = rng.uniform(0.5, 90, n)
+        elif kind == 1:
+            v = np.r_[rng.normal(rng.uniform(5, 60), rng.uniform(0.1, 3), n), rng.uniform(1, 90, n // 3)]
+        else:
+            v = np.round(rng.uniform(1, 40, n) * 16) / 16
+        v = np.abs(v).astype(np.float32) + np.float32(0.01)
+        w = None if rng.random() < 0.5 else np.where(rng.random(v.size) < 0.3, np.float32(0.25), np.float32(1.0))
+        args = (float(rng.choice([0.5, 1.0])), float(rng.choice([0.0, 0.08])), float(rng.choice([1.0, 0.4])))
+        er = float(rng.choice([1.0, 0.1]))
+        p = dominant_disparity(v, args[0], rel=args[1], near_ratio=args[2], weights=w, extend_ratio=er)
+        assert (p.disparity, p.count, p.lo, p.hi) == _dominant_reference(v, *args, w, er)
+
+
 def test_plan_regions_kernel_agrees_with_the_reference():
     """The compiled greedy merge plans the same regions as the plain Python one (each
     pair's union costed with ``StereoMatcher.band_crop``) on random boxes, at both scales."""

@@ -196,9 +196,10 @@ class _DisparityMasker:
 
     def warm_up(self, height: int, width: int) -> None:
         """The detector's first (slow) call on a black frame of this size, before the frame
-        loop (:meth:`DetectionStage.warm_up`), and the outlines' and the region plan's compiled
-        kernels loaded; no state changes."""
+        loop (:meth:`DetectionStage.warm_up`), and the outlines' (row fill, disparity peak) and
+        the region plan's compiled kernels loaded; no state changes."""
         fill_invalid_rows(np.zeros((1, 2), np.float32))
+        dominant_disparity(np.ones(3, np.float32), 1.0, weights=np.ones(3, np.float32))
         plan_regions(self.matcher, np.array([[0, 0, 1, 1], [2, 2, 3, 3]]), (max(height, 4), max(width, 4)), self.scale)
         warm = getattr(self.detector, "warm_up", None)
         if warm is not None:

@@ -225,23 +225,11 @@ def dominant_disparity(
         return None
     bw = float(bin_width) if bin_width > 0 else 1.0
     u = _to_bins(v, bw, float(rel))
-    lo = float(u.min())
-    idx = (u - lo).astype(np.int64)
-    counts = np.bincount(idx, weights=weights).astype(np.float64)
-    if counts.size >= 3:
-        sm = counts * 2.0
-        sm[1:] += counts[:-1]
-        sm[:-1] += counts[1:]
-    else:
-        sm = counts
-    k = int(np.argmax(sm))
-    if near_ratio < 1.0 and sm.size >= 3:
-        left = np.r_[-1.0, sm[:-1]]
-        right = np.r_[sm[1:], -1.0]
-        cand = np.flatnonzero((sm >= left) & (sm >= right) & (sm >= near_ratio * sm[k]))
-        if cand.size:
-            k = int(cand.max())
-    sel = (idx >= k - 1) & (idx <= k + 1)
+    w = np.zeros(0, np.float32) if weights is None else np.ascontiguousarray(weights, np.float32).ravel()
+    sel = np.empty(v.size, np.bool_)
+    ends = np.zeros(4)  # v's min over the bin kl, its max over the bin kh (nan: none)
+    k, kl, kh = _peak_bins(np.ascontiguousarray(u), np.float32(u.min()), w, float(near_ratio), float(extend_ratio),
+                           sel, np.ascontiguousarray(v), ends)
     n = int(np.count_nonzero(sel))
     if weights is not None:
         d = float(np.average(v[sel], weights=np.asarray(weights)[sel] + 1e-12))
@@ -249,15 +237,74 @@ def dominant_disparity(
         d = float(v[sel].mean())
     lo = hi = d
     if extend_ratio < 1.0:
-        below = np.flatnonzero(sm < extend_ratio * sm[k])
-        # the contiguous run of bins above the threshold around k
-        kl = int(below[below < k].max()) + 1 if np.any(below < k) else 0
-        kh = int(below[below > k].min()) - 1 if np.any(below > k) else sm.size - 1
-        if kl < k:
-            lo = float(v[idx == kl].min()) if np.any(idx == kl) else d
-        if kh > k:
-            hi = float(v[idx == kh].max()) if np.any(idx == kh) else d
+        if kl < k and not np.isnan(ends[0]):
+            lo = float(ends[0])
+        if kh > k and not np.isnan(ends[1]):
+            hi = float(ends[1])
     return Peak(d, n, int(v.size), min(lo, d), max(hi, d))
+
+
+@jit
+def _peak_bins(u, u_min, weights, near_ratio, extend_ratio, sel, v, ends):  # pragma: no cover - compiled
+    """:func:`dominant_disparity`'s histogram over the bin coordinates ``u`` (float32,
+    bins from ``u_min``; ``weights``: empty or one per value): the peak bin ``k`` of the
+    [1, 2, 1]-smoothed counts (the nearest local maximum at least ``near_ratio`` of the
+    highest, with ``near_ratio`` < 1), the contiguous run ``kl .. kh`` of bins at least
+    ``extend_ratio`` of it; in place ``sel`` (the values in bins k - 1 .. k + 1) and
+    ``ends`` (the values' min over bin kl, max over bin kh; nan where empty)."""
+    m = u.shape[0]
+    idx = np.empty(m, np.int64)
+    nb = 0
+    for i in range(m):
+        idx[i] = np.int64(u[i] - u_min)
+        nb = max(nb, idx[i] + 1)
+    counts = np.zeros(nb)
+    if weights.shape[0]:
+        for i in range(m):
+            counts[idx[i]] += np.float64(weights[i])
+    else:
+        for i in range(m):
+            counts[idx[i]] += 1.0
+    if nb >= 3:
+        sm = counts * 2.0
+        for b in range(1, nb):
+            sm[b] += counts[b - 1]
+        for b in range(nb - 1):
+            sm[b] += counts[b + 1]
+    else:
+        sm = counts.copy()
+    k = 0
+    for b in range(1, nb):
+        if sm[b] > sm[k]:
+            k = b
+    if near_ratio < 1.0 and nb >= 3:
+        top = near_ratio * sm[k]
+        for b in range(nb - 1, -1, -1):
+            left = sm[b - 1] if b > 0 else -1.0
+            right = sm[b + 1] if b < nb - 1 else -1.0
+            if sm[b] >= left and sm[b] >= right and sm[b] >= top:
+                k = b
+                break
+    kl, kh = 0, nb - 1
+    if extend_ratio < 1.0:
+        th = extend_ratio * sm[k]
+        for b in range(k - 1, -1, -1):
+            if sm[b] < th:
+                kl = b + 1
+                break
+        for b in range(k + 1, nb):
+            if sm[b] < th:
+                kh = b - 1
+                break
+    ends[0] = np.nan
+    ends[1] = np.nan
+    for i in range(m):
+        sel[i] = idx[i] >= k - 1 and idx[i] <= k + 1
+        if idx[i] == kl and (np.isnan(ends[0]) or v[i] < ends[0]):
+            ends[0] = v[i]
+        if idx[i] == kh and (np.isnan(ends[1]) or v[i] > ends[1]):
+            ends[1] = v[i]
+    return k, kl, kh
 
 
 def tolerance(peak: float, cfg: OutlineConfig) -> float:
