@@ -98,6 +98,9 @@ def main() -> int:
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
     logging.getLogger("dynastereo").setLevel(logging.ERROR)
+    if not os.environ.get("DYNASTEREO_DATA"):
+        print("skipped: DYNASTEREO_DATA is not set (KITTI raw 0001 and odometry 06 / 03 are needed)")
+        return 0
     data = Path(os.environ["DYNASTEREO_DATA"])
     extra = {k: _parse(v) for k, v in (s.split("=", 1) for s in args.set)}
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_fast_masking_"))
