@@ -240,6 +240,46 @@ def test_dominant_disparity_kernel_agrees_with_the_reference():
         assert (p.disparity, p.count, p.lo, p.hi) == _dominant_reference(v, *args, w, er)
 
 
+def test_affine_paint_kernel_agrees_with_the_reference():
+    """The compiled affine transfer paints the right image as the plain numpy version
+    (sample every right pixel of the corners' span back at ``rint((x + a + c y) / (1 -
+    b))``, then paint the block clipped to the image) on random masks and models, boxes at
+    the image's edges included."""
+    from dynastereo.masking.transfer import _paint, _paint_affine
+
+    def reference(right, m, roi, model, value):
+        x0, y0, x1, y1 = roi
+        a, b, c = model
+        cx = np.array([x0, x1 - 1, x0, x1 - 1], np.float64)
+        cy = np.array([y0, y0, y1 - 1, y1 - 1], np.float64)
+        xr = cx - (a + b * cx + c * cy)
+        rx0, rx1 = int(np.floor(xr.min())) - 1, int(np.ceil(xr.max())) + 2
+        xs, ys = np.arange(rx0, rx1, dtype=np.float64), np.arange(y0, y1, dtype=np.float64)
+        xl = np.rint((xs[None, :] + a + c * ys[:, None]) / (1.0 - b)).astype(np.int64) - x0
+        inside = (xl >= 0) & (xl < x1 - x0)
+        vals = np.zeros(xl.shape, bool)
+        vals[inside] = m[np.broadcast_to(np.arange(y1 - y0)[:, None], xl.shape)[inside], xl[inside]]
+        return _paint(right, vals, rx0, y0, value)
+
+    rng = np.random.default_rng(0)
+    H_, W_ = 60, 120
+    for _ in range(300):
+        x0, y0 = int(rng.integers(0, W_ - 5)), int(rng.integers(0, H_ - 5))
+        x1, y1 = min(W_, x0 + int(rng.integers(2, 50))), min(H_, y0 + int(rng.integers(2, 30)))
+        m = rng.random((y1 - y0, x1 - x0)) < 0.6
+        model = (float(rng.uniform(-5, 80)), float(rng.uniform(-0.25, 0.25)), float(rng.uniform(-0.25, 0.25)))
+        if rng.random() < 0.3:
+            model = (float(np.round(model[0]) + 0.5), 0.0, 0.0)  # halves: rint's ties
+        a_, b_ = np.zeros((H_, W_), np.int32), np.zeros((H_, W_), np.int32)
+        x1_ = min(x1, W_ - 4)  # away from the border extension (it is the same code on both sides)
+        if x1_ <= x0 + 1:
+            continue
+        m = m[:, : x1_ - x0]
+        r1 = _paint_affine(a_, m, m, (x0, y0, x1_, y1), model, 3)
+        r2 = reference(b_, m, (x0, y0, x1_, y1), model, 3)
+        assert r1 == r2 and np.array_equal(a_, b_)
+
+
 def test_plan_regions_kernel_agrees_with_the_reference():
     """The compiled greedy merge plans the same regions as the plain Python one (each
     pair's union costed with ``StereoMatcher.band_crop``) on random boxes, at both scales."""

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import TRANSFER_MODES
+from ..slam.kernels._numba import jit
 from .outline import roi_disparity
 
 MODES = TRANSFER_MODES  # masker.outline.transfer (config)
@@ -192,25 +193,41 @@ def _paint_affine(right: np.ndarray, m: np.ndarray, own: np.ndarray, roi: tuple[
     x0, y0, x1, y1 = roi
     w = right.shape[1]
     a, b, c = model
-    # right x-extent: disparity model at the ROI corners
-    corners_x = np.array([x0, x1 - 1, x0, x1 - 1], np.float64)
-    corners_y = np.array([y0, y0, y1 - 1, y1 - 1], np.float64)
-    dc = a + b * corners_x + c * corners_y
-    xr = corners_x - dc
-    rx0 = int(np.floor(xr.min())) - 1
-    rx1 = int(np.ceil(xr.max())) + 2
-    xs_r = np.arange(rx0, rx1, dtype=np.float64)
-    ys = np.arange(y0, y1, dtype=np.float64)
-    xl = np.rint((xs_r[None, :] + a + c * ys[:, None]) / (1.0 - b)).astype(np.int64) - x0
-    inside = (xl >= 0) & (xl < x1 - x0)
-    rows = np.arange(y1 - y0)[:, None]
-    vals = np.zeros(xl.shape, bool)
-    vals[inside] = m[np.broadcast_to(rows, xl.shape)[inside], xl[inside]]
-    rect = _paint(right, vals, rx0, y0, value)
+    rect = _affine_paint(right, np.ascontiguousarray(m), x0, y0, x1, y1, float(a), float(b), float(c), int(value))
     if x1 >= w - BORDER_TOUCH:
+        ys = np.arange(y0, y1, dtype=np.float64)
         start = np.rint((x1 - 1) - (a + b * (x1 - 1) + c * ys)).astype(np.int64) + 1
         rect = _extend_to_border(right, own[:, -1], y0, start, value, rect)
     return rect
+
+@jit
+def _affine_paint(right, m, x0, y0, x1, y1, a, b, c, value):  # pragma: no cover - compiled
+    """:func:`_paint_affine`'s sampling and painting in one pass: the right image's columns
+    the ROI's corners map to (a column's margin either side), each right pixel sampled
+    back in ``m`` at ``rint((x + a + c y) / (1 - b))``; ``right`` painted with ``value``
+    where that is set; returns the painted rectangle as :func:`_paint` does (the sampled
+    block clipped to the image; (0, 0, 0, 0) when outside it)."""
+    h, w = right.shape
+    lo, hi = np.inf, -np.inf
+    for cx in (x0, x1 - 1):
+        for cy in (y0, y1 - 1):
+            xr = cx - (a + b * cx + c * cy)
+            lo, hi = min(lo, xr), max(hi, xr)
+    rx0 = int(np.floor(lo)) - 1
+    rx1 = int(np.ceil(hi)) + 2
+    cx0, cy0 = max(rx0, 0), max(y0, 0)
+    cx1, cy1 = min(rx1, w), min(y1, h)
+    if cx1 <= cx0 or cy1 <= cy0:
+        return (0, 0, 0, 0)
+    mw = x1 - x0
+    for y in range(cy0, cy1):
+        cy = c * np.float64(y)
+        for x in range(cx0, cx1):
+            xl = np.int64(np.rint(((np.float64(x) + a) + cy) / (1.0 - b))) - x0  # numpy's order of the sums
+            if 0 <= xl < mw and m[y - y0, xl]:
+                right[y, x] = value
+    return (cx0, cy0, cx1, cy1)
+
 
 def _extend_to_border(
     labels: np.ndarray, rows: np.ndarray, y0: int, start: np.ndarray, value: int,
