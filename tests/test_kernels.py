@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dynastereo.slam.geometry import desc_u64, se3_exp
-from dynastereo.slam.kernels import _numba
+from dynastereo import compiled as _numba
 from dynastereo.slam.kernels.epipolar import epipolar_best
 from dynastereo.slam.kernels.hamming import knn_hamming
 from dynastereo.slam.matcher import (

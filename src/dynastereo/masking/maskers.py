@@ -24,10 +24,10 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..compiled import jit
 from ..config import OutlineConfig, StereoConfig
 from ..timing import StageTimer, timed
 from ..datatypes import Detections, MaskMethod, ObjectMask, StereoFrame, StereoMasks
-from ..slam.kernels._numba import jit
 from .boxes import box_iou_pairs
 from .base import Detector
 from .disparity import StereoMatcher

@@ -55,9 +55,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ..compiled import jit
 from ..config import OutlineConfig
 from ..datatypes import MaskMethod
-from ..slam.kernels._numba import jit
 from .ground import GroundLine
 
 # A peak range ending this close (px) to the matcher's largest disparity reaches beyond it.

@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..compiled import jit
 from ..config import TRANSFER_MODES
-from ..slam.kernels._numba import jit
 from .outline import roi_disparity
 
 MODES = TRANSFER_MODES  # masker.outline.transfer (config)

@@ -67,8 +67,8 @@ import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from ...compiled import jit
 from ...datatypes import Detections
-from ...slam.kernels._numba import jit
 from ..boxes import box_iou
 from .classes import CLASS_GROUPS, canonical_name, class_group_index
 

@@ -34,7 +34,7 @@ import math
 
 import numpy as np
 
-from ._numba import jit
+from ...compiled import jit
 
 CHI2_MONO = 5.991
 CHI2_STEREO = 7.815

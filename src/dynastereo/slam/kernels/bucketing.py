@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from ._numba import jit
+from ...compiled import jit
 
 
 @jit

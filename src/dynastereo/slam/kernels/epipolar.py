@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._numba import cttz64, jit, popcount64
+from ...compiled import cttz64, jit, popcount64
 from .hamming import desc_words
 
 

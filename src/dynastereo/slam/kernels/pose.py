@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from ._numba import jit
+from ...compiled import jit
 
 
 @jit

@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from ._numba import jit, popcount64
+from ...compiled import jit, popcount64
 
 
 @jit

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._numba import jit, popcount64
+from ...compiled import jit, popcount64
 
 
 @jit

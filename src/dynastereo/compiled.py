@@ -1,4 +1,5 @@
-"""The one numba decorator of the SLAM kernels: ``jit`` = ``njit(nogil=True, cache=True)``.
+"""The one numba decorator of the compiled kernels (the SLAM's, ``slam/kernels``, and the
+masking's): ``jit`` = ``njit(nogil=True, cache=True)``.
 
 Compiled kernels are cached on disk beside their source (``__pycache__``).  numba itself
 falls back to the user cache (``~/.cache/numba``) when the package directory is read-only;
