@@ -37,12 +37,12 @@ from .outline import (
     OutlineResult,
     clip_boxes,
     dominant_disparity,
-    fill_invalid_rows,
     outline_objects,
     roi_disparity,
     tolerance,
+    warm_up_kernels as outline_kernels,
 )
-from .transfer import _paint_affine, transfer_labels
+from .transfer import transfer_labels, warm_up_kernels as transfer_kernels
 
 #: Stages that make up ``mask``: everything in masking but the detector network
 #: (``detect``); ``contrast`` and ``carry`` are the detection stage's own work.
@@ -199,10 +199,8 @@ class _DisparityMasker:
         loop (:meth:`DetectionStage.warm_up`), and the outlines' (row fill, disparity peak),
         the region plan's and the right-image transfer's compiled kernels loaded; no state
         changes."""
-        fill_invalid_rows(np.zeros((1, 2), np.float32))
-        dominant_disparity(np.ones(3, np.float32), 1.0, weights=np.ones(3, np.float32))
-        _paint_affine(np.zeros((2, 8), np.int32), np.ones((1, 1), bool), np.ones((1, 1), bool), (0, 0, 1, 1),
-                      (1.0, 0.0, 0.0), 1)
+        outline_kernels()
+        transfer_kernels()
         plan_regions(self.matcher, np.array([[0, 0, 1, 1], [2, 2, 3, 3]]), (max(height, 4), max(width, 4)), self.scale)
         warm = getattr(self.detector, "warm_up", None)
         if warm is not None:

@@ -137,6 +137,12 @@ def fill_invalid_rows(d: np.ndarray) -> np.ndarray:
     return out
 
 
+def warm_up_kernels() -> None:
+    """Load (or compile) the outlines' compiled kernels now, not in the first frames."""
+    fill_invalid_rows(np.zeros((1, 2), np.float32))
+    dominant_disparity(np.ones(3, np.float32), 1.0, weights=np.ones(3, np.float32))
+
+
 @jit
 def _fill_rows(d, out):  # pragma: no cover - compiled
     """:func:`fill_invalid_rows` into ``out``, row by row: each invalid pixel's nearest
@@ -227,7 +233,7 @@ def dominant_disparity(
     u = _to_bins(v, bw, float(rel))
     w = np.zeros(0, np.float32) if weights is None else np.ascontiguousarray(weights, np.float32).ravel()
     sel = np.empty(v.size, np.bool_)
-    ends = np.zeros(4)  # v's min over the bin kl, its max over the bin kh (nan: none)
+    ends = np.empty(2)  # v's min over the bin kl, its max over the bin kh (nan: none)
     k, kl, kh = _peak_bins(np.ascontiguousarray(u), np.float32(u.min()), w, float(near_ratio), float(extend_ratio),
                            sel, np.ascontiguousarray(v), ends)
     n = int(np.count_nonzero(sel))

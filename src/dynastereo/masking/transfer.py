@@ -200,6 +200,12 @@ def _paint_affine(right: np.ndarray, m: np.ndarray, own: np.ndarray, roi: tuple[
         rect = _extend_to_border(right, own[:, -1], y0, start, value, rect)
     return rect
 
+def warm_up_kernels() -> None:
+    """Load (or compile) the transfer's compiled kernel now, not in the first frames."""
+    _paint_affine(np.zeros((2, 8), np.int32), np.ones((1, 1), bool), np.ones((1, 1), bool), (0, 0, 1, 1),
+                  (1.0, 0.0, 0.0), 1)
+
+
 @jit
 def _affine_paint(right, m, x0, y0, x1, y1, a, b, c, value):  # pragma: no cover - compiled
     """:func:`_paint_affine`'s sampling and painting in one pass: the right image's columns
@@ -209,9 +215,9 @@ def _affine_paint(right, m, x0, y0, x1, y1, a, b, c, value):  # pragma: no cover
     block clipped to the image; (0, 0, 0, 0) when outside it)."""
     h, w = right.shape
     lo, hi = np.inf, -np.inf
-    for cx in (x0, x1 - 1):
-        for cy in (y0, y1 - 1):
-            xr = cx - (a + b * cx + c * cy)
+    for xc in (x0, x1 - 1):
+        for yc in (y0, y1 - 1):
+            xr = xc - (a + b * xc + c * yc)
             lo, hi = min(lo, xr), max(hi, xr)
     rx0 = int(np.floor(lo)) - 1
     rx1 = int(np.ceil(hi)) + 2
@@ -221,9 +227,9 @@ def _affine_paint(right, m, x0, y0, x1, y1, a, b, c, value):  # pragma: no cover
         return (0, 0, 0, 0)
     mw = x1 - x0
     for y in range(cy0, cy1):
-        cy = c * np.float64(y)
+        c_y = c * np.float64(y)
         for x in range(cx0, cx1):
-            xl = np.int64(np.rint(((np.float64(x) + a) + cy) / (1.0 - b))) - x0  # numpy's order of the sums
+            xl = np.int64(np.rint(((np.float64(x) + a) + c_y) / (1.0 - b))) - x0  # numpy's order of the sums
             if 0 <= xl < mw and m[y - y0, xl]:
                 right[y, x] = value
     return (cx0, cy0, cx1, cy1)

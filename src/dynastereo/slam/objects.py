@@ -101,8 +101,8 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
-from numba import njit
 
+from ..compiled import jit
 from ..datatypes import StereoCalibration, StereoMasks
 from ..viz.draw import VERDICT_COLOURS
 
@@ -140,7 +140,7 @@ SPEED_SIGMA = 0.3  # m/s, the motion test's speed (plus 10 %)
 STILL_SIGMA = 0.1  # m/s, the velocity of an object the motion test judged static
 
 
-@njit(nogil=True, cache=True)
+@jit
 def _quantiles(hist, n, lo, hi, origin, step, out, k, col, b0=0, b1=-1):  # pragma: no cover - compiled
     """out[k, col], out[k, col + 1] = the ``lo`` and ``hi`` quantiles of a histogram whose
     counts all lie in bins ``b0 .. b1`` (default: all)."""
@@ -160,7 +160,7 @@ def _quantiles(hist, n, lo, hi, origin, step, out, k, col, b0=0, b1=-1):  # prag
             return
 
 
-@njit(nogil=True, cache=True)
+@jit
 def _row_spans(boxes, y, xs0, xs1):  # pragma: no cover - compiled
     """The x-intervals [xs0[i], xs1[i]) of the union of the boxes covering row ``y``
     (merged, sorted); returns their number."""
@@ -188,14 +188,14 @@ def _row_spans(boxes, y, xs0, xs1):  # pragma: no cover - compiled
     return n
 
 
-@njit(nogil=True, cache=True, inline="always")
+@jit(inline="always")
 def _median_point(boxes, out, k, bf, fx, cx):  # pragma: no cover - compiled
     """(x, z) in the camera's top view of object k's median disparity on its box centre's column."""
     zm = bf / max(out[k, 1], 1e-3)
     return (0.5 * (boxes[k, 0] + boxes[k, 2]) - cx) * zm / fx, zm
 
 
-@njit(nogil=True, cache=True)
+@jit
 def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, axis, width, v_known, bf, fx, cx, hist,
                   hist_a, hist_b, xs0, xs1, out):  # pragma: no cover - compiled
     """Per object k (boxes int (N, 4) clipped x0, y0, x1, y1; ``head`` (N, 2) its heading
@@ -390,7 +390,7 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, axis, wi
         hist_b[k, c0:c1 + 1] = 0
 
 
-@njit(nogil=True, cache=True, inline="always")
+@jit(inline="always")
 def _axis_centre(mid, lo, hi, extent):  # pragma: no cover - compiled
     """The centre along one top-view axis: both ends' middle ``mid`` when the camera is
     within the object's span, else the face toward the camera (``lo`` beyond it, ``hi``
@@ -400,7 +400,7 @@ def _axis_centre(mid, lo, hi, extent):  # pragma: no cover - compiled
     return lo + 0.5 * extent if mid > 0 else hi - 0.5 * extent
 
 
-@njit(nogil=True, cache=True)
+@jit
 def _centres(out, boxes, sizes, head, left, right, small, top_view, cx, cy, fx, fy, bf, h_img, sigma_d, X, valid,
              sigma_r, size_unit):  # pragma: no cover - compiled
     """Per object k, from :func:`_object_stats`' ``out[k]`` (module doc, "Centre, not
@@ -483,7 +483,7 @@ def _centres(out, boxes, sizes, head, left, right, small, top_view, cx, cy, fx, 
         size_unit[k, 1] = (y1 - y0) / fy
 
 
-@njit(nogil=True, cache=True)
+@jit
 def _inv3(S, out):  # pragma: no cover - compiled
     a, b, c = S[0, 0], S[0, 1], S[0, 2]
     d, e, f = S[1, 0], S[1, 1], S[1, 2]
@@ -495,7 +495,7 @@ def _inv3(S, out):  # pragma: no cover - compiled
     out[0, 2], out[1, 2], out[2, 2] = (b * f - c * e) / det, -(a * f - c * d) / det, (a * e - b * d) / det
 
 
-@njit(nogil=True, cache=True)
+@jit
 def _update3(x, g, Pn, y, Si, o, K, KP):  # pragma: no cover - compiled
     """Kalman update of state ``x[g]`` (6) and covariance ``Pn`` by a 3-vector measurement
     of the state's entries ``o..o+2`` (H = [I 0] for o = 0, [0 I] for o = 3): innovation
@@ -512,7 +512,7 @@ def _update3(x, g, Pn, y, Si, o, K, KP):  # pragma: no cover - compiled
             Pn[i, j] -= KP[i, j]
 
 
-@njit(nogil=True, cache=True)
+@jit
 def _kalman(x, P, z, Rz, dt, qa, speed, still, speed_dir, speed_sigma, still_sigma, chi):  # pragma: no cover
     """Per track g, in place: predict ``x`` (G, 6), ``P`` (G, 6, 6) over ``dt`` with white
     acceleration noise ``qa`` (3,) per axis; update with the position ``z`` (G, 3),

@@ -32,7 +32,7 @@ from ...config import DetectorConfig
 from ...timing import StageTimer, timed
 from ...datatypes import Detections, StereoFrame
 from .scale import ScaledDetector
-from .box_tracker import BoxTracker, TrackerParams
+from .box_tracker import BoxTracker, TrackerParams, warm_up_kernels
 
 
 _stage = timed
@@ -128,8 +128,6 @@ class DetectionStage:
         would otherwise land in the frame loop (a live source's first frames, an offline
         run's FPS).  The schedule and the carried boxes are untouched; nothing for the
         oracle or a test double.  The box tracker's compiled kernel is loaded too."""
-        from .box_tracker import warm_up_kernels
-
         warm_up_kernels()
         if self.network and height > 0 and width > 0:
             self.detector.detect(np.zeros((int(height), int(width), 3), np.uint8))
