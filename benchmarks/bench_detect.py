@@ -9,7 +9,8 @@
 3. ``--runtimes`` (issue 24): yolox-nano as the masking runs it (the frame's canvas at
    scale 1, 1248x384 on KITTI, and its band without the top quarter, 1248x288) on each
    runtime / precision / thread count (onnxruntime f32; OpenVINO f32 and bf16 where the
-   CPU has it): wall ms and CPU ms (process time, all threads) per call, medians; the
+   CPU has it), the grey frame as three equal channels or into the one-channel graph
+   (``detector.grey_input``): wall ms and CPU ms (process time, all threads) per call, medians; the
    configurations are interleaved frame by frame so a busy machine slows them alike.
    Writes benchmarks/results/detect_runtime.json.
 
@@ -138,10 +139,12 @@ def bench_runtimes(frames, repeats: int, models_dir: Path, out: Path) -> None:
             print(f"  skip {rt}/{prec}: not available here")
             continue
         for band in (0.0, 0.25):
-            base = create_detector(DetectorConfig(runtime=rt, precision=prec, threads=th), models_dir)
-            d = ScaledDetector(base, "frame", 1.0, band_top=band)
-            d.detect(imgs[0])  # compile + warm-up
-            dets[(rt, prec, th, band)] = d
+            for grey in (False, True):
+                base = create_detector(DetectorConfig(runtime=rt, precision=prec, threads=th, grey_input=grey),
+                                       models_dir)
+                d = ScaledDetector(base, "frame", 1.0, band_top=band)
+                d.detect(imgs[0])  # compile + warm-up
+                dets[(rt, prec, th, band, grey)] = d
     wall: dict = {k: [] for k in dets}
     cpu: dict = {k: [] for k in dets}
     for _ in range(repeats):
@@ -152,14 +155,15 @@ def bench_runtimes(frames, repeats: int, models_dir: Path, out: Path) -> None:
                 wall[k].append((time.perf_counter() - t0) * 1e3)
                 cpu[k].append((time.process_time() - c0) * 1e3)
     rows = []
-    print(f"\n{'runtime':<13}{'prec':>6}{'threads':>8}{'canvas':>10}{'wall ms':>9}{'CPU ms':>8}")
+    print(f"\n{'runtime':<13}{'prec':>6}{'threads':>8}{'canvas':>10}{'input':>7}{'wall ms':>9}{'CPU ms':>8}")
     for k, d in dets.items():
-        rt, prec, th, band = k
+        rt, prec, th, band, grey = k
         cw, ch = d.canvas_size
         r = {"runtime": rt, "precision": prec, "threads": th, "band_top": band, "canvas": [cw, ch],
-             "wall_ms": stats(wall[k]), "cpu_ms": stats(cpu[k])}
+             "grey_input": grey, "wall_ms": stats(wall[k]), "cpu_ms": stats(cpu[k])}
         rows.append(r)
-        print(f"{rt:<13}{prec:>6}{th:>8}{f'{cw}x{ch}':>10}{r['wall_ms']['median']:>9.1f}{r['cpu_ms']['median']:>8.1f}")
+        print(f"{rt:<13}{prec:>6}{th:>8}{f'{cw}x{ch}':>10}{'grey' if grey else '3 ch':>7}"
+              f"{r['wall_ms']['median']:>9.1f}{r['cpu_ms']['median']:>8.1f}")
     doc = {"frames": [f for f, _ in frames], "repeats": repeats, "cpus": os.cpu_count(),
            "platform": platform.platform(), "rows": rows}
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -7,7 +7,8 @@ checkout's, e.g. ``git worktree add ../old <commit>``), and reports per sequence
 the **process time a pair** (all threads: the masker's own CPU, the detector's runs
 included), mean and median over the frames, medians over the repeats, and a hash of the
 outputs (left / right masks, label images, each object's box, method and disparity): equal
-hashes mean the same masks bit for bit.  Session 12 measured its masking kernels with it.
+hashes mean the same masks bit for bit; and a hash of the mask and label images alone
+("pixels": the same masks, boxes that may differ by float rounding).  Session 12 measured its masking kernels with it.
 
 Prints a table; writes ``benchmarks/results/mask_cpu.json`` (``--out``).  Run:
 
@@ -47,14 +48,15 @@ m = build_masker(Config(), seq.calibration, models_dir=os.environ.get("DYNASTERE
 frames = [seq.frame(i) for i in range(n)]
 m.warm_up(*frames[0].left.shape[:2])
 m.mask(frames[0])
-h = hashlib.sha1(); cpu = []
+h = hashlib.sha1(); px = hashlib.sha1(); cpu = []
 for f in frames[1:]:
     c0 = time.process_time(); r = m.mask(f); cpu.append(time.process_time() - c0)
     for a in (r.left, r.right, r.labels_left, r.labels_right):
         if a is not None:
-            h.update(np.ascontiguousarray(a).tobytes())
+            h.update(np.ascontiguousarray(a).tobytes()); px.update(np.ascontiguousarray(a).tobytes())
     h.update(repr([(tuple(o.box), str(o.method), round(float(o.disparity), 6)) for o in r.objects]).encode())
-print(json.dumps({"mean_ms": 1e3 * float(np.mean(cpu)), "median_ms": 1e3 * float(np.median(cpu)), "hash": h.hexdigest()[:16]}))
+print(json.dumps({"mean_ms": 1e3 * float(np.mean(cpu)), "median_ms": 1e3 * float(np.median(cpu)),
+                  "hash": h.hexdigest()[:16], "pixels": px.hexdigest()[:16]}))
 """
 
 
@@ -96,17 +98,20 @@ def main() -> int:
         summary[name] = {}
         for tree, rs in by.items():
             hashes = sorted({r["hash"] for r in rs})
+            pixels = sorted({r.get("pixels", "") for r in rs})
             summary[name][tree] = {"mean_ms": round(float(np.median([r["mean_ms"] for r in rs])), 2),
                                    "median_ms": round(float(np.median([r["median_ms"] for r in rs])), 2),
-                                   "hashes": hashes}
+                                   "hashes": hashes, "pixels": pixels}
             print(f"  {name:8s} {tree:8s} mean {summary[name][tree]['mean_ms']:.1f} ms  "
                   f"median {summary[name][tree]['median_ms']:.1f} ms  masks {', '.join(hashes)}")
         if len(by) == 2:
             a, b = summary[name]["against"], summary[name]["src"]
             same = a["hashes"] == b["hashes"] and len(a["hashes"]) == 1
+            same_px = a["pixels"] == b["pixels"] and len(a["pixels"]) == 1
             print(f"  {name:8s} src / against: {b['mean_ms'] / a['mean_ms']:.3f} (mean), masks "
-                  f"{'identical' if same else 'DIFFERENT'}")
+                  f"{'identical' if same else 'DIFFERENT'} (pixels {'identical' if same_px else 'DIFFERENT'})")
             summary[name]["same_masks"] = same
+            summary[name]["same_pixels"] = same_px
     result = {"benchmark": "mask_cpu", "frames": args.frames, "repeats": args.repeats,
               "trees": {k: str(v) for k, v in trees.items()},
               "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),

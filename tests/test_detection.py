@@ -234,7 +234,13 @@ def test_grayscale_input(name, detectors, models_dir, street):
     d2 = det.detect(gray)
     d3 = det.detect(gray[:, :, None])
     np.testing.assert_array_equal(d2.boxes, d3.boxes)
-    np.testing.assert_array_equal(d2.boxes, det.detect(cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)).boxes)
+    bgr = det.detect(cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)).boxes
+    if name == "yolox-nano":  # grey frames run its one-channel graph: the same boxes up to rounding
+        np.testing.assert_allclose(d2.boxes, bgr, atol=0.05)
+        three = get_detector(detectors, models_dir, name, grey_input=False)
+        np.testing.assert_array_equal(three.detect(gray).boxes, bgr)  # the three-channel path, bit for bit
+    else:
+        np.testing.assert_array_equal(d2.boxes, bgr)
     labels = np.array(d2.labels())
     assert "person" in labels
     assert iou(d2.boxes[labels == "person"], STREET_PERSON).max() > 0.5
@@ -518,14 +524,66 @@ def test_yolox_grey_input_blob_equals_the_bgr_one(models_dir, kitti06):
     """A grey frame is letterboxed once and copied to the 3 channels: the same network
     input, bit for bit, as the colour path (grey -> BGR, letterbox, blobFromImage)."""
     require(models_dir / "yolox-nano", "model yolox-nano")
-    det = create_detector(DetectorConfig(name="yolox-nano", runtime="onnxruntime"), models_dir)
     img = cv2.imread(str(require(kitti06 / "image_0/000010.png")), cv2.IMREAD_GRAYSCALE)
-    for d in (det, det.with_canvas(1248, 384)):
-        grey, (tg, sg, _) = d._prepare(img)
-        bgr, (tb, sb, _) = d._prepare(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
-        assert np.array_equal(grey, bgr) and sg == sb and tg == tb
-        grey1, _ = d._prepare(img[:, :, None])
-        assert np.array_equal(grey1, bgr)
+    for grey_input in (False, True):
+        det = create_detector(DetectorConfig(name="yolox-nano", runtime="onnxruntime", grey_input=grey_input),
+                              models_dir)
+        for d in (det, det.with_canvas(1248, 384)):
+            grey, (tg, sg, _) = d._prepare(img)
+            bgr, (tb, sb, _) = d._prepare(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+            assert sg == sb and tg == tb
+            # three equal channels, or the one channel of the grey-input graph
+            assert np.array_equal(grey, bgr) if not grey_input else np.array_equal(grey[:, 0], bgr[:, 0])
+            assert grey.shape[1] == (1 if grey_input else 3)
+            grey1, _ = d._prepare(img[:, :, None])
+            assert np.array_equal(grey1, grey)
+
+
+@pytest.mark.realdata
+def test_yolox_grey_input_graph_finds_the_same_boxes(models_dir, kitti06):
+    """The one-channel YOLOX graph (its first convolution's weights summed over the three
+    equal channels: rewrite.py "Grey input") computes the three-channel network's function:
+    on KITTI frames at the frame's canvas its raw outputs agree to float rounding and its
+    detections are the same boxes (within 0.05 px), classes and scores; a colour frame still
+    runs the three-channel graph, and a grey frame the one-channel one."""
+    from dynastereo.masking.detection import ScaledDetector
+
+    require(models_dir / "yolox-nano", "model yolox-nano")
+    base = create_detector(DetectorConfig(name="yolox-nano", runtime="onnxruntime"), models_dir)
+    one = base.with_canvas(1248, 384)
+    three = create_detector(DetectorConfig(name="yolox-nano", runtime="onnxruntime", grey_input=False),
+                            models_dir).with_canvas(1248, 384)
+    assert one._grey and not three._grey and one._grey_session is None
+    n_boxes = 0
+    for k in range(0, 51, 10):
+        img = cv2.imread(str(require(kitti06 / f"image_0/{k:06d}.png")), cv2.IMREAD_GRAYSCALE)
+        r1, r3 = one.raw_outputs(img), three.raw_outputs(img)
+        assert r1.outputs[0].shape == r3.outputs[0].shape
+        np.testing.assert_allclose(r1.outputs[0], r3.outputs[0], atol=2e-3, rtol=1e-3)
+        d1 = ScaledDetector(one, "frame", 1.0).detect(img)
+        d3 = ScaledDetector(three, "frame", 1.0).detect(img)
+        assert len(d1) == len(d3) and list(d1.labels()) == list(d3.labels())
+        np.testing.assert_allclose(d1.boxes, d3.boxes, atol=0.05)
+        np.testing.assert_allclose(d1.scores, d3.scores, atol=1e-3)
+        n_boxes += len(d1)
+    assert n_boxes >= 10 and one._grey_session is not None
+    colour = create_detector(DetectorConfig(name="yolox-nano", runtime="onnxruntime"), models_dir)
+    colour.detect(np.zeros((96, 128, 3), np.uint8) + np.uint8([0, 60, 120]))
+    assert colour._grey_session is None  # a colour frame: the three-channel graph
+
+
+def test_grey_input_rewrite_refuses_other_graphs(models_dir, tmp_path):
+    """Only YOLOX has a grey-input form; a graph that is not built as YOLOX's stem is an
+    error naming the file, as is a wrong configuration value."""
+    from dynastereo.masking.detection.rewrite import rewrite
+
+    with pytest.raises(ModelError, match="no grey-input form"):
+        rewrite(tmp_path / "m.onnx", "fastestdet", 352, 352, grey=True)
+    fastest = require(models_dir / "fastestdet" / "FastestDet.onnx", "FastestDet model")
+    with pytest.raises(ModelError, match="FastestDet.onnx"):
+        rewrite(fastest, "yolox", 352, 352, grey=True)
+    with pytest.raises(ConfigError, match="detector.grey_input"):
+        DetectorConfig(grey_input="yes")
 
 
 @pytest.mark.realdata

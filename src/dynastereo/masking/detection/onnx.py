@@ -232,6 +232,10 @@ class YoloxDetector(OnnxDetectorBase):
             strides.append(np.full((gh * gw, 1), s))
         self._grid = np.concatenate(grids).astype(np.float32)
         self._stride = np.concatenate(strides).astype(np.float32)
+        # a grey frame runs a one-channel copy of the graph (rewrite.py, "Grey input"),
+        # made on its first use (or the stage's warm-up) at this detector's canvas and batch
+        self._grey_session: Any = None
+        self._grey = bool(self.config.grey_input) and self.can_rewrite
         n = self.output_shapes[0][1]
         if n is not None and n != len(self._grid):
             raise ModelError(f"output has {n} rows, expected {len(self._grid)} for a {self.input_w}x{self.input_h} input", self.onnx_path)
@@ -249,16 +253,25 @@ class YoloxDetector(OnnxDetectorBase):
             tw, th = self.input_w, self.input_h
             r = min(tw / w, th / h)  # as letterbox()
             nw, nh = min(tw, int(round(w * r))), min(th, int(round(h * r)))
-            blob = np.full((1, 3, th, tw), 114.0, np.float32)
+            blob = np.full((1, 1 if self._grey else 3, th, tw), 114.0, np.float32)
             blob[0, 0, :nh, :nw] = cv2.resize(grey, (nw, nh), interpolation=cv2.INTER_LINEAR)
-            blob[0, 1] = blob[0, 0]
-            blob[0, 2] = blob[0, 0]
+            if not self._grey:
+                blob[0, 1] = blob[0, 0]
+                blob[0, 2] = blob[0, 0]
             return blob, (BoxTransform(1.0 / r, 1.0 / r, 0.0, 0.0, w, h), (h, w), {})
         img = to_bgr(image)
         h, w = img.shape[:2]
         padded, r, _ = letterbox(img, (self.input_w, self.input_h), 114, center=False)
         blob = cv2.dnn.blobFromImage(padded)  # 1x3xHxW float32, BGR, 0..255
         return blob, (BoxTransform(1.0 / r, 1.0 / r, 0.0, 0.0, w, h), (h, w), {})
+
+    def _run(self, blob: np.ndarray) -> list[np.ndarray]:
+        if blob.shape[1] != 1:
+            return super()._run(blob)
+        if self._grey_session is None:
+            data = rewrite(self.onnx_path, self.onnx_layout, self.input_w, self.input_h, self.batch, grey=True)
+            self._grey_session = make_session(self.onnx_path, self.config.threads, data, choice=self.runtime)
+        return self._grey_session.run(None, {self.input_name: blob})
 
     def rows(self, raw: RawOutput) -> np.ndarray:
         p = raw.outputs[0].reshape(-1, raw.outputs[0].shape[-1])
