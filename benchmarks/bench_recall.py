@@ -106,6 +106,10 @@ ROWS: dict[str, dict] = {
     "default band .15": {"band_top": 0.15},
     "default no band": {"band_top": 0.0},
     "ov bf16 1t carry/2": {"runtime": "openvino", "precision": "bf16", "threads": 1, "carry_downscale": 2},
+    # session 13: grey frames as three equal channels (before) or into the one-channel graph (default)
+    "default 3 channels": {"grey_input": False},
+    "ov bf16 1t band .25 carry/2 3 channels": {"runtime": "openvino", "precision": "bf16", "threads": 1,
+                                               "band_top": 0.25, "carry_downscale": 2, "grey_input": False},
 }
 QUICK = ["shipped-0.1 yolox-nano", "yolox frame", "yolox frame clahe .15", "default"]
 

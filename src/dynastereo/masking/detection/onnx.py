@@ -269,7 +269,13 @@ class YoloxDetector(OnnxDetectorBase):
         if blob.shape[1] != 1:
             return super()._run(blob)
         if self._grey_session is None:
-            data = rewrite(self.onnx_path, self.onnx_layout, self.input_w, self.input_h, self.batch, grey=True)
+            try:
+                data = rewrite(self.onnx_path, self.onnx_layout, self.input_w, self.input_h, self.batch, grey=True)
+            except ModelError as e:  # an export whose stem is not YOLOX's Focus: three channels, as before
+                _note_once(f"{self.onnx_path.name}: {e.args[0] if e.args else e}; grey frames run as three "
+                           "equal channels")
+                self._grey = False
+                return super()._run(np.repeat(blob, 3, axis=1))
             self._grey_session = make_session(self.onnx_path, self.config.threads, data, choice=self.runtime)
         return self._grey_session.run(None, {self.input_name: blob})
 
