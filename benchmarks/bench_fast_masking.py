@@ -15,7 +15,8 @@ Settings (``--settings``, comma-separated): ``default`` (the Config defaults),
 ``fast`` (the three fast settings), ``none`` (masking off), ``ov`` / ``band`` /
 ``carry`` (one fast setting alone over the defaults), ``fast_no_ov`` / ``fast_no_band``
 / ``fast_no_carry`` (the fast settings less one), ``three_channels`` (grey frames fed to
-the network as three equal channels, as before the grey-input graph of session 13).  Extra overrides for every run:
+the network as three equal channels, as before the grey-input graph of session 13),
+``stereo2`` (the masks' disparity on half-size images, ``stereo.scale: 2``).  Extra overrides for every run:
 ``--set key=value`` (repeatable).
 
 Prints a table of medians; writes ``benchmarks/results/fast_masking.json`` (``--out``).
@@ -59,6 +60,7 @@ SETTINGS = {
     "fast_no_band": {**FAST, "detector.band_top": 0.0},
     "fast_no_carry": {**FAST, "detector.carry_downscale": 1},
     "three_channels": {"detector.grey_input": False},  # grey frames as three equal channels (before session 13)
+    "stereo2": {"stereo.scale": 2},  # the masks' disparity on half-size images
 }
 SEQS = {
     "raw0001": Path("kitti_raw") / "2011_09_26" / "2011_09_26_drive_0001_sync",

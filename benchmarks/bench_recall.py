@@ -108,6 +108,7 @@ ROWS: dict[str, dict] = {
     "ov bf16 1t carry/2": {"runtime": "openvino", "precision": "bf16", "threads": 1, "carry_downscale": 2},
     # session 13: grey frames as three equal channels (before) or into the one-channel graph (default)
     "default 3 channels": {"grey_input": False},
+    "default stereo/2": {"stereo.scale": 2},  # the masks' disparity on half-size images
     "ov bf16 1t band .25 carry/2 3 channels": {"runtime": "openvino", "precision": "bf16", "threads": 1,
                                                "band_top": 0.25, "carry_downscale": 2, "grey_input": False},
 }
