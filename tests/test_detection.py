@@ -525,7 +525,8 @@ def test_openvino_matches_onnxruntime_on_kitti_frames(models_dir, kitti06, grey_
 @pytest.mark.realdata
 def test_yolox_grey_input_blob_equals_the_bgr_one(models_dir, kitti06):
     """A grey frame is letterboxed once and copied to the 3 channels: the same network
-    input, bit for bit, as the colour path (grey -> BGR, letterbox, blobFromImage)."""
+    input, bit for bit, as the colour path (grey -> BGR, letterbox, blobFromImage) --
+    or, with ``grey_input`` (the default), that blob's one channel for the grey graph."""
     require(models_dir / "yolox-nano", "model yolox-nano")
     img = cv2.imread(str(require(kitti06 / "image_0/000010.png")), cv2.IMREAD_GRAYSCALE)
     for grey_input in (False, True):
@@ -601,18 +602,26 @@ def test_grey_input_falls_back_to_three_channels(models_dir, kitti06, monkeypatc
     assert not det._grey and "three equal channels" in caplog.text
 
 
-def test_grey_input_rewrite_refuses_other_graphs(models_dir, tmp_path):
-    """Only YOLOX has a grey-input form; a graph that is not built as YOLOX's stem is an
-    error naming the file, as is a wrong configuration value."""
+def test_grey_input_only_for_yolox_and_a_boolean(tmp_path):
+    """Only YOLOX has a grey-input form; ``detector.grey_input`` is true or false."""
     from dynastereo.masking.detection.rewrite import rewrite
 
     with pytest.raises(ModelError, match="no grey-input form"):
         rewrite(tmp_path / "m.onnx", "fastestdet", 352, 352, grey=True)
+    with pytest.raises(ConfigError, match="detector.grey_input"):
+        DetectorConfig(grey_input="yes")
+    assert DetectorConfig().grey_input is True
+
+
+@pytest.mark.realdata
+def test_grey_input_rewrite_refuses_other_graphs(models_dir):
+    """A graph not built as YOLOX's stem (Focus slices, a 4 x 3-channel concat, then the
+    first convolution) is an error naming the file."""
+    from dynastereo.masking.detection.rewrite import rewrite
+
     fastest = require(models_dir / "fastestdet" / "FastestDet.onnx", "FastestDet model")
     with pytest.raises(ModelError, match="FastestDet.onnx"):
         rewrite(fastest, "yolox", 352, 352, grey=True)
-    with pytest.raises(ConfigError, match="detector.grey_input"):
-        DetectorConfig(grey_input="yes")
 
 
 @pytest.mark.realdata

@@ -164,7 +164,7 @@ class DetectorConfig:
     precision: DetectorPrecision = "auto"
     # A grey frame runs a one-channel copy of the network (YOLOX: its first convolution's
     # weights summed over the three equal colour channels; rewrite.py "Grey input"): about
-    # 12 % less network CPU; false = three equal channels, as before session 13
+    # 10 % less network CPU; false = three equal channels, as before session 13
     grey_input: bool = True
 
     def __post_init__(self) -> None:

@@ -27,7 +27,7 @@ and concatenates them (4 x 3 channels) before the first convolution, so with equ
 channels that convolution's weights can be summed over each phase's three colours: the
 graph then takes one channel (``batch x 1 x H x W``) and computes the same function up to
 float rounding (outputs within ~1e-4; the first convolution does a third of its work and
-the input blob is a third of the size: ~12 % of the network's CPU on a KITTI canvas).
+the input blob is a third of the size: ~10 % of the network's CPU on a KITTI canvas).
 """
 
 from __future__ import annotations
