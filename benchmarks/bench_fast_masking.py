@@ -16,7 +16,8 @@ Settings (``--settings``, comma-separated): ``default`` (the Config defaults),
 ``carry`` (one fast setting alone over the defaults), ``fast_no_ov`` / ``fast_no_band``
 / ``fast_no_carry`` (the fast settings less one), ``three_channels`` (grey frames fed to
 the network as three equal channels, as before the grey-input graph of session 13),
-``stereo2`` (the masks' disparity on half-size images, ``stereo.scale: 2``).  Extra overrides for every run:
+``stereo2`` (the masks' disparity on half-size images, ``stereo.scale: 2``),
+``fast_stereo2`` (both).  Extra overrides for every run:
 ``--set key=value`` (repeatable).
 
 Prints a table of medians; writes ``benchmarks/results/fast_masking.json`` (``--out``).
@@ -61,6 +62,7 @@ SETTINGS = {
     "fast_no_carry": {**FAST, "detector.carry_downscale": 1},
     "three_channels": {"detector.grey_input": False},  # grey frames as three equal channels (before session 13)
     "stereo2": {"stereo.scale": 2},  # the masks' disparity on half-size images
+    "fast_stereo2": {**FAST, "stereo.scale": 2},  # the fast settings and stereo2 (configs/fast.yaml's comments)
 }
 SEQS = {
     "raw0001": Path("kitti_raw") / "2011_09_26" / "2011_09_26_drive_0001_sync",

@@ -165,6 +165,23 @@ def test_config_file_documents_every_default(tmp_path: Path) -> None:
     assert r.exit_code == 2 and "stereo.blocksize" in r.output and "bad.yaml" in r.output
 
 
+def test_fast_profile_loads_and_differs_only_in_the_measured_key() -> None:
+    """configs/fast.yaml (README "Where the 20 ms goes"): a valid configuration that changes
+    the one measured setting (the masks' disparity at half size) and nothing else;
+    `dynastereo config` prints it back."""
+    from dynastereo.config import Config, load_config
+
+    fast = Path(__file__).resolve().parent.parent / "configs" / "fast.yaml"
+    cfg, base = load_config(fast), Config()
+    assert cfg.stereo.scale == 2
+    changed = {f"stereo.{k}" for k in vars(base.stereo) if getattr(cfg.stereo, k) != getattr(base.stereo, k)}
+    assert changed == {"stereo.scale"}
+    for section in ("detector", "masker", "slam", "motion"):
+        assert getattr(cfg, section) == getattr(base, section)
+    r = runner.invoke(app, ["config", str(fast)])
+    assert r.exit_code == 0 and "scale: 2" in r.stdout
+
+
 def test_synth_list_needs_no_out(tmp_path: Path) -> None:
     from dynastereo.synth import SCENARIOS
 
