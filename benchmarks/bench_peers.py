@@ -1,11 +1,13 @@
 """dynastereo beside a peer: ORB-SLAM3 stereo (C++) through ``pyorbslam3``, side by side.
 
-Three systems on each clip (``--clips``: KITTI odometry 06 and 03, KITTI raw drive 0001),
+Three systems (a fourth on request) on each clip (``--clips``: KITTI odometry 06 and 03, KITTI raw drive 0001),
 one process at a time, alternated (repeat 1: every clip, every system; then repeat 2 ...),
 ``--repeats`` (default 3) times; medians reported:
 
 * ``none``: ``dynastereo run --masker none`` (the SLAM alone);
 * ``default``: ``dynastereo run`` (masking of what moves on, the default detector);
+* ``fast`` (only when ``--systems`` names it): ``dynastereo run -c configs/fast.yaml`` (the
+  cheaper masking profile);
 * ``orbslam3``: ORB-SLAM3 stereo via ``pyorbslam3`` -- the anchors' script
   ``pyorbslam3_run.py`` run as a subprocess with the peer venv's python (never imported
   here: ``pyorbslam3`` is GPL-3, a peer to measure against, not a dependency).
@@ -60,7 +62,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "benchmarks" / "results" / "peers.json"
-SYSTEMS = ("none", "default", "orbslam3")
+SYSTEMS = ("none", "default", "fast", "orbslam3")  # fast: -c configs/fast.yaml (not run unless asked)
 VOCAB_NAME = "ORBvoc_selftrained_k10L6 (self-trained, k = 10, L = 6, 456,067 words; ../shared/anchors/README.md)"
 RAW_NOTE = ("raw 0001: no ground truth from dynastereo's discovery (the drive's OXTS poses need "
             "dynastereo.io.kitti_raw's reader, not on this branch yet); ATE null")
@@ -111,7 +113,7 @@ def _cli(seq: Path, out: Path, extra: list[str]) -> float:
 
 
 def run_dynastereo(seq: Path, system: str, tmp: Path, gt: Path | None) -> dict:
-    extra = ["--masker", "none"] if system == "none" else []
+    extra = {"none": ["--masker", "none"], "fast": ["-c", str(ROOT / "configs" / "fast.yaml")]}.get(system, [])
     out = tmp / f"{system}"
     cpu_one = _cli(seq, tmp / f"{system}_1", [*extra, "--frames", "1"])
     cpu_all = _cli(seq, out, extra)
@@ -181,7 +183,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--clips", default="06,03,raw0001")
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--systems", default=",".join(SYSTEMS))
+    ap.add_argument("--systems", default="none,default,orbslam3", help="of " + ", ".join(SYSTEMS))
     up = ROOT.parent
     ap.add_argument("--peer-python", type=Path,
                     default=Path(os.environ.get("DYNASTEREO_PEER_PYTHON", up / ".venv-peers" / "bin" / "python")))
@@ -231,7 +233,7 @@ def main() -> None:
         summary[c] = {s: {k: med(runs[c][s], k) for k in ("fps", "cpu_ms", "ate_m")} for s in systems}
         if "orbslam3" in systems:
             p = summary[c]["orbslam3"]
-            for s in ("none", "default"):
+            for s in ("none", "default", "fast"):
                 if s in systems:
                     m = summary[c][s]
                     m["fps_ratio"] = m["fps"] / p["fps"] if p["fps"] else None
@@ -250,6 +252,7 @@ def main() -> None:
     print(f"\nFPS / CPU ms a frame / ATE m, medians of {args.repeats}"
           + (" (ratio dynastereo / ORB-SLAM3: FPS, CPU)" if "orbslam3" in systems else ""))
     head = {"none": "`dynastereo run --masker none`", "default": "`dynastereo run`",
+            "fast": "`dynastereo run -c configs/fast.yaml`",
             "orbslam3": "ORB-SLAM3 (pyorbslam3)"}
     print("| clip | " + " | ".join(head[s] for s in systems) + " |")
     print("|---|" + "---|" * len(systems))
