@@ -577,6 +577,24 @@ def test_yolox_grey_input_graph_finds_the_same_boxes(models_dir, kitti06):
 
 
 @pytest.mark.realdata
+def test_warm_up_makes_the_grey_graph_before_the_first_frame(models_dir, kitti06):
+    """The detection stage's warm-up runs YOLOX on a colour and a grey black frame, so the
+    frame loop's first grey frame finds its one-channel session made (its creation is not
+    paid inside the loop), and the first detections are those without a warm-up."""
+    from dynastereo.masking.detection.stage import DetectionStage
+
+    require(models_dir / "yolox-nano", "model yolox-nano")
+    img = cv2.imread(str(require(kitti06 / "image_0/000010.png")), cv2.IMREAD_GRAYSCALE)
+    cfg = DetectorConfig(name="yolox-nano", runtime="onnxruntime")
+    stage = DetectionStage(create_detector(cfg, models_dir), cfg)
+    stage.warm_up(*img.shape)
+    _, planned = stage.detector.plan(img.shape[1], img.shape[0])
+    assert planned.grey_graph and planned._grey_session is not None
+    cold = DetectionStage(create_detector(cfg, models_dir), cfg)
+    np.testing.assert_array_equal(stage.detect(img).boxes, cold.detect(img).boxes)
+
+
+@pytest.mark.realdata
 def test_grey_input_falls_back_to_three_channels(models_dir, kitti06, monkeypatch, caplog):
     """A YOLOX export whose stem cannot be folded runs grey frames as three equal channels
     (the same boxes as grey_input false, bit for bit), with one line saying so."""

@@ -265,6 +265,11 @@ class YoloxDetector(OnnxDetectorBase):
         blob = cv2.dnn.blobFromImage(padded)  # 1x3xHxW float32, BGR, 0..255
         return blob, (BoxTransform(1.0 / r, 1.0 / r, 0.0, 0.0, w, h), (h, w), {})
 
+    @property
+    def grey_graph(self) -> bool:
+        """Whether grey frames run a graph of their own (the one-channel copy)."""
+        return self._grey
+
     def _run(self, blob: np.ndarray) -> list[np.ndarray]:
         if blob.shape[1] != 1:
             return super()._run(blob)

@@ -127,13 +127,14 @@ class DetectionStage:
         network's first call initializes lazily (onnxruntime: ~0.4 s on KITTI frames), which
         would otherwise land in the frame loop (a live source's first frames, an offline
         run's FPS).  The schedule and the carried boxes are untouched; nothing for the
-        oracle or a test double.  The box tracker's compiled kernel is loaded too.  A grey
-        and a colour frame each: a YOLOX network runs a one-channel copy of itself on grey
-        frames (``detector.grey_input``), a session of its own."""
+        oracle or a test double.  The box tracker's compiled kernel is loaded too.  A network
+        with a graph of its own for grey frames (YOLOX, ``detector.grey_input``) gets a grey
+        black frame as well."""
         warm_up_kernels()
         if self.network and height > 0 and width > 0:
             self.detector.detect(np.zeros((int(height), int(width), 3), np.uint8))
-            self.detector.detect(np.zeros((int(height), int(width)), np.uint8))
+            if getattr(getattr(self.detector, "base", self.detector), "grey_graph", False):
+                self.detector.detect(np.zeros((int(height), int(width)), np.uint8))
 
     def detect(self, image: np.ndarray) -> Detections:
         """One image alone (no schedule, no carrying): the detector at its scale."""
