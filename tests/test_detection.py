@@ -577,6 +577,24 @@ def test_yolox_grey_input_graph_finds_the_same_boxes(models_dir, kitti06):
 
 
 @pytest.mark.realdata
+@pytest.mark.parametrize("canvas", ["tiles", "model"])
+def test_grey_input_graph_on_tiles_and_the_model_canvas(models_dir, kitti06, canvas):
+    """The one-channel graph also runs batched (three tiles in one call) and at the model's
+    own square canvas: the same boxes as three equal channels, within 0.05 px."""
+    from dynastereo.masking.detection import ScaledDetector
+
+    require(models_dir / "yolox-nano", "model yolox-nano")
+    img = cv2.imread(str(require(kitti06 / "image_0/000020.png")), cv2.IMREAD_GRAYSCALE)
+    got = {}
+    for grey in (True, False):
+        base = create_detector(DetectorConfig(name="yolox-nano", runtime="onnxruntime", grey_input=grey), models_dir)
+        got[grey] = ScaledDetector(base, canvas, 1.0, tiles=3).detect(img)
+    assert len(got[True]) == len(got[False]) >= 1
+    assert list(got[True].labels()) == list(got[False].labels())
+    np.testing.assert_allclose(got[True].boxes, got[False].boxes, atol=0.05)
+
+
+@pytest.mark.realdata
 def test_warm_up_makes_the_grey_graph_before_the_first_frame(models_dir, kitti06):
     """The detection stage's warm-up runs YOLOX on a colour and a grey black frame, so the
     frame loop's first grey frame finds its one-channel session made (its creation is not
