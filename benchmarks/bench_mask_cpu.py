@@ -53,7 +53,8 @@ for f in frames[1:]:
     c0 = time.process_time(); r = m.mask(f); cpu.append(time.process_time() - c0)
     for a in (r.left, r.right, r.labels_left, r.labels_right):
         if a is not None:
-            h.update(np.ascontiguousarray(a).tobytes()); px.update(np.ascontiguousarray(a).tobytes())
+            b = np.ascontiguousarray(a).tobytes()
+            h.update(b); px.update(b)
     h.update(repr([(tuple(o.box), str(o.method), round(float(o.disparity), 6)) for o in r.objects]).encode())
 print(json.dumps({"mean_ms": 1e3 * float(np.mean(cpu)), "median_ms": 1e3 * float(np.median(cpu)),
                   "hash": h.hexdigest()[:16], "pixels": px.hexdigest()[:16]}))

@@ -200,6 +200,7 @@ def _paint_affine(right: np.ndarray, m: np.ndarray, own: np.ndarray, roi: tuple[
         rect = _extend_to_border(right, own[:, -1], y0, start, value, rect)
     return rect
 
+
 def warm_up_kernels() -> None:
     """Load (or compile) the transfer's compiled kernel now, not in the first frames."""
     _paint_affine(np.zeros((2, 8), np.int32), np.ones((1, 1), bool), np.ones((1, 1), bool), (0, 0, 1, 1),

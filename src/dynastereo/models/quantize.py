@@ -70,7 +70,8 @@ def quantize_detector(model: str | Path, images: list[Path | str], out: str | Pa
 
     if not images:
         raise ModelError("no calibration images given")
-    cfg = DetectorConfig(name=str(model), runtime="onnxruntime", threads=2, grey_input=False)  # the 3-channel graph is quantized
+    # the three-channel graph is the one quantized (not the grey-input copy)
+    cfg = DetectorConfig(name=str(model), runtime="onnxruntime", threads=2, grey_input=False)
     det = create_detector(cfg)
     if canvas is None:
         im = cv2.imread(str(images[0]), cv2.IMREAD_UNCHANGED)

@@ -96,8 +96,8 @@ def _fold_grey_yolox(m, path: Path) -> None:
     init = {t.name: t for t in g.initializer}
     w = nph.to_array(init[conv.input[1]]) if conv is not None and conv.input[1] in init else None
     if cat is None or len(cat.input) != 4 or w is None or w.ndim != 4 or w.shape[1] != 12:
-        raise ModelError("not the expected YOLOX export: no Focus concat of 4 x 3 channels before the first convolution",
-                         path)
+        raise ModelError("not the expected YOLOX export: no Focus concat of 4 x 3 channels before the first "
+                         "convolution", path)
     folded = w.reshape(w.shape[0], 4, 3, *w.shape[2:]).sum(axis=2, dtype=np.float64).astype(w.dtype)
     init[conv.input[1]].CopyFrom(nph.from_array(folded, conv.input[1]))
     g.input[0].type.tensor_type.shape.dim[1].dim_value = 1

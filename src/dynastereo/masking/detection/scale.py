@@ -216,6 +216,12 @@ class ScaledDetector:
         return self._plans[key]
 
     @property
+    def grey_graph(self) -> bool:
+        """Whether the network runs grey frames through a graph of its own (YOLOX's
+        one-channel copy): the stage's warm-up then runs a grey frame too."""
+        return bool(getattr(self.base, "grey_graph", False))
+
+    @property
     def canvas_size(self) -> tuple[int, int] | None:
         """(width, height) of the network canvas of the last planned frame size."""
         if not self._plans:

@@ -133,7 +133,7 @@ class DetectionStage:
         warm_up_kernels()
         if self.network and height > 0 and width > 0:
             self.detector.detect(np.zeros((int(height), int(width), 3), np.uint8))
-            if getattr(getattr(self.detector, "base", self.detector), "grey_graph", False):
+            if getattr(self.detector, "grey_graph", False):
                 self.detector.detect(np.zeros((int(height), int(width)), np.uint8))
 
     def detect(self, image: np.ndarray) -> Detections:
