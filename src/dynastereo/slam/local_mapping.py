@@ -222,6 +222,7 @@ class LocalMapper:
         self._job: BAJob | LocalBAResult | None = None
         self._job_due = 0
         self._job_map = None
+        self._job_since: tuple[int, int] | None = None
         self._pending_kf: KeyFrame | None = None
         self._last_frame = 0  # the latest frame position collect saw (fallback records)
 
@@ -562,6 +563,7 @@ class LocalMapper:
         lag = self.selfcal.lag_frames(prob, self.cfg.ba_lag_frames)
         self._job_due = frame_index + max(0, lag)
         self._job_map = id(self.mp)
+        self._job_since = (max(self.mp.keyframes), self.mp.points.n)
         if isinstance(res, LocalBAResult):
             self._apply(res)
             self._job = None
@@ -600,14 +602,19 @@ class LocalMapper:
         self.stats.ba_wait_ms.append((time.perf_counter() - t0) * 1e3)
         self._job = None
         if res is not None and self._job_map == id(self.mp):
-            self._apply(res)
+            self._apply(res, since=self._job_since)
         pending = self._pending_kf
         self._pending_kf = None
         if pending is not None and pending.id in self.mp.keyframes and not force:
             self._submit(pending, frame_index)
 
-    def _apply(self, res: LocalBAResult) -> None:
+    def _apply(self, res: LocalBAResult, since: tuple[int, int] | None = None) -> None:
+        """Apply a BA's keyframe poses and points; ``since``: (the newest keyframe id, the
+        point count) when it was submitted -- what the map gained while it ran follows
+        (:meth:`_carry_newer`)."""
         mp = self.mp
+        anchor = since[0] if since is not None and since[0] in mp.keyframes else None
+        T_anchor = mp.keyframes[anchor].T_cw.copy() if anchor is not None else None
         self.stats.ba_runs += 1
         self.stats.ba_ms.append(res.ms)
         if res.offset_costs is not None:
@@ -626,6 +633,8 @@ class LocalMapper:
                 kf.T_cw = orthonormalize(inv_T(orthonormalize(res.T_wc[i])))
         ok = mp.points.good(res.pt_ids)
         mp.points.pos[res.pt_ids[ok]] = res.X[ok]
+        if T_anchor is not None:
+            self._carry_newer(anchor, T_anchor, since[1], res.pt_ids)
         # outlier observations: chi2 above the 95% bound or behind the camera
         pts = res.pt_ids[ok]
         rows = mp.obs.rows_of(pts)
@@ -646,6 +655,29 @@ class LocalMapper:
         for kf, kp in bad_rows:
             mp.erase_observations(kf, kp)
         mp.update_points(pts)
+
+    def _carry_newer(self, anchor: int, T_anchor: np.ndarray, n_points: int, ba_points: np.ndarray) -> None:
+        """A BA applied frames after it was submitted (on its thread): the keyframes made
+        since (ids above ``anchor``, the keyframe it was submitted for) were tracked against
+        the map before it, and the points made since (ids from ``n_points`` on, not in the
+        BA) from them.  They follow the anchor's correction rigidly (``T_anchor``: its pose
+        before), as the frames follow their reference keyframe; left where they were, the
+        newest keyframes and the BA's disagreed by the correction (KITTI 06, ``--masker
+        none``: one-frame jumps of 0.2-0.4 m where a self-calibrating BA submitted six
+        keyframes earlier was applied)."""
+        mp = self.mp
+        T_new = mp.keyframes[anchor].T_cw
+        if np.array_equal(T_new, T_anchor):
+            return
+        W = inv_T(T_new) @ T_anchor  # old world -> new world, for what hangs on the anchor
+        W_inv = inv_T(W)
+        for k, kf in mp.keyframes.items():
+            if k > anchor:
+                kf.T_cw = orthonormalize(kf.T_cw @ W_inv)
+        new = np.arange(n_points, mp.points.n, dtype=np.int64)
+        new = new[~np.isin(new, ba_points) & mp.points.good(new)]
+        if len(new):
+            mp.points.transform(new, W)
 
     # ------------------------------------------------------- keyframe culling
     def cull_keyframes(self, kf: KeyFrame) -> None:

@@ -1,0 +1,174 @@
+"""As accurate as before? This checkout's SLAM against an older source tree's, paired.
+
+Issue 23 rewrote the SLAM's hot loops as compiled kernels and asks for a SLAM "as accurate
+as today" (the code before them, commit 45948c1).  A 51-108-frame clip's ATE moves by a
+fifth with changes that should not matter (``slam.n_features`` 2000 vs 2050), so four
+variants' medians -- what ``bench_objects.py`` and ``bench_moving.py`` take -- differ by
+more than a core that shifts nothing would.  This benchmark compares the two codes
+**paired**: the same clip and ``slam.n_features`` variant (``--variants``, default twelve:
+1900-2175 in steps of 25), ``--masker none`` (the SLAM alone: masking changed too since
+then; ``--masker outline``: the default pipeline, e.g. against the previous commit), each
+run in its own process with ``PYTHONPATH`` set to the tree's ``src``, the old and the new
+alternated per variant.  Per clip: the ATE (APE RMSE after SE(3) alignment,
+against the ground truth ``dynastereo`` finds: KITTI ``poses/NN.txt``, raw drives' OXTS)
+and the end-point drift of every run, their medians and means, the per-variant
+differences new - old (median, and in how many variants the new code is the more
+accurate), and the frames lost.
+
+The old tree is ``git archive OLD src`` of this repository (``--old-commit``, default
+45948c1) unpacked into a temporary folder, or a source folder (``--old-src``).  Both run
+with this checkout's virtual environment.  Writes benchmarks/results/then_now.json.
+
+    DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
+        .venv/bin/python benchmarks/bench_then_now.py [--clips raw0001,06,03] [--variants 2000,1950] \\
+        [--old-commit 45948c1] [--masker none|outline] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+OUT = ROOT / "benchmarks" / "results" / "then_now.json"
+CLIPS = {
+    "06": "kitti_odometry/dataset/sequences/06",
+    "03": "kitti_odometry/dataset/sequences/03",
+    "raw0001": "kitti_raw/2011_09_26/2011_09_26_drive_0001_sync",
+}
+VARIANTS = tuple(range(1900, 2176, 25))
+# the child: one run of the tree on PYTHONPATH (its own process: nothing shared between codes)
+CHILD = (
+    "import sys, json, time\n"
+    "from dynastereo.api import run_sequence\n"
+    "from dynastereo.config import Config\n"
+    "seq, out, nf, masker = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4]\n"
+    "cfg = Config().with_overrides({'masker.kind': masker, 'slam.n_features': nf})\n"
+    "t = time.perf_counter()\n"
+    "res = run_sequence(seq, out, cfg)\n"
+    "print(json.dumps({'wall_s': time.perf_counter() - t, 'lost': len(res.lost)}))\n"
+)
+
+
+def old_tree(commit: str, dest: Path) -> Path:
+    """``src`` of ``commit`` unpacked under ``dest`` (``git archive``)."""
+    dest.mkdir(parents=True, exist_ok=True)
+    arc = subprocess.run(["git", "-C", str(ROOT), "archive", commit, "src"], capture_output=True, check=True)
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=arc.stdout, check=True)
+    return dest / "src"
+
+
+def run_one(src: Path, seq: Path, out: Path, nf: int, masker: str) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(src))
+    p = subprocess.run([sys.executable, "-c", CHILD, str(seq), str(out), str(nf), masker], env=env,
+                       capture_output=True, text=True)
+    if p.returncode != 0:
+        raise RuntimeError(f"{src} on {seq.name}, n_features {nf}: exit {p.returncode}\n{p.stderr[-2000:]}")
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def _head() -> str:
+    """This checkout's commit, ``+changes`` when its ``src`` differs from it."""
+    git = ["git", "-C", str(ROOT)]
+    head = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run([*git, "status", "--porcelain", "src"], capture_output=True, text=True).stdout.strip()
+    return head + ("+changes" if dirty else "")
+
+
+def accuracy(run_dir: Path, gt: Path) -> dict:
+    from dynastereo.eval import evaluate_files
+
+    ev = evaluate_files(run_dir / "trajectory.kitti.txt", gt)
+    return {"ate_m": round(float(ev.ape["rmse"]), 5), "drift_percent": round(float(ev.drift_percent), 4)}
+
+
+def summary(rows: list[dict]) -> dict:
+    """Per clip: medians / means of both codes and the paired differences new - old."""
+    new = np.array([r["new"]["ate_m"] for r in rows])
+    old = np.array([r["old"]["ate_m"] for r in rows])
+    d = new - old
+    dn = np.array([r["new"]["drift_percent"] for r in rows])
+    do = np.array([r["old"]["drift_percent"] for r in rows])
+    return {
+        "variants": len(rows),
+        "ate_median_new": float(np.median(new)), "ate_median_old": float(np.median(old)),
+        "ate_mean_new": float(new.mean()), "ate_mean_old": float(old.mean()),
+        "ate_range_new": [float(new.min()), float(new.max())], "ate_range_old": [float(old.min()), float(old.max())],
+        "ate_ratio_of_medians": float(np.median(new) / np.median(old)),
+        "ate_ratio_of_means": float(new.mean() / old.mean()),
+        "paired_difference_median_m": float(np.median(d)),
+        "new_more_accurate": int((d < 0).sum()), "old_more_accurate": int((d > 0).sum()),
+        "drift_median_new": float(np.median(dn)), "drift_median_old": float(np.median(do)),
+        "lost_new": int(sum(r["new"]["lost"] for r in rows)), "lost_old": int(sum(r["old"]["lost"] for r in rows)),
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--clips", default="raw0001,06,03")
+    ap.add_argument("--variants", default=",".join(map(str, VARIANTS)), help="slam.n_features per pair of runs")
+    ap.add_argument("--old-commit", default="45948c1", help="the code before the compiled core")
+    ap.add_argument("--old-src", type=Path, default=None, help="an old source folder instead of --old-commit")
+    ap.add_argument("--masker", default="none", help="masker.kind of every run: none (the SLAM alone) | outline")
+    ap.add_argument("--work", type=Path, default=None, help="run folders (default: a new temporary folder)")
+    ap.add_argument("--out", type=Path, default=OUT)
+    args = ap.parse_args()
+    data = os.environ.get("DYNASTEREO_DATA")
+    if not data:
+        print("DYNASTEREO_DATA is not set: nothing to measure", file=sys.stderr)
+        return 2
+    from dynastereo.eval.trajectory import find_ground_truth
+
+    work = args.work or Path(tempfile.mkdtemp(prefix="bench_then_now_"))
+    old_src = args.old_src or old_tree(args.old_commit, work / "old")
+    new_src = ROOT / "src"
+    variants = [int(v) for v in args.variants.split(",") if v]
+    result = {"benchmark": "then_now", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+              "old": args.old_commit if args.old_src is None else str(args.old_src),
+              "new": _head(),
+              "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+              "masker": args.masker, "variants": variants, "clips": {}}
+    for clip in [c for c in args.clips.split(",") if c]:
+        seq = Path(data) / CLIPS[clip]
+        gt = find_ground_truth(seq)
+        if gt is None:
+            print(f"{clip}: no ground truth next to {seq}: skipped", flush=True)
+            continue
+        rows = []
+        for nf in variants:
+            row = {"n_features": nf}
+            for side, src in (("old", old_src), ("new", new_src)):
+                out = work / f"{clip}_{side}_{nf}"
+                r = run_one(src, seq, out, nf, args.masker)
+                row[side] = {**accuracy(out, gt), "lost": r["lost"], "wall_s": round(r["wall_s"], 2)}
+            rows.append(row)
+            print(f"{clip} n_features {nf}: ATE old {row['old']['ate_m']:.4f}  new {row['new']['ate_m']:.4f} m",
+                  flush=True)
+        s = summary(rows)
+        result["clips"][clip] = {"runs": rows, "summary": s}
+    print(f"\n--masker {args.masker}, {len(variants)} slam.n_features variants, old = {result['old']}, new = {result['new']}")
+    print(f"{'clip':8s} {'ATE median old':>15s} {'new':>7s} {'mean old':>9s} {'new':>7s} {'paired new-old':>15s} "
+          f"{'new better':>11s} {'drift old':>10s} {'new':>6s} {'lost':>6s}")
+    for clip, c in result["clips"].items():
+        s = c["summary"]
+        print(f"{clip:8s} {s['ate_median_old']:15.4f} {s['ate_median_new']:7.4f} {s['ate_mean_old']:9.4f} "
+              f"{s['ate_mean_new']:7.4f} {s['paired_difference_median_m']:+15.4f} "
+              f"{s['new_more_accurate']:>5d} of {s['variants']:<3d} {s['drift_median_old']:9.3f}% "
+              f"{s['drift_median_new']:5.3f}% {s['lost_old']:>3d}/{s['lost_new']}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"-> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
