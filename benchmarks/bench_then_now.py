@@ -21,7 +21,7 @@ with this checkout's virtual environment.  Writes benchmarks/results/then_now.js
 
     DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
         .venv/bin/python benchmarks/bench_then_now.py [--clips raw0001,06,03] [--variants 2000,1950] \\
-        [--old-commit 45948c1] [--masker none|outline] [--out FILE]
+        [--old-commit 45948c1] [--masker none|outline] [--mask-all] [--out FILE]
 """
 
 from __future__ import annotations
@@ -51,8 +51,11 @@ CHILD = (
     "import sys, json, time\n"
     "from dynastereo.api import run_sequence\n"
     "from dynastereo.config import Config\n"
-    "seq, out, nf, masker = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4]\n"
-    "cfg = Config().with_overrides({'masker.kind': masker, 'slam.n_features': nf})\n"
+    "seq, out, nf, masker, mode = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4], sys.argv[5]\n"
+    "over = {'masker.kind': masker, 'slam.n_features': nf}\n"
+    "if mode != 'moving':  # the default, left out: a tree from before the motion test has no such key\n"
+    "    over['motion.mode'] = mode\n"
+    "cfg = Config().with_overrides(over)\n"
     "t = time.perf_counter()\n"
     "res = run_sequence(seq, out, cfg)\n"
     "print(json.dumps({'wall_s': time.perf_counter() - t, 'lost': len(res.lost)}))\n"
@@ -67,9 +70,9 @@ def old_tree(commit: str, dest: Path) -> Path:
     return dest / "src"
 
 
-def run_one(src: Path, seq: Path, out: Path, nf: int, masker: str) -> dict:
+def run_one(src: Path, seq: Path, out: Path, nf: int, masker: str, mode: str) -> dict:
     env = dict(os.environ, PYTHONPATH=str(src))
-    p = subprocess.run([sys.executable, "-c", CHILD, str(seq), str(out), str(nf), masker], env=env,
+    p = subprocess.run([sys.executable, "-c", CHILD, str(seq), str(out), str(nf), masker, mode], env=env,
                        capture_output=True, text=True)
     if p.returncode != 0:
         raise RuntimeError(f"{src} on {seq.name}, n_features {nf}: exit {p.returncode}\n{p.stderr[-2000:]}")
@@ -119,6 +122,7 @@ def main() -> int:
     ap.add_argument("--old-commit", default="45948c1", help="the code before the compiled core")
     ap.add_argument("--old-src", type=Path, default=None, help="an old source folder instead of --old-commit")
     ap.add_argument("--masker", default="none", help="masker.kind of every run: none (the SLAM alone) | outline")
+    ap.add_argument("--mask-all", action="store_true", help="motion.mode all: every detection masked (no verdicts)")
     ap.add_argument("--work", type=Path, default=None, help="run folders (default: a new temporary folder)")
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
@@ -132,11 +136,12 @@ def main() -> int:
     old_src = args.old_src or old_tree(args.old_commit, work / "old")
     new_src = ROOT / "src"
     variants = [int(v) for v in args.variants.split(",") if v]
+    mode = "all" if args.mask_all else "moving"
     result = {"benchmark": "then_now", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
               "old": args.old_commit if args.old_src is None else str(args.old_src),
               "new": _head(),
               "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
-              "masker": args.masker, "variants": variants, "clips": {}}
+              "masker": args.masker, "motion_mode": mode, "variants": variants, "clips": {}}
     for clip in [c for c in args.clips.split(",") if c]:
         seq = Path(data) / CLIPS[clip]
         gt = find_ground_truth(seq)
@@ -148,14 +153,14 @@ def main() -> int:
             row = {"n_features": nf}
             for side, src in (("old", old_src), ("new", new_src)):
                 out = work / f"{clip}_{side}_{nf}"
-                r = run_one(src, seq, out, nf, args.masker)
+                r = run_one(src, seq, out, nf, args.masker, mode)
                 row[side] = {**accuracy(out, gt), "lost": r["lost"], "wall_s": round(r["wall_s"], 2)}
             rows.append(row)
             print(f"{clip} n_features {nf}: ATE old {row['old']['ate_m']:.4f}  new {row['new']['ate_m']:.4f} m",
                   flush=True)
         s = summary(rows)
         result["clips"][clip] = {"runs": rows, "summary": s}
-    print(f"\n--masker {args.masker}, {len(variants)} slam.n_features variants, old = {result['old']}, new = {result['new']}")
+    print(f"\n--masker {args.masker}, motion.mode {mode}, {len(variants)} slam.n_features variants, old = {result['old']}, new = {result['new']}")
     print(f"{'clip':8s} {'ATE median old':>15s} {'new':>7s} {'mean old':>9s} {'new':>7s} {'paired new-old':>15s} "
           f"{'new better':>11s} {'drift old':>10s} {'new':>6s} {'lost':>6s}")
     for clip, c in result["clips"].items():

@@ -7,6 +7,8 @@ camera pose is known exactly.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import logging
 from functools import lru_cache
 from pathlib import Path
@@ -20,7 +22,8 @@ from dynastereo.errors import CalibrationError, ConfigError
 from dynastereo.slam import System, load_orbslam_settings
 from dynastereo.slam.geometry import desc_u64, inv_T, se3_exp
 from dynastereo.slam.matcher import KeypointGrid, search_by_projection, stereo_match
-from dynastereo.slam.optimizer import LocalBAProblem, local_ba, optimize_pose, project, self_calibrating_ba
+from dynastereo.slam.optimizer import (LocalBAProblem, _common_costs, local_ba, optimize_pose, project,
+                                      self_calibrating_ba)
 from dynastereo.slam.orb import ORBExtractor
 from dynastereo.timing import StageTimer
 from dynastereo.datatypes import StereoCalibration, StereoFrame, StereoMasks
@@ -388,6 +391,79 @@ def test_self_calibrating_ba_recovers_a_known_disparity_offset(offset: float):
     gated = self_calibrating_ba(prob)
     assert gated.offset is None and gated.offset_sigma is not None
     assert np.allclose(gated.T_wc, plain.T_wc, atol=1e-6)
+
+
+
+def test_self_calibration_compares_its_solves_over_the_same_observations():
+    """The offset's parabola takes the three solves' costs over the observations that are
+    inliers in all of them: a point one solve put behind the cameras (a far point through
+    infinity, KITTI 06) counts in none (each solve's own cost let it decide the offset)."""
+    prob, _, _ = _ba_problem_with_offset(0.0)
+    sol = local_ba(prob)
+    flipped = dataclasses.replace(sol, X=sol.X.copy())
+    flipped.X[7] = -flipped.X[7]  # behind every camera
+    same = _common_costs([prob, prob], [sol, sol])
+    costs = _common_costs([prob, prob], [sol, flipped])
+    assert costs[0] == pytest.approx(costs[1])  # point 7's observations left out of both
+    assert costs[0] < same[0]  # ... which the unflipped pair counts
+    assert np.isfinite(costs).all()
+
+
+def test_a_late_ba_result_carries_what_was_made_meanwhile():
+    """A BA applied frames after it was submitted (its thread): the keyframes and points
+    made since follow the keyframe it was submitted for, rigidly (``_carry_newer``); the
+    older keyframes and the BA's own points stay as the BA left them."""
+    frames, _ = _sequence()
+    sysm = _run(frames[:16], _cfg(local_ba="inline"))
+    mp, mapper = sysm.map, sysm.active.mapper
+    ids = sorted(mp.keyframes)
+    assert len(ids) >= 4
+    anchor = ids[-3]
+    newer = [k for k in ids if k > anchor]
+    old_kf = {k: mp.keyframes[k].T_cw.copy() for k in ids}
+    made_since = np.flatnonzero(mp.points.first_kf[: mp.points.n] > anchor)
+    made_since = made_since[mp.points.good(made_since)]
+    assert len(made_since) > 10
+    in_ba = made_since[-3:]  # points the BA itself solved stay where it put them
+    carried = made_since[:-3]
+    X_old = mp.points.pos.copy()
+    # the BA moved the anchor (a correction of 2 cm and 0.3 degrees)
+    T_anchor = old_kf[anchor]
+    mp.keyframes[anchor].T_cw = se3_exp(np.r_[0.0, 0.005, 0.0, 0.02, 0.0, 0.01]) @ T_anchor
+    mapper._carry_newer(anchor, T_anchor, int(made_since.min()), in_ba)
+    T_new = mp.keyframes[anchor].T_cw
+    for k in newer:  # the pose relative to the anchor is kept
+        np.testing.assert_allclose(mp.keyframes[k].T_cw @ inv_T(T_new), old_kf[k] @ inv_T(T_anchor), atol=1e-9)
+    for k in ids:
+        if k < anchor:
+            np.testing.assert_array_equal(mp.keyframes[k].T_cw, old_kf[k])
+    # the carried points are where they were in the anchor's camera; the BA's own did not move
+    Xc_old = X_old[carried] @ T_anchor[:3, :3].T + T_anchor[:3, 3]
+    Xc_new = mp.points.pos[carried] @ T_new[:3, :3].T + T_new[:3, 3]
+    np.testing.assert_allclose(Xc_new, Xc_old, atol=1e-9)
+    assert np.abs(mp.points.pos[carried] - X_old[carried]).max() > 1e-3
+    np.testing.assert_array_equal(mp.points.pos[in_ba], X_old[in_ba])
+
+
+
+def test_the_frame_in_flight_follows_its_reference_keyframe():
+    """A BA applied between a frame's tracking and its record moved the frame's reference
+    keyframe: the frame keeps its pose relative to it (it was tracked against the map
+    before the BA), and a keyframe the BA did not move leaves the frame alone."""
+    frames, _ = _sequence()
+    sysm = _run(frames[:12], _cfg(local_ba="inline"))
+    tr = sysm.tracker
+    f, ref = copy.copy(tr.last), tr.ref_kf  # a frame in flight (the last one's copy)
+    f.T_cw = se3_exp(np.r_[0.0, 0.0, 0.0, 0.01, 0.0, 0.6]) @ tr.last.T_cw
+    T_f, T_ref = f.T_cw.copy(), ref.T_cw.copy()
+    tr._follow_reference(f, ref, T_ref)  # not moved: nothing to do
+    np.testing.assert_array_equal(f.T_cw, T_f)
+    ref.T_cw = se3_exp(np.r_[0.004, 0.0, 0.0, 0.0, 0.01, 0.03]) @ T_ref
+    tr._follow_reference(f, ref, T_ref)
+    np.testing.assert_allclose(f.T_cw @ inv_T(ref.T_cw), T_f @ inv_T(T_ref), atol=1e-9)
+    assert np.abs(f.T_cw[:3, 3] - T_f[:3, 3]).max() > 1e-3
+    # the last frame (the velocity's other end) follows its own reference keyframe too
+    np.testing.assert_array_equal(tr.last_T, tr.trajectory.last_pose(sysm.map))
 
 
 # ------------------------------------------------------------------ the system, synthetic

@@ -387,8 +387,8 @@ class Tracker:
         reference keyframe too (the velocity compares the two).  Without this the frame's
         row (relative to the moved keyframe) and the keyframe it may become took the BA's
         correction as an error: KITTI 06, ``--masker none``, twelve ``slam.n_features``
-        variants, ATE median 0.052 m with the BA on its thread against 0.042 inline
-        (``benchmarks/bench_then_now.py``)."""
+        variants, ATE median 0.052 m with the BA on its thread against 0.042 inline; 0.032
+        with this and :meth:`LocalMapper._carry_newer` (``benchmarks/bench_then_now.py``)."""
         if ref.id not in self.active.map.keyframes or np.array_equal(ref.T_cw, T_ref):
             return
         f.T_cw = orthonormalize(f.T_cw @ inv_T(T_ref) @ ref.T_cw)
