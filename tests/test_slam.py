@@ -393,15 +393,15 @@ def test_self_calibrating_ba_recovers_a_known_disparity_offset(offset: float):
     assert np.allclose(gated.T_wc, plain.T_wc, atol=1e-6)
 
 
-
 def test_self_calibration_compares_its_solves_over_the_same_observations():
     """The offset's parabola takes the three solves' costs over the observations that are
     inliers in all of them: a point one solve put behind the cameras (a far point through
     infinity, KITTI 06) counts in none (each solve's own cost let it decide the offset)."""
     prob, _, _ = _ba_problem_with_offset(0.0)
     sol = local_ba(prob)
-    flipped = dataclasses.replace(sol, X=sol.X.copy())
-    flipped.X[7] = -flipped.X[7]  # behind every camera
+    flipped = dataclasses.replace(sol, X=sol.X.copy(), inlier=sol.inlier.copy())
+    flipped.X[7] = -flipped.X[7]  # behind every camera: the solve drops its observations
+    flipped.inlier[prob.obs_pt == 7] = False
     same = _common_costs([prob, prob], [sol, sol])
     costs = _common_costs([prob, prob], [sol, flipped])
     assert costs[0] == pytest.approx(costs[1])  # point 7's observations left out of both
@@ -443,7 +443,6 @@ def test_a_late_ba_result_carries_what_was_made_meanwhile():
     np.testing.assert_allclose(Xc_new, Xc_old, atol=1e-9)
     assert np.abs(mp.points.pos[carried] - X_old[carried]).max() > 1e-3
     np.testing.assert_array_equal(mp.points.pos[in_ba], X_old[in_ba])
-
 
 
 def test_the_frame_in_flight_follows_its_reference_keyframe():

@@ -295,25 +295,20 @@ def self_calibrating_ba(p: LocalBAProblem, abort: np.ndarray | None = None) -> L
 
 
 def _common_costs(problems: list[LocalBAProblem], sols: list[LocalBAResult]) -> np.ndarray:
-    """The grid solves' costs (half the chi2) over the same observations: those in front of
-    their camera with a chi2 under ORB-SLAM2's 95 % bounds in every solve.  Each solve's own
-    Huber cost over all observations let one degenerate point decide the offset: on KITTI
-    06 a far point beyond infinity (behind the cameras at -6,800 m, fitting its pixels) flipped
-    to 2 m behind them in the -0.3 px solve and added 600 to that cost alone (an offset of
-    +0.14 px on top of +0.14, a path 0.5 % too short)."""
-    keep = np.ones(len(problems[0].obs_pt), bool)
-    chis = []
-    for q, s in zip(problems, sols):
-        T_cw = np.linalg.inv(s.T_wc)
-        inv_s2 = 1.0 / np.asarray(q.sigma, np.float64) ** 2
-        bf = float(q.K[0, 0]) * float(q.baseline)
-        chi2 = np.full(len(q.obs_pt), np.inf)
-        for k in np.unique(q.obs_kf):  # one vectorised reprojection per keyframe
-            m = q.obs_kf == k
-            chi2[m], _ = reprojection_chi2(T_cw[k], s.X[q.obs_pt[m]], q.uv[m], q.ur[m], inv_s2[m], q.K, bf)
-        keep &= chi2 <= np.where(q.ur >= 0, CHI2_STEREO, CHI2_MONO)
-        chis.append(chi2)
-    return np.array([0.5 * float(chi2[keep].sum()) for chi2 in chis])
+    """The grid solves' costs (half the chi2) over the same observations: those every solve
+    kept after its robust stage (in front of the camera, chi2 under ORB-SLAM2's 95 %
+    bounds: the kernel's ``inlier``).  Each solve's own Huber cost over all observations
+    let one degenerate point decide the offset: on KITTI 06 a far point beyond infinity
+    (behind the cameras at -6,800 m, fitting its pixels) flipped to 2 m behind them in the
+    -0.3 px solve and added 600 to that cost alone (an offset of +0.14 px on top of +0.14,
+    a path 0.5 % too short)."""
+    from .kernels.ba import chi2_cost
+
+    keep = np.logical_and.reduce([s.inlier for s in sols])
+    bf = float(problems[0].K[0, 0]) * float(problems[0].baseline)
+    return np.array([chi2_cost(np.linalg.inv(s.T_wc), s.X, q.obs_kf, q.obs_pt, q.uv, q.ur,
+                               1.0 / np.asarray(q.sigma, np.float64) ** 2, keep, q.K, bf)
+                     for q, s in zip(problems, sols)])
 
 
 def run_ba(p: LocalBAProblem, abort: np.ndarray | None = None) -> LocalBAResult:

@@ -23,9 +23,9 @@ kernel is one call per problem; everything it needs is allocated once at its sta
 
 The cost reported (``stats[1]``, ``stats[2]``) is the Huber cost over every observation
 (a point behind its camera included), ``sum rho(sqrt(chi2))`` with ``rho(x) = x^2/2``
-below delta and ``delta |x| - delta^2/2`` above -- gtsam's ``graph.error`` convention,
-so that ``self_calibrating_ba``'s parabola through the costs at three disparity offsets
-is unchanged by the solver.
+below delta and ``delta |x| - delta^2/2`` above -- gtsam's ``graph.error`` convention.
+``chi2_cost`` gives half the chi2 of chosen observations (``self_calibrating_ba`` compares
+its three solves over the inliers of all three).
 """
 
 from __future__ import annotations
@@ -528,22 +528,35 @@ def ba_solve(Tcw, X, obs_kf, obs_pt, meas, stereo, isig2, fixed, fx, fy, cx, cy,
     stats[3] = 1.0 if aborted else 0.0
 
 
+def _observations(obs_kf, obs_pt, uv, ur, inv_sigma2):
+    """The kernels' observation arrays: ``(obs_kf, obs_pt, meas, stereo, isig2)``."""
+    ur = np.asarray(ur, np.float64)
+    meas = np.ascontiguousarray(np.c_[np.asarray(uv, np.float64), ur])
+    return (np.ascontiguousarray(obs_kf, np.int64), np.ascontiguousarray(obs_pt, np.int64), meas, ur >= 0,
+            np.ascontiguousarray(inv_sigma2, np.float64))
+
+
 def solve(T_cw, X, obs_kf, obs_pt, uv, ur, inv_sigma2, fixed, K, bf, n_robust, n_refine, rel_tol,
           abort=None):
     """``ba_solve`` on numpy arrays (copies); returns ``(T_cw, X, inlier, stats)``."""
     T = np.ascontiguousarray(T_cw, np.float64).copy()
     Xo = np.ascontiguousarray(X, np.float64).copy()
-    ur = np.asarray(ur, np.float64)
-    meas = np.ascontiguousarray(np.c_[np.asarray(uv, np.float64), ur])
-    stereo = ur >= 0
-    active = np.ones(len(ur), np.uint8)
+    obs = _observations(obs_kf, obs_pt, uv, ur, inv_sigma2)
+    active = np.ones(len(obs[0]), np.uint8)
     stats = np.zeros(5)
     ab = np.zeros(1, np.int64) if abort is None else abort
-    ba_solve(T, Xo, np.ascontiguousarray(obs_kf, np.int64), np.ascontiguousarray(obs_pt, np.int64), meas, stereo,
-             np.ascontiguousarray(inv_sigma2, np.float64), np.ascontiguousarray(fixed, np.bool_),
+    ba_solve(T, Xo, *obs, np.ascontiguousarray(fixed, np.bool_),
              float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(bf),
              int(n_robust), int(n_refine), float(rel_tol), ab, active, stats)
     return T, Xo, active.astype(bool), stats
+
+
+def chi2_cost(T_cw, X, obs_kf, obs_pt, uv, ur, inv_sigma2, active, K, bf) -> float:
+    """Half the chi2 of the ``active`` observations (``ba_cost``'s mode 1) on numpy arrays."""
+    return float(ba_cost(np.ascontiguousarray(T_cw, np.float64), np.ascontiguousarray(X, np.float64),
+                         *_observations(obs_kf, obs_pt, uv, ur, inv_sigma2),
+                         np.ascontiguousarray(active, np.uint8), float(K[0, 0]), float(K[1, 1]),
+                         float(K[0, 2]), float(K[1, 2]), float(bf), 1, np.zeros(6)))
 
 
 def warm_up() -> None:
