@@ -22,7 +22,8 @@ Two parts, each from ``dynastereo.api.run_sequence`` runs of the whole pipeline:
   OXTS ground truth; checked by eye), for reference objects >= 300 px: object-frames
   right / undecided / wrong, movers masked within 3 frames of their first appearance,
   statics left unmasked.  And the ATE (APE RMSE, SE(3)-aligned) and end-point drift of the
-  default run, ``--masker none`` and ``--mask-all`` against the OXTS ground truth, each
+  default run, ``--masker none`` and ``--mask-all`` against the OXTS ground truth (at the
+  images' stamps, the default; beside it against the devkit's poses at the packets'), each
   run once per ``slam.n_features`` variant (2000, 1950, 2050, 2100; see
   ``bench_moving.py``: a short clip's ATE moves with such small changes), medians.
 
@@ -218,9 +219,16 @@ def run(seq_dir: Path, out: Path, detector: str | None = None, **settings) -> di
     return {"frames": len(res.frames), "lost": len(res.lost), "wall_s": round(time.perf_counter() - t0, 2)}
 
 
-def accuracy(run_dir: Path, gt: Path) -> dict:
+def accuracy(run_dir: Path, gt: Path, gt_packets: Path | None = None) -> dict:
+    """ATE and drift against ``gt`` (the OXTS poses at the images' stamps) and, given
+    ``gt_packets`` (a TUM file of the devkit's, at the packets' stamps), against those too."""
     ev = evaluate_files(run_dir / "trajectory.kitti.txt", gt)
-    return {"ate_m": round(float(ev.ape["rmse"]), 4), "drift_percent": round(float(ev.drift_percent), 3)}
+    r = {"ate_m": round(float(ev.ape["rmse"]), 4), "drift_percent": round(float(ev.drift_percent), 3)}
+    if gt_packets is not None:
+        ev = evaluate_files(run_dir / "trajectory.kitti.txt", gt_packets)
+        r |= {"ate_m_packets": round(float(ev.ape["rmse"]), 4),
+              "drift_percent_packets": round(float(ev.drift_percent), 3)}
+    return r
 
 
 def main() -> int:
@@ -309,7 +317,10 @@ def main() -> int:
         d, n = raw["accuracy"]["default"], raw["accuracy"]["none"]
         targets["ate_default_le_none"] = {"value": [d["ate_m"], n["ate_m"]], "met": d["ate_m"] <= n["ate_m"]}
         targets["ate_m"] = {"value": d["ate_m"], "target": 0.058, "met": d["ate_m"] <= 0.058}
-        targets["drift_percent"] = {"value": d["drift_percent"], "target": 0.25, "met": d["drift_percent"] <= 0.25}
+        targets["drift_percent"] = {"value": d["drift_percent"], "target": 0.25, "met": d["drift_percent"] <= 0.25,
+                                    "ground_truth": "OXTS poses at the images' stamps",
+                                    "at_packets": d["drift_percent_packets"],
+                                    "met_at_packets": d["drift_percent_packets"] <= 0.25}
 
     print(f"\nsynthetic, oracle boxes, seeds {args.seeds}: medians over the seeds")
     print(f"{'scenario':10s} {'<15 m':>7s} {'15-30 m':>8s} {'30-50 m':>8s} {'<30 m':>7s} {'placed':>7s} "
@@ -357,22 +368,29 @@ def main() -> int:
 def raw_part(drive: Path, work: Path, variants: list[int]) -> dict:
     """The verdicts of the default run (first variant) against the reference labels, and
     ATE / drift of default, none and mask-all per ``slam.n_features`` variant (module doc)."""
+    from dynastereo.api import write_ground_truth
     from dynastereo.eval.trajectory import find_ground_truth
 
     gt = find_ground_truth(drive)
+    gt_packets = work / "gt_packets.tum.txt"
+    write_ground_truth(drive, gt_packets, "tum", at="packets")
     runs: dict[str, list[dict]] = {m: [] for m in MODES}
     for nf in variants:
         for mode, over in MODES.items():
             out = work / f"raw0001_{mode}_nf{nf}"
-            r = {"n_features": nf, **run(drive, out, None, **over, **{"slam.n_features": nf}), **accuracy(out, gt)}
+            r = {"n_features": nf, **run(drive, out, None, **over, **{"slam.n_features": nf}),
+                 **accuracy(out, gt, gt_packets)}
             if mode == "default":
                 r["objects_ms"] = objects_ms(out)
             runs[mode].append(r)
-            print(f"raw 0001 {mode:8s} n_features {nf}: ATE {r['ate_m']:.4f} m, drift {r['drift_percent']:.3f} %",
+            print(f"raw 0001 {mode:8s} n_features {nf}: ATE {r['ate_m']:.4f} m, drift {r['drift_percent']:.3f} % "
+                  f"(at the packets' stamps {r['ate_m_packets']:.4f} m, {r['drift_percent_packets']:.3f} %)",
                   flush=True)
     acc = {m: {"ate_m": _median([r["ate_m"] for r in rs]), "drift_percent": _median([r["drift_percent"] for r in rs]),
                "ate_range": [min(r["ate_m"] for r in rs), max(r["ate_m"] for r in rs)],
-               "drift_range": [min(r["drift_percent"] for r in rs), max(r["drift_percent"] for r in rs)]}
+               "drift_range": [min(r["drift_percent"] for r in rs), max(r["drift_percent"] for r in rs)],
+               "ate_m_packets": _median([r["ate_m_packets"] for r in rs]),
+               "drift_percent_packets": _median([r["drift_percent_packets"] for r in rs])}
            for m, rs in runs.items()}
     first = work / f"raw0001_default_nf{variants[0]}"
     verdicts = score_verdicts(first, LABELS) if LABELS.is_file() else None
@@ -393,7 +411,9 @@ def print_raw(raw: dict) -> None:
     print("\nKITTI raw 0001 vs OXTS: medians over the n_features variants (range)")
     for m, a in raw["accuracy"].items():
         print(f"  {m:9s} ATE {a['ate_m']:.4f} m ({a['ate_range'][0]:.4f}-{a['ate_range'][1]:.4f})  drift "
-              f"{a['drift_percent']:.3f} % ({a['drift_range'][0]:.3f}-{a['drift_range'][1]:.3f})")
+              f"{a['drift_percent']:.3f} % ({a['drift_range'][0]:.3f}-{a['drift_range'][1]:.3f});  against the "
+              f"devkit's poses at the packets' stamps: ATE {a['ate_m_packets']:.4f} m, drift "
+              f"{a['drift_percent_packets']:.3f} %")
 
 
 def score_verdicts(run_dir: Path, labels_path: Path) -> dict:

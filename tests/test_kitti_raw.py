@@ -361,9 +361,9 @@ def test_oxts_ground_truth_real_drive(raw_drive, tmp_path):
     from dynastereo.eval.trajectory import find_ground_truth, read_trajectory
     from dynastereo.io.kitti_raw import kitti_raw_ground_truth
 
-    g = kitti_raw_ground_truth(raw_drive)
+    g = kitti_raw_ground_truth(raw_drive, at="packets")
     ref = _independent_oxts_poses(raw_drive)
-    assert g.poses.shape == (108, 4, 4)
+    assert g.poses.shape == (108, 4, 4) and g.at == "packets"
     assert np.array_equal(g.poses[0], np.eye(4))
     assert np.abs(g.poses - ref).max() < 1e-9
     steps = np.linalg.norm(np.diff(g.poses[:, :3, 3], axis=0), axis=1)
@@ -380,11 +380,46 @@ def test_oxts_ground_truth_real_drive(raw_drive, tmp_path):
     # the stamps are the frames' (as a run's trajectory.tum.txt), 10 Hz
     assert g.stamp_source == "image_00/timestamps.txt" and g.timestamps[0] == 0.0
     assert g.timestamps[1] == pytest.approx(0.103129856) and np.all(np.abs(np.diff(g.timestamps) - 0.1) < 0.02)
-    # found by the one rule, read as a trajectory, and from the API
+    # found by the one rule, read as a trajectory (at the images' stamps), and from the API
     assert find_ground_truth(raw_drive) == raw_drive / "oxts"
+    gi = kitti_raw_ground_truth(raw_drive)
     tr = read_trajectory(raw_drive)
-    assert np.abs(tr.poses - g.poses).max() == 0 and tr.timestamps is not None
-    assert ground_truth(raw_drive).path_length == pytest.approx(steps.sum())
+    assert gi.at == "images" and np.abs(tr.poses - gi.poses).max() == 0 and tr.timestamps is not None
+    assert ground_truth(raw_drive).path_length == pytest.approx(tr.path_length)
+    assert np.abs(ground_truth(raw_drive, at="packets").poses - g.poses).max() == 0
+
+
+def test_oxts_ground_truth_at_the_images_stamps(raw_drive):
+    """The packets are up to +-4.7 ms off their images: each pose moved to its image's stamp
+    agrees with an independent interpolation (positions linear, rotations slerp) of the
+    devkit's poses between neighbouring packets, and the saw-tooth that the offsets put into
+    the frame-to-frame speeds is gone."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from dynastereo.io.kitti_raw import kitti_raw_ground_truth, read_kitti_raw_timestamps
+
+    ref = _independent_oxts_poses(raw_drive)  # at the packets' stamps
+    g = kitti_raw_ground_truth(raw_drive)
+    t_ox = (g.oxts_stamps_ns - g.oxts_stamps_ns[0]) * 1e-9
+    t_im = (read_kitti_raw_timestamps(raw_drive / "image_00" / "timestamps.txt")[:108] - g.oxts_stamps_ns[0]) * 1e-9
+    off = t_im - t_ox
+    assert 0.002 < np.abs(off).max() < 0.006 and off[0] == pytest.approx(0.0034, abs=1e-4)
+    inner = slice(1, 107)  # interpolation needs a packet on both sides
+    P = np.tile(np.eye(4), (108, 1, 1))
+    P[inner, :3, 3] = np.column_stack([np.interp(t_im[inner], t_ox, ref[:, k, 3]) for k in range(3)])
+    P[inner, :3, :3] = Slerp(t_ox, Rotation.from_matrix(ref[:, :3, :3]))(t_im[inner]).as_matrix()
+    P0 = np.eye(4)  # frame 0 (3.4 ms after its packet) from packets 0 and 1
+    P0[:3, 3] = ref[0, :3, 3] + (ref[1, :3, 3] - ref[0, :3, 3]) * off[0] / (t_ox[1] - t_ox[0])
+    P0[:3, :3] = Slerp(t_ox[:2], Rotation.from_matrix(ref[:2, :3, :3]))(t_im[:1]).as_matrix()[0]
+    P = np.linalg.inv(P0) @ P
+    assert np.abs(g.poses[inner, :3, 3] - P[inner, :3, 3]).max() < 0.01  # the shifts: up to 6 cm
+    rot = Rotation.from_matrix(np.transpose(g.poses[inner, :3, :3], (0, 2, 1)) @ P[inner, :3, :3]).magnitude()
+    assert np.degrees(rot).max() < 0.01
+    # frame-to-frame speeds over the images' stamps: smooth now, saw-toothed at the packets'
+    def jitter(poses):
+        v = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) / np.diff(t_im)
+        return np.median(np.abs(np.diff(v)))
+    assert jitter(g.poses) < 0.15 < 0.5 < jitter(ref)  # m/s: 0.085 and 0.69
 
 
 def test_gt_command_writes_kitti_and_tum(raw_drive, tmp_path):
@@ -400,6 +435,13 @@ def test_gt_command_writes_kitti_and_tum(raw_drive, tmp_path):
     k, t = read_trajectory(out), read_trajectory(tmp_path / "poses.tum.txt")
     assert len(k) == len(t) == 108 and k.timestamps is None and t.timestamps[1] == pytest.approx(0.103129856)
     assert np.abs(k.poses - t.poses).max() < 1e-6 and k.path_length == pytest.approx(106.9, abs=0.5)
+    # the devkit's poses at the packets' stamps: up to a packet's offset (4.7 ms, 6 cm) apart
+    r = CliRunner().invoke(app, ["gt", str(raw_drive), "--out", str(tmp_path / "dev.txt"), "--at", "packets"])
+    assert r.exit_code == 0, r.output
+    moved = np.abs(read_trajectory(tmp_path / "dev.txt").poses[:, :3, 3] - k.poses[:, :3, 3]).max()
+    assert 0.03 < moved < 0.15
+    r = CliRunner().invoke(app, ["gt", str(raw_drive), "--out", str(tmp_path / "x.txt"), "--at", "gps"])
+    assert r.exit_code == 2 and "--at: 'gps' is not one of images, packets" in r.output
     # `eval` without a ground truth finds the run's sequence's own (run.json beside the estimate)
     (tmp_path / "run.json").write_text(json.dumps({"sequence": str(raw_drive)}))
     r = CliRunner().invoke(app, ["eval", str(out), "--json"])

@@ -51,30 +51,38 @@ def make_report(run_dir: str | Path, gt: str | Path | None = None, out: str | Pa
     return build_report(run_dir, gt, out, overlays=overlays, auto_gt=auto_gt)
 
 
-def ground_truth(sequence: str | Path):
+def ground_truth(sequence: str | Path, at: str = "images"):
     """The ground truth of a sequence folder as a :class:`~dynastereo.eval.Trajectory`: a
     KITTI raw drive's OXTS converted to rectified camera-0 poses, or KITTI odometry's
-    ``poses/NN.txt`` (:func:`~dynastereo.eval.trajectory.find_ground_truth`); InputError if none."""
+    ``poses/NN.txt`` (:func:`~dynastereo.eval.trajectory.find_ground_truth`); InputError if none.
+    ``at`` (KITTI raw only): ``"images"`` -- the poses at the images' stamps -- or
+    ``"packets"`` -- the devkit's, at the OXTS packets' (:mod:`dynastereo.io.kitti_raw`)."""
     from .errors import InputError
-    from .eval.trajectory import find_ground_truth, read_trajectory
+    from .eval.trajectory import Trajectory, find_ground_truth, read_trajectory
+    from .io.kitti_raw import GT_AT, kitti_raw_ground_truth, oxts_dir
 
+    if at not in GT_AT:
+        raise InputError(f"--at: {at!r} is not one of {', '.join(GT_AT)}")
     path = find_ground_truth(sequence)
     if path is None:
         raise InputError("no ground truth found (KITTI odometry poses/NN.txt beside sequences/NN, or a KITTI raw "
                          "drive's oxts/)", sequence)
+    if at != "images" and path.is_dir() and oxts_dir(path) is not None:
+        g = kitti_raw_ground_truth(path, at=at)
+        return Trajectory(g.poses, g.timestamps, "ground truth", path)
     return read_trajectory(path, name="ground truth")
 
 
-def write_ground_truth(sequence: str | Path, out: str | Path, fmt: str = "both") -> list[Path]:
+def write_ground_truth(sequence: str | Path, out: str | Path, fmt: str = "both", at: str = "images") -> list[Path]:
     """Write :func:`ground_truth` to ``out``: ``fmt`` ``"kitti"`` (12 numbers a row), ``"tum"``
     (``t x y z qx qy qz qw``) or ``"both"`` (KITTI to ``out``, TUM beside it as
-    ``<stem>.tum.txt``).  Returns the files written."""
+    ``<stem>.tum.txt``); ``at`` as :func:`ground_truth`'s.  Returns the files written."""
     from .errors import InputError
     from .eval.trajectory import write_kitti, write_tum
 
     if fmt not in ("kitti", "tum", "both"):
         raise InputError(f"--format: {fmt!r} is not one of kitti, tum, both")
-    traj = ground_truth(sequence)
+    traj = ground_truth(sequence, at=at)
     out = Path(out)
     check_output_file(out, what="ground-truth file")
     written = []

@@ -315,13 +315,14 @@ def gt_cmd(
     sequence: Path = typer.Argument(..., help="Sequence folder: a KITTI raw drive (its oxts/ GPS/IMU) or a KITTI odometry sequences/NN."),
     out: Path = typer.Option(..., "--out", "-o", help="Poses file: KITTI rows (with --format both, the TUM file goes beside it as STEM.tum.txt)."),
     fmt: str = typer.Option("both", "--format", help="kitti | tum | both."),
+    at: str = typer.Option("images", "--at", help="KITTI raw: images (each OXTS pose moved to its image's stamp with the packet's own motion) | packets (the devkit's poses, at the packets' stamps)."),
 ) -> None:
     """Write a sequence's ground truth as camera-0 (rectified) poses in the first frame, KITTI and TUM."""
     from ..api import ground_truth, write_ground_truth
 
     try:
-        paths = write_ground_truth(sequence, out, fmt)
-        traj = ground_truth(sequence)
+        paths = write_ground_truth(sequence, out, fmt, at=at)
+        traj = ground_truth(sequence, at=at)
     except DynastereoError as e:
         _fail(e)
     span = f", {traj.timestamps[-1] - traj.timestamps[0]:.2f} s" if traj.timestamps is not None else ""
