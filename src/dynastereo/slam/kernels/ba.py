@@ -575,3 +575,4 @@ def warm_up() -> None:
         ur[i] = uv[i, 0] - 250.0 / Xc[2]
     ur[-1] = -1.0
     solve(T, X + 0.01, kf, pt, uv, ur, np.ones(6), np.array([True, False]), K, 250.0, 2, 2, 1e-6)
+    chi2_cost(T, X, kf, pt, uv, ur, np.ones(6), np.ones(6, np.uint8), K, 250.0)  # the self-calibrating BA's costs
