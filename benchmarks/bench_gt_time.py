@@ -39,7 +39,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "benchmarks" / "results" / "gt_time.json"
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_peers import clip_dirs, find_peer, run_peer  # noqa: E402
+from bench_peers import add_peer_args, clip_dirs, find_peer, run_peer  # noqa: E402
 
 
 def end_split(est: np.ndarray, gt: np.ndarray) -> dict:
@@ -91,14 +91,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--variants", default="2000,1950,2050,2100", help="slam.n_features per dynastereo run")
     ap.add_argument("--peer-repeats", type=int, default=3, help="ORB-SLAM3 runs (0: none)")
-    up = ROOT.parent
-    data = Path(os.environ.get("DYNASTEREO_DATA", up / "shared" / "data"))
-    ap.add_argument("--peer-python", type=Path,
-                    default=Path(os.environ.get("DYNASTEREO_PEER_PYTHON", up / ".venv-peers" / "bin" / "python")))
-    ap.add_argument("--peer-script", type=Path, default=Path(
-        os.environ.get("DYNASTEREO_PEER_SCRIPT", data.parent / "anchors" / "pyorbslam3_run.py")))
-    ap.add_argument("--vocabulary", type=Path,
-                    default=Path(os.environ.get("DYNASTEREO_PEER_VOCAB", up / ".peers" / "ORBvoc.txt")))
+    data = add_peer_args(ap)
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
 

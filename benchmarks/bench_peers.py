@@ -157,6 +157,20 @@ def run_peer(seq: Path, tmp: Path, gt: Path | None, peer: dict) -> dict:
             "lost": res["not_ok"]}
 
 
+def add_peer_args(ap: argparse.ArgumentParser) -> Path:
+    """The peer's options (``--peer-python``, ``--peer-script``, ``--vocabulary``; module
+    doc); returns the data folder (``$DYNASTEREO_DATA``, else ``../shared/data``)."""
+    up = ROOT.parent
+    data = Path(os.environ.get("DYNASTEREO_DATA", up / "shared" / "data"))
+    ap.add_argument("--peer-python", type=Path,
+                    default=Path(os.environ.get("DYNASTEREO_PEER_PYTHON", up / ".venv-peers" / "bin" / "python")))
+    ap.add_argument("--peer-script", type=Path, default=Path(
+        os.environ.get("DYNASTEREO_PEER_SCRIPT", data.parent / "anchors" / "pyorbslam3_run.py")))
+    ap.add_argument("--vocabulary", type=Path,
+                    default=Path(os.environ.get("DYNASTEREO_PEER_VOCAB", up / ".peers" / "ORBvoc.txt")))
+    return data
+
+
 def find_peer(args) -> tuple[dict | None, str]:
     peer = {"python": str(args.peer_python), "script": str(args.peer_script), "vocabulary": str(args.vocabulary)}
     for what, p in (("peer venv python", args.peer_python), ("peer script", args.peer_script),
@@ -184,14 +198,7 @@ def main() -> None:
     ap.add_argument("--clips", default="06,03,raw0001")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--systems", default="none,default,orbslam3", help="of " + ", ".join(SYSTEMS))
-    up = ROOT.parent
-    ap.add_argument("--peer-python", type=Path,
-                    default=Path(os.environ.get("DYNASTEREO_PEER_PYTHON", up / ".venv-peers" / "bin" / "python")))
-    data = Path(os.environ.get("DYNASTEREO_DATA", up / "shared" / "data"))
-    ap.add_argument("--peer-script", type=Path, default=Path(
-        os.environ.get("DYNASTEREO_PEER_SCRIPT", data.parent / "anchors" / "pyorbslam3_run.py")))
-    ap.add_argument("--vocabulary", type=Path,
-                    default=Path(os.environ.get("DYNASTEREO_PEER_VOCAB", up / ".peers" / "ORBvoc.txt")))
+    data = add_peer_args(ap)
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
 
