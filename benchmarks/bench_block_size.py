@@ -1,0 +1,143 @@
+"""The masks' matching block against the images' width, on real frames: KITTI raw 0001 at its own 1242 px and halved.
+
+``stereo.block_size`` left unset follows the images' width (``dynastereo.config.auto_block_size``:
+15 px at 1242 and wider, 11 at 600-800 px).  This benchmark runs the default pipeline
+(``dynastereo run``) on KITTI raw drive 0001 as it is (1242 x 375) and halved (621 x 188,
+INTER_AREA; ``P_rect_00/01`` halved, the same OXTS ground truth; made in a temporary folder
+from ``$DYNASTEREO_DATA``), with blocks ``--blocks`` (halved drive) and 11 / 15 (full size),
+once per ``slam.n_features`` variant (2000, 1950, 2050, 2100), plus ``--masker none``, and
+reports the ATE (APE RMSE, SE(3)-aligned) and end-point drift against the OXTS poses at the
+images' times: medians over the variants.  (The synthetic scenes' object positions per
+block: ``bench_objects.py`` and README.)
+
+Writes ``benchmarks/results/block_size.json``.  Run:
+
+    DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
+        .venv/bin/python benchmarks/bench_block_size.py [--blocks 9,11,13,15] [--variants 2000,1950,2050,2100]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+OUT = ROOT / "benchmarks" / "results" / "block_size.json"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_gt_time import run_dynastereo  # noqa: E402
+from bench_peers import clip_dirs  # noqa: E402
+
+
+def halved_drive(drive: Path, work: Path) -> Path:
+    """KITTI raw ``drive`` at half size under ``work`` (same layout, calibration halved, its
+    ``oxts/`` linked)."""
+    date = work / drive.parent.name
+    out = date / drive.name
+    for name in ("calib_imu_to_velo.txt", "calib_velo_to_cam.txt"):
+        (date / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(drive.parent / name, date / name)
+    rows = []
+    for line in (drive.parent / "calib_cam_to_cam.txt").read_text().splitlines():
+        key, _, val = line.partition(":")
+        if key.startswith("P_rect_"):
+            p = np.array(val.split(), float).reshape(3, 4)
+            p[:2] *= 0.5
+            p[:2, 2] = (p[:2, 2] * 2 + 0.5) * 0.5 - 0.5  # principal point: pixel centres
+            line = key + ": " + " ".join(f"{v:e}" for v in p.ravel())
+        elif key.startswith("S_rect_"):
+            w, h = (float(v) for v in val.split())
+            line = f"{key}: {round(w / 2):e} {round(h / 2):e}"
+        rows.append(line)
+    (date / "calib_cam_to_cam.txt").write_text("\n".join(rows) + "\n")
+    for cam in ("image_00", "image_01"):
+        (out / cam / "data").mkdir(parents=True, exist_ok=True)
+        shutil.copy(drive / cam / "timestamps.txt", out / cam / "timestamps.txt")
+        for f in sorted((drive / cam / "data").glob("*.png")):
+            im = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            cv2.imwrite(str(out / cam / "data" / f.name),
+                        cv2.resize(im, (round(im.shape[1] / 2), round(im.shape[0] / 2)), interpolation=cv2.INTER_AREA))
+    (out / "oxts").symlink_to((drive / "oxts").resolve())
+    return out
+
+
+def accuracy(traj: Path, gt) -> dict:
+    from dynastereo.eval import evaluate
+    from dynastereo.eval.trajectory import read_trajectory
+
+    ev = evaluate(read_trajectory(traj), gt)
+    return {"ate_m": round(float(ev.ape["rmse"]), 4), "drift_percent": round(float(ev.drift_percent), 3)}
+
+
+def run_none(seq: Path, out: Path, n_features: int) -> None:
+    cfg = out.parent / f"{out.name}.yaml"
+    cfg.write_text(f"slam:\n  n_features: {n_features}\n")
+    cmd = [sys.executable, "-m", "dynastereo.cli.main", "run", str(seq), "-o", str(out), "--overwrite", "-c", str(cfg),
+           "--masker", "none"]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}):\n{r.stderr[-2000:]}")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--blocks", default="9,11,13,15", help="blocks on the halved drive")
+    ap.add_argument("--full-blocks", default="11,15", help="blocks on the drive at its own size")
+    ap.add_argument("--variants", default="2000,1950,2050,2100", help="slam.n_features per run")
+    ap.add_argument("--out", type=Path, default=OUT)
+    args = ap.parse_args()
+    from dynastereo.api import ground_truth
+    from dynastereo.config import auto_block_size
+
+    data = Path(os.environ.get("DYNASTEREO_DATA", ROOT.parent / "shared" / "data"))
+    drive = clip_dirs(data)["raw0001"]
+    if not drive.is_dir():
+        raise SystemExit(f"KITTI raw 0001 not found under $DYNASTEREO_DATA={data}")
+    variants = [int(v) for v in args.variants.split(",")]
+    sizes = {"full": [int(b) for b in args.full_blocks.split(",")], "half": [int(b) for b in args.blocks.split(",")]}
+    table: dict[str, dict[str, list[dict]]] = {}
+    with tempfile.TemporaryDirectory(prefix="block-size-") as tmp:
+        seqs = {"full": drive, "half": halved_drive(drive, Path(tmp) / "half")}
+        for size, seq in seqs.items():
+            gt = ground_truth(seq)
+            width = cv2.imread(str(next((seq / "image_00" / "data").glob("*.png"))), cv2.IMREAD_GRAYSCALE).shape[1]
+            table[size] = {"width": width, "auto_block": auto_block_size(width)}
+            for b in [*sizes[size], "none"]:
+                rows = []
+                for nf in variants:
+                    out = Path(tmp) / f"{size}_{b}_{nf}"
+                    if b == "none":
+                        run_none(seq, out, nf)
+                    else:
+                        run_dynastereo(seq, out, nf, int(b))
+                    rows.append({"n_features": nf, **accuracy(out / "trajectory.kitti.txt", gt)})
+                    print(f"{size} ({width} px) block {b}: n_features {nf} ATE {rows[-1]['ate_m']:.4f} m drift "
+                          f"{rows[-1]['drift_percent']:.3f} %", flush=True)
+                table[size][str(b)] = {"runs": rows, "ate_m": float(np.median([r["ate_m"] for r in rows])),
+                                       "drift_percent": float(np.median([r["drift_percent"] for r in rows]))}
+    result = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "variants": variants, "results": table}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    print("\nKITTI raw 0001, default pipeline: ATE m / drift %, medians over the variants")
+    print("| size | block | ATE (m) | drift |")
+    print("|---|---|---|---|")
+    for size, t in table.items():
+        for b, v in t.items():
+            if isinstance(v, dict):
+                name = "`--masker none`" if b == "none" else b + (" (auto)" if int(b) == t["auto_block"] else "")
+                print(f"| {size}, {t['width']} px | {name} | {v['ate_m']:.4f} | {v['drift_percent']:.3f} % |")
+    print(f"-> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
