@@ -43,7 +43,7 @@ BLOCK_WIDTH_REF = 1242
 def auto_block_size(width: int | None) -> int:
     """The matching block for images ``width`` px wide (None: ``BLOCK_WIDTH_REF``):
     ``BLOCK_SIZE_REF`` at ``BLOCK_WIDTH_REF`` and wider, on smaller images the odd size
-    nearest ``15 * sqrt(width / 1242)`` (at least 5): 11 at 600-750 px.  On KITTI raw 0001
+    nearest ``15 * sqrt(width / 1242)`` (at least 5): 15 from 1082 px, 13 at 795-1081, 11 at 553-794, 9 at 354-552.  On KITTI raw 0001
     at its 1242 px, 15 gives the default pipeline 0.038 m ATE and 11 0.095; halved to 621 px
     11 gives 0.052 and 15 0.062 (9: 0.060, 13: 0.057); on the synthetic 640-px scenes 11
     places the objects best (README, "Objects in the world")."""
@@ -61,7 +61,7 @@ class StereoConfig:
     min_disparity: int = 0
     num_disparities: int = 96  # multiple of 16
     # odd; BM: 5..255, SGBM: 1..; None: by the image's width (auto_block_size: 15 px at
-    # KITTI's 1242 and wider, smaller on smaller images, 11 at 640)
+    # KITTI's 1242, smaller on smaller images, 11 at 640)
     block_size: int | None = None
     p1: int | None = None  # SGBM smoothness; None -> 8*cn*block_size^2
     p2: int | None = None  # None -> 32*cn*block_size^2
