@@ -1,18 +1,19 @@
 """The masks' matching block against the images' width, on real frames: KITTI raw 0001 at its own 1242 px and halved.
 
-``stereo.block_size`` left unset follows the images' width (``dynastereo.config.auto_block_size``:
-15 px at 1242 and wider, 11 at 600-800 px).  This benchmark runs the default pipeline
+``stereo.block_size`` (default 15 px, chosen on KITTI) decides the masks, the motion test's
+disparity lookups and the objects' positions.  This benchmark runs the default pipeline
 (``dynastereo run``) on KITTI raw drive 0001 as it is (1242 x 375) and halved (621 x 188,
 INTER_AREA; ``P_rect_00/01`` halved, the same OXTS ground truth; made in a temporary folder
-from ``$DYNASTEREO_DATA``), with blocks ``--blocks`` (halved drive) and 11 / 15 (full size),
-once per ``slam.n_features`` variant (2000, 1950, 2050, 2100), plus ``--masker none``, and
-reports the ATE (APE RMSE, SE(3)-aligned) and end-point drift against the OXTS poses at the
-images' times: medians over the variants.  (The synthetic scenes' object positions per
-block: ``bench_objects.py`` and README.)
+from ``$DYNASTEREO_DATA``), with blocks ``--blocks`` (halved drive) and ``--full-blocks``
+(full size), once per ``slam.n_features`` variant (2000, 1950, 2050, 2100), plus
+``--masker none``, and reports the ATE (APE RMSE, SE(3)-aligned) and end-point drift against
+the OXTS poses at the images' times: medians over the variants.  (The synthetic scenes'
+object positions and motion decisions per block: ``bench_objects.py``, ``bench_moving.py``
+and README.)
 
 Writes ``benchmarks/results/block_size.json``.  Run:
 
-    DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
+    DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \
         .venv/bin/python benchmarks/bench_block_size.py [--blocks 9,11,13,15] [--variants 2000,1950,2050,2100]
 """
 
@@ -96,7 +97,7 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
     from dynastereo.api import ground_truth
-    from dynastereo.config import auto_block_size
+    from dynastereo.config import StereoConfig
 
     data = Path(os.environ.get("DYNASTEREO_DATA", ROOT.parent / "shared" / "data"))
     drive = clip_dirs(data)["raw0001"]
@@ -110,7 +111,7 @@ def main() -> int:
         for size, seq in seqs.items():
             gt = ground_truth(seq)
             width = cv2.imread(str(next((seq / "image_00" / "data").glob("*.png"))), cv2.IMREAD_GRAYSCALE).shape[1]
-            table[size] = {"width": width, "auto_block": auto_block_size(width)}
+            table[size] = {"width": width, "default_block": StereoConfig().block_size}
             for b in [*sizes[size], "none"]:
                 rows = []
                 for nf in variants:
@@ -133,7 +134,7 @@ def main() -> int:
     for size, t in table.items():
         for b, v in t.items():
             if isinstance(v, dict):
-                name = "`--masker none`" if b == "none" else b + (" (auto)" if int(b) == t["auto_block"] else "")
+                name = "`--masker none`" if b == "none" else b + (" (default)" if int(b) == t["default_block"] else "")
                 print(f"| {size}, {t['width']} px | {name} | {v['ate_m']:.4f} | {v['drift_percent']:.3f} % |")
     print(f"-> {args.out}")
     return 0

@@ -371,19 +371,3 @@ def test_kitti_band_matches_full(kitti06):
     for y0, y1, x0, x1 in ((150, 260, 500, 700), (100, 300, 0, 300), (150, 250, 900, left.shape[1])):
         band = m.compute_band(left, right, y0, y1, x0, x1)
         assert (np.abs(band - full[y0:y1, x0:x1]) <= 0.25).mean() > 0.98
-
-
-def test_block_size_by_the_images_width():
-    """``stereo.block_size`` unset: 15 px at KITTI's 1242 and wider, the odd size nearest
-    15 sqrt(w / 1242) below (11 on 640-px images); a configured block is kept at any width."""
-    from dynastereo.config import auto_block_size
-
-    assert StereoConfig().block_size is None
-    assert [auto_block_size(w) for w in (None, 1920, 1242, 1024, 752, 640, 621, 480, 320, 40)] == \
-        [15, 15, 15, 13, 11, 11, 11, 9, 7, 5]
-    assert StereoMatcher(StereoConfig(), width=640).params().block_size == 11
-    assert StereoMatcher(StereoConfig()).params().block_size == 15
-    assert StereoMatcher(StereoConfig(block_size=15), width=640).params().block_size == 15
-    assert StereoMatcher(StereoConfig(algorithm="sgbm"), width=640).params().p1 == 8 * 11 * 11
-    with pytest.raises(ConfigError, match="stereo.block_size must be odd"):
-        StereoConfig(block_size=12)

@@ -1071,18 +1071,6 @@ def test_match_stereo_detections():
     np.testing.assert_array_equal(match_stereo_detections(dets([100, 50, 200, 150]), dets([140, 50, 240, 150]), 64), [-1])
 
 
-def test_build_masker_takes_the_rigs_width_for_its_block():
-    from dynastereo.datatypes import StereoCalibration
-
-    det = FakeDetector(Detections.empty())
-    for w, b in ((640, 11), (1242, 15)):
-        calib = StereoCalibration(np.array([[300.0, 0, w / 2], [0, 300.0, 90.0], [0, 0, 1]]), 0.5, w, 180)
-        assert build_masker(Config(), calib, detector=det).matcher.cfg.block_size == b
-        assert build_masker(Config().with_overrides({"stereo.block_size": 15}), calib,
-                            detector=det).matcher.cfg.block_size == 15
-    assert build_masker(Config(), detector=det).matcher.cfg.block_size == 15  # no rig: KITTI's
-
-
 def test_build_masker_kinds():
     cfg = Config()
     det = FakeDetector(Detections.empty())

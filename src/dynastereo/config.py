@@ -9,7 +9,6 @@ uses them).  ``dump_config`` writes it back, so ``run.json`` can record what was
 from __future__ import annotations
 
 import dataclasses
-import math
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,23 +35,6 @@ def _bad(key: str, want: str, got: Any) -> ConfigError:
     return ConfigError(f"{key} must be {want}, got {got!r}")
 
 
-BLOCK_SIZE_REF = 15  # px: the matching block at KITTI's width (BLOCK_WIDTH_REF), where it was chosen
-BLOCK_WIDTH_REF = 1242
-
-
-def auto_block_size(width: int | None) -> int:
-    """The matching block for images ``width`` px wide (None: ``BLOCK_WIDTH_REF``):
-    ``BLOCK_SIZE_REF`` at ``BLOCK_WIDTH_REF`` and wider, on smaller images the odd size
-    nearest ``15 * sqrt(width / 1242)`` (at least 5): 15 from 1082 px, 13 at 795-1081, 11 at 553-794, 9 at 354-552.  On KITTI raw 0001
-    at its 1242 px, 15 gives the default pipeline 0.038 m ATE and 11 0.095; halved to 621 px
-    11 gives 0.052 and 15 0.062 (9: 0.060, 13: 0.057); on the synthetic 640-px scenes 11
-    places the objects best (README, "Objects in the world")."""
-    if width is None or width >= BLOCK_WIDTH_REF:
-        return BLOCK_SIZE_REF
-    b = BLOCK_SIZE_REF * math.sqrt(max(int(width), 1) / BLOCK_WIDTH_REF)
-    return max(5, int(2 * round((b - 1) / 2) + 1))
-
-
 @dataclass
 class StereoConfig:
     """Disparity estimation (thesis 3.3.1/3.3.2): OpenCV StereoBM / StereoSGBM + WLS."""
@@ -60,9 +42,7 @@ class StereoConfig:
     algorithm: StereoAlgorithm = "bm"
     min_disparity: int = 0
     num_disparities: int = 96  # multiple of 16
-    # odd; BM: 5..255, SGBM: 1..; None: by the image's width (auto_block_size: 15 px at
-    # KITTI's 1242, smaller on smaller images, 11 at 640)
-    block_size: int | None = None
+    block_size: int = 15  # odd; BM: 5..255, SGBM: 1..
     p1: int | None = None  # SGBM smoothness; None -> 8*cn*block_size^2
     p2: int | None = None  # None -> 32*cn*block_size^2
     disp12_max_diff: int = 1
@@ -83,17 +63,9 @@ class StereoConfig:
     def __post_init__(self) -> None:
         self.validate()
 
-    def for_width(self, width: int | None) -> "StereoConfig":
-        """This configuration with ``block_size`` set: as configured, else
-        :func:`auto_block_size` of the image ``width`` (None: KITTI's 1242)."""
-        if self.block_size is not None:
-            return self
-        return dataclasses.replace(self, block_size=auto_block_size(width))
-
     def default_p(self, cn: int = 1) -> tuple[int, int]:
         """SGBM's (P1, P2): the configured ones, else 8 / 32 * cn * block_size^2."""
-        bs = self.block_size if self.block_size is not None else BLOCK_SIZE_REF
-        area = bs * bs
+        area = self.block_size * self.block_size
         return (8 * cn * area if self.p1 is None else int(self.p1), 32 * cn * area if self.p2 is None else int(self.p2))
 
     def validate(self) -> None:
@@ -104,8 +76,7 @@ class StereoConfig:
         if self.num_disparities <= 0 or self.num_disparities % 16 != 0:
             raise _bad("stereo.num_disparities", "a positive multiple of 16", self.num_disparities)
         lo = 5 if alg == "bm" else 1
-        if self.block_size is not None and (isinstance(self.block_size, bool) or not isinstance(self.block_size, int)
-                                            or self.block_size % 2 != 1 or not (lo <= self.block_size <= 255)):
+        if self.block_size % 2 != 1 or not (lo <= self.block_size <= 255):
             raise _bad("stereo.block_size", f"odd and in [{lo}, 255] for {alg}", self.block_size)
         if alg == "bm":
             if not (1 <= self.pre_filter_cap <= 63):

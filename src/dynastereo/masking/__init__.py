@@ -52,7 +52,7 @@ def build_masker(
 
         model = create_seg_model(cfg.masker.seg_model, cfg.detector, models_dir)
         return SegMasker(model, max_disparity=float(cfg.stereo.min_disparity + cfg.stereo.num_disparities))
-    matcher = StereoMatcher(cfg.stereo, width=calibration.width if calibration is not None else None)  # validates it
+    matcher = StereoMatcher(cfg.stereo)  # validates the stereo section first
     from .detection import DetectionStage, create_detector
 
     if detector is None:

@@ -159,17 +159,15 @@ class StereoMatcher:
     """DisparityEstimator over OpenCV StereoBM / StereoSGBM (modes SGBM, 3-way, HH, HH4).
 
     All the thesis parameters come from :class:`StereoConfig`; invalid values raise
-    :class:`ConfigError` naming the option.  ``width``: the images' width, which sets the
-    block when the configuration leaves it to it (``block_size`` None,
-    :func:`~dynastereo.config.auto_block_size`).  With ``cfg.wls`` the left disparity is
+    :class:`ConfigError` naming the option.  With ``cfg.wls`` the left disparity is
     post-filtered with the WLS filter (``cv2.ximgproc``) using a right matcher for the
     left-right confidence.
     """
 
-    def __init__(self, cfg: StereoConfig | None = None, width: int | None = None):
+    def __init__(self, cfg: StereoConfig | None = None):
         cfg = cfg or StereoConfig()
         cfg.validate()  # (a configuration changed after it was made)
-        self.cfg = cfg.for_width(width)  # block_size None: by the images' width (None: KITTI's)
+        self.cfg = cfg
         self.algorithm = str(cfg.algorithm).lower()
         self.name = self.algorithm + ("+wls" if cfg.wls else "")
         self._by_scale: dict[int, _ScaledMatcher] = {}

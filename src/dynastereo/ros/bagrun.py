@@ -108,7 +108,7 @@ class BagOutput:
                 from ..masking import StereoMatcher
 
                 if self._matcher is None:
-                    self._matcher = StereoMatcher(self.cfg.stereo, width=frame.left_gray.shape[1])
+                    self._matcher = StereoMatcher(self.cfg.stereo)
                 d = self._matcher.compute(frame.left_gray, frame.right_gray, scale=int(self.cfg.stereo.scale))
             w.write(OUTPUT_TOPICS["disparity"], stamp_ns,
                     b.disparity(disparity_data(d, self.calibration, self.cfg), stamp_ns, cf, seq=seq_pos))

@@ -480,8 +480,7 @@ class StereoNodeCore:
             from ..masking import StereoMatcher
 
             if self._matcher is None or self._matcher_cfg != cfg.stereo:
-                self._matcher = StereoMatcher(cfg.stereo, width=frame.left_gray.shape[1])
-                self._matcher_cfg = cfg.stereo
+                self._matcher, self._matcher_cfg = StereoMatcher(cfg.stereo), cfg.stereo
             d = self._matcher.compute(frame.left_gray, frame.right_gray, scale=int(cfg.stereo.scale))
         return disparity_data(d, self.calibration, cfg)
 
