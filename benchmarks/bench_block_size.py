@@ -23,7 +23,6 @@ import argparse
 import json
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -79,16 +78,6 @@ def accuracy(traj: Path, gt) -> dict:
     return {"ate_m": round(float(ev.ape["rmse"]), 4), "drift_percent": round(float(ev.drift_percent), 3)}
 
 
-def run_none(seq: Path, out: Path, n_features: int) -> None:
-    cfg = out.parent / f"{out.name}.yaml"
-    cfg.write_text(f"slam:\n  n_features: {n_features}\n")
-    cmd = [sys.executable, "-m", "dynastereo.cli.main", "run", str(seq), "-o", str(out), "--overwrite", "-c", str(cfg),
-           "--masker", "none"]
-    r = subprocess.run(cmd, capture_output=True, text=True)
-    if r.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}):\n{r.stderr[-2000:]}")
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--blocks", default="9,11,13,15", help="blocks on the halved drive")
@@ -117,7 +106,7 @@ def main() -> int:
                 for nf in variants:
                     out = Path(tmp) / f"{size}_{b}_{nf}"
                     if b == "none":
-                        run_none(seq, out, nf)
+                        run_dynastereo(seq, out, nf, extra=("--masker", "none"))
                     else:
                         run_dynastereo(seq, out, nf, int(b))
                     rows.append({"n_features": nf, **accuracy(out / "trajectory.kitti.txt", gt)})

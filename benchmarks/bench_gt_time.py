@@ -74,13 +74,15 @@ def evaluate_both(traj: Path, gts: dict) -> dict:
     return out
 
 
-def run_dynastereo(seq: Path, out: Path, n_features: int, block_size: int | None = None) -> None:
-    """``dynastereo run`` (default pipeline) in its own process with ``slam.n_features``
-    (and ``stereo.block_size``) set."""
+def run_dynastereo(seq: Path, out: Path, n_features: int, block_size: int | None = None,
+                   extra: tuple[str, ...] = ()) -> None:
+    """``dynastereo run`` (default pipeline, or as ``extra`` options say) in its own process
+    with ``slam.n_features`` (and ``stereo.block_size``) set."""
     cfg = out.parent / f"{out.name}.yaml"
     cfg.write_text(f"slam:\n  n_features: {n_features}\n"
                    + (f"stereo:\n  block_size: {block_size}\n" if block_size is not None else ""))
-    cmd = [sys.executable, "-m", "dynastereo.cli.main", "run", str(seq), "-o", str(out), "--overwrite", "-c", str(cfg)]
+    cmd = [sys.executable, "-m", "dynastereo.cli.main", "run", str(seq), "-o", str(out), "--overwrite", "-c", str(cfg),
+           *extra]
     r = subprocess.run(cmd, capture_output=True, text=True)
     if r.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}):\n{r.stderr[-2000:]}")
