@@ -486,14 +486,15 @@ def kitti_raw_ground_truth(path: str | Path, at: str = "images") -> OxtsGroundTr
     if not img_times.is_file():
         img_times = drive / f"image_{KITTI_RAW_COLOUR_PAIR[0]}" / TIMESTAMPS
     img_ns = read_kitti_raw_timestamps(img_times) if img_times.is_file() else None
-    if img_ns is not None and len(img_ns) >= n:
+    from_images = img_ns is not None and len(img_ns) >= n
+    if from_images:
         ns, source = img_ns[:n], str(img_times.relative_to(drive))
     elif oxts_ns is not None:
         ns, source = oxts_ns[:n], f"{OXTS}/{TIMESTAMPS}"
     else:
         ns, source = np.arange(n, dtype=np.int64) * 100_000_000, "10 Hz (no timestamps.txt)"
     T_w_imu = oxts_imu_poses(packets)
-    shifted = at == "images" and oxts_ns is not None and source != f"{OXTS}/{TIMESTAMPS}" and img_ns is not None
+    shifted = at == "images" and from_images and oxts_ns is not None
     if shifted:
         T_w_imu = oxts_shift(T_w_imu, packets, (ns - oxts_ns[:n]).astype(np.float64) * 1e-9)
     T_w_cam = T_w_imu @ np.linalg.inv(T_cam_imu)

@@ -213,6 +213,17 @@ class LocalBAProblem:
     # self-calibration: also estimate the stereo disparity offset (``self_calibrating_ba``)
     offset_grid: tuple[float, ...] | None = None
     offset_prior_sigma: float = 0.25
+
+    @property
+    def bf(self) -> float:
+        """Baseline times focal length (px m), the kernels' stereo constant."""
+        return float(self.K[0, 0]) * float(self.baseline)
+
+    @property
+    def inv_sigma2(self) -> np.ndarray:
+        """The observations' information weights ``1 / sigma^2``."""
+        sig = np.asarray(self.sigma, np.float64)
+        return 1.0 / (sig * sig)
     # an estimate within this many sigmas of 0 is not significant: no offset applied
     offset_min_sigmas: float = 2.0
 
@@ -305,9 +316,8 @@ def _common_costs(problems: list[LocalBAProblem], sols: list[LocalBAResult]) -> 
     from .kernels.ba import chi2_cost
 
     keep = np.logical_and.reduce([s.inlier for s in sols])
-    bf = float(problems[0].K[0, 0]) * float(problems[0].baseline)
-    return np.array([chi2_cost(np.linalg.inv(s.T_wc), s.X, q.obs_kf, q.obs_pt, q.uv, q.ur,
-                               1.0 / np.asarray(q.sigma, np.float64) ** 2, keep, q.K, bf)
+    return np.array([chi2_cost(np.linalg.inv(s.T_wc), s.X, q.obs_kf, q.obs_pt, q.uv, q.ur, q.inv_sigma2, keep, q.K,
+                               q.bf)
                      for q, s in zip(problems, sols)])
 
 
@@ -326,9 +336,7 @@ def local_ba(p: LocalBAProblem, abort: np.ndarray | None = None) -> LocalBAResul
 
     t0 = time.perf_counter()
     T_cw = np.linalg.inv(np.asarray(p.T_wc, np.float64))
-    bf = float(p.K[0, 0]) * float(p.baseline)
-    sig = np.asarray(p.sigma, np.float64)
-    T, X, inl, st = solve(T_cw, p.X, p.obs_kf, p.obs_pt, p.uv, p.ur, 1.0 / (sig * sig), p.fixed, p.K, bf,
+    T, X, inl, st = solve(T_cw, p.X, p.obs_kf, p.obs_pt, p.uv, p.ur, p.inv_sigma2, p.fixed, p.K, p.bf,
                           p.iterations, p.refine_iterations, p.rel_tol, abort)
     T_wc = np.linalg.inv(T)
     T_wc[:, 3, :] = (0.0, 0.0, 0.0, 1.0)
