@@ -51,6 +51,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_synth_slam import sequence  # noqa: E402  (the cached synthetic sequences)
@@ -162,7 +163,8 @@ def objects_ms(run_dir: Path) -> float | None:
 REUSE = False  # --reuse: a finished run folder (run.json without an error) is read, not run again
 
 
-def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int = 60, repeats: int = 3) -> dict:
+def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int = 60, repeats: int = 3,
+                settings: dict | None = None) -> dict:
     """The objects stage alone (the pipeline's own stage times include the waits of a
     masking thread on shared cores): the masks of the first ``frames`` frames made once
     (with the run's motion verdicts and speeds from its ``objects.jsonl``), then
@@ -175,7 +177,7 @@ def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int 
     from dynastereo.masking import build_masker
     from dynastereo.slam.objects import WorldObjects
 
-    cfg = Config().with_overrides({"detector.name": detector} if detector else {})
+    cfg = Config().with_overrides({**(settings or {}), **({"detector.name": detector} if detector else {})})
     seq = open_sequence(seq_dir)
     masker = build_masker(cfg, seq.calibration, models_dir=os.environ.get("DYNASTEREO_MODELS"), ground_truth=seq_dir)
     poses = read_trajectory(run_dir / "trajectory.kitti.txt").poses
@@ -183,21 +185,22 @@ def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int 
     n = min(frames, len(seq), len(poses))
     data = []
     for i in range(n):
-        m = masker.mask(seq.frame(i))
+        frame = seq.frame(i)
+        m = masker.mask(frame)
         for o, r in zip(m.objects, recs.get(i, [])):
             o.moving, o.speed_mps = r.get("moving"), r.get("speed_mps")
-        data.append(m)
+        data.append((m, frame))
     stamps = seq.timestamps()
     times = np.zeros((repeats, n, 2))  # (CPU of this thread, wall) ms
     for r in range(repeats):
-        wo = WorldObjects(seq.calibration, sigma_disparity=cfg.motion.sigma_disparity, sigma_px=cfg.motion.sigma_px)
-        for i, m in enumerate(data):
+        wo = WorldObjects.from_config(seq.calibration, cfg)
+        for i, (m, frame) in enumerate(data):
             c0, t0 = time.thread_time(), time.perf_counter()
-            wo.update(m, poses[i], True, float(stamps[i]))
+            wo.update(m, poses[i], True, float(stamps[i]), frame)
             times[r, i] = (time.thread_time() - c0) * 1e3, (time.perf_counter() - t0) * 1e3
     cpu, wall = times.min(axis=0).T
     q = lambda v: round(float(v), 3)  # noqa: E731
-    return {"frames": n, "repeats": repeats, "objects_median": float(np.median([len(m.objects) for m in data])),
+    return {"frames": n, "repeats": repeats, "objects_median": float(np.median([len(m.objects) for m, _ in data])),
             "ms_median": q(np.median(cpu)), "ms_p90": q(np.percentile(cpu, 90)),
             "wall_ms_median": q(np.median(wall)), "wall_ms_p90": q(np.percentile(wall, 90)),
             "loadavg": round(os.getloadavg()[0], 2)}
@@ -244,7 +247,13 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="one seed, mixed only, one raw variant")
     ap.add_argument("--reuse", action="store_true", help="reuse finished runs in --work (e.g. after an interruption)")
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a configuration override for every run, e.g. objects.block_size=11 (repeatable)")
     args = ap.parse_args()
+    try:
+        settings = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.set)}
+    except ValueError:
+        ap.error(f"--set takes KEY=VALUE, got {args.set}")
     if args.quick:
         args.seeds, args.scenarios, args.variants = "1", "mixed", "2000"
     global REUSE
@@ -262,7 +271,7 @@ def main() -> int:
         for seed in seeds:
             seq, _ = sequence(args.cache, sc, args.frames, seed, size)
             out = work / f"{sc}_s{seed}"
-            row = {"scenario": sc, "seed": seed, **run(seq, out, "oracle"), **synth_errors(out, seq),
+            row = {"scenario": sc, "seed": seed, **run(seq, out, "oracle", **settings), **synth_errors(out, seq),
                    "objects_ms": objects_ms(out)}
             synth.append(row)
             print(f"{sc:9s} seed {seed}: position {row['position_m_near']:.3f} m (< {NEAR:.0f} m, "
@@ -273,16 +282,17 @@ def main() -> int:
     raw = None
     data = os.environ.get("DYNASTEREO_DATA")
     if data and args.raw:
-        raw = raw_part(Path(data) / DRIVE, work, [int(v) for v in args.variants.split(",") if v])
+        raw = raw_part(Path(data) / DRIVE, work, [int(v) for v in args.variants.split(",") if v], settings)
     # the objects stage alone, replayed (the in-pipeline stage times include a busy masking thread's waits)
     replays = {}
     for first in [r for r in synth if r["seed"] == seeds[0]]:  # each scenario's first seed
         seq, _ = sequence(args.cache, first["scenario"], args.frames, first["seed"], size)
         replays[f"synth {first['scenario']} seed {first['seed']}"] = replay_cost(
-            seq, work / f"{first['scenario']}_s{first['seed']}", "oracle")
+            seq, work / f"{first['scenario']}_s{first['seed']}", "oracle", settings=settings)
     if raw:
         nf = raw["runs"]["default"][0]["n_features"]
-        replays["KITTI raw 0001"] = replay_cost(Path(data) / DRIVE, work / f"raw0001_default_nf{nf}", None)
+        replays["KITTI raw 0001"] = replay_cost(Path(data) / DRIVE, work / f"raw0001_default_nf{nf}", None,
+                                                settings=settings)
     for k, v in replays.items():
         print(f"objects stage alone, {k}: {v['ms_median']} ms/frame median (p90 {v['ms_p90']}), "
               f"{v['objects_median']:.0f} objects a frame", flush=True)
@@ -345,7 +355,7 @@ def main() -> int:
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
                     "loadavg_at_end": list(os.getloadavg())},
         "config": {"frames": args.frames, "size": args.size, "seeds": seeds, "developed_on_seeds": [10, 11, 12],
-                   "n_features": args.variants},
+                   "n_features": args.variants, "settings": settings},
         "synthetic": synth,
         "synthetic_medians": {"position_m_near": pos_placed, "speed_mps_movers": spd,
                               "placed_fraction_near": placed, "position_m_near_misses_counted": pos,
@@ -365,7 +375,7 @@ def main() -> int:
 # ------------------------------------------------------------------ KITTI raw 0001
 
 
-def raw_part(drive: Path, work: Path, variants: list[int]) -> dict:
+def raw_part(drive: Path, work: Path, variants: list[int], settings: dict | None = None) -> dict:
     """The verdicts of the default run (first variant) against the reference labels, and
     ATE / drift of default, none and mask-all per ``slam.n_features`` variant (module doc)."""
     from dynastereo.api import write_ground_truth
@@ -378,7 +388,7 @@ def raw_part(drive: Path, work: Path, variants: list[int]) -> dict:
     for nf in variants:
         for mode, over in MODES.items():
             out = work / f"raw0001_{mode}_nf{nf}"
-            r = {"n_features": nf, **run(drive, out, None, **over, **{"slam.n_features": nf}),
+            r = {"n_features": nf, **run(drive, out, None, **(settings or {}), **over, **{"slam.n_features": nf}),
                  **accuracy(out, gt, gt_packets)}
             if mode == "default":
                 r["objects_ms"] = objects_ms(out)

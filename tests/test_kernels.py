@@ -365,7 +365,8 @@ def _kernel_signatures() -> dict[str, set[str]]:
     names = [f"dynastereo.slam.kernels.{m.name}" for m in pkgutil.iter_modules(kernels.__path__)]
     out: dict[str, set[str]] = {}
     others = ["dynastereo.slam.objects", "dynastereo.masking.outline", "dynastereo.masking.maskers",
-              "dynastereo.masking.transfer", "dynastereo.masking.detection.box_tracker"]
+              "dynastereo.masking.transfer", "dynastereo.masking.detection.box_tracker",
+              "dynastereo.masking.object_disparity"]
     for mod in map(importlib.import_module, names + others):
         for name, f in vars(mod).items():
             if isinstance(f, CPUDispatcher) and f.__module__ == mod.__name__:
@@ -377,7 +378,7 @@ def test_the_warm_up_loads_every_kernel_a_run_calls(kitti06, models_dir, tmp_pat
     """After the start-up warm-ups (``warm_up_kernels``, the objects' in ``WorldObjects``,
     the masker's ``warm_up`` that a job makes before its frame loop: the outlines', the
     region plan's, the transfer's and the box tracker's kernels), the whole of KITTI 06 tracked and mapped, and its first frames
-    with the default masking (objects placed), load no kernel overload of their own: none is
+    with the default masking (objects placed, with their own matching: ``objects.block_size``), load no kernel overload of their own: none is
     loaded from numba's cache (tens of ms, holding the GIL) or compiled inside the frame loop."""
     from dynastereo.api import run_sequence
     from dynastereo.config import Config
@@ -388,15 +389,16 @@ def test_the_warm_up_loads_every_kernel_a_run_calls(kitti06, models_dir, tmp_pat
 
     warm_up_kernels()
     calib = KittiSequence(kitti06).calibration
-    WorldObjects(calib)
+    own = Config().with_overrides({"objects.block_size": 11})  # the objects' own matching too
+    WorldObjects.from_config(calib, own)
     build_masker(Config(), calib, models_dir=models_dir).warm_up(calib.height, calib.width)
     before = _kernel_signatures()
     run_sequence(kitti06, tmp_path / "r", Config().with_overrides({"masker.kind": "none"}), stereo_check=False)
-    run_sequence(kitti06, tmp_path / "m", Config(), stereo_check=False, frames="0-12", models_dir=models_dir)
+    run_sequence(kitti06, tmp_path / "m", own, stereo_check=False, frames="0-12", models_dir=models_dir)
     after = _kernel_signatures()
     called = {k: v for k, v in after.items() if v}
     assert len(called) >= 22 and any("objects._kalman" in k for k in called)  # the runs went through them
     assert all(any(name in k for k in called)
                for name in ("outline._fill_rows", "outline._peak_bins", "_median_flow", "_greedy_regions",
-                            "transfer._affine_paint"))
+                            "transfer._affine_paint", "object_disparity.object_disparity"))
     assert {k: sorted(v - before.get(k, set())) for k, v in after.items() if v - before.get(k, set())} == {}

@@ -211,6 +211,7 @@ def run(
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
     save_masks: bool = typer.Option(False, "--save-masks", help="Also write DIR/masks/{left,right}/NNNNNN.png."),
     mask_all: bool = typer.Option(False, "--mask-all", help="Mask every detection, moving or not (the thesis; motion.mode: all). Default: only objects judged moving or not yet judged."),
+    object_block: Optional[int] = typer.Option(None, "--object-block", help="Match the objects' outlines again with this block for their world positions (objects.block_size; 11 on small images; 0: the masker's disparity, default)."),
     bag: Optional[Path] = typer.Option(None, "--bag", help="Read a ROS bag instead of a folder: ROS 1 .bag, ROS 2 .db3 (or bag directory), .mcap. Writes DIR/output.<same format> too."),
     left_topic: str = typer.Option("/camera/left/image_raw", "--left-topic", help="[--bag] Left sensor_msgs/Image or CompressedImage topic."),
     right_topic: str = typer.Option("/camera/right/image_raw", "--right-topic", help="[--bag] Right image topic."),
@@ -242,7 +243,7 @@ def run(
                      "detector.canvas": canvas, "detector.schedule": schedule,
                      "slam.loop_closing": False if no_loop_closing else None,
                      "slam.vocabulary": str(vocabulary) if vocabulary else None,
-                     "motion.mode": "all" if mask_all else None}
+                     "motion.mode": "all" if mask_all else None, "objects.block_size": object_block}
         spec = JobSpec(JobKind.RUN, _run_source(sequence, bag, calib, rate, config, left_topic, right_topic,
                                                 left_info, right_info, sync_tolerance, rectify, bag_outputs),
                        OutputSpec(out, overwrite=overwrite, save_masks=save_masks, save_map=save_map,

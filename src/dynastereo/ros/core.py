@@ -271,8 +271,7 @@ class StereoNodeCore:
             with _sigint_blocked():  # threads started meanwhile (the BA's) inherit it: Ctrl-C is the main thread's
                 p.system = System(self.cfg, self.calibration)
             p.motion = build_motion(self.cfg, self.calibration, p.masker)
-            p.world = WorldObjects(self.calibration, sigma_disparity=self.cfg.motion.sigma_disparity,
-                                   sigma_px=self.cfg.motion.sigma_px)
+            p.world = WorldObjects.from_config(self.calibration, self.cfg)
             self.source.calibration = self.calibration
             self._calib_in = calibration
             return True

@@ -25,7 +25,7 @@ from __future__ import annotations
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import as_interrupt
 from ..io.base import Sequence
@@ -41,6 +41,9 @@ from .sinks import (DisparitySink, MaskSink, ObjectsLogSink, ObserverSink, Overl
                     TrajectorySink)
 from .sources import SequenceSource, open_sequence_source
 from .spec import JobKind, JobSpec
+
+if TYPE_CHECKING:
+    from ..config import Config
 
 
 @dataclass
@@ -128,7 +131,7 @@ def assemble(spec: JobSpec, seq: Sequence, observers: tuple[FrameObserver, ...],
     from ..masking.motion import build_motion
 
     motion = build_motion(spec.config, seq.calibration, masker)
-    world = _world_objects(seq, masker, motion)
+    world = _world_objects(seq, masker, spec.config)
     return Job(spec, seq, indices, FrameProcessor(source, masker, system=system, motion=motion, world=world),
                observers=observers, map_info=info)
 
@@ -185,15 +188,13 @@ def _slam_system(spec: JobSpec, seq: Sequence) -> tuple[Any, dict]:
     return system, {"loaded": str(spec.load_map), "localize_only": bool(spec.localize_only)}
 
 
-def _world_objects(seq: Sequence, masker: Any, motion: Any) -> Any:
+def _world_objects(seq: Sequence, masker: Any, cfg: Config) -> Any:
     """The objects' world tracker of a masked run (slam.objects), or None."""
     if masker is None or getattr(seq, "calibration", None) is None:
         return None
     from ..slam.objects import WorldObjects
 
-    mc = getattr(motion, "cfg", None)
-    kw = {"sigma_disparity": mc.sigma_disparity, "sigma_px": mc.sigma_px} if mc is not None else {}
-    return WorldObjects(seq.calibration, **kw)
+    return WorldObjects.from_config(seq.calibration, cfg)
 
 
 def _close_sinks(job: Job) -> None:

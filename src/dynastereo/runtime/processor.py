@@ -132,6 +132,6 @@ class FrameProcessor:
                     motion.update(masks, tracked, self.system)
             if self.world is not None and masks is not None:
                 with timer.stage("objects"):
-                    self.world.update(masks, tracked.pose, str(tracked.status) in ("tracked", "init"), stamp)
+                    self.world.update(masks, tracked.pose, str(tracked.status) in ("tracked", "init"), stamp, frame)
         return Processed(position, item.index, stamp, frame, masks, slam_masks, tracked.pose, str(tracked.status),
                          payload=item.payload)

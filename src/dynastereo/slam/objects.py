@@ -98,13 +98,17 @@ import csv
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..compiled import jit
-from ..datatypes import StereoCalibration, StereoMasks
+from ..datatypes import StereoCalibration, StereoFrame, StereoMasks
+from ..masking.object_disparity import ObjectStereo
 from ..viz.draw import VERDICT_COLOURS
+
+if TYPE_CHECKING:
+    from ..config import Config
 
 __all__ = ["ObjectState", "WorldObjects", "TrackWriter", "CLASS_SIZE", "TRACKS_NAME", "read_tracks", "verdict_rgb",
            "box_corners", "ObjectPaths"]
@@ -659,13 +663,14 @@ def _class_size(label: str) -> tuple[float, float, float]:
 
 
 class WorldObjects:
-    """Per stream of frames: ``update(masks, pose, ok, stamp)`` after each tracked frame
-    (module doc).  ``accel_noise``: the filter's white acceleration noise (m²/s³);
+    """Per stream of frames: ``update(masks, pose, ok, stamp, frame)`` after each tracked
+    frame (module doc).  ``accel_noise``: the filter's white acceleration noise (m²/s³);
     ``sigma_disparity`` / ``sigma_px``: stereo noise (px); ``max_gap``: seconds after
-    which an unseen track is forgotten."""
+    which an unseen track is forgotten; ``stereo``: the objects' own block matching
+    (``objects.block_size``; None: the masker's disparity)."""
 
     def __init__(self, calibration: StereoCalibration, *, accel_noise: float = 2.0, sigma_disparity: float = 0.5,
-                 sigma_px: float = 0.5, max_gap: float = 2.0):
+                 sigma_px: float = 0.5, max_gap: float = 2.0, stereo: ObjectStereo | None = None):
         self.gate = GATE
         self.restarts = 0
         self.calib = calibration
@@ -673,6 +678,9 @@ class WorldObjects:
         self.sigma_d = float(sigma_disparity)
         self.sigma_px = float(sigma_px)
         self.max_gap = float(max_gap)
+        self.stereo = stereo
+        if stereo is not None:
+            stereo.warm_up()
         self._x: dict[int, np.ndarray] = {}  # track -> state (6,)
         self._P: dict[int, np.ndarray] = {}  # track -> covariance (6, 6)
         self._t: dict[int, float] = {}  # track -> stamp of its last update
@@ -693,6 +701,13 @@ class WorldObjects:
                  1.0, np.zeros((0, 3)), np.zeros(0, np.bool_), np.zeros(0), np.zeros((0, 2)))
         _kalman(np.zeros((0, 6)), np.zeros((0, 6, 6)), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.ones(3),
                 np.zeros(0), np.zeros(0, np.bool_), SPEED_DIRECTION, SPEED_SIGMA, STILL_SIGMA, np.zeros(0))
+
+    @classmethod
+    def from_config(cls, calibration: StereoCalibration, cfg: Config) -> "WorldObjects":
+        """The tracker a run of ``cfg`` uses: the motion test's stereo noise, the objects'
+        own matching (``objects.*``)."""
+        return cls(calibration, sigma_disparity=cfg.motion.sigma_disparity, sigma_px=cfg.motion.sigma_px,
+                   stereo=ObjectStereo.from_config(cfg.objects, cfg.stereo))
 
     def outside_movers(self, points: np.ndarray, margin: float = 0.5) -> np.ndarray:
         """(M,) bool: the world ``points`` (M, 3) outside every box (grown by ``margin`` m)
@@ -719,13 +734,14 @@ class WorldObjects:
 
     # ------------------------------------------------------------------ measurement
     def measure(self, masks: StereoMasks, head_c: np.ndarray, sizes: np.ndarray,
-                v_known: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+                v_known: np.ndarray | None = None, frame: StereoFrame | None = None) -> tuple[np.ndarray, ...]:
         """Per object (``head_c`` (N, 2): heading (x, z) in the camera's top view; ``sizes``
         (N, 3) width, height, length; ``v_known`` (N,): whether the heading is the track's
         velocity's): (valid (N,), centre in the camera (N, 3), range sigma of the median
         disparity (N,), box width / height at unit depth (N, 2), cut by the image's left /
         right side (N,), the heading used (N, 2): a moving vehicle's from its points where
-        they show it): module doc."""
+        they show it): module doc.  With ``frame`` and the objects' own matching
+        (``stereo``), the outlines' disparity is matched again first."""
         c = self.calib
         objs = masks.objects
         N = len(objs)
@@ -750,6 +766,8 @@ class WorldObjects:
             bi[:, 3] = np.clip(np.ceil(boxes[:, 3]), 0, h_img)
             labels = masks.labels_left
             use = labels is not None and labels.shape == disp.shape
+            if use and frame is not None and self.stereo is not None:
+                disp, _ = self.stereo(frame.left_gray, frame.right_gray, labels, disp, bi)
             peak = np.array([o.disparity for o in objs], np.float64)
             if self._hist.shape[0] < N:  # the kernel leaves them zeroed: allocated once
                 self._hist = np.zeros((N, N_BINS), np.int32)
@@ -768,10 +786,11 @@ class WorldObjects:
 
     # ------------------------------------------------------------------ the frame
     def update(self, masks: StereoMasks | None, pose: np.ndarray, ok: bool = True,
-               stamp: float | None = None) -> list[ObjectState | None]:
+               stamp: float | None = None, frame: StereoFrame | None = None) -> list[ObjectState | None]:
         """The states of ``masks.objects`` in this frame (None: no disparity, or the pose
         was lost), also set as each object's ``world``; ``pose``: 3x4 / 4x4 camera-to-world;
-        ``stamp``: seconds (default: 0.1 s a frame)."""
+        ``stamp``: seconds (default: 0.1 s a frame); ``frame``: the stereo pair, for the
+        objects' own matching (``stereo``; without it, the masker's disparity)."""
         if masks is None or not masks.objects:
             self.last = []
             return []
@@ -797,7 +816,7 @@ class WorldObjects:
         head_c = head_w @ R  # into the camera: R^T h
         head_c[:, 1] = 0.0
         head_c /= np.maximum(np.linalg.norm(head_c, axis=1), 1e-9)[:, None]
-        valid, X_c, sigma_r, size_unit, cut, h2 = self.measure(masks, head_c[:, [0, 2]], sizes, moves)
+        valid, X_c, sigma_r, size_unit, cut, h2 = self.measure(masks, head_c[:, [0, 2]], sizes, moves, frame)
         head_c[:, 0], head_c[:, 2] = h2[:, 0], h2[:, 1]
         r_c = np.linalg.norm(X_c, axis=1)
         ray = X_c / np.maximum(r_c, 1e-9)[:, None]
