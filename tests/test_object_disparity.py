@@ -16,7 +16,7 @@ from dynastereo.masking.object_disparity import ObjectStereo
 from dynastereo.slam.objects import WorldObjects
 
 H, W = 192, 480
-BOX = (200, 60, 300, 140)  # x0, y0, x1, y1 of the object (a plane facing the camera)
+BOX = (200, 70, 270, 130)  # x0, y0, x1, y1 of the object (a plane facing the camera; 4,200 px)
 D_OBJ, D_BG = 14.3, 6.0
 
 
@@ -130,9 +130,21 @@ def test_a_stride_matches_every_other_row_and_column(scene):
     assert np.array_equal(row[0::2], row[1::2]) and not np.array_equal(full[y0 + 10, x0:x0 + 40:2],
                                                                       full[y0 + 10, x0 + 1:x0 + 41:2])
     assert np.array_equal(out[y0 + 10, x0:x0 + 40], out[y0 + 11, x0:x0 + 40])
-    # the box has 8,000 pixels: with samples 2,000 it is matched at stride 2, as above
+    # the box has 4,200 pixels: with samples 2,000 it is matched at stride 2, as above
     auto, _ = ObjectStereo(11, samples=2000)(left, right, labels, disp, _boxes())
     assert np.array_equal(auto, out)
+
+
+def test_a_box_larger_than_max_area_keeps_the_maskers(scene):
+    """Objects much larger than the masker's block gain nothing from a smaller one: a box
+    beyond ``max_area`` pixels (the configuration's: 20 of the masker's blocks) is left as
+    the masker matched it."""
+    left, right, labels, disp = scene
+    out, matched = ObjectStereo(11, max_area=4199)(left, right, labels, disp, _boxes())
+    assert matched.tolist() == [-1] and np.array_equal(out, disp)
+    assert ObjectStereo(11, max_area=4200)(left, right, labels, disp, _boxes())[1][0] > 0
+    cfg = Config().with_overrides({"objects.block_size": 11, "stereo.block_size": 13})
+    assert ObjectStereo.from_config(cfg.objects, cfg.stereo).max_area == 20 * 13 * 13
 
 
 def test_bad_inputs_are_one_line_errors(scene):
@@ -144,7 +156,7 @@ def test_bad_inputs_are_one_line_errors(scene):
 def test_the_configuration_sets_it():
     assert ObjectStereo.from_config(ObjectsConfig(), StereoConfig()) is None  # the default: the masker's
     s = ObjectStereo.from_config(ObjectsConfig(block_size=11, stride=2), StereoConfig(uniqueness_ratio=15))
-    assert (s.block, s.stride, s.uniqueness_ratio, s.speckle_window_size) == (11, 2, 15, 100)
+    assert (s.block, s.stride, s.uniqueness_ratio, s.speckle_window_size, s.max_area) == (11, 2, 15, 100, 4500)
     for bad in ({"objects.block_size": 4}, {"objects.block_size": 3}, {"objects.stride": 0}):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             Config().with_overrides(bad)

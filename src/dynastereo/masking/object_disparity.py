@@ -45,6 +45,7 @@ WINDOW_MARGIN = 2  # ... widened by this many pixels on each side
 WINDOW_MIN = 16  # disparities searched at least (a multiple of 16 as BM's)
 MIN_PIXELS = 10  # an outline with fewer disparities keeps the masker's
 SAMPLES = 2000  # pixels matched in a box at most, about (a larger box: every st-th row and column)
+MAX_BOX_BLOCKS = 20  # a box larger than this many of the masker's blocks keeps the masker's disparity
 
 
 @jit
@@ -292,7 +293,8 @@ def _remove_speckles(dc, max_size, max_diff, stack, seen, region):
 
 
 @jit
-def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_size, spk_diff, st, samples):
+def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_size, spk_diff, st, samples,
+                     max_area):
     """Every object's outline matched again (module doc), one call a frame.
 
     ``L`` / ``R``: the rectified gray images (uint8); ``labels``: the left instance labels
@@ -300,7 +302,8 @@ def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_si
     ``boxes`` (N, 4) int64: x0, y0, x1, y1 around each object's pixels (clipped to the
     image); ``st``: every st-th row and column matched (a pixel takes its sample's value),
     more apart in a box of more than ``samples`` pixels (0: no limit) so that about that
-    many are matched.
+    many are matched; a box of more than ``max_area`` pixels (0: no limit) keeps the
+    masker's disparity.
     Returns (the masker's disparity with the outlines' pixels matched again: 0 where a
     check failed; (N,) the pixels matched per object, -1: too few disparities to set a
     window, the masker's kept)."""
@@ -316,7 +319,7 @@ def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_si
     seen = np.empty(labels.shape, np.bool_)
     for k in range(N):
         x0, y0, x1, y1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
-        if x1 <= x0 or y1 <= y0:
+        if x1 <= x0 or y1 <= y0 or (max_area > 0 and (x1 - x0) * (y1 - y0) > max_area):
             continue
         sk = st
         if samples > 0:
@@ -341,6 +344,7 @@ class ObjectStereo:
     speckle_window_size: int = 100
     speckle_range: int = 2
     samples: int = SAMPLES
+    max_area: int = 0
 
     @classmethod
     def from_config(cls, objects: ObjectsConfig, stereo: StereoConfig) -> "ObjectStereo | None":
@@ -349,7 +353,7 @@ class ObjectStereo:
             return None
         return cls(int(objects.block_size), int(objects.stride), int(stereo.pre_filter_cap),
                    int(stereo.uniqueness_ratio), int(stereo.disp12_max_diff), int(stereo.speckle_window_size),
-                   int(stereo.speckle_range))
+                   int(stereo.speckle_range), max_area=MAX_BOX_BLOCKS * int(stereo.block_size) ** 2)
 
     def __call__(self, left: np.ndarray, right: np.ndarray, labels: np.ndarray, disp: np.ndarray,
                  boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -362,7 +366,8 @@ class ObjectStereo:
                                 np.ascontiguousarray(labels, np.int32), np.ascontiguousarray(disp, np.float32),
                                 np.ascontiguousarray(boxes, np.int64).reshape(-1, 4), self.block,
                                 self.pre_filter_cap, self.uniqueness_ratio, self.disp12_max_diff,
-                                self.speckle_window_size, self.speckle_range, self.stride, self.samples)
+                                self.speckle_window_size, self.speckle_range, self.stride, self.samples,
+                                self.max_area)
 
     def warm_up(self) -> None:
         """The kernel loaded (compiled or from the cache) before the frame loop."""
