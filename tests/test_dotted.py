@@ -57,7 +57,7 @@ def test_ros_node_config_from_params_flattens_each_section() -> None:
 
     class FakeRospy:
         params = {"~stereo": {"wls": True, "p1": None}, "~masker": {"outline": {"dilate": 4}}, "~seed": 7,
-                  "~slam": "not a dict"}
+                  "~slam": "not a dict", "~objects": {"block_size": 11}}
 
         def get_param(self, name, default=None):
             return self.params.get(name, default)
@@ -67,3 +67,4 @@ def test_ros_node_config_from_params_flattens_each_section() -> None:
 
     cfg = config_from_params(FakeRospy())
     assert (cfg.stereo.wls, cfg.stereo.p1, cfg.masker.outline.dilate, cfg.seed) == (True, None, 4, 7)
+    assert cfg.objects.block_size == 11

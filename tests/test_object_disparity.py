@@ -31,12 +31,12 @@ def _texture(seed: int, flat_from: int | None = None) -> np.ndarray:
     return t
 
 
-def _pair(flat_half: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _pair(flat_from: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(left, right, labels): a textured background at D_BG and a plane at D_OBJ in BOX
-    (``flat_half``: its right half without texture)."""
+    (without texture from column ``flat_from`` on)."""
     x0, y0, x1, y1 = BOX
     bg = _texture(1)
-    obj = _texture(2, flat_from=(x0 + x1) // 2 if flat_half else None)
+    obj = _texture(2, flat_from=flat_from)
     xs = np.arange(W, dtype=np.float32)[None, :].repeat(H, 0)
     ys = np.arange(H, dtype=np.float32)[:, None].repeat(W, 1)
     inside = (ys >= y0) & (ys < y1)
@@ -91,7 +91,7 @@ def test_a_pixel_failing_bm_checks_gets_no_disparity():
     """The object's right half has no texture: its pixels fail the uniqueness test (and
     the speckle filter) there, as in BM -- none of them keeps a disparity -- while the
     textured half is matched."""
-    left, right, labels = _pair(flat_half=True)
+    left, right, labels = _pair(flat_from=(BOX[0] + BOX[2]) // 2)
     disp = StereoMatcher(StereoConfig()).compute(left, right)
     out, _ = ObjectStereo(11)(left, right, labels, disp, _boxes())
     x0, y0, x1, y1 = BOX
@@ -104,6 +104,19 @@ def test_a_pixel_failing_bm_checks_gets_no_disparity():
     loose = ObjectStereo(11, uniqueness_ratio=0, disp12_max_diff=-1, speckle_window_size=0)
     out2, _ = loose(left, right, labels, disp, _boxes())
     assert np.count_nonzero(out2[y0 + 6:y1 - 6, mid + 8:x1] > 0) > 0.5 * flat.size
+
+
+def test_an_outline_mostly_failing_the_checks_keeps_the_maskers():
+    """An object textured only on its first 10 of 70 columns: fewer than 30 % of its pixels
+    pass the checks -- too few for the objects' stage to measure (``MIN_VALID_FRACTION``) --
+    so the masker's disparity stays, which it may measure."""
+    left, right, labels = _pair(flat_from=BOX[0] + 10)
+    disp = np.where(labels == 1, np.float32(D_OBJ), StereoMatcher(StereoConfig()).compute(left, right))
+    out, matched = ObjectStereo(11, samples=0)(left, right, labels, disp, _boxes())
+    assert matched.tolist() == [-1] and np.array_equal(out, disp)
+    # the same object textured on half its columns is matched again
+    left, right, labels = _pair(flat_from=BOX[0] + 35)
+    assert ObjectStereo(11, samples=0)(left, right, labels, disp, _boxes())[1][0] > 0
 
 
 def test_an_outline_without_disparities_keeps_the_maskers(scene):

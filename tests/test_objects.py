@@ -158,6 +158,30 @@ def test_run_writes_objects_in_the_world(convoy_run):
     assert "<h2>Objects in the world</h2>" in page and 'alt="objects&#x27; paths, top view"' in page
 
 
+def test_run_with_the_objects_own_matching(convoy_run, tmp_path):
+    """``--object-block 11`` (objects.block_size) moves the positions, not the masks: the
+    same objects masked in every frame, their positions from their own matching."""
+    from dynastereo.synth import read_objects
+
+    seq, base = convoy_run
+    app = __import__("dynastereo.cli.main", fromlist=["app"]).app
+    out = tmp_path / "own"
+    r = runner.invoke(app, ["run", str(seq), "--out", str(out), "--detector", "oracle", "--object-block", "11"])
+    assert r.exit_code == 0, r.output
+    read = lambda d: [json.loads(line) for line in (d / "objects.jsonl").read_text().splitlines()]  # noqa: E731
+    a, b = read(base), read(out)
+    assert [[o["masked"] for o in r["objects"]] for r in a] == [[o["masked"] for o in r["objects"]] for r in b]
+    moved = [np.linalg.norm(np.subtract(p["camera"], q["camera"])) for ra, rb in zip(a, b)
+             for p, q in zip(ra["objects"], rb["objects"]) if "camera" in p and "camera" in q]
+    assert len(moved) >= 10 and max(moved) > 0.01
+    gt = read_objects(seq)
+    err = [np.linalg.norm(np.subtract(o["camera"], g.position_cam)) for r in b
+           for o in r["objects"] for g in gt.frame(r["frame"]) if g.id == o["track"] and "camera" in o and g.distance < 30]
+    assert len(err) >= 10 and np.median(err) < 1.0
+    bad = runner.invoke(app, ["run", str(seq), "--out", str(tmp_path / "bad"), "--object-block", "4"])
+    assert bad.exit_code != 0 and "objects.block_size must be 0" in bad.output
+
+
 def test_save_cloud_loads_back_without_movers(convoy_run):
     _, out = convoy_run
     pts = _read_ply(out / "static.ply")

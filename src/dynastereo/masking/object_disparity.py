@@ -45,6 +45,7 @@ WINDOW_MARGIN = 2  # ... widened by this many pixels on each side
 WINDOW_MIN = 16  # disparities searched at least (a multiple of 16 as BM's)
 MIN_PIXELS = 10  # an outline with fewer disparities keeps the masker's
 SAMPLES = 2000  # pixels matched in a box at most, about (a larger box: every st-th row and column)
+KEEP_FRACTION = 0.3  # matched on fewer of an outline's pixels: the masker's kept (objects.MIN_VALID_FRACTION)
 MAX_BOX_BLOCKS = 20  # a box larger than this many of the masker's blocks keeps the masker's disparity
 
 
@@ -115,10 +116,11 @@ def _window(labels, disp, k, x0, y0, x1, y1, step, hist):
 
 
 @jit
-def _match_box(L, R, labels, k, x0, y0, x1, y1, lo, n, block, cap, uniq, lr_max, spk_size, spk_diff, st,
+def _match_box(L, R, labels, disp, k, x0, y0, x1, y1, lo, n, block, cap, uniq, lr_max, spk_size, spk_diff, st,
                out, stack, seen, region):
     """Object k's box: BM over the window lo..lo+n-1, checks as BM's; writes its outline's
-    pixels into ``out`` (px; 0: a check failed).  Returns the number of pixels matched."""
+    pixels into ``out`` (px; 0: a check failed).  Returns the number of pixels matched, or -1
+    when fewer than KEEP_FRACTION of the outline's pixels were (the masker's values kept)."""
     h = block // 2
     bw = x1 - x0
     bh = y1 - y0
@@ -230,6 +232,7 @@ def _match_box(L, R, labels, k, x0, y0, x1, y1, lo, n, block, cap, uniq, lr_max,
         # on the grid: a region of spk_size pixels has spk_size / st^2 samples, st pixels apart
         _remove_speckles(dc, spk_size // (st * st), spk_diff * st, stack, seen, region)
     m = 0
+    total = 0
     for yy in range(bh):
         lab = labels[y0 + yy]
         o = out[y0 + yy]
@@ -238,6 +241,7 @@ def _match_box(L, R, labels, k, x0, y0, x1, y1, lo, n, block, cap, uniq, lr_max,
         c = 0
         for xo in range(bw):
             if lab[x0 + xo] == k + 1:
+                total += 1
                 v = g[gx]
                 if v != INVALID:
                     o[x0 + xo] = v / 16.0
@@ -248,6 +252,15 @@ def _match_box(L, R, labels, k, x0, y0, x1, y1, lo, n, block, cap, uniq, lr_max,
             if c == st:
                 c = 0
                 gx += 1
+    if m < KEEP_FRACTION * total:
+        # too few pixels passed the checks for the objects' stage to measure the outline
+        # (objects.MIN_VALID_FRACTION): the masker's disparity, which it may measure, stays
+        for yy in range(bh):
+            lab = labels[y0 + yy]
+            for xo in range(bw):
+                if lab[x0 + xo] == k + 1:
+                    out[y0 + yy, x0 + xo] = disp[y0 + yy, x0 + xo]
+        return -1
     return m
 
 
@@ -326,7 +339,7 @@ def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_si
             sk = max(st, int(np.ceil(np.sqrt((x1 - x0) * (y1 - y0) / samples))))
         lo, n = _window(labels, disp, k, x0, y0, x1, y1, sk, hist)
         if n > 0:
-            res[k] = _match_box(L, R, labels, k, x0, y0, x1, y1, lo, n, block, cap, uniq, lr_max, spk_size,
+            res[k] = _match_box(L, R, labels, disp, k, x0, y0, x1, y1, lo, n, block, cap, uniq, lr_max, spk_size,
                                 spk_diff, sk, out, stack, seen, region)
     return out, res
 

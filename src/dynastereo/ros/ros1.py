@@ -33,7 +33,7 @@ Parameters (private)
     ``~stereo/*``, ``~masker/*``, ``~detector/*`` -- the Config sections; changed at run time
     (``rosparam set /dynastereo/stereo/block_size 21``), polled every ``~param_poll_period``
     s; a bad value is refused (logged) and set back.  ``~queue_size`` (default 1) is live too.
-    ``~slam/*``, ``~seed``, ``~config`` (YAML), ``~calib`` (calibration YAML used instead of
+    ``~slam/*``, ``~objects/*``, ``~seed``, ``~config`` (YAML), ``~calib`` (calibration YAML used instead of
     CameraInfo), ``~models_dir``, ``~rectify`` (auto/yes/no), ``~pipelined``, ``~sync_slop``,
     ``~sync_queue_size``, ``~odom_frame``, ``~camera_frame``, ``~publish_tf``, ``~save_dir``,
     ``~save_on_shutdown`` are read at start-up.  On start-up the node writes the complete
@@ -145,12 +145,12 @@ def _nested(d: dict[str, Any]) -> dict[str, Any]:
 
 
 def config_from_params(rospy: Any) -> Config:
-    """``~config`` YAML (if any) with the ``~stereo``, ``~masker``, ``~detector``, ``~slam``
-    and ``~seed`` parameters on top."""
+    """``~config`` YAML (if any) with the ``~stereo``, ``~masker``, ``~detector``, ``~slam``,
+    ``~objects`` and ``~seed`` parameters on top."""
     path = rospy.get_param("~config", "") or None
     cfg = load_config(path)
     overrides: dict[str, Any] = {}
-    for section in LIVE_SECTIONS + ("slam",):
+    for section in LIVE_SECTIONS + ("slam", "objects"):
         v = rospy.get_param("~" + section, None)
         if isinstance(v, dict):
             overrides.update(flatten_dotted(v, section))
@@ -230,7 +230,7 @@ class Ros1Node:
 
         # the complete effective configuration on the parameter server
         d = _nested(to_dict(self.cfg))
-        for section in LIVE_SECTIONS + ("slam",):
+        for section in LIVE_SECTIONS + ("slam", "objects"):
             rospy.set_param("~" + section, d[section])
         rospy.set_param("~seed", self.cfg.seed)
         rospy.set_param("~queue_size", self.core.queue_size)
