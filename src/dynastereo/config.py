@@ -652,8 +652,8 @@ class ObjectsConfig:
     there, with StereoBM's checks as ``stereo.*`` sets them (``masking/object_disparity.py``)
     -- positions from a smaller block than the masks want, without the masks and the motion
     test paying for it: 11 on small images (640 px wide: synthetic held-out positions 0.310 ->
-    0.28 m, at 1.5-3.4 ms a frame more; README).  ``stride``: every stride-th row and column
-    matched (2: a quarter of the work)."""
+    0.286 m, at 0.2-1.1 ms a frame more; README).  ``stride``: every stride-th row and column
+    matched at least (2: a quarter of the work)."""
 
     block_size: int = 0
     stride: int = 1

@@ -21,6 +21,14 @@ sub-pixel step (the equiangular fit BM uses, not a parabola), the left-right che
 All of them matter: replayed over the development seeds' masks, a plain SAD search with a
 parabola made the positions worse (0.290-0.300 m against 0.273), the speckle filter alone is
 worth 4 cm.  Pixels that fail a check get no disparity (0), as BM's do.
+
+What is matched: the outlines in boxes of at most ``max_area`` pixels (the configuration's:
+20 of the masker's blocks -- a larger object gains nothing from a smaller block, and the
+large boxes were most of the cost), on about ``samples`` (2,000) pixels of a box at most (a
+larger box on every st-th row and column, each pixel taking its sample's value; the speckle
+filter's region size and range follow the grid).  An outline matched on fewer than 30 % of
+its pixels keeps the masker's disparity: the objects' stage would not measure it otherwise
+(``slam.objects.MIN_VALID_FRACTION``).
 """
 
 from __future__ import annotations

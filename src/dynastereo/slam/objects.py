@@ -1,8 +1,9 @@
 """Every object's track in the world: position, velocity, speed and extent from stereo.
 
 The masker outlines each detected object (``StereoMasks.labels_left``) and computes the
-disparity in its box (``StereoMasks.box_disparity``); SLAM gives the frame's camera pose.
-:class:`WorldObjects` turns them, per frame and object, into an :class:`ObjectState` in
+disparity in its box (``StereoMasks.box_disparity``; with ``objects.block_size`` the
+outlines are matched again with that block first, ``masking.object_disparity``); SLAM gives
+the frame's camera pose.  :class:`WorldObjects` turns them, per frame and object, into an :class:`ObjectState` in
 the trajectory's frame (the first camera's: x right, y down, z forward):
 
 * **Measurement** (one compiled pass over the objects' boxes, :func:`_object_stats`, then
