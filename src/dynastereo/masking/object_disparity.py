@@ -315,7 +315,7 @@ def _remove_speckles(dc, max_size, max_diff, stack, seen, region):
 
 @jit
 def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_size, spk_diff, st, samples,
-                     max_area):
+                     max_area, out):
     """Every object's outline matched again (module doc), one call a frame.
 
     ``L`` / ``R``: the rectified gray images (uint8); ``labels``: the left instance labels
@@ -324,12 +324,13 @@ def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_si
     image); ``st``: every st-th row and column matched (a pixel takes its sample's value),
     more apart in a box of more than ``samples`` pixels (0: no limit) so that about that
     many are matched; a box of more than ``max_area`` pixels (0: no limit) keeps the
-    masker's disparity.
-    Returns (the masker's disparity with the outlines' pixels matched again: 0 where a
-    check failed; (N,) the pixels matched per object, -1: too few disparities to set a
-    window, the masker's kept)."""
+    masker's disparity.  ``out`` (like ``disp``; a buffer kept between frames saves the
+    page faults of a new one) becomes the masker's disparity with the outlines' pixels
+    matched again (0 where a check failed).  Returns (N,) the pixels matched per object (-1:
+    the masker's kept -- too few disparities to set a window, too few pixels passing the
+    checks, or a box too large)."""
     N = boxes.shape[0]
-    out = disp.copy()
+    out[:] = disp
     res = np.full(N, -1, np.int64)
     hist = np.zeros(HIST_BINS, np.int64)
     largest = 1
@@ -349,7 +350,7 @@ def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_si
         if n > 0:
             res[k] = _match_box(L, R, labels, disp, k, x0, y0, x1, y1, lo, n, block, cap, uniq, lr_max, spk_size,
                                 spk_diff, sk, out, stack, seen, region)
-    return out, res
+    return res
 
 
 @dataclass(frozen=True)
@@ -377,18 +378,20 @@ class ObjectStereo:
                    int(stereo.speckle_range), max_area=MAX_BOX_BLOCKS * int(stereo.block_size) ** 2)
 
     def __call__(self, left: np.ndarray, right: np.ndarray, labels: np.ndarray, disp: np.ndarray,
-                 boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                 boxes: np.ndarray, out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(disparity, pixels matched per object): :func:`object_disparity` over gray uint8
-        images and int64 boxes."""
+        images and int64 boxes, into ``out`` (float32 like ``disp``; None: a new array)."""
         if left.shape != labels.shape or right.shape != labels.shape or disp.shape != labels.shape:
             raise ValueError(f"object disparity: images {left.shape} / {right.shape}, labels {labels.shape} and "
                              f"disparity {disp.shape} must have one shape")
-        return object_disparity(np.ascontiguousarray(left, np.uint8), np.ascontiguousarray(right, np.uint8),
+        if out is None or out.shape != disp.shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+            out = np.empty(disp.shape, np.float32)
+        return out, object_disparity(np.ascontiguousarray(left, np.uint8), np.ascontiguousarray(right, np.uint8),
                                 np.ascontiguousarray(labels, np.int32), np.ascontiguousarray(disp, np.float32),
                                 np.ascontiguousarray(boxes, np.int64).reshape(-1, 4), self.block,
                                 self.pre_filter_cap, self.uniqueness_ratio, self.disp12_max_diff,
                                 self.speckle_window_size, self.speckle_range, self.stride, self.samples,
-                                self.max_area)
+                                self.max_area, out)
 
     def warm_up(self) -> None:
         """The kernel loaded (compiled or from the cache) before the frame loop."""

@@ -680,6 +680,7 @@ class WorldObjects:
         self.sigma_px = float(sigma_px)
         self.max_gap = float(max_gap)
         self.stereo = stereo
+        self._own_disp: np.ndarray | None = None  # its result's buffer, kept between frames
         if stereo is not None:
             stereo.warm_up()
         self._x: dict[int, np.ndarray] = {}  # track -> state (6,)
@@ -768,7 +769,8 @@ class WorldObjects:
             labels = masks.labels_left
             use = labels is not None and labels.shape == disp.shape
             if use and frame is not None and self.stereo is not None:
-                disp, _ = self.stereo(frame.left_gray, frame.right_gray, labels, disp, bi)
+                disp, _ = self.stereo(frame.left_gray, frame.right_gray, labels, disp, bi, self._own_disp)
+                self._own_disp = disp
             peak = np.array([o.disparity for o in objs], np.float64)
             if self._hist.shape[0] < N:  # the kernel leaves them zeroed: allocated once
                 self._hist = np.zeros((N, N_BINS), np.int32)
