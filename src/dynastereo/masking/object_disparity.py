@@ -205,7 +205,7 @@ def _match_box(L, R, labels, disp, k, x0, y0, x1, y1, lo, n, block, cap, uniq, l
             pi = np.int32(p)
             qi = np.int32(q)
             den = pi + qi - 2 * np.int32(best) + abs(pi - qi)
-            frac = ((pi - qi) * 256) // den if den != 0 else 0
+            frac = int(((pi - qi) * 256) / den) if den != 0 else 0  # C's division: toward zero
             dc[gy, gx] = (D * 256 + frac + 15) >> 4
             cost[gx] = best
         # left-right check among the row's pixels: the right pixel each one matched keeps
