@@ -652,7 +652,7 @@ class ObjectsConfig:
     there, with StereoBM's checks as ``stereo.*`` sets them (``masking/object_disparity.py``)
     -- positions from a smaller block than the masks want, without the masks and the motion
     test paying for it: 11 on small images (640 px wide: synthetic held-out positions 0.310 ->
-    0.286 m, at 0.2-1.0 ms a frame more; README).  ``stride``: every stride-th row and column
+    0.288 m, at 0.2-1.0 ms a frame more; README).  ``stride``: every stride-th row and column
     matched at least (2: a quarter of the work)."""
 
     block_size: int = 0
