@@ -58,8 +58,8 @@ def ground_truth(sequence: str | Path, at: str = "images"):
     ``at`` (KITTI raw only): ``"images"`` -- the poses at the images' stamps -- or
     ``"packets"`` -- the devkit's, at the OXTS packets' (:mod:`dynastereo.io.kitti_raw`)."""
     from .errors import InputError
-    from .eval.trajectory import Trajectory, find_ground_truth, read_trajectory
-    from .io.kitti_raw import GT_AT, kitti_raw_ground_truth, oxts_dir
+    from .eval.trajectory import find_ground_truth, read_trajectory
+    from .io.kitti_raw import GT_AT
 
     if at not in GT_AT:
         raise InputError(f"--at: {at!r} is not one of {', '.join(GT_AT)}")
@@ -67,10 +67,7 @@ def ground_truth(sequence: str | Path, at: str = "images"):
     if path is None:
         raise InputError("no ground truth found (KITTI odometry poses/NN.txt beside sequences/NN, or a KITTI raw "
                          "drive's oxts/)", sequence)
-    if at != "images" and path.is_dir() and oxts_dir(path) is not None:
-        g = kitti_raw_ground_truth(path, at=at)
-        return Trajectory(g.poses, g.timestamps, "ground truth", path)
-    return read_trajectory(path, name="ground truth")
+    return read_trajectory(path, name="ground truth", at=at)
 
 
 def write_ground_truth(sequence: str | Path, out: str | Path, fmt: str = "both", at: str = "images") -> list[Path]:

@@ -156,9 +156,10 @@ def find_ground_truth(sequence: str | Path) -> Path | None:
     return oxts_dir(seq) if seq.is_dir() else None
 
 
-def read_trajectory(path: str | Path, name: str | None = None) -> Trajectory:
+def read_trajectory(path: str | Path, name: str | None = None, at: str = "images") -> Trajectory:
     """Read a KITTI (12 numbers a row) or TUM (8 numbers a row) trajectory file, or the
-    OXTS ground truth of a KITTI raw drive (its folder or ``oxts/`` folder).
+    OXTS ground truth of a KITTI raw drive (its folder or ``oxts/`` folder; ``at``: the
+    times its poses are for, :func:`~dynastereo.io.kitti_raw.kitti_raw_ground_truth`'s).
 
     The format is detected from the first data row; every row must have the same
     count.  Raises :class:`InputError` (file and line named) for a missing, empty or
@@ -171,7 +172,7 @@ def read_trajectory(path: str | Path, name: str | None = None) -> Trajectory:
         if oxts_dir(path) is None:
             raise InputError("a folder, but not a KITTI raw drive with oxts/ (expected a KITTI or TUM trajectory file)",
                              path)
-        g = kitti_raw_ground_truth(path)
+        g = kitti_raw_ground_truth(path, at=at)
         return Trajectory(g.poses, g.timestamps, name or g.drive.name, path)
     try:
         text = path.read_text()
