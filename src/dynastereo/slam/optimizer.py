@@ -213,6 +213,8 @@ class LocalBAProblem:
     # self-calibration: also estimate the stereo disparity offset (``self_calibrating_ba``)
     offset_grid: tuple[float, ...] | None = None
     offset_prior_sigma: float = 0.25
+    # an estimate within this many sigmas of 0 is not significant: no offset applied
+    offset_min_sigmas: float = 2.0
 
     @property
     def bf(self) -> float:
@@ -224,8 +226,6 @@ class LocalBAProblem:
         """The observations' information weights ``1 / sigma^2``."""
         sig = np.asarray(self.sigma, np.float64)
         return 1.0 / (sig * sig)
-    # an estimate within this many sigmas of 0 is not significant: no offset applied
-    offset_min_sigmas: float = 2.0
 
 
 @dataclass
