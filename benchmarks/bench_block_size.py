@@ -34,7 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "benchmarks" / "results" / "block_size.json"
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_gt_time import run_dynastereo  # noqa: E402
+from bench_gt_time import ate_drift, run_dynastereo  # noqa: E402
 from bench_peers import clip_dirs  # noqa: E402
 
 
@@ -70,14 +70,6 @@ def halved_drive(drive: Path, work: Path) -> Path:
     return out
 
 
-def accuracy(traj: Path, gt) -> dict:
-    from dynastereo.eval import evaluate
-    from dynastereo.eval.trajectory import read_trajectory
-
-    ev = evaluate(read_trajectory(traj), gt)
-    return {"ate_m": round(float(ev.ape["rmse"]), 4), "drift_percent": round(float(ev.drift_percent), 3)}
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--blocks", default="9,11,13,15", help="blocks on the halved drive")
@@ -87,6 +79,7 @@ def main() -> int:
     args = ap.parse_args()
     from dynastereo.api import ground_truth
     from dynastereo.config import StereoConfig
+    from dynastereo.eval.trajectory import read_trajectory
 
     data = Path(os.environ.get("DYNASTEREO_DATA", ROOT.parent / "shared" / "data"))
     drive = clip_dirs(data)["raw0001"]
@@ -109,7 +102,7 @@ def main() -> int:
                         run_dynastereo(seq, out, nf, extra=("--masker", "none"))
                     else:
                         run_dynastereo(seq, out, nf, int(b))
-                    rows.append({"n_features": nf, **accuracy(out / "trajectory.kitti.txt", gt)})
+                    rows.append({"n_features": nf, **ate_drift(read_trajectory(out / "trajectory.kitti.txt"), gt)})
                     print(f"{size} ({width} px) block {b}: n_features {nf} ATE {rows[-1]['ate_m']:.4f} m drift "
                           f"{rows[-1]['drift_percent']:.3f} %", flush=True)
                 table[size][str(b)] = {"runs": rows, "ate_m": float(np.median([r["ate_m"] for r in rows])),

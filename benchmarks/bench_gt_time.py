@@ -61,17 +61,21 @@ def end_split(est: np.ndarray, gt: np.ndarray) -> dict:
             "sawtooth_m": float(np.median(np.abs(np.diff(a))))}
 
 
-def evaluate_both(traj: Path, gts: dict) -> dict:
+def ate_drift(est, gt) -> dict:
+    """ATE (APE RMSE, SE(3)-aligned, m) and end-point drift (%) of trajectory ``est``
+    against ``gt``, rounded as the benchmarks' JSON holds them."""
     from dynastereo.eval import evaluate
+
+    ev = evaluate(est, gt)
+    return {"ate_m": round(float(ev.ape["rmse"]), 4), "drift_percent": round(float(ev.drift_percent), 3)}
+
+
+def evaluate_both(traj: Path, gts: dict) -> dict:
     from dynastereo.eval.trajectory import read_trajectory
 
     est = read_trajectory(traj)
-    out = {}
-    for at, g in gts.items():
-        ev = evaluate(est, g)
-        out[at] = {"ate_m": round(float(ev.ape["rmse"]), 4), "drift_percent": round(float(ev.drift_percent), 3),
-                   **{k: round(v, 4) for k, v in end_split(est.poses, g.poses).items()}}
-    return out
+    return {at: {**ate_drift(est, g), **{k: round(v, 4) for k, v in end_split(est.poses, g.poses).items()}}
+            for at, g in gts.items()}
 
 
 def run_dynastereo(seq: Path, out: Path, n_features: int, block_size: int | None = None,
