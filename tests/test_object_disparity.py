@@ -11,7 +11,7 @@ import pytest
 from dynastereo.config import Config, ObjectsConfig, StereoConfig
 from dynastereo.datatypes import MaskMethod, ObjectMask, StereoCalibration, StereoFrame, StereoMasks
 from dynastereo.errors import ConfigError
-from dynastereo.masking.disparity import StereoMatcher
+from dynastereo.masking.disparity import StereoMatcher, params_at_scale
 from dynastereo.masking.object_disparity import ObjectStereo
 from dynastereo.slam.objects import WorldObjects
 
@@ -102,7 +102,8 @@ def test_a_pixel_failing_bm_checks_gets_no_disparity():
     assert np.count_nonzero(textured > 0) > 0.6 * textured.size
     assert np.count_nonzero(flat > 0) < 0.05 * flat.size
     # with every check off (no uniqueness, no left-right check, no speckle filter) the flat half is "matched"
-    loose = ObjectStereo(11, uniqueness_ratio=0, disp12_max_diff=-1, speckle_window_size=0)
+    loose = ObjectStereo(11, checks=params_at_scale(StereoConfig(uniqueness_ratio=0, disp12_max_diff=-1,
+                                                                 speckle_window_size=0), 1))
     out2, _ = loose(left, right, labels, disp, _boxes())
     assert np.count_nonzero(out2[y0 + 6:y1 - 6, mid + 8:x1] > 0) > 0.5 * flat.size
 
@@ -170,7 +171,8 @@ def test_bad_inputs_are_one_line_errors(scene):
 def test_the_configuration_sets_it():
     assert ObjectStereo.from_config(ObjectsConfig(), StereoConfig()) is None  # the default: the masker's
     s = ObjectStereo.from_config(ObjectsConfig(block_size=11, stride=2), StereoConfig(uniqueness_ratio=15))
-    assert (s.block, s.stride, s.uniqueness_ratio, s.speckle_window_size, s.max_area) == (11, 2, 15, 100, 4500)
+    assert (s.block, s.stride, s.checks.uniqueness_ratio, s.checks.speckle_window_size, s.max_area) == (11, 2, 15, 100,
+                                                                                                        4500)
     for bad in ({"objects.block_size": 4}, {"objects.block_size": 3}, {"objects.stride": 0}):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             Config().with_overrides(bad)

@@ -33,15 +33,17 @@ its pixels keeps the masker's disparity: the objects' stage would not measure it
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..compiled import jit
+from ..config import StereoConfig
+from .disparity import MatcherParams, params_at_scale
 
 if TYPE_CHECKING:
-    from ..config import ObjectsConfig, StereoConfig
+    from ..config import ObjectsConfig
 
 __all__ = ["ObjectStereo", "object_disparity"]
 
@@ -355,27 +357,25 @@ def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_si
 
 @dataclass(frozen=True)
 class ObjectStereo:
-    """The objects' own block matching (module doc) with StereoBM's checks as configured
-    (``stereo.*``) and its own ``block`` / ``stride`` (``objects.*``)."""
+    """The objects' own block matching (module doc): its own ``block`` / ``stride``
+    (``objects.*``), StereoBM's checks from ``checks`` -- the masker's matcher parameters
+    (:func:`~dynastereo.masking.disparity.params_at_scale`; default: the default
+    configuration's): prefilter cap, uniqueness ratio, left-right difference, speckle window
+    and range."""
 
     block: int
     stride: int = 1
-    pre_filter_cap: int = 31
-    uniqueness_ratio: int = 10
-    disp12_max_diff: int = 1
-    speckle_window_size: int = 100
-    speckle_range: int = 2
     samples: int = SAMPLES
     max_area: int = 0
+    checks: MatcherParams = field(default_factory=lambda: params_at_scale(StereoConfig(), 1))
 
     @classmethod
     def from_config(cls, objects: ObjectsConfig, stereo: StereoConfig) -> "ObjectStereo | None":
         """None when ``objects.block_size`` is 0 (positions from the masker's disparity)."""
         if not objects.block_size:
             return None
-        return cls(int(objects.block_size), int(objects.stride), int(stereo.pre_filter_cap),
-                   int(stereo.uniqueness_ratio), int(stereo.disp12_max_diff), int(stereo.speckle_window_size),
-                   int(stereo.speckle_range), max_area=MAX_BOX_BLOCKS * int(stereo.block_size) ** 2)
+        return cls(int(objects.block_size), int(objects.stride), max_area=MAX_BOX_BLOCKS * int(stereo.block_size) ** 2,
+                   checks=params_at_scale(stereo, 1))
 
     def __call__(self, left: np.ndarray, right: np.ndarray, labels: np.ndarray, disp: np.ndarray,
                  boxes: np.ndarray, out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -386,12 +386,13 @@ class ObjectStereo:
                              f"disparity {disp.shape} must have one shape")
         if out is None or out.shape != disp.shape or out.dtype != np.float32 or not out.flags.c_contiguous:
             out = np.empty(disp.shape, np.float32)
-        return out, object_disparity(np.ascontiguousarray(left, np.uint8), np.ascontiguousarray(right, np.uint8),
-                                np.ascontiguousarray(labels, np.int32), np.ascontiguousarray(disp, np.float32),
-                                np.ascontiguousarray(boxes, np.int64).reshape(-1, 4), self.block,
-                                self.pre_filter_cap, self.uniqueness_ratio, self.disp12_max_diff,
-                                self.speckle_window_size, self.speckle_range, self.stride, self.samples,
-                                self.max_area, out)
+        c = self.checks
+        matched = object_disparity(np.ascontiguousarray(left, np.uint8), np.ascontiguousarray(right, np.uint8),
+                                   np.ascontiguousarray(labels, np.int32), np.ascontiguousarray(disp, np.float32),
+                                   np.ascontiguousarray(boxes, np.int64).reshape(-1, 4), self.block,
+                                   c.pre_filter_cap, c.uniqueness_ratio, c.disp12_max_diff, c.speckle_window_size,
+                                   c.speckle_range, self.stride, self.samples, self.max_area, out)
+        return out, matched
 
     def warm_up(self) -> None:
         """The kernel loaded (compiled or from the cache) before the frame loop."""
