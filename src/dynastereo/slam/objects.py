@@ -138,8 +138,9 @@ COAST_S = 1.0  # s: an object without a measurement gets its filter's prediction
 GATE = 40.0  # chi-square (3 dof) of an innovation that restarts the track
 VERTICAL = np.diag([1.0, 1e-3, 1.0])  # the filter's acceleration noise per world axis (y: down)
 MOVING_HEADING_SPEED = 1.0  # m/s: above it, the velocity gives the heading
-_NO_V = np.zeros(3)
-_I3 = np.eye(3)
+# the columns of _track_frame's output per object: world (0-2), then
+O_SIG, O_EXT, O_HEAD, O_DIST, O_CAM, O_VEL, O_VSIG, O_SPEED = 3, 6, 9, 12, 13, 16, 19, 22  # speed, its sigma: 22, 23
+N_OUT = 24
 SPEED_DIRECTION = 0.3  # m/s: the filter's velocity gives a direction for the motion test's speed above it
 SPEED_SIGMA = 0.3  # m/s, the motion test's speed (plus 10 %)
 STILL_SIGMA = 0.1  # m/s, the velocity of an object the motion test judged static
@@ -598,6 +599,264 @@ def _kalman(x, P, z, Rz, dt, qa, speed, still, speed_dir, speed_sigma, still_sig
                 P[g, i, j] = Pn[i, j]
 
 
+@jit
+def _headings(R, slots, tx, tn, head, moves):  # pragma: no cover - compiled
+    """Per object k, in place: ``head[k]`` its heading (x, z) in the camera's top view --
+    its track's velocity when faster than ``MOVING_HEADING_SPEED`` (``moves[k]``), else the
+    camera's forward axis -- from the track table's states ``tx`` / counts ``tn`` at
+    ``slots[k]`` (-1: no track); ``R`` the camera's rotation into the world."""
+    for k in range(slots.shape[0]):
+        hw0, hw1, hw2 = R[0, 2], R[1, 2], R[2, 2]
+        moves[k] = False
+        s = slots[k]
+        if s >= 0 and tn[s] > 0:
+            v0, v1, v2 = tx[s, 3], tx[s, 4], tx[s, 5]
+            if v0 * v0 + v1 * v1 + v2 * v2 > MOVING_HEADING_SPEED ** 2:
+                hw0, hw1, hw2 = v0, v1, v2
+                moves[k] = True
+        hx = R[0, 0] * hw0 + R[1, 0] * hw1 + R[2, 0] * hw2  # into the camera: R^T h, in the top view
+        hz = R[0, 2] * hw0 + R[1, 2] * hw1 + R[2, 2] * hw2
+        nrm = max(np.sqrt(hx * hx + hz * hz), 1e-9)
+        head[k, 0] = hx / nrm
+        head[k, 1] = hz / nrm
+
+
+@jit(inline="always")
+def _speed_into(v, Pv, out, k):  # pragma: no cover - compiled
+    """``out[k]``'s velocity columns from a filter's velocity ``v`` (3,) and its covariance
+    ``Pv`` (3, 3): velocity, its sigmas per axis, speed ``|v|`` and its sigma
+    ``sqrt(vᵀ P_v v) / |v|`` (at rest: the mean axis sigma)."""
+    sp = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    vpv = 0.0
+    for i in range(3):
+        out[k, O_VEL + i] = v[i]
+        out[k, O_VSIG + i] = np.sqrt(Pv[i, i])
+        for j in range(3):
+            vpv += v[i] * Pv[i, j] * v[j]
+    out[k, O_SPEED] = sp
+    out[k, O_SPEED + 1] = (np.sqrt(vpv) / max(sp, 1e-6) if sp > 1e-6
+                           else np.sqrt((Pv[0, 0] + Pv[1, 1] + Pv[2, 2]) / 3.0))
+
+
+@jit(inline="always")
+def _to_camera(R, t_c, out, k):  # pragma: no cover - compiled
+    """``out[k]``'s camera centre from its world one: ``R^T (world - t_c)``."""
+    for j in range(3):
+        out[k, O_CAM + j] = (R[0, j] * (out[k, 0] - t_c[0]) + R[1, j] * (out[k, 1] - t_c[1])
+                             + R[2, j] * (out[k, 2] - t_c[2]))
+
+
+@jit
+def _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still, speed, R, t_c, stamp, fx, qa,
+                 gate, coast_s, tx, tP, tt, tn, tfull, thas, out, flags):  # pragma: no cover - compiled
+    """The frame's states from the measurements (module doc: uncertainty, velocity,
+    position out, no measurement), one call a frame.
+
+    Per object k: ``X_c`` / ``valid`` / ``sigma_r`` / ``size_unit`` / ``cut`` / ``head`` (x, z)
+    as :meth:`WorldObjects.measure` gives them, ``sizes`` (N, 3), its track's slot in the
+    table (``slots``, -1: no track), the motion test's verdict static (``still``) and speed
+    (``speed``, NaN: none); ``R`` / ``t_c`` the camera's pose; ``qa`` the filter's
+    acceleration noise per world axis.  The track table (``tx`` (S, 6) states, ``tP``
+    (S, 6, 6) covariances, ``tt`` stamps of the last update, ``tn`` updates, 0: no state yet;
+    ``tfull`` (S, 6) / ``thas`` a static track's last full view, world and sigma) is updated
+    in place.  Writes ``out`` (N, ``N_OUT``: world, world sigma, extent, heading in the
+    world, distance, camera centre, velocity, its sigmas, speed, its sigma) and ``flags``
+    (N, 3: 0 none / 1 measured / 2 the filter's prediction, 1 where it has a velocity, the
+    track's updates); returns the number of tracks restarted (an innovation over ``gate``)."""
+    N = X_c.shape[0]
+    Cw = np.empty((N, 3, 3))
+    for k in range(N):
+        for c in range(N_OUT):
+            out[k, c] = 0.0
+        flags[k, 0] = 0
+        flags[k, 1] = 0
+        flags[k, 2] = 1
+        x0, x1, x2 = X_c[k, 0], X_c[k, 1], X_c[k, 2]
+        r = np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+        out[k, O_DIST] = r
+        # covariance: sig_along^2 r r^T + sig_lat^2 (I - r r^T), into the world (R r)
+        sa = np.sqrt(sigma_r[k] ** 2 + (0.1 * sizes[k, 2]) ** 2)
+        sl = np.sqrt((r * max(0.05 * size_unit[k, 0] * fx, 1.0) / fx) ** 2 + (0.1 * sizes[k, 0]) ** 2)
+        a = sa * sa - sl * sl
+        b = sl * sl
+        inv = 1.0 / max(r, 1e-9)
+        hx, hz = head[k, 0], head[k, 1]
+        for i in range(3):
+            out[k, i] = R[i, 0] * x0 + R[i, 1] * x1 + R[i, 2] * x2 + t_c[i]
+            out[k, O_HEAD + i] = R[i, 0] * hx + R[i, 2] * hz
+            out[k, O_CAM + i] = X_c[k, i]
+        u0 = (R[0, 0] * x0 + R[0, 1] * x1 + R[0, 2] * x2) * inv
+        u1 = (R[1, 0] * x0 + R[1, 1] * x1 + R[1, 2] * x2) * inv
+        u2 = (R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2) * inv
+        Cw[k, 0, 0], Cw[k, 0, 1], Cw[k, 0, 2] = a * u0 * u0 + b, a * u0 * u1, a * u0 * u2
+        Cw[k, 1, 0], Cw[k, 1, 1], Cw[k, 1, 2] = a * u1 * u0, a * u1 * u1 + b, a * u1 * u2
+        Cw[k, 2, 0], Cw[k, 2, 1], Cw[k, 2, 2] = a * u2 * u0, a * u2 * u1, a * u2 * u2 + b
+        for i in range(3):
+            out[k, O_SIG + i] = np.sqrt(Cw[k, i, i])
+        depth = max(x2, 0.0)
+        out[k, O_EXT] = size_unit[k, 0] * depth
+        out[k, O_EXT + 1] = size_unit[k, 1] * depth
+        out[k, O_EXT + 2] = sizes[k, 2]
+    # the filter: one row per track with a measurement (its first object; a second
+    # detection under the same id shares it)
+    row = np.full(tn.shape[0], -1, np.int64)
+    rows = np.empty(N, np.int64)
+    G = 0
+    for k in range(N):
+        s = slots[k]
+        if valid[k] and s >= 0 and row[s] < 0:
+            row[s] = G
+            rows[G] = k
+            G += 1
+    xg = np.zeros((G, 6))
+    Pg = np.zeros((G, 6, 6))
+    dt = np.zeros(G)
+    z = np.empty((G, 3))
+    Rz = np.empty((G, 3, 3))
+    spd = np.empty(G)
+    stl = np.empty(G, np.bool_)
+    for g in range(G):
+        k = rows[g]
+        s = slots[k]
+        if tn[s] > 0:
+            xg[g] = tx[s]
+            Pg[g] = tP[s]
+            dt[g] = max(stamp - tt[s], 1e-3)
+        for i in range(3):
+            z[g, i] = out[k, i]
+        Rz[g] = Cw[k]
+        spd[g] = speed[k]
+        stl[g] = still[k]
+    chi = np.zeros(G)
+    _kalman(xg, Pg, z, Rz, dt, qa, spd, stl, SPEED_DIRECTION, SPEED_SIGMA, STILL_SIGMA, chi)
+    restarts = 0
+    for g in range(G):
+        s = slots[rows[g]]
+        known = tn[s] > 0
+        fresh = not known or chi[g] > gate
+        if known and chi[g] > gate:
+            restarts += 1
+        if fresh:  # a new track, or a restarted one (the id went to another object): the measurement, v = 0 +- 10 m/s
+            for i in range(6):
+                xg[g, i] = z[g, i] if i < 3 else 0.0
+                for j in range(6):
+                    Pg[g, i, j] = Rz[g, i, j] if i < 3 and j < 3 else 0.0
+            for i in range(3):
+                Pg[g, 3 + i, 3 + i] = 100.0 * VERTICAL[i, i]
+        tx[s] = xg[g]
+        tP[s] = Pg[g]
+        tt[s] = stamp
+        tn[s] = 1 if fresh else tn[s] + 1
+    # each static object's last full view (measured, not cut by the image's side), kept
+    # per track; a track judged moving or undecided forgets it
+    for k in range(N):
+        s = slots[k]
+        if s >= 0 and valid[k] and not cut[k] and still[k]:
+            for i in range(6):
+                tfull[s, i] = out[k, i] if i < 3 else out[k, O_SIG + i - 3]
+            thas[s] = True
+    for k in range(N):
+        if slots[k] >= 0 and not still[k]:
+            thas[slots[k]] = False
+    for k in range(N):
+        s = slots[k]
+        if not valid[k]:
+            continue
+        flags[k, 0] = 1
+        if s < 0:
+            continue
+        g = row[s]
+        if cut[k] and rows[g] == k:  # cut by the image's side: the filter's position
+            for i in range(3):
+                out[k, i] = xg[g, i]
+                out[k, O_SIG + i] = np.sqrt(Pg[g, i, i])
+            _to_camera(R, t_c, out, k)
+        if cut[k] and still[k] and thas[s]:  # judged static: where its last full view put it
+            for i in range(6):
+                out[k, i if i < 3 else O_SIG + i - 3] = tfull[s, i]
+            _to_camera(R, t_c, out, k)
+        _speed_into(xg[g, 3:], Pg[g, 3:, 3:], out, k)
+        flags[k, 1] = 1
+        flags[k, 2] = tn[s]
+    # no measurement: the filter's prediction within coast_s of its last update (or, judged
+    # static, its last full view)
+    for k in range(N):
+        s = slots[k]
+        if valid[k] or s < 0 or tn[s] == 0 or stamp - tt[s] > coast_s:
+            continue
+        d = stamp - tt[s]
+        for i in range(3):
+            out[k, i] = tx[s, i] + d * tx[s, 3 + i]
+            out[k, O_SIG + i] = np.sqrt(tP[s, i, i] + d * d * tP[s, 3 + i, 3 + i])
+        _to_camera(R, t_c, out, k)
+        if still[k] and thas[s]:
+            for i in range(6):
+                out[k, i if i < 3 else O_SIG + i - 3] = tfull[s, i]
+            _to_camera(R, t_c, out, k)
+        c0, c1, c2 = out[k, O_CAM], out[k, O_CAM + 1], out[k, O_CAM + 2]
+        out[k, O_DIST] = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        out[k, O_EXT] = size_unit[k, 0] * max(c2, 0.0)
+        out[k, O_EXT + 1] = size_unit[k, 1] * max(c2, 0.0)
+        _speed_into(tx[s, 3:], tP[s, 3:, 3:], out, k)
+        flags[k, 0] = 2
+        flags[k, 1] = 1
+        flags[k, 2] = tn[s]
+    return restarts
+
+
+class _TrackTable:
+    """The filters' state per track id, in slots of arrays (the compiled kernels' form):
+    ``x`` (S, 6), ``P`` (S, 6, 6), ``t`` the stamp of its last update, ``n`` its updates
+    (0: none yet), ``full`` / ``has_full`` a static track's last full view (world, sigma)."""
+
+    def __init__(self, capacity: int = 32):
+        self.slot: dict[int, int] = {}
+        self.ids = np.full(0, -1, np.int64)
+        self._grow(capacity)
+
+    def _grow(self, cap: int) -> None:
+        old = len(self.ids)
+        pad = lambda a, shape, fill=0: np.concatenate([a, np.full((cap - old, *shape), fill, a.dtype)])  # noqa: E731
+        if old == 0:
+            self.x, self.P = np.zeros((0, 6)), np.zeros((0, 6, 6))
+            self.t, self.n = np.zeros(0), np.zeros(0, np.int64)
+            self.full, self.has_full = np.zeros((0, 6)), np.zeros(0, np.bool_)
+        self.x, self.P, self.t, self.n = pad(self.x, (6,)), pad(self.P, (6, 6)), pad(self.t, ()), pad(self.n, ())
+        self.full, self.has_full, self.ids = pad(self.full, (6,)), pad(self.has_full, ()), pad(self.ids, (), -1)
+        self._free = list(range(cap - 1, old - 1, -1)) + getattr(self, "_free", [])
+
+    def slots(self, tracks: list[int]) -> np.ndarray:
+        """(N,) the slots of the track ids (-1 for an object without one); a new id gets a
+        free slot without a state."""
+        out = np.full(len(tracks), -1, np.int64)
+        for i, t in enumerate(tracks):
+            if t < 0:
+                continue
+            s = self.slot.get(t)
+            if s is None:
+                if not self._free:
+                    self._grow(2 * len(self.ids))
+                s = self._free.pop()
+                self.slot[t], self.ids[s], self.n[s], self.has_full[s] = s, t, 0, False
+            out[i] = s
+        return out
+
+    def last_stamp(self, default: float) -> float:
+        used = (self.ids >= 0) & (self.n > 0)
+        return float(self.t[used].max()) if used.any() else default
+
+    def drop(self, stamp: float, max_gap: float) -> None:
+        """Forget the tracks not updated within ``max_gap`` s and the slots never updated."""
+        gone = np.flatnonzero((self.ids >= 0) & ((self.n == 0) | (stamp - self.t > max_gap)))
+        for s in gone.tolist():
+            del self.slot[int(self.ids[s])]
+            self.ids[s] = -1
+            self._free.append(s)
+
+    def clear(self) -> None:
+        self.drop(np.inf, -1.0)
+
+
 @dataclass
 class ObjectState:
     """One object in one frame, in the trajectory's (world) frame; metres, m/s."""
@@ -649,16 +908,6 @@ def box_corners(centre: np.ndarray, extent: np.ndarray, heading: np.ndarray) -> 
     return centre + (sx.reshape(-1, 1) * w * across + sy.reshape(-1, 1) * hh * up + sz.reshape(-1, 1) * l * h)
 
 
-def _speed_stats(v: np.ndarray, Pv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per track, from the filter's velocities ``v`` (G, 3) and their covariances ``Pv``
-    (G, 3, 3): speed ``|v|``, its sigma ``sqrt(vᵀ P_v v) / |v|`` (at rest: the mean axis
-    sigma) and the velocity's sigmas per axis."""
-    sp = np.linalg.norm(v, axis=1)
-    vPv = np.einsum("ki,kij,kj->k", v, Pv, v)
-    sp_sigma = np.where(sp > 1e-6, np.sqrt(vPv) / np.maximum(sp, 1e-6), np.sqrt(np.einsum("kii->k", Pv) / 3))
-    return sp, sp_sigma, np.sqrt(np.einsum("kii->ki", Pv))
-
-
 def _class_size(label: str) -> tuple[float, float, float]:
     return CLASS_SIZE.get(str(label).lower(), DEFAULT_SIZE)
 
@@ -683,11 +932,8 @@ class WorldObjects:
         self._own_disp: np.ndarray | None = None  # its result's buffer, kept between frames
         if stereo is not None:
             stereo.warm_up()
-        self._x: dict[int, np.ndarray] = {}  # track -> state (6,)
-        self._P: dict[int, np.ndarray] = {}  # track -> covariance (6, 6)
-        self._t: dict[int, float] = {}  # track -> stamp of its last update
-        self._n: dict[int, int] = {}
-        self._full: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # static track -> last full view's (world, sigma)
+        self._tracks = _TrackTable()  # the filters' states per track id
+        self._qa = self.q * np.diag(VERTICAL)  # the filter's acceleration noise per world axis
         self._hist = np.zeros((0, N_BINS), np.int32)  # the kernel's histograms (module doc)
         self._hist_ab = np.zeros((2, 0, AB_BINS), np.int32)
         self.last: list[ObjectState | None] = []
@@ -701,8 +947,12 @@ class WorldObjects:
         _centres(np.zeros((0, N_STATS)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0, np.bool_),
                  np.zeros(0, np.bool_), np.zeros(0, np.bool_), np.zeros(0, np.bool_), 0.0, 0.0, 1.0, 1.0, 1.0, 1.0,
                  1.0, np.zeros((0, 3)), np.zeros(0, np.bool_), np.zeros(0), np.zeros((0, 2)))
-        _kalman(np.zeros((0, 6)), np.zeros((0, 6, 6)), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.ones(3),
-                np.zeros(0), np.zeros(0, np.bool_), SPEED_DIRECTION, SPEED_SIGMA, STILL_SIGMA, np.zeros(0))
+        tb = self._tracks
+        _headings(np.eye(3), np.zeros(0, np.int64), tb.x, tb.n, np.zeros((0, 2)), np.zeros(0, np.bool_))
+        _track_frame(np.zeros((0, 3)), np.zeros(0, np.bool_), np.zeros(0), np.zeros((0, 2)), np.zeros(0, np.bool_),
+                     np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.bool_), np.zeros(0),
+                     np.eye(3), np.zeros(3), 0.0, 1.0, self._qa, self.gate, COAST_S, tb.x, tb.P, tb.t, tb.n, tb.full,
+                     tb.has_full, np.zeros((0, N_OUT)), np.zeros((0, 3), np.int64))
 
     @classmethod
     def from_config(cls, calibration: StereoCalibration, cfg: Config) -> "WorldObjects":
@@ -728,11 +978,7 @@ class WorldObjects:
         return keep
 
     def reset(self) -> None:
-        self._x.clear()
-        self._P.clear()
-        self._t.clear()
-        self._n.clear()
-        self._full.clear()
+        self._tracks.clear()
 
     # ------------------------------------------------------------------ measurement
     def measure(self, masks: StereoMasks, head_c: np.ndarray, sizes: np.ndarray,
@@ -793,7 +1039,8 @@ class WorldObjects:
         """The states of ``masks.objects`` in this frame (None: no disparity, or the pose
         was lost), also set as each object's ``world``; ``pose``: 3x4 / 4x4 camera-to-world;
         ``stamp``: seconds (default: 0.1 s a frame); ``frame``: the stereo pair, for the
-        objects' own matching (``stereo``; without it, the masker's disparity)."""
+        objects' own matching (``stereo``; without it, the masker's disparity).  Three
+        compiled calls (the headings, the measurement, the tracks) over the frame's objects."""
         if masks is None or not masks.objects:
             self.last = []
             return []
@@ -805,166 +1052,40 @@ class WorldObjects:
                 o.world = None
             self.last = states
             return states
-        T = np.vstack([np.asarray(pose, np.float64)[:3, :4], [0.0, 0.0, 0.0, 1.0]])
-        R, t_c = T[:3, :3], T[:3, 3]
-        stamp = float(stamp) if stamp is not None else (max(self._t.values(), default=-0.1) + 0.1)
-        sizes = np.array([_class_size(o.label) for o in objs])  # (N, 3) w, h, l
-        tracks = np.array([int(o.track_id) for o in objs], np.int64)
-        # heading: the track's velocity when it moves, else the camera's forward axis (world)
-        head_w = np.tile(R[:, 2], (N, 1))
-        v_known = [self._x[t][3:] if t in self._x else _NO_V for t in tracks.tolist()]
-        v_known = np.array(v_known).reshape(N, 3)
-        moves = np.einsum("ij,ij->i", v_known, v_known) > MOVING_HEADING_SPEED**2
-        head_w[moves] = v_known[moves]
-        head_c = head_w @ R  # into the camera: R^T h
-        head_c[:, 1] = 0.0
-        head_c /= np.maximum(np.linalg.norm(head_c, axis=1), 1e-9)[:, None]
-        valid, X_c, sigma_r, size_unit, cut, h2 = self.measure(masks, head_c[:, [0, 2]], sizes, moves, frame)
-        head_c[:, 0], head_c[:, 2] = h2[:, 0], h2[:, 1]
-        r_c = np.linalg.norm(X_c, axis=1)
-        ray = X_c / np.maximum(r_c, 1e-9)[:, None]
-        sig_along = np.sqrt(sigma_r**2 + (0.1 * sizes[:, 2]) ** 2)
-        sig_lat = np.sqrt((r_c * np.maximum(0.05 * size_unit[:, 0] * self.calib.fx, 1.0) / self.calib.fx) ** 2
-                          + (0.1 * sizes[:, 0]) ** 2)
-        # covariance: sig_along^2 r r^T + sig_lat^2 (I - r r^T), into the world
-        rr = ray[:, :, None] * ray[:, None, :]
-        C_c = (sig_along**2 - sig_lat**2)[:, None, None] * rr + (sig_lat**2)[:, None, None] * _I3
-        Cw = R @ C_c @ R.T
-        Xw = X_c @ R.T + t_c
-        depth = X_c[:, 2]
-        extent = np.column_stack([size_unit * np.maximum(depth, 0.0)[:, None], sizes[:, 2]])
-        head_w = head_c @ R.T
-        # the filter, for the tracked objects with a measurement (one row per track id)
-        use = valid & (tracks >= 0)
-        _, first = np.unique(tracks[use], return_index=True) if use.any() else (None, np.zeros(0, np.int64))
-        rows = np.flatnonzero(use)[first]
-        speed = np.array([np.nan if objs[k].speed_mps is None else objs[k].speed_mps for k in rows])
-        still_all = np.array([o.moving is False for o in objs], bool)
-        still = still_all[rows]
-        vel = self._filter(tracks[rows], Xw[rows], Cw[rows], stamp, speed, still) if len(rows) else None
-        world_sigma = np.sqrt(np.einsum("kii->ki", Cw))
-        self._keep_full_views(tracks, valid & ~cut & still_all, ~still_all, Xw, world_sigma)
-        if vel is not None:  # the tracked objects: the filter's velocity, speed (all rows at once)
-            xs, Ps, ns = vel
-            # position: the measurement of an object in full view (the filter would add the
-            # systematic, range-dependent errors of earlier frames and SLAM's drift to it);
-            # the filter's of one cut by the image's side (it keeps what the full view gave)
-            fc = cut[rows]
-            fr = rows[fc]
-            Xw[fr] = xs[fc, :3]
-            X_c[fr] = (xs[fc, :3] - t_c) @ R
-            world_sigma[fr] = np.sqrt(np.einsum("kii->ki", Ps[fc, :3, :3]))
-            v = xs[:, 3:]
-            sp, sp_sigma, v_sigma = _speed_stats(v, Ps[:, 3:, 3:])
-            # per object: its track's row (a second detection under the same id shares it)
-            row_of = dict(zip(tracks[rows].tolist(), range(len(rows))))
-        # an object judged static, cut by the image's side: where its last full view put it
-        self._full_view_positions(np.flatnonzero(valid & cut & still_all & (tracks >= 0)), tracks, Xw, X_c,
-                                  world_sigma, R, t_c)
-        for k in np.flatnonzero(valid).tolist():
-            st = ObjectState(int(tracks[k]), Xw[k], world_sigma[k], extent[k], head_w[k], float(r_c[k]), X_c[k])
-            j = row_of.get(int(tracks[k])) if vel is not None and tracks[k] >= 0 else None
-            if j is not None:
-                st.velocity, st.velocity_sigma = v[j], v_sigma[j]
-                st.speed, st.speed_sigma, st.updates = float(sp[j]), float(sp_sigma[j]), int(ns[j])
+        pose = np.asarray(pose, np.float64)
+        R, t_c = np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3])
+        tb = self._tracks
+        stamp = float(stamp) if stamp is not None else tb.last_stamp(-0.1) + 0.1
+        sizes = np.array([_class_size(o.label) for o in objs]).reshape(N, 3)  # w, h, l
+        tracks = [int(o.track_id) for o in objs]
+        slots = tb.slots(tracks)
+        still = np.array([o.moving is False for o in objs], np.bool_)
+        speed = np.array([np.nan if o.speed_mps is None else o.speed_mps for o in objs], np.float64)
+        head = np.empty((N, 2))
+        moves = np.empty(N, np.bool_)
+        _headings(R, slots, tb.x, tb.n, head, moves)
+        valid, X_c, sigma_r, size_unit, cut, head = self.measure(masks, head, sizes, moves, frame)
+        out = np.empty((N, N_OUT))
+        flags = np.empty((N, 3), np.int64)
+        self.restarts += _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still, speed, R, t_c,
+                                      stamp, float(self.calib.fx), self._qa, float(self.gate), COAST_S, tb.x, tb.P, tb.t,
+                                      tb.n, tb.full, tb.has_full, out, flags)
+        for k in np.flatnonzero(flags[:, 0]).tolist():
+            o = out[k]
+            st = ObjectState(tracks[k], o[:3], o[O_SIG:O_SIG + 3], o[O_EXT:O_EXT + 3], o[O_HEAD:O_HEAD + 3],
+                             float(o[O_DIST]), o[O_CAM:O_CAM + 3], updates=int(flags[k, 2]),
+                             predicted=bool(flags[k, 0] == 2))
+            if flags[k, 1]:
+                st.velocity, st.velocity_sigma = o[O_VEL:O_VEL + 3], o[O_VSIG:O_VSIG + 3]
+                st.speed, st.speed_sigma = float(o[O_SPEED]), float(o[O_SPEED + 1])
             states[k] = st
-        self._coast(states, tracks, valid, still_all, size_unit, sizes, head_w, stamp, R, t_c)
+            if objs[k].moving is not False:  # moving, or undecided (masked): never in the map
+                self._mover_boxes.append((st.world, st.extent, st.heading))
         for o, st in zip(objs, states):
             o.world = st
-            if st is not None and o.moving is not False:  # moving, or undecided (masked): never in the map
-                self._mover_boxes.append((st.world, st.extent, st.heading))
-        stale = [k for k, t in self._t.items() if stamp - t > self.max_gap]
-        for k in stale:
-            for d in (self._x, self._P, self._t, self._n, self._full):
-                d.pop(k, None)
+        tb.drop(stamp, self.max_gap)
         self.last = states
         return states
-
-    def _keep_full_views(self, tracks: np.ndarray, full: np.ndarray, moving: np.ndarray, Xw: np.ndarray,
-                         sigma: np.ndarray) -> None:
-        """Each static object's last full view (``full``: measured, judged static, not cut by
-        the image's side): its world position and sigma, kept per track; a track judged
-        moving or undecided (``moving``) forgets it."""
-        ks = np.flatnonzero(full & (tracks >= 0))
-        for t, x, s in zip(tracks[ks].tolist(), Xw[ks], sigma[ks]):
-            self._full[t] = (x, s)
-        if self._full:
-            for t in tracks[moving & ~full & (tracks >= 0)].tolist():
-                self._full.pop(t, None)
-
-    def _full_view_positions(self, ks: np.ndarray, tracks: np.ndarray, Xw: np.ndarray, X_c: np.ndarray,
-                             sigma: np.ndarray, R: np.ndarray, t_c: np.ndarray) -> None:
-        """In place, for the objects ``ks`` (judged static) whose track has a full view
-        kept: that view's world position and sigma (module doc)."""
-        if not self._full or not len(ks):
-            return
-        ks = np.array([k for k, t in zip(ks.tolist(), tracks[ks].tolist()) if t in self._full], np.int64)
-        for k, t in zip(ks.tolist(), tracks[ks].tolist()):
-            Xw[k], sigma[k] = self._full[t]
-        if len(ks):
-            X_c[ks] = (Xw[ks] - t_c) @ R
-
-    def _coast(self, states: list, tracks: np.ndarray, valid: np.ndarray, still: np.ndarray, size_unit: np.ndarray,
-               sizes: np.ndarray, head_w: np.ndarray, stamp: float, R: np.ndarray, t_c: np.ndarray) -> None:
-        """In place: an object without a measurement this frame (an outline mostly without
-        disparity) whose track's filter was updated within ``COAST_S``: the filter's
-        prediction (``p + v dt``, covariance ``P_p + dt^2 P_v``), as a tracker coasts; one
-        judged static with a full view kept: that view's position."""
-        ks = [k for k, t in zip(np.flatnonzero(~valid).tolist(), tracks[~valid].tolist())
-              if t in self._x and stamp - self._t[t] <= COAST_S]
-        if not ks:
-            return
-        ts = tracks[ks].tolist()
-        x = np.array([self._x[t] for t in ts])
-        P = np.array([self._P[t] for t in ts])
-        dt = stamp - np.array([self._t[t] for t in ts])
-        Xw = x[:, :3] + dt[:, None] * x[:, 3:]
-        Pp = P[:, :3, :3] + dt[:, None, None] ** 2 * P[:, 3:, 3:]
-        sig = np.sqrt(np.einsum("kii->ki", Pp))
-        X_c = (Xw - t_c) @ R
-        self._full_view_positions(np.flatnonzero(still[ks]), tracks[ks], Xw, X_c, sig, R, t_c)
-        v = x[:, 3:]
-        sp, sp_sigma, v_sigma = _speed_stats(v, P[:, 3:, 3:])
-        extent = np.column_stack([size_unit[ks] * np.maximum(X_c[:, 2], 0.0)[:, None], sizes[ks, 2]])
-        r = np.linalg.norm(X_c, axis=1).tolist()
-        for i, (k, t) in enumerate(zip(ks, ts)):
-            states[k] = ObjectState(t, Xw[i], sig[i], extent[i], head_w[k], r[i], X_c[i], v[i], v_sigma[i],
-                                    float(sp[i]), float(sp_sigma[i]), self._n.get(t, 1), predicted=True)
-
-    def _filter(self, tracks: np.ndarray, z: np.ndarray, Rz: np.ndarray, stamp: float,
-                speed: np.ndarray | None = None, still: np.ndarray | None = None):
-        """Predict and update the constant-velocity filters of ``tracks`` (unique) with
-        positions ``z`` (G, 3), covariances ``Rz`` (G, 3, 3); then with the motion test's
-        speed (``speed``, m/s, NaN: none) along the filter's own direction, and with zero
-        velocity for the objects it judged static (``still``); all tracks stacked."""
-        G = len(tracks)
-        known = np.array([int(t) in self._x for t in tracks])
-        x = np.zeros((G, 6))
-        P = np.zeros((G, 6, 6))
-        dt = np.zeros(G)
-        for j in np.flatnonzero(known):
-            t = int(tracks[j])
-            x[j], P[j], dt[j] = self._x[t], self._P[t], max(stamp - self._t[t], 1e-3)
-        speed = np.full(G, np.nan) if speed is None else np.asarray(speed, np.float64)
-        still = np.zeros(G, np.bool_) if still is None else np.asarray(still, np.bool_)
-        chi = np.zeros(G)
-        _kalman(x, P, np.ascontiguousarray(z), np.ascontiguousarray(Rz), dt, self.q * np.diag(VERTICAL), speed, still,
-                SPEED_DIRECTION, SPEED_SIGMA, STILL_SIGMA, chi)
-        # new tracks and restarted ones (the id went to another object): the measurement, v = 0 +- 10 m/s
-        fresh = ~known | (chi > self.gate)
-        self.restarts += int((known & (chi > self.gate)).sum())
-        if fresh.any():
-            x[fresh] = np.column_stack([z[fresh], np.zeros((int(fresh.sum()), 3))])
-            P[fresh] = 0.0
-            P[fresh, :3, :3] = Rz[fresh]
-            P[fresh, 3:, 3:] = 100.0 * VERTICAL
-        n = np.zeros(G, np.int64)
-        for j, tr in enumerate(tracks):
-            t = int(tr)
-            self._x[t], self._P[t], self._t[t] = x[j], P[j], stamp
-            self._n[t] = 1 if fresh[j] else self._n.get(t, 0) + 1
-            n[j] = self._n[t]
-        return x, P, n
 
 
 class ObjectPaths:
