@@ -64,6 +64,7 @@ def _prefilter(img, y0, y1, x0, x1, cap, out):
     """BM's x-Sobel prefilter of ``img``'s rows y0..y1, columns x0..x1 (outside the image:
     the border pixel), capped at +-cap and shifted by cap (0..2cap) into ``out``."""
     H, W = img.shape
+    fcap = np.float32(cap)
     xa = min(max(x0, 1), x1)  # columns xa..xb have both neighbours inside the image
     xb = max(min(x1, W - 1), xa)
     for y in range(y0, y1):
@@ -76,10 +77,10 @@ def _prefilter(img, y0, y1, x0, x1, cap, out):
         a0, b0 = r0[xa + 1:xb + 1], r0[xa - 1:xb - 1]
         a1, b1 = r1[xa + 1:xb + 1], r1[xa - 1:xb - 1]
         a2, b2 = r2[xa + 1:xb + 1], r2[xa - 1:xb - 1]
-        for i in range(xb - xa):
-            v = (np.int32(a0[i]) - np.int32(b0[i]) + 2 * (np.int32(a1[i]) - np.int32(b1[i]))
-                 + np.int32(a2[i]) - np.int32(b2[i]))
-            mid[i] = min(max(v, -cap), cap) + cap
+        for i in range(xb - xa):  # float32: exact for these integers, twice the lanes of numba's int64
+            v = (np.float32(a0[i]) - np.float32(b0[i]) + np.float32(2.0) * (np.float32(a1[i]) - np.float32(b1[i]))
+                 + np.float32(a2[i]) - np.float32(b2[i]))
+            mid[i] = min(max(v, -fcap), fcap) + fcap
         for x in range(x0, x1):  # the columns at or beyond the image's sides
             if xa <= x < xb:
                 continue
@@ -98,9 +99,11 @@ def _window(labels, disp, k, x0, y0, x1, y1, step, hist):
     hist[:] = 0
     total = 0
     for y in range(y0, y1, step):
-        for x in range(x0, x1, step):
-            if labels[y, x] == k + 1:
-                d = disp[y, x]
+        lab = labels[y, x0:x1]  # indices from 0: no negative-index wrap test
+        dis = disp[y, x0:x1]
+        for i in range(0, x1 - x0, step):
+            if lab[i] == k + 1:
+                d = dis[i]
                 if d > 0.0:
                     b = min(int(d / HIST_BIN), HIST_BINS - 1)
                     hist[b] += 1
@@ -180,9 +183,20 @@ def _match_box(L, R, labels, disp, k, x0, y0, x1, y1, lo, n, block, cap, uniq, l
             if xo % st != 0:
                 continue
             gx = xo // st
-            best = sad[0]
-            for j in range(1, n):
-                best = min(best, sad[j])
+            # the least cost: eight independent chains (n is a multiple of 16; one chain
+            # of dependent min's waits on each one's latency), then its first index
+            m0, m1, m2, m3 = sad[0], sad[1], sad[2], sad[3]
+            m4, m5, m6, m7 = sad[4], sad[5], sad[6], sad[7]
+            for j in range(8, n, 8):
+                m0 = min(m0, sad[j])
+                m1 = min(m1, sad[j + 1])
+                m2 = min(m2, sad[j + 2])
+                m3 = min(m3, sad[j + 3])
+                m4 = min(m4, sad[j + 4])
+                m5 = min(m5, sad[j + 5])
+                m6 = min(m6, sad[j + 6])
+                m7 = min(m7, sad[j + 7])
+            best = min(min(min(m0, m1), min(m2, m3)), min(min(m4, m5), min(m6, m7)))
             jb = 0
             while sad[jb] != best:
                 jb += 1
@@ -326,13 +340,19 @@ def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_si
     image); ``st``: every st-th row and column matched (a pixel takes its sample's value),
     more apart in a box of more than ``samples`` pixels (0: no limit) so that about that
     many are matched; a box of more than ``max_area`` pixels (0: no limit) keeps the
-    masker's disparity.  ``out`` (like ``disp``; a buffer kept between frames saves the
-    page faults of a new one) becomes the masker's disparity with the outlines' pixels
-    matched again (0 where a check failed).  Returns (N,) the pixels matched per object (-1:
+    masker's disparity.  In ``out`` (like ``disp``; a buffer kept between frames saves the
+    page faults of a new one) the boxes -- all that the objects' stage reads -- become the
+    masker's disparity with the outlines' pixels matched again (0 where a check failed);
+    outside them it keeps what it held (copying a KITTI-sized frame cost 0.12 ms).  Returns (N,) the pixels matched per object (-1:
     the masker's kept -- too few disparities to set a window, too few pixels passing the
     checks, or a box too large)."""
     N = boxes.shape[0]
-    out[:] = disp
+    for k in range(N):  # the boxes: the masker's (rows as slices from 0: a vectorised copy)
+        for y in range(boxes[k, 1], boxes[k, 3]):
+            o = out[y, boxes[k, 0]:boxes[k, 2]]
+            d = disp[y, boxes[k, 0]:boxes[k, 2]]
+            for i in range(o.shape[0]):
+                o[i] = d[i]
     res = np.full(N, -1, np.int64)
     hist = np.zeros(HIST_BINS, np.int64)
     largest = 1
@@ -380,12 +400,14 @@ class ObjectStereo:
     def __call__(self, left: np.ndarray, right: np.ndarray, labels: np.ndarray, disp: np.ndarray,
                  boxes: np.ndarray, out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(disparity, pixels matched per object): :func:`object_disparity` over gray uint8
-        images and int64 boxes, into ``out`` (float32 like ``disp``; None: a new array)."""
+        images and int64 boxes.  Without ``out``: a copy of ``disp`` with the outlines
+        matched again; with it (float32 like ``disp``, kept between frames): only the boxes
+        are written, the rest keeps what it held."""
         if left.shape != labels.shape or right.shape != labels.shape or disp.shape != labels.shape:
             raise ValueError(f"object disparity: images {left.shape} / {right.shape}, labels {labels.shape} and "
                              f"disparity {disp.shape} must have one shape")
         if out is None or out.shape != disp.shape or out.dtype != np.float32 or not out.flags.c_contiguous:
-            out = np.empty(disp.shape, np.float32)
+            out = np.array(disp, np.float32, order="C")
         c = self.checks
         matched = object_disparity(np.ascontiguousarray(left, np.uint8), np.ascontiguousarray(right, np.uint8),
                                    np.ascontiguousarray(labels, np.int32), np.ascontiguousarray(disp, np.float32),
