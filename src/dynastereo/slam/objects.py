@@ -166,34 +166,6 @@ def _quantiles(hist, n, lo, hi, origin, step, out, k, col, b0=0, b1=-1):  # prag
             return
 
 
-@jit
-def _row_spans(boxes, y, xs0, xs1):  # pragma: no cover - compiled
-    """The x-intervals [xs0[i], xs1[i]) of the union of the boxes covering row ``y``
-    (merged, sorted); returns their number."""
-    m = 0
-    for k in range(boxes.shape[0]):
-        if boxes[k, 1] <= y < boxes[k, 3] and boxes[k, 2] > boxes[k, 0]:
-            a, b = boxes[k, 0], boxes[k, 2]
-            j = m  # insertion sort by start (a handful of boxes)
-            while j > 0 and xs0[j - 1] > a:
-                xs0[j] = xs0[j - 1]
-                xs1[j] = xs1[j - 1]
-                j -= 1
-            xs0[j] = a
-            xs1[j] = b
-            m += 1
-    n = 0
-    for i in range(m):
-        if n > 0 and xs0[i] <= xs1[n - 1]:
-            if xs1[i] > xs1[n - 1]:
-                xs1[n - 1] = xs1[i]
-        else:
-            xs0[n] = xs0[i]
-            xs1[n] = xs1[i]
-            n += 1
-    return n
-
-
 @jit(inline="always")
 def _median_point(boxes, out, k, bf, fx, cx):  # pragma: no cover - compiled
     """(x, z) in the camera's top view of object k's median disparity on its box centre's column."""
@@ -203,7 +175,7 @@ def _median_point(boxes, out, k, bf, fx, cx):  # pragma: no cover - compiled
 
 @jit
 def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, axis, width, v_known, bf, fx, cx, hist,
-                  hist_a, hist_b, xs0, xs1, out):  # pragma: no cover - compiled
+                  hist_a, hist_b, out):  # pragma: no cover - compiled
     """Per object k (boxes int (N, 4) clipped x0, y0, x1, y1; ``head`` (N, 2) its heading
     (x, z) in the camera's top view; ``need_ab``: whether it needs the top-view pass;
     ``axis``: whether to try the heading from its points, ``width`` its class width,
@@ -220,45 +192,49 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, axis, wi
     ``AXIS_AGREE`` of the velocity's heading (where known); signed like ``head``.  From histograms
     ``hist`` (N, bins), ``hist_a`` / ``hist_b`` (N, AB bins) (module doc), which must come
     in zeroed and are left zeroed (the bins used are cleared: buffers reused frame to frame).
-    With instance labels every pixel of the boxes' union is visited once (its label names
-    its object); without, each box's pixels within 15 % of the object's peak disparity."""
+    With instance labels each box's own outline (its label's pixels); without, each box's
+    pixels within 15 % of the object's peak disparity."""
     n_obj = boxes.shape[0]
     nb = hist.shape[1]
     na = hist_a.shape[1]
     half = 0.5 * na * AB_STEP
-    h = disp.shape[0]
     for k in range(n_obj):
         for c in range(N_STATS):
             out[k, c] = 0.0
     if n_obj == 0:
         return
-    y_lo = h
-    y_hi = 0
-    for k in range(n_obj):
-        y_lo = min(y_lo, boxes[k, 1])
-        y_hi = max(y_hi, boxes[k, 3])
     # first pass: the disparity histograms (and the range of bins each one uses)
     bmin = np.full(n_obj, nb, np.int64)
     bmax = np.zeros(n_obj, np.int64)
     if use_labels:
-        for y in range(y_lo, y_hi):
-            ns = _row_spans(boxes, y, xs0, xs1)
-            for i in range(ns):
-                for x in range(xs0[i], xs1[i]):
-                    lab = labels[y, x]
-                    if lab <= 0 or lab > n_obj:
+        # per box, its own outline's pixels (label k + 1: only inside box k), the counts
+        # kept in registers (added into out[k] per pixel, each add waited on the one before)
+        for k in range(n_obj):
+            x0, y0, x1, y1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
+            kk = k + 1
+            c_all = 0
+            c_d = 0
+            lo_b = nb
+            hi_b = 0
+            for y in range(y0, y1):
+                lab = labels[y, x0:x1]  # row slices: indices from 0, no negative-index wrap test
+                dis = disp[y, x0:x1]
+                for i in range(x1 - x0):
+                    if lab[i] != kk:
                         continue
-                    out[lab - 1, 13] += 1
-                    d = disp[y, x]
+                    c_all += 1
+                    d = dis[i]
                     if d <= 0.0:
                         continue
                     b = min(int(d * 16.0), nb - 1)
-                    hist[lab - 1, b] += 1
-                    out[lab - 1, 0] += 1
-                    if b < bmin[lab - 1]:
-                        bmin[lab - 1] = b
-                    if b > bmax[lab - 1]:
-                        bmax[lab - 1] = b
+                    hist[k, b] += 1
+                    c_d += 1
+                    lo_b = min(lo_b, b)
+                    hi_b = max(hi_b, b)
+            out[k, 0] = c_d
+            out[k, 13] = c_all
+            bmin[k] = lo_b
+            bmax[k] = hi_b
     else:
         for k in range(n_obj):
             lo = 0.85 * peak[k] - 1.0
@@ -943,7 +919,7 @@ class WorldObjects:
                       np.zeros(0), True, np.zeros((0, 2)), np.zeros(0, np.bool_), np.zeros(0, np.bool_), np.zeros(0),
                       np.zeros(0, np.bool_), 1.0, 1.0, 0.0,
                       np.zeros((0, N_BINS), np.int32), np.zeros((0, AB_BINS), np.int32),
-                      np.zeros((0, AB_BINS), np.int32), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, N_STATS)))
+                      np.zeros((0, AB_BINS), np.int32), np.zeros((0, N_STATS)))
         _centres(np.zeros((0, N_STATS)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0, np.bool_),
                  np.zeros(0, np.bool_), np.zeros(0, np.bool_), np.zeros(0, np.bool_), 0.0, 0.0, 1.0, 1.0, 1.0, 1.0,
                  1.0, np.zeros((0, 3)), np.zeros(0, np.bool_), np.zeros(0), np.zeros((0, 2)))
@@ -1023,8 +999,7 @@ class WorldObjects:
                 self._hist_ab = np.zeros((2, N, AB_BINS), np.int32)
             _object_stats(labels if use else np.zeros((1, 1), np.int32), np.ascontiguousarray(disp, np.float32),
                           bi, peak, use, head_c, top_view, moving & ~small, np.ascontiguousarray(sizes[:, 0]),
-                          v_known, c.bf, c.fx, c.cx, self._hist[:N], self._hist_ab[0, :N], self._hist_ab[1, :N], np.zeros(N, np.int64),
-                          np.zeros(N, np.int64), out)
+                          v_known, c.bf, c.fx, c.cx, self._hist[:N], self._hist_ab[0, :N], self._hist_ab[1, :N], out)
         X = np.empty((N, 3))
         valid = np.empty(N, np.bool_)
         sigma_r = np.empty(N)
