@@ -72,14 +72,11 @@ def test_the_outline_is_matched_again_to_a_tenth_of_a_pixel(scene):
     assert abs(float(np.median(v[v > 0])) - D_OBJ) < 0.1
     # outside the outline the masker's values are kept as they were
     assert np.array_equal(out[~inside], disp[~inside])
-    # into a buffer kept between frames: the boxes alone are written (all the objects'
-    # stage reads), the same values; the rest keeps what the buffer held
+    # into a buffer kept between frames: the outline alone is written (the objects' stage
+    # reads it there where it was matched), the same values; the rest keeps what it held
     kept = np.full(disp.shape, -7.0, np.float32)
     again, _ = ObjectStereo(11)(left, right, labels, disp, _boxes(), kept)
-    x0, y0, x1, y1 = BOX
-    box = np.zeros(disp.shape, bool)
-    box[y0:y1, x0:x1] = True
-    assert again is kept and np.array_equal(kept[box], out[box]) and np.all(kept[~box] == -7.0)
+    assert again is kept and np.array_equal(kept[inside], out[inside]) and np.all(kept[~inside] == -7.0)
 
 
 def test_it_is_stereo_bm_inside_the_window(scene):

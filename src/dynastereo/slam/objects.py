@@ -174,8 +174,8 @@ def _median_point(boxes, out, k, bf, fx, cx):  # pragma: no cover - compiled
 
 
 @jit
-def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, axis, width, v_known, bf, fx, cx, hist,
-                  hist_a, hist_b, out):  # pragma: no cover - compiled
+def _object_stats(labels, disp, own, own_k, boxes, peak, use_labels, head, need_ab, axis, width, v_known, bf, fx, cx,
+                  hist, hist_a, hist_b, out):  # pragma: no cover - compiled
     """Per object k (boxes int (N, 4) clipped x0, y0, x1, y1; ``head`` (N, 2) its heading
     (x, z) in the camera's top view; ``need_ab``: whether it needs the top-view pass;
     ``axis``: whether to try the heading from its points, ``width`` its class width,
@@ -193,7 +193,9 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, axis, wi
     ``hist`` (N, bins), ``hist_a`` / ``hist_b`` (N, AB bins) (module doc), which must come
     in zeroed and are left zeroed (the bins used are cleared: buffers reused frame to frame).
     With instance labels each box's own outline (its label's pixels); without, each box's
-    pixels within 15 % of the object's peak disparity."""
+    pixels within 15 % of the object's peak disparity.  Object k's disparities are ``own``'s
+    where ``own_k[k]`` (its outline matched again: ``masking.object_disparity``), else
+    ``disp``'s."""
     n_obj = boxes.shape[0]
     nb = hist.shape[1]
     na = hist_a.shape[1]
@@ -218,7 +220,7 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, axis, wi
             hi_b = 0
             for y in range(y0, y1):
                 lab = labels[y, x0:x1]  # row slices: indices from 0, no negative-index wrap test
-                dis = disp[y, x0:x1]
+                dis = (own if own_k[k] else disp)[y, x0:x1]
                 for i in range(x1 - x0):
                     if lab[i] != kk:
                         continue
@@ -276,9 +278,10 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, axis, wi
         sxz = 0.0
         szz = 0.0
         st = 1 + int(np.sqrt(out[k, 0] / SAMPLE_PIXELS))
+        src = own if own_k[k] else disp
         for y in range(boxes[k, 1], boxes[k, 3], st):
             for x in range(boxes[k, 0], boxes[k, 2], st):
-                d = disp[y, x]
+                d = src[y, x]
                 if d < lo or d > hi or d <= 0.0:
                     continue
                 if use_labels and labels[y, x] != k + 1:
@@ -339,10 +342,11 @@ def _object_stats(labels, disp, boxes, peak, use_labels, head, need_ab, axis, wi
         hi = 1.15 * peak[k] + 1.0
         a0, a1, c0, c1 = na, 0, na, 0
         st = 1 + int(np.sqrt(out[k, 0] / SAMPLE_PIXELS))  # every st-th row and column
+        src = own if own_k[k] else disp
         cnt = 0
         for y in range(boxes[k, 1], boxes[k, 3], st):
             for x in range(boxes[k, 0], boxes[k, 2], st):
-                d = disp[y, x]
+                d = src[y, x]
                 if d <= 0.0:
                     continue
                 if use_labels:
@@ -915,7 +919,8 @@ class WorldObjects:
         self.last: list[ObjectState | None] = []
         self._mover_boxes: deque = deque(maxlen=20000)  # (centre, extent, heading) of movers, every frame
         # the compiled kernels loaded (or compiled) now, not in the first frames
-        _object_stats(np.zeros((1, 1), np.int32), np.zeros((1, 1), np.float32), np.zeros((0, 4), np.int64),
+        _object_stats(np.zeros((1, 1), np.int32), np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32),
+                      np.zeros(0, np.bool_), np.zeros((0, 4), np.int64),
                       np.zeros(0), True, np.zeros((0, 2)), np.zeros(0, np.bool_), np.zeros(0, np.bool_), np.zeros(0),
                       np.zeros(0, np.bool_), 1.0, 1.0, 0.0,
                       np.zeros((0, N_BINS), np.int32), np.zeros((0, AB_BINS), np.int32),
@@ -990,16 +995,19 @@ class WorldObjects:
             bi[:, 3] = np.clip(np.ceil(boxes[:, 3]), 0, h_img)
             labels = masks.labels_left
             use = labels is not None and labels.shape == disp.shape
+            disp = np.ascontiguousarray(disp, np.float32)
+            own, own_k = disp, np.zeros(N, np.bool_)
             if use and frame is not None and self.stereo is not None:
-                disp, _ = self.stereo(frame.left_gray, frame.right_gray, labels, disp, bi, self._own_disp)
-                self._own_disp = disp
+                # the outlines matched again: read from its buffer where it matched them
+                own, matched = self.stereo(frame.left_gray, frame.right_gray, labels, disp, bi, self._own_disp)
+                self._own_disp, own_k = own, matched >= 0
             peak = np.array([o.disparity for o in objs], np.float64)
             if self._hist.shape[0] < N:  # the kernel leaves them zeroed: allocated once
                 self._hist = np.zeros((N, N_BINS), np.int32)
                 self._hist_ab = np.zeros((2, N, AB_BINS), np.int32)
-            _object_stats(labels if use else np.zeros((1, 1), np.int32), np.ascontiguousarray(disp, np.float32),
-                          bi, peak, use, head_c, top_view, moving & ~small, np.ascontiguousarray(sizes[:, 0]),
-                          v_known, c.bf, c.fx, c.cx, self._hist[:N], self._hist_ab[0, :N], self._hist_ab[1, :N], out)
+            _object_stats(labels if use else np.zeros((1, 1), np.int32), disp, own, own_k, bi, peak, use, head_c,
+                          top_view, moving & ~small, np.ascontiguousarray(sizes[:, 0]), v_known, c.bf, c.fx, c.cx,
+                          self._hist[:N], self._hist_ab[0, :N], self._hist_ab[1, :N], out)
         X = np.empty((N, 3))
         valid = np.empty(N, np.bool_)
         sigma_r = np.empty(N)
