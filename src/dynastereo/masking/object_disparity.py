@@ -350,16 +350,12 @@ def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_si
     N = boxes.shape[0]
     res = np.full(N, -1, np.int64)
     hist = np.zeros(HIST_BINS, np.int64)
-    largest = 1
-    bh_max = 1
-    bw_max = 1
-    for k in range(N):
-        largest = max(largest, (boxes[k, 2] - boxes[k, 0]) * (boxes[k, 3] - boxes[k, 1]))
-        bh_max = max(bh_max, boxes[k, 3] - boxes[k, 1])
-        bw_max = max(bw_max, boxes[k, 2] - boxes[k, 0])
-    stack = np.empty((largest + 1, 2), np.int32)
-    region = np.empty((largest + 1, 2), np.int32)
-    seen = np.empty((bh_max, bw_max), np.bool_)
+    # each box matched: its grid step (a box of more than ``samples`` pixels on every
+    # sk-th row and column); the speckle filter's scratch sized to the largest grid (one
+    # sized to the largest box, matched or not, took page faults every frame)
+    step = np.zeros(N, np.int64)
+    gh_max = 1
+    gw_max = 1
     for k in range(N):
         x0, y0, x1, y1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
         if x1 <= x0 or y1 <= y0 or (max_area > 0 and (x1 - x0) * (y1 - y0) > max_area):
@@ -367,6 +363,17 @@ def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_si
         sk = st
         if samples > 0:
             sk = max(st, int(np.ceil(np.sqrt((x1 - x0) * (y1 - y0) / samples))))
+        step[k] = sk
+        gh_max = max(gh_max, (y1 - y0 + sk - 1) // sk)
+        gw_max = max(gw_max, (x1 - x0 + sk - 1) // sk)
+    stack = np.empty((gh_max * gw_max + 1, 2), np.int32)
+    region = np.empty((gh_max * gw_max + 1, 2), np.int32)
+    seen = np.empty((gh_max, gw_max), np.bool_)
+    for k in range(N):
+        sk = step[k]
+        if sk == 0:
+            continue
+        x0, y0, x1, y1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
         lo, n = _window(labels, disp, k, x0, y0, x1, y1, sk, hist)
         if n > 0:
             res[k] = _match_box(L, R, labels, disp, k, x0, y0, x1, y1, lo, n, block, cap, uniq, lr_max, spk_size,
