@@ -130,7 +130,7 @@ def _window(labels, disp, k, x0, y0, x1, y1, step, hist):
 
 @jit
 def _match_box(L, R, labels, disp, k, x0, y0, x1, y1, lo, n, block, cap, uniq, lr_max, spk_size, spk_diff, st,
-               out, stack, seen, region):
+               out, parent, count):
     """Object k's box: BM over the window lo..lo+n-1, checks as BM's; writes its outline's
     pixels into ``out`` (px; 0: a check failed).  Returns the number of pixels matched, or -1
     when fewer than KEEP_FRACTION of the outline's pixels were (the masker's values kept)."""
@@ -254,7 +254,7 @@ def _match_box(L, R, labels, disp, k, x0, y0, x1, y1, lo, n, block, cap, uniq, l
                     dc[gy, gx] = INVALID
     if spk_size > 0:
         # on the grid: a region of spk_size pixels has spk_size / st^2 samples, st pixels apart
-        _remove_speckles(dc, spk_size // (st * st), spk_diff * st, stack, seen, region)
+        _remove_speckles(dc, spk_size // (st * st), spk_diff * st, parent, count)
     m = 0
     total = 0
     for yy in range(bh):
@@ -288,45 +288,61 @@ def _match_box(L, R, labels, disp, k, x0, y0, x1, y1, lo, n, block, cap, uniq, l
     return m
 
 
+@jit(inline="always")
+def _root(parent, i):  # pragma: no cover - compiled
+    """The root of pixel ``i``'s set (path halving)."""
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
+@jit(inline="always")
+def _join(parent, i, j):  # pragma: no cover - compiled
+    """Pixels ``i`` and ``j`` into one set, rooted at the earlier pixel."""
+    a = _root(parent, i)
+    b = _root(parent, j)
+    if a < b:
+        parent[b] = a
+    elif b < a:
+        parent[a] = b
+
+
 @jit
-def _remove_speckles(dc, max_size, max_diff, stack, seen, region):
+def _remove_speckles(dc, max_size, max_diff, parent, count):
     """BM's speckle filter over one box's int16 disparities (1/16 px): 4-connected regions
     whose neighbours differ by at most ``max_diff``, of at most ``max_size`` pixels, become
-    INVALID.  ``stack`` / ``region``: (>= pixels, 2) scratch; ``seen``: (>= bh, >= bw)."""
+    INVALID.  The regions by union-find in raster order (each pixel joined to its left and
+    upper neighbours: the same regions as a flood fill, without its stack); ``parent`` /
+    ``count``: (>= bh * bw,) int32 scratch."""
     bh, bw = dc.shape
     for y in range(bh):
+        row = dc[y]
         for x in range(bw):
-            seen[y, x] = False
-    for sy in range(bh):
-        for sx in range(bw):
-            if seen[sy, sx] or dc[sy, sx] == INVALID:
+            i = y * bw + x
+            v = row[x]
+            if v == INVALID:
+                parent[i] = -1
                 continue
-            seen[sy, sx] = True
-            stack[0, 0] = sy
-            stack[0, 1] = sx
-            top = 1
-            size = 0
-            while top > 0:
-                top -= 1
-                y = stack[top, 0]
-                x = stack[top, 1]
-                region[size, 0] = y
-                region[size, 1] = x
-                size += 1
-                v = dc[y, x]
-                for e in range(4):
-                    ny = y + 1 if e == 0 else (y - 1 if e == 1 else y)
-                    nx = x + 1 if e == 2 else (x - 1 if e == 3 else x)
-                    if 0 <= ny < bh and 0 <= nx < bw and not seen[ny, nx]:
-                        u = dc[ny, nx]
-                        if u != INVALID and abs(u - v) <= max_diff:
-                            seen[ny, nx] = True
-                            stack[top, 0] = ny
-                            stack[top, 1] = nx
-                            top += 1
-            if size <= max_size:
-                for i in range(size):
-                    dc[region[i, 0], region[i, 1]] = INVALID
+            parent[i] = i
+            count[i] = 0
+            if x > 0:
+                u = row[x - 1]
+                if u != INVALID and abs(u - v) <= max_diff:
+                    _join(parent, i, i - 1)
+            if y > 0:
+                u = dc[y - 1, x]
+                if u != INVALID and abs(u - v) <= max_diff:
+                    _join(parent, i, i - bw)
+    n = bh * bw
+    for i in range(n):
+        if parent[i] >= 0:
+            r = _root(parent, i)
+            parent[i] = r
+            count[r] += 1
+    for i in range(n):
+        if parent[i] >= 0 and count[parent[i]] <= max_size:
+            dc[i // bw, i % bw] = INVALID
 
 
 @jit
@@ -366,9 +382,8 @@ def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_si
         step[k] = sk
         gh_max = max(gh_max, (y1 - y0 + sk - 1) // sk)
         gw_max = max(gw_max, (x1 - x0 + sk - 1) // sk)
-    stack = np.empty((gh_max * gw_max + 1, 2), np.int32)
-    region = np.empty((gh_max * gw_max + 1, 2), np.int32)
-    seen = np.empty((gh_max, gw_max), np.bool_)
+    parent = np.empty(gh_max * gw_max, np.int32)
+    count = np.empty(gh_max * gw_max, np.int32)
     for k in range(N):
         sk = step[k]
         if sk == 0:
@@ -377,7 +392,7 @@ def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_si
         lo, n = _window(labels, disp, k, x0, y0, x1, y1, sk, hist)
         if n > 0:
             res[k] = _match_box(L, R, labels, disp, k, x0, y0, x1, y1, lo, n, block, cap, uniq, lr_max, spk_size,
-                                spk_diff, sk, out, stack, seen, region)
+                                spk_diff, sk, out, parent, count)
     return res
 
 
