@@ -174,7 +174,8 @@ def test_bad_inputs_are_one_line_errors(scene):
 
 
 def test_the_configuration_sets_it():
-    assert ObjectStereo.from_config(ObjectsConfig(), StereoConfig()) is None  # the default: the masker's
+    assert ObjectStereo.from_config(ObjectsConfig(), StereoConfig()).block == 11  # the default
+    assert ObjectStereo.from_config(ObjectsConfig(block_size=0), StereoConfig()) is None  # the masker's
     s = ObjectStereo.from_config(ObjectsConfig(block_size=11, stride=2), StereoConfig(uniqueness_ratio=15))
     assert (s.block, s.stride, s.checks.uniqueness_ratio, s.checks.speckle_window_size, s.max_area) == (11, 2, 15, 100,
                                                                                                         4500)
@@ -202,8 +203,7 @@ def test_positions_come_from_the_objects_own_matching(scene):
         s = world.update(m, np.eye(4), True, 0.0, StereoFrame(0, 0.0, left, right))[0]
         return float(s.camera[2])
 
-    cfg = Config().with_overrides({"objects.block_size": 11})
-    own = depth(WorldObjects.from_config(calib, cfg))
-    masker = depth(WorldObjects.from_config(calib, Config()))
+    own = depth(WorldObjects.from_config(calib, Config()))  # the default: block 11
+    masker = depth(WorldObjects.from_config(calib, Config().with_overrides({"objects.block_size": 0})))
     # the centre lies behind the face by the same amount either way: the difference is the bias's
     assert own - masker == pytest.approx(z_true - fx * b / (D_OBJ + 0.6), abs=0.08)

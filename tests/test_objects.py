@@ -159,14 +159,15 @@ def test_run_writes_objects_in_the_world(convoy_run):
 
 
 def test_run_with_the_objects_own_matching(convoy_run, tmp_path):
-    """``--object-block 11`` (objects.block_size) moves the positions, not the masks: the
-    same objects masked in every frame, their positions from their own matching."""
+    """``--object-block 0`` (objects.block_size; default 11: the outlines matched again)
+    moves the positions, not the masks: the same objects masked in every frame, their
+    positions from the masker's disparity, near the default's own matching."""
     from dynastereo.synth import read_objects
 
     seq, base = convoy_run
     app = __import__("dynastereo.cli.main", fromlist=["app"]).app
-    out = tmp_path / "own"
-    r = runner.invoke(app, ["run", str(seq), "--out", str(out), "--detector", "oracle", "--object-block", "11"])
+    out = tmp_path / "masker"
+    r = runner.invoke(app, ["run", str(seq), "--out", str(out), "--detector", "oracle", "--object-block", "0"])
     assert r.exit_code == 0, r.output
     read = lambda d: [json.loads(line) for line in (d / "objects.jsonl").read_text().splitlines()]  # noqa: E731
     a, b = read(base), read(out)

@@ -646,16 +646,16 @@ def orbslam2_slam_values(settings: dict[str, Any], path: str | Path | None = Non
 class ObjectsConfig:
     """The objects' world positions (``slam/objects.py``, README "Objects in the world").
 
-    ``block_size: 0`` (default): from the masker's disparity inside each outline (its
-    ``stereo.block_size``, 15).  An odd ``block_size`` (5-255): every outline's pixels are
-    matched again with that block, compiled, in a window around the masker's disparities
-    there, with StereoBM's checks as ``stereo.*`` sets them (``masking/object_disparity.py``)
-    -- positions from a smaller block than the masks want, without the masks and the motion
-    test paying for it: 11 on small images (640 px wide: synthetic held-out positions 0.310 ->
-    0.288 m, at 0.2-1.0 ms a frame more; README).  ``stride``: every stride-th row and column
-    matched at least (2: a quarter of the work)."""
+    ``block_size`` (odd, 5-255; default 11): every outline's pixels are matched again with
+    that block, compiled, in a window around the masker's disparities there, with StereoBM's
+    checks as ``stereo.*`` sets them (``masking/object_disparity.py``) -- positions from a
+    smaller block than the masks want, without the masks and the motion test paying for it
+    (synthetic held-out positions 0.310 -> 0.288 m against the masker's 15-px disparity;
+    README).  ``0``: from the masker's disparity inside each outline (its
+    ``stereo.block_size``, 15), a few tenths of a millisecond a frame cheaper.  ``stride``:
+    every stride-th row and column matched at least (2: a quarter of the work)."""
 
-    block_size: int = 0
+    block_size: int = 11
     stride: int = 1
 
     def __post_init__(self) -> None:

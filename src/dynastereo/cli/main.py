@@ -211,7 +211,7 @@ def run(
     models_dir: Optional[Path] = typer.Option(None, "--models-dir", help="Model directory (default: $DYNASTEREO_MODELS or the cache)."),
     save_masks: bool = typer.Option(False, "--save-masks", help="Also write DIR/masks/{left,right}/NNNNNN.png."),
     mask_all: bool = typer.Option(False, "--mask-all", help="Mask every detection, moving or not (the thesis; motion.mode: all). Default: only objects judged moving or not yet judged."),
-    object_block: Optional[int] = typer.Option(None, "--object-block", help="Match the objects' outlines again with this block for their world positions (objects.block_size; 11 on small images; 0: the masker's disparity, default)."),
+    object_block: Optional[int] = typer.Option(None, "--object-block", help="The block the objects' outlines are matched again with for their world positions (objects.block_size; default 11; 0: the masker's disparity)."),
     bag: Optional[Path] = typer.Option(None, "--bag", help="Read a ROS bag instead of a folder: ROS 1 .bag, ROS 2 .db3 (or bag directory), .mcap. Writes DIR/output.<same format> too."),
     left_topic: str = typer.Option("/camera/left/image_raw", "--left-topic", help="[--bag] Left sensor_msgs/Image or CompressedImage topic."),
     right_topic: str = typer.Option("/camera/right/image_raw", "--right-topic", help="[--bag] Right image topic."),
