@@ -164,14 +164,15 @@ REUSE = False  # --reuse: a finished run folder (run.json without an error) is r
 
 
 def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int = 60, repeats: int = 3,
-                settings: dict | None = None) -> dict:
+                settings: dict | None = None, compare: dict | None = None) -> dict:
     """The objects stage alone (the pipeline's own stage times include the waits of a
     masking thread on shared cores): the masks of the first ``frames`` frames made once
     (with the run's motion verdicts and speeds from its ``objects.jsonl``), then
     ``WorldObjects.update`` with the run's poses timed ``repeats`` times, as the calling
     thread's CPU time (``ms_*``: what the stage costs, unaffected by other processes on a
     busy machine) and wall time (``wall_ms_*``); per frame the fastest repeat, then ms per
-    frame (median, p90) over the frames."""
+    frame (median, p90) over the frames.  ``compare``: more overrides for a second tracker
+    timed alternately with the first over the same masks (``compared``: its figures)."""
     from dynastereo.eval.trajectory import read_trajectory
     from dynastereo.io import open_sequence
     from dynastereo.masking import build_masker
@@ -191,19 +192,27 @@ def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int 
             o.moving, o.speed_mps = r.get("moving"), r.get("speed_mps")
         data.append((m, frame))
     stamps = seq.timestamps()
-    times = np.zeros((repeats, n, 2))  # (CPU of this thread, wall) ms
+    cfgs = [cfg] + ([cfg.with_overrides(compare)] if compare else [])
+    times = np.zeros((len(cfgs), repeats, n, 2))  # (CPU of this thread, wall) ms
     for r in range(repeats):
-        wo = WorldObjects.from_config(seq.calibration, cfg)
-        for i, (m, frame) in enumerate(data):
-            c0, t0 = time.thread_time(), time.perf_counter()
-            wo.update(m, poses[i], True, float(stamps[i]), frame)
-            times[r, i] = (time.thread_time() - c0) * 1e3, (time.perf_counter() - t0) * 1e3
-    cpu, wall = times.min(axis=0).T
+        for c, cf in enumerate(cfgs):  # alternated: both see the same machine
+            wo = WorldObjects.from_config(seq.calibration, cf)
+            for i, (m, frame) in enumerate(data):
+                c0, t0 = time.thread_time(), time.perf_counter()
+                wo.update(m, poses[i], True, float(stamps[i]), frame)
+                times[c, r, i] = (time.thread_time() - c0) * 1e3, (time.perf_counter() - t0) * 1e3
     q = lambda v: round(float(v), 3)  # noqa: E731
-    return {"frames": n, "repeats": repeats, "objects_median": float(np.median([len(m.objects) for m, _ in data])),
-            "ms_median": q(np.median(cpu)), "ms_p90": q(np.percentile(cpu, 90)),
-            "wall_ms_median": q(np.median(wall)), "wall_ms_p90": q(np.percentile(wall, 90)),
-            "loadavg": round(os.getloadavg()[0], 2)}
+
+    def figures(t: np.ndarray) -> dict:
+        cpu, wall = t.min(axis=0).T
+        return {"ms_median": q(np.median(cpu)), "ms_p90": q(np.percentile(cpu, 90)),
+                "wall_ms_median": q(np.median(wall)), "wall_ms_p90": q(np.percentile(wall, 90))}
+
+    out = {"frames": n, "repeats": repeats, "objects_median": float(np.median([len(m.objects) for m, _ in data])),
+           **figures(times[0]), "loadavg": round(os.getloadavg()[0], 2)}
+    if compare:
+        out["compared"] = {"settings": compare, **figures(times[1])}
+    return out
 
 
 def run(seq_dir: Path, out: Path, detector: str | None = None, **settings) -> dict:
@@ -248,12 +257,17 @@ def main() -> int:
     ap.add_argument("--reuse", action="store_true", help="reuse finished runs in --work (e.g. after an interruption)")
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="a configuration override for every run, e.g. objects.block_size=11 (repeatable)")
+                    help="a configuration override for every run, e.g. objects.block_size=0 (repeatable)")
+    ap.add_argument("--cost-compare", action="append", default=None, metavar="KEY=VALUE",
+                    help="the objects stage's cost also measured with these overrides, alternately over the same "
+                         "masks (default: objects.block_size=0, the masker's disparity; 'none': no comparison)")
     args = ap.parse_args()
     try:
         settings = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.set)}
+        pairs = [kv for kv in args.cost_compare or ["objects.block_size=0"] if kv != "none"]
+        compare = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in pairs)}
     except ValueError:
-        ap.error(f"--set takes KEY=VALUE, got {args.set}")
+        ap.error(f"--set / --cost-compare take KEY=VALUE, got {args.set + (args.cost_compare or [])}")
     if args.quick:
         args.seeds, args.scenarios, args.variants = "1", "mixed", "2000"
     global REUSE
@@ -288,13 +302,14 @@ def main() -> int:
     for first in [r for r in synth if r["seed"] == seeds[0]]:  # each scenario's first seed
         seq, _ = sequence(args.cache, first["scenario"], args.frames, first["seed"], size)
         replays[f"synth {first['scenario']} seed {first['seed']}"] = replay_cost(
-            seq, work / f"{first['scenario']}_s{first['seed']}", "oracle", settings=settings)
+            seq, work / f"{first['scenario']}_s{first['seed']}", "oracle", settings=settings, compare=compare)
     if raw:
         nf = raw["runs"]["default"][0]["n_features"]
         replays["KITTI raw 0001"] = replay_cost(Path(data) / DRIVE, work / f"raw0001_default_nf{nf}", None,
-                                                settings=settings)
+                                                settings=settings, compare=compare)
     for k, v in replays.items():
-        print(f"objects stage alone, {k}: {v['ms_median']} ms/frame median (p90 {v['ms_p90']}), "
+        other = f"; {v['compared']['settings']}: {v['compared']['ms_median']}" if "compared" in v else ""
+        print(f"objects stage alone, {k}: {v['ms_median']} ms/frame median (p90 {v['ms_p90']}){other}, "
               f"{v['objects_median']:.0f} objects a frame", flush=True)
 
     # the target counts what was missed: an object-frame within 30 m without a position is a miss

@@ -62,10 +62,11 @@ the trajectory's frame (the first camera's: x right, y down, z forward):
   tenth of the class length; across it ``r σ_px / f`` with ``σ_px`` a twentieth of the box
   width (at least 1 px) plus a tenth of the class width.  The 3x3 covariance is rotated into
   the world with the pose.
-* **Velocity** (:meth:`WorldObjects.update`): a constant-velocity Kalman filter per track
-  id in the world frame (state ``[p, v]``, white acceleration noise ``accel_noise``
-  m²/s³, a thousandth of it vertically: objects keep to the ground), all tracks of the
-  frame at once (stacked matrices).  After the position, the motion test's own speed
+* **Velocity** (:func:`_track_frame`, one compiled call a frame over a table of the
+  tracks' states, with the uncertainty, the position out and the coasting below): a
+  constant-velocity Kalman filter per track id in the world frame (state ``[p, v]``, white
+  acceleration noise ``accel_noise`` m²/s³, a thousandth of it vertically: objects keep to
+  the ground).  After the position, the motion test's own speed
   (``ObjectMask.speed_mps``, from its points' flow) updates the speed along the filter's
   direction, and an object the motion test judged static gets ``v = 0`` (σ 0.1 m/s).  An
   innovation over chi-square ``GATE`` (the tracker gave the id to another object) restarts
