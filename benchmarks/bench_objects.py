@@ -189,7 +189,7 @@ def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int 
         frame = seq.frame(i)
         m = masker.mask(frame)
         for o, r in zip(m.objects, recs.get(i, [])):
-            o.moving, o.speed_mps = r.get("moving"), r.get("speed_mps")
+            o.moving, o.speed_mps, o.speed_sigma_mps = r.get("moving"), r.get("speed_mps"), r.get("speed_sigma_mps")
         data.append((m, frame))
     stamps = seq.timestamps()
     cfgs = [cfg] + ([cfg.with_overrides(compare)] if compare else [])

@@ -1218,7 +1218,8 @@ def test_object_method_and_source_are_enums_written_as_their_strings() -> None:
     assert json.dumps(d) == json.dumps({"box": [1.0, 2.0, 3.0, 4.0], "label": "car", "score": 0.9,
                                         "method": "box-fallback:tiny", "disparity": 5.0, "pixels_left": 6,
                                         "pixels_right": 7, "track_id": -1, "source": "carried", "track": -1,
-                                        "moving": None, "masked": True, "speed_mps": None})
+                                        "moving": None, "masked": True, "speed_mps": None,
+                                        "speed_sigma_mps": None})
     with pytest.raises(ValueError):
         ObjectMask((0.0, 0.0, 1.0, 1.0), "car", 0.5, "bogus", 0.0, 0, 0)
 

@@ -97,6 +97,10 @@ def test_known_motions_are_judged_from_geometry() -> None:
     assert [o.moving for o in masks.objects] == [False, True, True]
     speeds = [o.speed_mps for o in masks.objects]
     assert speeds[0] < 0.3 and abs(speeds[1] - 1.0) < 0.3 and abs(speeds[2] - 10.0) < 1.0
+    # each with its sigma along the velocity (stereo and pose noise), the truth within 2 of them
+    sig = [o.speed_sigma_mps for o in masks.objects]
+    assert all(0.0 < v < 2.0 for v in sig)
+    assert all(abs(sp - true) <= 2.0 * v for sp, true, v in zip(speeds, (0.0, 1.0, 10.0), sig))
     # the parked car's pixels are left to SLAM in both images, the movers stay masked
     out = judge.select(masks)
     assert [o.masked for o in masks.objects] == [False, True, True]

@@ -76,6 +76,23 @@ def test_positions_speed_and_uncertainty_on_exact_disparity():
     assert m.objects[0].to_dict().get("world") is None
 
 
+def test_the_motion_tests_speed_counts_by_its_own_sigma():
+    """A walker crossing at 1 m/s whose motion-test speed reads 15 m/s (the flow of a far
+    object is mostly depth noise): with the motion test's sigma of it (10 m/s) the filter's
+    speed stays with the positions; given as exact (no sigma: 0.3 m/s) it follows the 15."""
+
+    def speed(sigma: float | None) -> float:  # the filter's, median over frames 5-19
+        wo = WorldObjects(CALIB)
+        out = []
+        for f in range(20):
+            m = _masks([("person", 4, np.array([-2.0 + 0.1 * f, 0.2, 12.0]), 0.6, 1.7)])
+            m.objects[0].moving, m.objects[0].speed_mps, m.objects[0].speed_sigma_mps = True, 15.0, sigma
+            out.append(wo.update(m, np.eye(4), True, 0.1 * f)[0].speed)
+        return float(np.median(out[5:]))
+
+    assert speed(10.0) == pytest.approx(1.0, abs=0.5) and speed(None) > 8.0
+
+
 def test_no_disparity_no_track_and_restart():
     wo = WorldObjects(CALIB)
     m = _masks([("person", -1, np.array([1.0, 0.2, 8.0]), 0.6, 1.7), ("car", 3, np.array([-2.0, 0.5, 10.0]), 1.8, 1.5)])

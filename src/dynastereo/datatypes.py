@@ -241,6 +241,7 @@ class ObjectMask:
     moving: bool | None = None
     masked: bool = True
     speed_mps: float | None = None
+    speed_sigma_mps: float | None = None  # its standard deviation (stereo and pose noise, along the velocity)
     # where it is in the world and how fast it goes (slam.objects.ObjectState), once tracked
     world: Any = None
 
@@ -263,6 +264,7 @@ class ObjectMask:
             "moving": None if self.moving is None else bool(self.moving),
             "masked": bool(self.masked),
             "speed_mps": None if self.speed_mps is None else round(float(self.speed_mps), 3),
+            "speed_sigma_mps": None if self.speed_sigma_mps is None else round(float(self.speed_sigma_mps), 3),
             **(self.world.to_dict() if self.world is not None else {}),
         }
 

@@ -50,7 +50,7 @@ the trajectory's frame (the first camera's: x right, y down, z forward):
 
   The top-view and heading passes visit every ``st``-th row and column of a box, ``st =
   1 + sqrt(n / SAMPLE_PIXELS)`` for an outline of n pixels (``SAMPLE_PIXELS`` 1000; 2000
-  cost more for the same positions, development seeds replayed: 0.268 m both).
+  cost more for the same positions, development seeds replayed: 0.267 against 0.268 m).
 
   Vertically: the box centre's row at the median disparity's depth (the box spans the
   surface seen, nearer than the centre); a box cut by the image's bottom (a person close
@@ -68,7 +68,10 @@ the trajectory's frame (the first camera's: x right, y down, z forward):
   acceleration noise ``accel_noise`` m²/s³, a thousandth of it vertically: objects keep to
   the ground).  After the position, the motion test's own speed
   (``ObjectMask.speed_mps``, from its points' flow) updates the speed along the filter's
-  direction, and an object the motion test judged static gets ``v = 0`` (σ 0.1 m/s).  An
+  direction, with the motion test's own sigma of it (``speed_sigma_mps``: its stereo and
+  pose noise along the velocity, growing with the range squared; at least ``SPEED_SIGMA``,
+  0.3 m/s, plus 10 % of the speed: a walker 50 m ahead on KITTI raw 0001, whose 15-26 m/s
+  from the flow was taken at +-1.6 m/s and set the filter's speed, now counts at +-4 m/s), and an object the motion test judged static gets ``v = 0`` (σ 0.1 m/s).  An
   innovation over chi-square ``GATE`` (the tracker gave the id to another object) restarts
   the track.  Speed = ``|v|`` with ``σ = sqrt(vᵀ P_v v) / |v|``.
 * **Position out**: an object in full view gets this frame's measurement, not the
@@ -146,7 +149,7 @@ MOVING_HEADING_SPEED = 1.0  # m/s: above it, the velocity gives the heading
 O_SIG, O_EXT, O_HEAD, O_DIST, O_CAM, O_VEL, O_VSIG, O_SPEED = 3, 6, 9, 12, 13, 16, 19, 22  # speed, its sigma: 22, 23
 N_OUT = 24
 SPEED_DIRECTION = 0.3  # m/s: the filter's velocity gives a direction for the motion test's speed above it
-SPEED_SIGMA = 0.3  # m/s, the motion test's speed (plus 10 %)
+SPEED_SIGMA = 0.3  # m/s, the motion test's speed at least (its own sigma where larger; plus 10 %)
 STILL_SIGMA = 0.1  # m/s, the velocity of an object the motion test judged static
 
 
@@ -506,11 +509,12 @@ def _update3(x, g, Pn, y, Si, o, K, KP):  # pragma: no cover - compiled
 
 
 @jit
-def _kalman(x, P, z, Rz, dt, qa, speed, still, speed_dir, speed_sigma, still_sigma, chi):  # pragma: no cover
+def _kalman(x, P, z, Rz, dt, qa, speed, speed_sigma, still, speed_dir, still_sigma, chi):  # pragma: no cover
     """Per track g, in place: predict ``x`` (G, 6), ``P`` (G, 6, 6) over ``dt`` with white
     acceleration noise ``qa`` (3,) per axis; update with the position ``z`` (G, 3),
     covariance ``Rz`` (G, 3, 3) (``chi``: the innovation's chi-square); then with the
-    motion test's ``speed`` along the velocity (NaN: none), or ``v = 0`` where ``still``."""
+    motion test's ``speed`` along the velocity (NaN: none; sigma ``speed_sigma`` plus 10 %),
+    or ``v = 0`` where ``still``."""
     Pn = np.empty((6, 6))
     S = np.empty((3, 3))
     Si = np.empty((3, 3))
@@ -559,7 +563,7 @@ def _kalman(x, P, z, Rz, dt, qa, speed, still, speed_dir, speed_sigma, still_sig
                 h[i] = 0.0
             for i in range(3):
                 h[i + 3] = x[g, i + 3] / sp
-            s = speed_sigma ** 2 + (0.1 * speed[g]) ** 2
+            s = speed_sigma[g] ** 2 + (0.1 * speed[g]) ** 2
             for i in range(3, 6):
                 for j in range(3, 6):
                     s += h[i] * Pn[i, j] * h[j]
@@ -634,15 +638,15 @@ def _to_camera(R, t_c, out, k):  # pragma: no cover - compiled
 
 
 @jit
-def _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still, speed, R, t_c, stamp, fx, qa,
-                 gate, coast_s, tx, tP, tt, tn, tfull, thas, out, flags):  # pragma: no cover - compiled
+def _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still, speed, speed_sigma, R, t_c, stamp,
+                 fx, qa, gate, coast_s, tx, tP, tt, tn, tfull, thas, out, flags):  # pragma: no cover - compiled
     """The frame's states from the measurements (module doc: uncertainty, velocity,
     position out, no measurement), one call a frame.
 
     Per object k: ``X_c`` / ``valid`` / ``sigma_r`` / ``size_unit`` / ``cut`` / ``head`` (x, z)
     as :meth:`WorldObjects.measure` gives them, ``sizes`` (N, 3), its track's slot in the
-    table (``slots``, -1: no track), the motion test's verdict static (``still``) and speed
-    (``speed``, NaN: none); ``R`` / ``t_c`` the camera's pose; ``qa`` the filter's
+    table (``slots``, -1: no track), the motion test's verdict static (``still``), speed
+    (``speed``, NaN: none) and its sigma (``speed_sigma``, NaN: unknown); ``R`` / ``t_c`` the camera's pose; ``qa`` the filter's
     acceleration noise per world axis.  The track table (``tx`` (S, 6) states, ``tP``
     (S, 6, 6) covariances, ``tt`` stamps of the last update, ``tn`` updates, 0: no state yet;
     ``tfull`` (S, 6) / ``thas`` a static track's last full view, world and sigma) is updated
@@ -701,6 +705,7 @@ def _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still,
     z = np.empty((G, 3))
     Rz = np.empty((G, 3, 3))
     spd = np.empty(G)
+    ssg = np.empty(G)
     stl = np.empty(G, np.bool_)
     for g in range(G):
         k = rows[g]
@@ -713,9 +718,11 @@ def _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still,
             z[g, i] = out[k, i]
         Rz[g] = Cw[k]
         spd[g] = speed[k]
+        # the motion test's speed sigma, at least SPEED_SIGMA (unknown: SPEED_SIGMA)
+        ssg[g] = SPEED_SIGMA if np.isnan(speed_sigma[k]) else max(SPEED_SIGMA, speed_sigma[k])
         stl[g] = still[k]
     chi = np.zeros(G)
-    _kalman(xg, Pg, z, Rz, dt, qa, spd, stl, SPEED_DIRECTION, SPEED_SIGMA, STILL_SIGMA, chi)
+    _kalman(xg, Pg, z, Rz, dt, qa, spd, ssg, stl, SPEED_DIRECTION, STILL_SIGMA, chi)
     restarts = 0
     for g in range(G):
         s = slots[rows[g]]
@@ -939,7 +946,7 @@ class WorldObjects:
         _headings(np.eye(3), np.zeros(0, np.int64), tb.x, tb.n, np.zeros((0, 2)), np.zeros(0, np.bool_))
         _track_frame(np.zeros((0, 3)), np.zeros(0, np.bool_), np.zeros(0), np.zeros((0, 2)), np.zeros(0, np.bool_),
                      np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.bool_), np.zeros(0),
-                     np.eye(3), np.zeros(3), 0.0, 1.0, self._qa, self.gate, COAST_S, tb.x, tb.P, tb.t, tb.n, tb.full,
+                     np.zeros(0), np.eye(3), np.zeros(3), 0.0, 1.0, self._qa, self.gate, COAST_S, tb.x, tb.P, tb.t, tb.n, tb.full,
                      tb.has_full, np.zeros((0, N_OUT)), np.zeros((0, 3), np.int64))
 
     @classmethod
@@ -1051,15 +1058,16 @@ class WorldObjects:
         slots = tb.slots(tracks)
         still = np.array([o.moving is False for o in objs], np.bool_)
         speed = np.array([np.nan if o.speed_mps is None else o.speed_mps for o in objs], np.float64)
+        speed_sigma = np.array([np.nan if o.speed_sigma_mps is None else o.speed_sigma_mps for o in objs], np.float64)
         head = np.empty((N, 2))
         moves = np.empty(N, np.bool_)
         _headings(R, slots, tb.x, tb.n, head, moves)
         valid, X_c, sigma_r, size_unit, cut, head = self.measure(masks, head, sizes, moves, frame)
         out = np.empty((N, N_OUT))
         flags = np.empty((N, 3), np.int64)
-        self.restarts += _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still, speed, R, t_c,
-                                      stamp, float(self.calib.fx), self._qa, float(self.gate), COAST_S, tb.x, tb.P, tb.t,
-                                      tb.n, tb.full, tb.has_full, out, flags)
+        self.restarts += _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still, speed,
+                                      speed_sigma, R, t_c, stamp, float(self.calib.fx), self._qa, float(self.gate),
+                                      COAST_S, tb.x, tb.P, tb.t, tb.n, tb.full, tb.has_full, out, flags)
         for k in np.flatnonzero(flags[:, 0]).tolist():
             o = out[k]
             st = ObjectState(tracks[k], o[:3], o[O_SIG:O_SIG + 3], o[O_EXT:O_EXT + 3], o[O_HEAD:O_HEAD + 3],
