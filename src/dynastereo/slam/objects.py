@@ -71,7 +71,8 @@ the trajectory's frame (the first camera's: x right, y down, z forward):
   direction, with the motion test's own sigma of it (``speed_sigma_mps``: its stereo and
   pose noise along the velocity, growing with the range squared; at least ``SPEED_SIGMA``,
   0.3 m/s, plus 10 % of the speed: a walker 50 m ahead on KITTI raw 0001, whose 15-26 m/s
-  from the flow was taken at +-1.6 m/s and set the filter's speed, now counts at +-4 m/s), and an object the motion test judged static gets ``v = 0`` (σ 0.1 m/s).  An
+  from the flow was taken at +-1.6 m/s and set the filter's speed, now counts at +-4 m/s),
+  and an object the motion test judged static gets ``v = 0`` (σ 0.1 m/s).  An
   innovation over chi-square ``GATE`` (the tracker gave the id to another object) restarts
   the track.  Speed = ``|v|`` with ``σ = sqrt(vᵀ P_v v) / |v|``.
 * **Position out**: an object in full view gets this frame's measurement, not the
@@ -646,12 +647,13 @@ def _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still,
     Per object k: ``X_c`` / ``valid`` / ``sigma_r`` / ``size_unit`` / ``cut`` / ``head`` (x, z)
     as :meth:`WorldObjects.measure` gives them, ``sizes`` (N, 3), its track's slot in the
     table (``slots``, -1: no track), the motion test's verdict static (``still``), speed
-    (``speed``, NaN: none) and its sigma (``speed_sigma``, NaN: unknown); ``R`` / ``t_c`` the camera's pose; ``qa`` the filter's
-    acceleration noise per world axis.  The track table (``tx`` (S, 6) states, ``tP``
-    (S, 6, 6) covariances, ``tt`` stamps of the last update, ``tn`` updates, 0: no state yet;
-    ``tfull`` (S, 6) / ``thas`` a static track's last full view, world and sigma) is updated
-    in place.  Writes ``out`` (N, ``N_OUT``: world, world sigma, extent, heading in the
-    world, distance, camera centre, velocity, its sigmas, speed, its sigma) and ``flags``
+    (``speed``, NaN: none) and its sigma (``speed_sigma``, NaN: unknown); ``R`` / ``t_c``
+    the camera's pose; ``qa`` the filter's acceleration noise per world axis.  The track
+    table (``tx`` (S, 6) states, ``tP`` (S, 6, 6) covariances, ``tt`` stamps of the last
+    update, ``tn`` updates, 0: no state yet; ``tfull`` (S, 6) / ``thas`` a static track's
+    last full view, world and sigma) is updated in place.  Writes ``out`` (N, ``N_OUT``:
+    world, world sigma, extent, heading in the world, distance, camera centre, velocity,
+    its sigmas, speed, its sigma) and ``flags``
     (N, 3: 0 none / 1 measured / 2 the filter's prediction, 1 where it has a velocity, the
     track's updates); returns the number of tracks restarted (an innovation over ``gate``)."""
     N = X_c.shape[0]
@@ -946,8 +948,8 @@ class WorldObjects:
         _headings(np.eye(3), np.zeros(0, np.int64), tb.x, tb.n, np.zeros((0, 2)), np.zeros(0, np.bool_))
         _track_frame(np.zeros((0, 3)), np.zeros(0, np.bool_), np.zeros(0), np.zeros((0, 2)), np.zeros(0, np.bool_),
                      np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.bool_), np.zeros(0),
-                     np.zeros(0), np.eye(3), np.zeros(3), 0.0, 1.0, self._qa, self.gate, COAST_S, tb.x, tb.P, tb.t, tb.n, tb.full,
-                     tb.has_full, np.zeros((0, N_OUT)), np.zeros((0, 3), np.int64))
+                     np.zeros(0), np.eye(3), np.zeros(3), 0.0, 1.0, self._qa, float(self.gate), COAST_S, tb.x, tb.P,
+                     tb.t, tb.n, tb.full, tb.has_full, np.zeros((0, N_OUT)), np.zeros((0, 3), np.int64))
 
     @classmethod
     def from_config(cls, calibration: StereoCalibration, cfg: Config) -> "WorldObjects":
@@ -1078,7 +1080,8 @@ class WorldObjects:
                 st.speed, st.speed_sigma = float(o[O_SPEED]), float(o[O_SPEED + 1])
             states[k] = st
             if objs[k].moving is not False:  # moving, or undecided (masked): never in the map
-                self._mover_boxes.append((st.world, st.extent, st.heading))
+                # copies: views would keep every frame's whole output alive in the deque
+                self._mover_boxes.append((st.world.copy(), st.extent.copy(), st.heading.copy()))
         for o, st in zip(objs, states):
             o.world = st
         tb.drop(stamp, self.max_gap)
