@@ -93,6 +93,24 @@ def test_the_motion_tests_speed_counts_by_its_own_sigma():
     assert speed(10.0) == pytest.approx(1.0, abs=0.5) and speed(None) > 8.0
 
 
+def test_forty_tracks_and_forgotten_ones():
+    """More tracks than the filters' table starts with (32): each its own filter; a track
+    unseen for longer than ``max_gap`` (2 s) is forgotten -- its id seen again starts anew."""
+    grid = [(x, y) for y in (-1.2, -0.4, 0.4, 1.2, 2.0) for x in np.arange(-2.8, 3.0, 0.8)]  # 8 x 5, apart
+    objs = [("person", 100 + i, np.array([x, y, 10.0]), 0.6, 0.6) for i, (x, y) in enumerate(grid)]
+    wo = WorldObjects(CALIB)
+    for f in range(3):
+        s = wo.update(_masks(objs), np.eye(4), True, 0.1 * f)
+    assert len(s) == 40 and all(x is not None and x.updates == 3 and x.speed < 0.5 for x in s)
+    assert sorted(x.track for x in s) == list(range(100, 140))
+    # a frame 2.5 s on with five new ids only: the forty are forgotten after it; then five
+    # of them again beside the new five: those start anew, the new ones go on
+    new = [(lb, t + 1000, X, w, h) for lb, t, X, w, h in objs[5:10]]
+    wo.update(_masks(new), np.eye(4), True, 2.5)
+    s = wo.update(_masks(objs[:5] + new), np.eye(4), True, 2.6)
+    assert [x.updates for x in s] == [1] * 5 + [2] * 5
+
+
 def test_no_disparity_no_track_and_restart():
     wo = WorldObjects(CALIB)
     m = _masks([("person", -1, np.array([1.0, 0.2, 8.0]), 0.6, 1.7), ("car", 3, np.array([-2.0, 0.5, 10.0]), 1.8, 1.5)])
