@@ -167,6 +167,21 @@ def test_a_box_larger_than_max_area_keeps_the_maskers(scene):
     assert ObjectStereo.from_config(cfg.objects, cfg.stereo).max_area == 20 * 13 * 13
 
 
+def test_the_frames_budget_matches_the_smaller_boxes_first(scene):
+    """Within a frame's budget (the boxes' areas with the block's margin), the smaller
+    boxes are matched first; those beyond it keep the masker's disparity."""
+    left, right, labels, disp = scene
+    x0, y0, x1, y1 = BOX
+    two = labels.copy()
+    two[y0:y1, x0:x0 + 20] = np.where(labels[y0:y1, x0:x0 + 20] == 1, 2, 0)  # a second, narrower object
+    boxes = np.array([[x0 + 20, y0, x1, y1], [x0, y0, x0 + 20, y1]], np.int64)
+    small, big = (20 + 11) * (y1 - y0 + 11), (x1 - x0 - 20 + 11) * (y1 - y0 + 11)
+    _, both = ObjectStereo(11, budget=small + big)(left, right, two, disp, boxes)
+    out, one = ObjectStereo(11, budget=small + big - 1)(left, right, two, disp, boxes)
+    assert both.min() > 0 and one[1] > 0 and one[0] == -1
+    assert np.array_equal(out[two == 1], disp[two == 1])  # the larger one: the masker's
+
+
 def test_bad_inputs_are_one_line_errors(scene):
     left, right, labels, disp = scene
     with pytest.raises(ValueError, match="one shape"):
