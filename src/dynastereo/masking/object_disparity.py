@@ -371,7 +371,8 @@ def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_si
     object's disparities there only where it was matched: copying the rest from ``disp``
     cost 0.1 ms a frame, more at KITTI's size).  Returns (N,) the pixels matched per object
     (-1: the masker's kept, its outline in ``out`` as it was or the masker's -- too few
-    disparities to set a window, too few pixels passing the checks, or a box too large)."""
+    disparities to set a window, too few pixels passing the checks, a box too large, or one
+    beyond the frame's budget)."""
     N = boxes.shape[0]
     res = np.full(N, -1, np.int64)
     hist = np.zeros(HIST_BINS, np.int64)
@@ -387,14 +388,14 @@ def object_disparity(L, R, labels, disp, boxes, block, cap, uniq, lr_max, spk_si
     work = 0
     for k in np.argsort(area, kind="mergesort"):  # smallest first, within the frame's budget
         x0, y0, x1, y1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
-        if x1 <= x0 or y1 <= y0 or (max_area > 0 and (x1 - x0) * (y1 - y0) > max_area):
+        if x1 <= x0 or y1 <= y0 or (max_area > 0 and area[k] > max_area):
             continue
         work += (x1 - x0 + block) * (y1 - y0 + block)
         if budget > 0 and work > budget:
             break
         sk = st
         if samples > 0:
-            sk = max(st, int(np.ceil(np.sqrt((x1 - x0) * (y1 - y0) / samples))))
+            sk = max(st, int(np.ceil(np.sqrt(area[k] / samples))))
         step[k] = sk
         gh_max = max(gh_max, (y1 - y0 + sk - 1) // sk)
         gw_max = max(gw_max, (x1 - x0 + sk - 1) // sk)

@@ -807,19 +807,19 @@ class _TrackTable:
 
     def __init__(self, capacity: int = 32):
         self.slot: dict[int, int] = {}
-        self.ids = np.full(0, -1, np.int64)
+        self.ids = np.zeros(0, np.int64)  # each slot's track id, -1: free
+        self.x, self.P = np.zeros((0, 6)), np.zeros((0, 6, 6))
+        self.t, self.n = np.zeros(0), np.zeros(0, np.int64)
+        self.full, self.has_full = np.zeros((0, 6)), np.zeros(0, np.bool_)
+        self._free: list[int] = []
         self._grow(capacity)
 
     def _grow(self, cap: int) -> None:
         old = len(self.ids)
         pad = lambda a, shape, fill=0: np.concatenate([a, np.full((cap - old, *shape), fill, a.dtype)])  # noqa: E731
-        if old == 0:
-            self.x, self.P = np.zeros((0, 6)), np.zeros((0, 6, 6))
-            self.t, self.n = np.zeros(0), np.zeros(0, np.int64)
-            self.full, self.has_full = np.zeros((0, 6)), np.zeros(0, np.bool_)
         self.x, self.P, self.t, self.n = pad(self.x, (6,)), pad(self.P, (6, 6)), pad(self.t, ()), pad(self.n, ())
         self.full, self.has_full, self.ids = pad(self.full, (6,)), pad(self.has_full, ()), pad(self.ids, (), -1)
-        self._free = list(range(cap - 1, old - 1, -1)) + getattr(self, "_free", [])
+        self._free = list(range(cap - 1, old - 1, -1)) + self._free
 
     def slots(self, tracks: list[int]) -> np.ndarray:
         """(N,) the slots of the track ids (-1 for an object without one); a new id gets a
