@@ -21,7 +21,7 @@ A pose is accepted only with enough support: after local-map tracking at least
 last tracked frames.  A jump the motion model cannot follow (a revisit fed as
 ``--frames 0-98,40-60``, a gap) leaves a wrong prediction with a few chance inliers on far
 points: such a pose is refused, and a prior-free search over the map's keyframes runs
-instead (``relocalization.relocalize_frame``: bag-of-words candidate keyframes, PnP-RANSAC,
+instead (``Tracker.relocalize``: bag-of-words candidate keyframes, PnP-RANSAC,
 motion-only BA, local map; ``reloc_min_inliers`` needed).  A frame placed that way is
 ``tracked`` with method ``reloc`` (or ``reference`` when the reference keyframe's
 descriptors already placed it); the velocity is not taken across such a jump.
