@@ -134,7 +134,7 @@ def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int 
     from dynastereo.eval.trajectory import read_trajectory
     from dynastereo.io import open_sequence
     from dynastereo.masking import build_masker
-    from dynastereo.masking.motion import MotionJudge, SceneFlow
+    from dynastereo.objects.motion import MotionJudge, SceneFlow
 
     cfg = Config().with_overrides({"detector.name": detector} if detector else {})
     seq = open_sequence(seq_dir)

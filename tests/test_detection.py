@@ -678,12 +678,12 @@ def test_openvino_session_threads_and_streams(models_dir):
 
 @pytest.mark.realdata
 def test_quantize_writes_a_qdq_graph_with_an_f32_head(models_dir, kitti03, tmp_path):
-    """models/quantize.py (the INT8 measurement, README "Runtime and precision"): a QDQ
+    """masking/detection/quantize.py (the INT8 measurement, README "Runtime and precision"): a QDQ
     copy calibrated on unscored frames, its head left in f32, readable by onnxruntime."""
     import onnx
     import onnxruntime as ort
 
-    from dynastereo.models.quantize import quantize_detector
+    from dynastereo.masking.detection.quantize import quantize_detector
 
     require(models_dir / "yolox-nano", "model yolox-nano")
     images = sorted((kitti03 / "image_0").glob("*.png"))[:2]

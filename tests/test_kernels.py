@@ -348,7 +348,7 @@ def test_numba_cache_falls_back_when_nothing_is_writable(monkeypatch, tmp_path):
 
 
 def _kernel_signatures() -> dict[str, set[str]]:
-    """Every compiled kernel of the SLAM (``slam.kernels.*``, ``slam.objects``) and of the
+    """Every compiled kernel of the SLAM (``slam.kernels.*``, ``objects.world``) and of the
     masking (the outlines', the box tracker's) and its loaded overloads."""
     import importlib
     import pkgutil
@@ -359,9 +359,9 @@ def _kernel_signatures() -> dict[str, set[str]]:
 
     names = [f"dynastereo.slam.kernels.{m.name}" for m in pkgutil.iter_modules(kernels.__path__)]
     out: dict[str, set[str]] = {}
-    others = ["dynastereo.slam.objects", "dynastereo.masking.outline", "dynastereo.masking.maskers",
+    others = ["dynastereo.objects.world", "dynastereo.masking.outline", "dynastereo.masking.maskers",
               "dynastereo.masking.transfer", "dynastereo.masking.detection.box_tracker",
-              "dynastereo.masking.object_disparity"]
+              "dynastereo.objects.disparity"]
     for mod in map(importlib.import_module, names + others):
         for name, f in vars(mod).items():
             if isinstance(f, CPUDispatcher) and f.__module__ == mod.__name__:
@@ -379,7 +379,7 @@ def test_the_warm_up_loads_every_kernel_a_run_calls(kitti06, models_dir, tmp_pat
     from dynastereo.config import Config
     from dynastereo.io import KittiSequence
     from dynastereo.masking import build_masker
-    from dynastereo.slam.objects import WorldObjects
+    from dynastereo.objects.world import WorldObjects
     from dynastereo.slam.warmup import warm_up_kernels
 
     warm_up_kernels()

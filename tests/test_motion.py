@@ -22,7 +22,7 @@ import pytest
 from dynastereo.api import mask_sequence, run_sequence
 from dynastereo.config import Config, MotionConfig
 from dynastereo.errors import ConfigError
-from dynastereo.masking.motion import FrameFlow, MotionJudge, ObjectFlow
+from dynastereo.objects.motion import FrameFlow, MotionJudge, ObjectFlow
 from dynastereo.synth import generate, read_objects
 from dynastereo.datatypes import MaskMethod, ObjectMask, StereoCalibration, StereoMasks
 

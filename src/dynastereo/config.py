@@ -644,11 +644,11 @@ def orbslam2_slam_values(settings: dict[str, Any], path: str | Path | None = Non
 
 @dataclass
 class ObjectsConfig:
-    """The objects' world positions (``slam/objects.py``, README "Objects in the world").
+    """The objects' world positions (``objects/world.py``, README "Objects in the world").
 
     ``block_size`` (odd, 5-255; default 11): every outline's pixels are matched again with
     that block, compiled, in a window around the masker's disparities there, with StereoBM's
-    checks as ``stereo.*`` sets them (``masking/object_disparity.py``) -- positions from a
+    checks as ``stereo.*`` sets them (``objects/disparity.py``) -- positions from a
     smaller block than the masks want, without the masks and the motion test paying for it
     (synthetic held-out positions 0.310 -> 0.288 m against the masker's 15-px disparity;
     README).  ``0``: from the masker's disparity inside each outline (its

@@ -426,7 +426,7 @@ def _object_paths_section(rf: RunFiles) -> str:
     """Top view of the camera path with every object's path (``objects_tracks.csv``,
     coloured by the track's verdict: moving when the motion test said so in most of its
     frames), and speed over time per moving object."""
-    from ..slam.objects import TRACKS_NAME, read_tracks, verdict_rgb
+    from ..objects.world import TRACKS_NAME, read_tracks, verdict_rgb
 
     path = rf.root / TRACKS_NAME
     if not path.is_file():

@@ -254,9 +254,9 @@ class StereoNodeCore:
                 if _same_calibration(self._calib_in, calibration):
                     return False
                 raise ConfigError("the stereo calibration changed while running; restart the node to use it")
-            from ..masking.motion import build_motion
+            from ..objects.motion import build_motion
             from ..slam import System
-            from ..slam.objects import WorldObjects
+            from ..objects.world import WorldObjects
 
             if isinstance(calibration, RawStereoCalibration):
                 self.rectifier = Rectifier(calibration)

@@ -255,11 +255,11 @@ class MessageBuilder:
     def object_markers(self, objects: list, stamp_ns: int, frame_id: str, seq: int = 0,
                        paths: list | None = None) -> Any:
         """``visualization_msgs/MarkerArray`` of the objects with a world state
-        (``ObjectMask.world``, :mod:`dynastereo.slam.objects`): first a DELETEALL (objects
+        (``ObjectMask.world``, :mod:`dynastereo.objects.world`): first a DELETEALL (objects
         gone from view vanish), then per object a CUBE (ns ``objects``, id = track id), a
         TEXT_VIEW_FACING label (``labels``: class, id, speed) and, from ``paths`` (``[(track,
-        (n, 3), moving)]``, :class:`~dynastereo.slam.objects.ObjectPaths`), a LINE_STRIP (``paths``)."""
-        from ..slam.objects import verdict_rgb
+        (n, 3), moving)]``, :class:`~dynastereo.objects.world.ObjectPaths`), a LINE_STRIP (``paths``)."""
+        from ..objects.world import verdict_rgb
 
         CUBE, LINE_STRIP, TEXT, DELETEALL = 1, 4, 9, 3
         rgba = lambda moving: (*(v / 255.0 for v in verdict_rgb(moving)), 0.8)  # noqa: E731

@@ -93,7 +93,12 @@ def _viewers(spec: JobSpec, observers: tuple[FrameObserver, ...], gt: Path | Non
 
     name = {JobKind.MASK: "dynastereo mask", JobKind.RUN: "dynastereo run"}[spec.kind]
     name += " --bag" if spec.source.bag is not None else ""
-    return viewers(observers, viewer=spec.outputs.viewer, rrd=spec.outputs.rrd, gt=gt, name=name)
+    positions = None
+    if gt is not None and (spec.outputs.viewer or spec.outputs.rrd is not None):
+        from ..eval.trajectory import read_trajectory
+
+        positions = read_trajectory(gt, name="ground truth").positions
+    return viewers(observers, viewer=spec.outputs.viewer, rrd=spec.outputs.rrd, gt=positions, name=name)
 
 
 def _checked_frames(spec: JobSpec, seq: Sequence, masker: Any = None) -> tuple[list[int], Any]:
@@ -128,7 +133,7 @@ def assemble(spec: JobSpec, seq: Sequence, observers: tuple[FrameObserver, ...],
     if spec.kind is JobKind.MASK:
         return Job(spec, seq, indices, FrameProcessor(source, masker), observers=observers)
     system, info = _slam_system(spec, seq)
-    from ..masking.motion import build_motion
+    from ..objects.motion import build_motion
 
     motion = build_motion(spec.config, seq.calibration, masker)
     world = _world_objects(seq, masker, spec.config)
@@ -189,10 +194,10 @@ def _slam_system(spec: JobSpec, seq: Sequence) -> tuple[Any, dict]:
 
 
 def _world_objects(seq: Sequence, masker: Any, cfg: Config) -> Any:
-    """The objects' world tracker of a masked run (slam.objects), or None."""
+    """The objects' world tracker of a masked run (objects.world), or None."""
     if masker is None or getattr(seq, "calibration", None) is None:
         return None
-    from ..slam.objects import WorldObjects
+    from ..objects.world import WorldObjects
 
     return WorldObjects.from_config(seq.calibration, cfg)
 

@@ -2,7 +2,7 @@
 
 The masker outlines each detected object (``StereoMasks.labels_left``) and computes the
 disparity in its box (``StereoMasks.box_disparity``; with ``objects.block_size`` the
-outlines are matched again with that block first, ``masking.object_disparity``); SLAM gives
+outlines are matched again with that block first, ``objects.disparity``); SLAM gives
 the frame's camera pose.  :class:`WorldObjects` turns them, per frame and object, into an :class:`ObjectState` in
 the trajectory's frame (the first camera's: x right, y down, z forward):
 
@@ -111,9 +111,8 @@ from typing import IO, TYPE_CHECKING, Any
 import numpy as np
 
 from ..compiled import jit
-from ..datatypes import StereoCalibration, StereoFrame, StereoMasks
-from ..masking.object_disparity import ObjectStereo
-from ..viz.draw import VERDICT_COLOURS
+from ..datatypes import VERDICT_COLOURS, StereoCalibration, StereoFrame, StereoMasks
+from .disparity import ObjectStereo
 
 if TYPE_CHECKING:
     from ..config import Config
@@ -202,7 +201,7 @@ def _object_stats(labels, disp, own, own_k, boxes, peak, use_labels, head, need_
     in zeroed and are left zeroed (the bins used are cleared: buffers reused frame to frame).
     With instance labels each box's own outline (its label's pixels); without, each box's
     pixels within 15 % of the object's peak disparity.  Object k's disparities are ``own``'s
-    where ``own_k[k]`` (its outline matched again: ``masking.object_disparity``), else
+    where ``own_k[k]`` (its outline matched again: ``objects.disparity``), else
     ``disp``'s."""
     n_obj = boxes.shape[0]
     nb = hist.shape[1]
@@ -886,7 +885,7 @@ class ObjectState:
 
 
 def verdict_rgb(moving: bool | None) -> tuple[int, int, int]:
-    """The motion test's verdict colour as RGB (``viz.draw.VERDICT_COLOURS``, which is BGR):
+    """The motion test's verdict colour as RGB (``datatypes.VERDICT_COLOURS``, which is BGR):
     moving red, static green, undecided orange."""
     b, g, r = VERDICT_COLOURS[None if moving is None else bool(moving)]
     return (r, g, b)

@@ -9,7 +9,7 @@ it with its int8 kernels, OpenVINO as int8 (VNNI / AMX where the CPU has them).
 
 The calibration frames must not be the frames the result is scored on: the benchmark
 (``benchmarks/bench_recall.py``) calibrates on KITTI 03 and scores on KITTI 06 and raw
-0001.  Use: ``python -m dynastereo.models.quantize --images DIR/*.png --out FILE.onnx``.
+0001.  Use: ``python -m dynastereo.masking.detection.quantize --images DIR/*.png --out FILE.onnx``.
 """
 
 from __future__ import annotations
@@ -22,14 +22,14 @@ from typing import Iterable
 import cv2
 import numpy as np
 
-from ..config import DetectorConfig
-from ..errors import ModelError
+from ...config import DetectorConfig
+from ...errors import ModelError
 
 
 def calibration_blobs(detector, images: Iterable[Path | str], contrast: bool = True) -> list[np.ndarray]:
     """The network inputs of ``images`` as ``detector`` (a YOLOX/FastestDet ONNX detector
     at its canvas) prepares them, after the stage's CLAHE."""
-    from ..masking.detection.stage import Contrast
+    from .stage import Contrast
 
     clahe = Contrast() if contrast else None
     blobs = []
@@ -65,8 +65,8 @@ def quantize_detector(model: str | Path, images: list[Path | str], out: str | Pa
     on a KITTI frame and nothing is detected)."""
     from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
 
-    from ..masking.detection import create_detector
-    from ..masking.detection.scale import round32
+    from . import create_detector
+    from .scale import round32
 
     if not images:
         raise ModelError("no calibration images given")

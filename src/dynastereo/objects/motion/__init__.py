@@ -38,7 +38,7 @@ tracking on a prefetch thread:
   frame where most objects judged static seem to move gives none (a bad pose).  Speed =
   the velocity's norm / dt (median of the last 3 frames).  ``update`` returns the objects
   that turned moving from static, whose map points :class:`ObjectMotion` removes
-  (``System.forget_region``).  An undecided object whose box overlaps a judged one of
+  (the frame processor applies them: ``System.forget_region``).  An undecided object whose box overlaps a judged one of
   its class group by IoU >= ``duplicate_iou`` is a second detection of it (a detector
   names one car ``car`` and ``truck``) and takes its verdict (:meth:`MotionJudge.verdicts`).
 
@@ -54,21 +54,24 @@ objects without a track id (``detector.track: false``) stay undecided (masked).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from ...config import MotionConfig
 from ...datatypes import StereoCalibration, StereoFrame, StereoMasks
 from .flow import FrameFlow, ObjectFlow, SceneFlow
-from .map_edits import forget_moving, object_region
+from .map_edits import MapEdit, moving_edits, object_region
 from .stats import static_chi2, static_residuals, world_velocity
 from .verdicts import MotionJudge
 
 __all__ = [
     "FrameFlow",
+    "MapEdit",
     "MotionJudge",
     "ObjectFlow",
     "ObjectMotion",
     "SceneFlow",
     "build_motion",
-    "forget_moving",
+    "moving_edits",
     "object_region",
     "static_chi2",
     "static_residuals",
@@ -78,8 +81,9 @@ __all__ = [
 
 class ObjectMotion:
     """Both halves for one stream of frames: ``measure`` on the masking thread, ``select``
-    before and ``update`` after ``System.track`` on the tracking thread; ``update`` also
-    removes the map points of objects that turned moving (``motion.forget_points``)."""
+    before and ``update`` after ``System.track`` on the tracking thread.  ``update`` returns
+    the map edits of the objects that turned moving (``motion.forget_points``); the caller
+    applies them to the SLAM's map and counts what went (:meth:`forgot`)."""
 
     def __init__(self, cfg: MotionConfig, calibration: StereoCalibration):
         self.cfg = cfg
@@ -95,14 +99,28 @@ class ObjectMotion:
     def select(self, masks: StereoMasks | None) -> StereoMasks | None:
         return self.judge.select(masks)
 
-    def update(self, masks: StereoMasks | None, tracked, system=None) -> list[int]:
-        """``tracked``: the frame's ``TrackResult``; ``system``: the SLAM ``System`` whose map
-        loses the points of objects that turned moving (None: the map is left alone)."""
+    def update(self, masks: StereoMasks | None, tracked) -> MotionUpdate:
+        """``tracked``: the frame's ``TrackResult``.  Returns the objects that turned moving
+        from static and the map edits that remove their points (none when
+        ``motion.forget_points`` is off)."""
         ok = str(tracked.status) in ("tracked", "init")
         turned = self.judge.update(masks, tracked.pose, ok)
-        if turned and system is not None and self.cfg.forget_points and masks is not None:
-            self.forgotten += forget_moving(system, masks, turned, self.calib)
-        return turned
+        edits: list[MapEdit] = []
+        if turned and self.cfg.forget_points and masks is not None:
+            edits = moving_edits(masks, turned, self.calib)
+        return MotionUpdate(turned, edits)
+
+    def forgot(self, n: int) -> None:
+        """Count ``n`` map points removed by applying this test's map edits."""
+        self.forgotten += int(n)
+
+
+@dataclass(frozen=True)
+class MotionUpdate:
+    """What :meth:`ObjectMotion.update` found on a frame."""
+
+    turned: list[int]  # objects (indices into masks.objects) that turned moving from static
+    edits: list[MapEdit]  # their map points to remove (System.forget_region)
 
 
 def build_motion(cfg, calibration: StereoCalibration | None, masker=None) -> ObjectMotion | None:

@@ -1,5 +1,5 @@
 """The measuring half of the motion test (masking thread): :class:`SceneFlow` follows each
-tracked object's points from frame k-1 to k (the package doc of :mod:`dynastereo.masking.motion`)
+tracked object's points from frame k-1 to k (the package doc of :mod:`dynastereo.objects.motion`)
 into a :class:`FrameFlow` of :class:`ObjectFlow`."""
 
 from __future__ import annotations

@@ -34,7 +34,7 @@ the development seeds' crossing scenes the median frame's boxes add up to 17,000
 90th percentile's to 34,000; with the budget the positions came out 0.264 m against 0.267
 (runs' median, replayed) and the dense held-out scenes' stage 0.95-1.05 -> 0.77-0.83 ms.  An
 outline matched on fewer than 30 % of its pixels keeps the masker's disparity: the objects'
-stage would not measure it otherwise (``slam.objects.MIN_VALID_FRACTION``).
+stage would not measure it otherwise (``objects.world.MIN_VALID_FRACTION``).
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ import numpy as np
 
 from ..compiled import jit
 from ..config import StereoConfig
-from .disparity import MatcherParams, params_at_scale
+from ..masking.disparity import MatcherParams, params_at_scale
 
 if TYPE_CHECKING:
     from ..config import ObjectsConfig

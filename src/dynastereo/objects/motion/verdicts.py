@@ -1,6 +1,6 @@
 """The deciding half of the motion test (main thread): :class:`MotionJudge` weighs each
 frame's flow against the camera motion and keeps, per track, the hysteresis that gives the
-verdict moving / static / undecided (the package doc of :mod:`dynastereo.masking.motion`)."""
+verdict moving / static / undecided (the package doc of :mod:`dynastereo.objects.motion`)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import numpy as np
 
 from ...config import MotionConfig
 from ...datatypes import StereoCalibration, StereoMasks
-from ..boxes import box_iou
-from ..detection.classes import canonical_name, class_group_index
+from ...masking.boxes import box_iou
+from ...masking.detection.classes import canonical_name, class_group_index
 from .flow import FrameFlow, ObjectFlow
 from .stats import _group_median, _mahalanobis, _object_velocities, _point_velocities, static_residuals
 
