@@ -341,7 +341,7 @@ class System:
     # -------------------------------------------------------------- map files
     def save_map(self, path, meta: dict[str, Any] | None = None, optimize: bool = True) -> None:
         """Write the current map (keyframes, map points, covisibility, bag of words, the
-        vocabulary and the disparity offset) to ``path`` (``docs/map_format.md``).  The
+        vocabulary and the disparity offset) to ``path`` (``docs/reference/map-format.md``).  The
         local and full BAs in flight are applied first; with ``optimize`` (and mapping on)
         a final bundle adjustment over the whole map -- self-calibrating, so the disparity
         offset is refined over all keyframes -- makes the map the best it can be for reuse
