@@ -30,7 +30,7 @@ the prefetch thread, stereo SLAM with local BA):
   ground-truth poses): the decisions per label, and overlays of frames 30, 60, 90 written
   to ``docs/motion_raw0001_NNN.jpg`` (README) to check by eye.
 
-Targets (issue 13): decisions >= 90 % on mixed; KITTI ATE(moving) <= 1.10 x ATE(none);
+Targets: decisions >= 90 % on mixed; KITTI ATE(moving) <= 1.10 x ATE(none);
 convoy / crossing ATE(moving) <= ATE(none) / 3; motion_flow + motion <= 3 ms per frame.
 
 Prints tables of medians; writes benchmarks/results/moving.json.  Run:

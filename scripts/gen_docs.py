@@ -126,6 +126,7 @@ def gen_configuration() -> str:
             out.append(doc.replace("\n\n", "\n\n") + "\n\n")
         out.append("| key | type | default | meaning |\n|---|---|---|---|\n")
         nested = []
+        sentences = re.split(r"(?<=[.;])\s+", " ".join((_doc_paragraph(cls) or "").split()))
         for f in dataclasses.fields(cls):
             tp = hints[f.name]
             if dataclasses.is_dataclass(tp):
@@ -135,7 +136,9 @@ def gen_configuration() -> str:
             d = _default(f)
             d = "none" if d is None else (", ".join(d) if isinstance(d, list) else
                                            str(d).lower() if isinstance(d, bool) else d)
-            out.append(f"| `{prefix}{f.name}` | {_type_name(tp)} | `{_cell(d)}` | {_cell(comments.get(f.name, ''))} |\n")
+            meaning = comments.get(f.name, "") or next(
+                (s.strip() for s in sentences if f"``{f.name}``" in s), "")
+            out.append(f"| `{prefix}{f.name}` | {_type_name(tp)} | `{_cell(d)}` | {_cell(meaning)} |\n")
         out.append("\n")
         for tp, p in nested:
             section(tp, p, p.rstrip("."))
@@ -398,7 +401,9 @@ def _benchmark_page(script: Path, result: Path) -> tuple[str, bytes | None, str]
     name = result.stem
     data = json.loads(result.read_text())
     doc = _docstring(script)
-    title = doc.strip().splitlines()[0].rstrip(".") if doc.strip() else name
+    first = " ".join(doc.strip().split("\n\n")[0].split())
+    title = re.split(r"(?<=[a-z)]): |\. ", first)[0].rstrip(".:") if first else name
+    title = re.sub(r"\s*\((issue|session) \d+\)", "", title)
     body, cmd = _run_lines(doc)
     rest = "\n".join(doc.strip().splitlines()[1:]).strip()
     key, node = _table_node(data)
@@ -468,6 +473,8 @@ def gen_benchmarks() -> dict[str, str | bytes]:
         if script is None:
             continue
         md, png, title = _benchmark_page(script, result)
+        if script.stem != f"bench_{result.stem}":  # a second results file of one script
+            title = f"{title}: {result.stem.replace('_', ' ')}"
         pages[f"benchmarks/{result.stem}.md"] = md
         if png is not None:
             pages[f"benchmarks/img/{result.stem}.png"] = png

@@ -46,7 +46,7 @@ offset: :mod:`.selfcal` (``stats().disparity_offset``).
 
 Loop closing (``loop_closing.LoopCloser``, after each new keyframe), relocalization with
 the bag-of-words keyframe database and map files (``save_map`` / ``load_map``, with
-``localize_only``) are described in the README and in those modules.
+``localize_only``) are described in docs/guide/slam.md and in those modules.
 """
 
 from __future__ import annotations
