@@ -291,7 +291,8 @@ def gen_errors() -> str:
         if msgs:
             out.append("| where | message |\n|---|---|\n")
             for mod, msg in msgs:
-                out.append(f"| `{mod}` | {_cell(msg).replace('`', '')} |\n")
+                text = _cell(msg).replace("`", "").replace("[", "\\[").replace("]", "\\]")
+                out.append(f"| `{mod}` | {text} |\n")
             out.append("\n")
     return "".join(out)
 
