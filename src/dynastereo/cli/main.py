@@ -25,6 +25,20 @@ app = typer.Typer(
 console = Console(stderr=True, width=None if sys.stderr.isatty() else 160, soft_wrap=True)
 out_console = Console(width=None if sys.stdout.isatty() else 160, soft_wrap=True)
 
+def _print_version(value: bool) -> None:
+    if value:
+        from .. import __version__
+
+        out_console.print(f"dynastereo {__version__}", highlight=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                       help="Print the version and exit.")) -> None:
+    pass
+
+
 models_app = typer.Typer(help="List, download and verify detector models.", invoke_without_command=True)
 app.add_typer(models_app, name="models")
 
