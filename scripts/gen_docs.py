@@ -497,6 +497,17 @@ def generate() -> dict[str, str | bytes]:
     return pages
 
 
+def stale(pages: dict[str, str | bytes], docs: Path = DOCS) -> list[str]:
+    """The generated pages under ``docs`` that differ from ``pages`` (the Markdown compared
+    byte for byte; the plots only for being there), are missing, or are left over (a
+    benchmark page or plot whose results file is gone)."""
+    bad = [p for p, text in pages.items()
+           if not (docs / p).exists() or (isinstance(text, str) and (docs / p).read_text() != text)]
+    gen_dir = docs / "benchmarks"
+    have = {f"benchmarks/{p.relative_to(gen_dir).as_posix()}" for p in gen_dir.rglob("*") if p.is_file()}
+    return sorted(set(bad) | (have - set(pages)))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=DOCS, help="Folder to write into (default docs/).")
@@ -504,14 +515,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     pages = generate()
     if args.check:
-        stale = [p for p, text in pages.items() if isinstance(text, str)
-                 and (not (DOCS / p).exists() or (DOCS / p).read_text() != text)]
-        stale += [p for p in pages if not (DOCS / p).exists()]
-        gen_dir = DOCS / "benchmarks"
-        have = {f"benchmarks/{p.relative_to(gen_dir).as_posix()}" for p in gen_dir.rglob("*") if p.is_file()}
-        stale += sorted(have - set(pages))
-        if stale:
-            print("stale generated pages (run python scripts/gen_docs.py): " + ", ".join(sorted(set(stale))))
+        bad = stale(pages)
+        if bad:
+            print("stale generated pages (run python scripts/gen_docs.py): " + ", ".join(bad))
             return 1
         print(f"{len(pages)} generated pages up to date")
         return 0

@@ -437,7 +437,7 @@ def test_class_names_file_mismatch(models_dir, tmp_path):
         create_detector(DetectorConfig(name=str(tmp_path / "FastestDet.onnx")))
 
 
-# ---------------------------------------------------------------- runtime (issue 24)
+# ---------------------------------------------------------------- runtime
 
 
 def test_runtime_resolution_and_fallback_line(caplog, monkeypatch):
