@@ -112,8 +112,8 @@ def gen_configuration() -> str:
     out = [GENERATED.format(what="src/dynastereo/config.py"), "# Configuration keys\n\n",
            "Every key of the configuration, with its type, its default and what it means. A YAML "
            "file sets any of them (`dynastereo config > my.yaml` writes the defaults; "
-           "`--config my.yaml` reads it back); `--set section.key=value` style overrides and the "
-           "commands' own options set single keys. Unknown keys and values out of range stop the "
+           "`--config my.yaml` reads it back); the commands' own options (`--stereo`, `--masker`, "
+           "`--detector`, ...) override single keys. Unknown keys and values out of range stop the "
            "program with one line naming the key. How to use them: "
            "[Configuration](../guide/configuration.md).\n\n"]
 
