@@ -367,6 +367,31 @@ def _docstring(script: Path) -> str:
     return ast.get_docstring(tree) or ""
 
 
+def _markdown(doc: str) -> str:
+    """A benchmark script's docstring as Markdown: reST's ``code`` is Markdown's too; an
+    indented block after a line ending in ':' becomes a fenced block; '#' at a line's start
+    is not a heading."""
+    out, lines, i = [], doc.splitlines(), 0
+    while i < len(lines):
+        line = lines[i]
+        if line.startswith("    ") and (not out or out[-1] == "" or out[-1].rstrip().endswith(":")) and line.strip():
+            block = []
+            while i < len(lines) and (lines[i].startswith("    ") or not lines[i].strip()):
+                block.append(lines[i][4:])
+                i += 1
+            while block and not block[-1].strip():
+                block.pop()
+            if out and out[-1] != "":
+                out.append("")
+            out += ["```text", *block, "```", ""]
+            continue
+        parts = re.split(r"(``.*?``|`[^`]*`)", re.sub(r"^#", r"\\#", line))
+        out.append("".join(s if s.startswith("`") else s.replace("[", "\\[").replace("]", "\\]")
+                           for s in parts))
+        i += 1
+    return "\n".join(out).strip()
+
+
 def _run_lines(doc: str) -> tuple[str, str]:
     """(description, the command lines after 'Run:' in the docstring)."""
     m = re.search(r"Run:?\s*\n((?:\n?(?: {4}|\t).*\n?)+)", doc)
@@ -418,19 +443,14 @@ def _benchmark_page(script: Path, result: Path) -> tuple[str, bytes | None, str]
     date = next((str(data[k]) for k in ("date",) if isinstance(data, dict) and k in data), "")
     machine = data.get("machine") if isinstance(data, dict) else None
     if isinstance(machine, dict):
-        machine = ", ".join(f"{k} {v}" for k, v in machine.items() if _scalar(v))
+        machine = ", ".join(f"{k} {_fmt(v)}" for k, v in machine.items() if _scalar(v))
     md = [GENERATED.format(what=f"benchmarks/{script.name} and benchmarks/results/{result.name}"),
           f"# {title}\n\n",
           f"Script: `benchmarks/{script.name}`. Current results: `benchmarks/results/{result.name}`"
           + (f", measured {date}" if date else "") + ".\n\n"]
-    if machine:
-        md.append(f"Machine: {_cell(machine)}.\n\n")
-    md.append("## What is measured, on what\n\n")
-    md.append("```text\n" + rest.replace("```", "'''") + "\n```\n\n" if rest else "See the script.\n\n")
-    md.append("## Reproduce\n\n```bash\n" + (cmd or f".venv/bin/python benchmarks/{script.name}") + "\n```\n\n")
     png = None
     if rows and columns:
-        md.append(f"## Results\n\n" + (f"From `{key}` of the results file.\n\n" if key else ""))
+        md.append("## Results\n\n" + (f"From `{key}` of the results file.\n\n" if key else ""))
         md.append("| | " + " | ".join(_cell(c) for c in columns) + " |\n")
         md.append("|---|" + "---|" * len(columns) + "\n")
         for lab, vals in rows:
@@ -447,6 +467,11 @@ def _benchmark_page(script: Path, result: Path) -> tuple[str, bytes | None, str]
             md.append(f"![{name}: {col}](img/{name}.png)\n\n")
     else:
         md.append("## Results\n\nThe results file holds no table; see it directly.\n\n")
+    if machine:
+        md.append(f"Machine: {_cell(machine)}.\n\n")
+    md.append("## What is measured, on what\n\n")
+    md.append(_markdown(rest) + "\n\n" if rest else "See the script.\n\n")
+    md.append("## Reproduce\n\n```bash\n" + (cmd or f".venv/bin/python benchmarks/{script.name}") + "\n```\n\n")
     return "".join(md), png, title
 
 
