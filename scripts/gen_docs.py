@@ -344,17 +344,29 @@ def _rows(node: Any, label: tuple[str, ...] = (), depth: int = 0) -> Iterator[tu
         for i, item in enumerate(node):
             if isinstance(item, dict):
                 names = [str(item[k]) for k in item if isinstance(item[k], str) and len(str(item[k])) <= 40][:3]
+                names += [f"{k} {item[k]}" for k in ID_KEYS if isinstance(item.get(k), int)]
                 yield from _rows(item, label + (" ".join(names) or str(i),), depth + 1)
 
+
+# Integer fields that name a row (shown in its label) and columns no plot should draw.
+ID_KEYS = ("seed", "n_features", "variant", "repeat", "threads")
+NOT_PLOTTED = {"seed", "frames", "repeats", "repeat", "n", "threads", "cpus", "step", "variant", "n_features",
+               "problems", "queries", "rate_hz", "frames_per_run", "interval"}
 
 # The part of each results file the page's table shows (the whole file when not named),
 # and the column its plot draws (the first numeric column when not named).
 TABLE_KEYS = ("summary", "medians", "synthetic_medians", "results", "rows", "median", "ate_table", "cases",
               "retrieval", "kitti03", "sequences", "laps", "variants", "clips")
-PLOT_COLUMN: dict[str, str] = {"peers": "fps", "objects": "position_error_median", "then_now": "ate_median"}
+PLOT_COLUMN: dict[str, str] = {"peers": "fps", "objects": "position_m_near", "block_size": "ate_m",
+                               "detect_runtime": "median", "disparity": "ms", "eval": "evaluate_ms",
+                               "golden_spread": "ate_gt_m", "kernels": "new_ms_median", "map_io": "load_ms",
+                               "mask": "median", "recall": "vehicles_found", "slam": "ate_rmse_m", "detect": "median"}
+TABLE_KEY: dict[str, str] = {"mask": "maskers", "detect": "detect", "objects": "synthetic", "then_now": "clips"}
 
 
-def _table_node(data: Any) -> tuple[str, Any]:
+def _table_node(data: Any, name: str = "") -> tuple[str, Any]:
+    if isinstance(data, dict) and TABLE_KEY.get(name) in data:
+        return TABLE_KEY[name], data[TABLE_KEY[name]]
     if isinstance(data, dict):
         for k in TABLE_KEYS:
             if k in data and not _scalar(data[k]):
@@ -432,13 +444,18 @@ def _benchmark_page(script: Path, result: Path) -> tuple[str, bytes | None, str]
     title = re.sub(r"\s*\((issue|session) \d+\)", "", title)
     body, cmd = _run_lines(doc)
     rest = "\n".join(doc.strip().splitlines()[1:]).strip()
-    key, node = _table_node(data)
+    key, node = _table_node(data, name)
     rows = [(lab, vals) for lab, vals in _rows(node) if vals][:60]
+    if not rows:
+        key, rows = "", [(lab, vals) for lab, vals in _rows(data) if vals][:60]
     columns: list[str] = []
     for _, vals in rows:
         for c in vals:
             if c not in columns:
                 columns.append(c)
+    columns = [c for c in columns if c not in ID_KEYS or not all(isinstance(v.get(c), int) for _, v in rows if c in v)]
+    if PLOT_COLUMN.get(name) in columns[9:]:
+        columns = columns[:8] + [PLOT_COLUMN[name]]
     columns = columns[:9]
     date = next((str(data[k]) for k in ("date",) if isinstance(data, dict) and k in data), "")
     machine = data.get("machine") if isinstance(data, dict) else None
@@ -459,12 +476,26 @@ def _benchmark_page(script: Path, result: Path) -> tuple[str, bytes | None, str]
         want = PLOT_COLUMN.get(name)
         numeric = [c for c in columns if all(isinstance(v.get(c), (int, float)) and not isinstance(v.get(c), bool)
                                               for _, v in rows if c in v)
-                   and sum(c in v for _, v in rows) >= 2]
+                   and sum(c in v for _, v in rows) >= 2 and c not in NOT_PLOTTED and not c.startswith("n_")]
         col = want if want in numeric else (numeric[0] if numeric else None)
-        if col:
+        if len(rows) == 1:  # one row: its numbers, one bar a column
+            one = rows[0][1]
+            pts = [(c, float(one[c])) for c in columns if isinstance(one.get(c), (int, float)) and not isinstance(one.get(c), bool)]
+            if len(pts) >= 2:
+                png = _plot(name, [p[0] for p in pts], [p[1] for p in pts], "value")
+                md.append(f"![{name}](img/{name}.png)\n\n")
+        elif col:
             pts = [(" / ".join(lab) or "-", float(v[col])) for lab, v in rows if isinstance(v.get(col), (int, float))]
             png = _plot(name, [p[0] for p in pts][:40], [p[1] for p in pts][:40], col)
             md.append(f"![{name}: {col}](img/{name}.png)\n\n")
+        if png is None:  # no column numeric throughout: the row with the most numbers
+            def nums(v: dict) -> list[tuple[str, float]]:
+                return [(c, float(v[c])) for c in columns if isinstance(v.get(c), (int, float)) and not isinstance(v.get(c), bool)]
+            lab, best = max(rows, key=lambda r: len(nums(r[1])))
+            pts = nums(best)
+            if len(pts) >= 2:
+                png = _plot(name, [p[0] for p in pts], [p[1] for p in pts], " / ".join(lab) or "value")
+                md.append(f"![{name}](img/{name}.png)\n\n")
     else:
         md.append("## Results\n\nThe results file holds no table; see it directly.\n\n")
     if machine:
