@@ -6,7 +6,7 @@ by 20-30 % with recall / IoU held; this benchmark asks whether they keep the SLA
 trajectory.  Per sequence (KITTI raw drive 0001 against its OXTS ground truth, KITTI
 odometry 06 and 03 against their poses) and per setting, one ``run_sequence`` per
 ``slam.n_features`` variant (2000, 1950, 2050, 2100: a short clip's ATE moves by tens of
-per cent with a few more or fewer features, README "SLAM on KITTI"), then the medians of
+per cent with a few more or fewer features, docs/design/slam-accuracy.md), then the medians of
 ATE (APE RMSE, SE(3)-aligned) and drift (% of the path, start-anchored) over the
 variants.  The runs are deterministic, so the load of a shared machine moves only their
 times (reported: process time of the whole run, beside the wall time).

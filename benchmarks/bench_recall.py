@@ -7,7 +7,7 @@ scored exactly as ``shared/tools/score_masks.py`` does (``dynastereo.eval.refmas
 * near-vehicle recall (reference car/truck/bus boxes >= 2000 px matched by an output box
   at IoU >= 0.5), person/bike recall, false boxes per frame (output boxes overlapping no
   reference object: an upper bound, the references miss far cars);
-* mask IoU of the ``outline`` and the ``box`` masker on the README's yardstick (inside
+* mask IoU of the ``outline`` and the ``box`` masker on the yardstick of docs/design/finding-objects.md (inside
   the reference box grown by 10 %, a missed vehicle scoring 0); both maskers mask the SAME
   detections of each frame;
 * detection ms (``detect`` + the stage's ``contrast`` and ``carry``) and masking ms
