@@ -28,9 +28,9 @@ the prefetch thread, stereo SLAM with local BA):
   on shared cores) are reported beside.
 * **KITTI raw drive 0001** (an oncoming tram, cyclists, a passing car, parked cars; no
   ground-truth poses): the decisions per label, and overlays of frames 30, 60, 90 written
-  to ``docs/motion_raw0001_NNN.jpg`` (README) to check by eye.
+  to ``docs/motion_raw0001_NNN.jpg`` (docs/guide/masking.md) to check by eye.
 
-Targets (issue 13): decisions >= 90 % on mixed; KITTI ATE(moving) <= 1.10 x ATE(none);
+Targets: decisions >= 90 % on mixed; KITTI ATE(moving) <= 1.10 x ATE(none);
 convoy / crossing ATE(moving) <= ATE(none) / 3; motion_flow + motion <= 3 ms per frame.
 
 Prints tables of medians; writes benchmarks/results/moving.json.  Run:

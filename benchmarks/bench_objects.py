@@ -27,7 +27,7 @@ Two parts, each from ``dynastereo.api.run_sequence`` runs of the whole pipeline:
   run once per ``slam.n_features`` variant (2000, 1950, 2050, 2100; see
   ``bench_moving.py``: a short clip's ATE moves with such small changes), medians.
 
-Targets (issue 26): position error median <= 0.3 m (objects within 30 m, misses counted); speed error
+Targets: position error median <= 0.3 m (objects within 30 m, misses counted); speed error
 median <= 0.3 m/s (movers); raw 0001 verdicts right >= 90 % of the decided object-frames;
 default ATE median <= none's and <= 0.058 m; drift <= 0.25 %; the objects stage <= 1 ms
 per frame.

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 TARGET_MEDIAN_MS = 100.0
-TARGET_P95_MS = 100.0  # issue 24: image stamp -> odometry p95, no drops
+TARGET_P95_MS = 100.0  # target: image stamp -> odometry p95, no drops
 SETTLE = 5  # odometry messages left out of the "after start-up" figures: the first CameraInfo builds the SLAM
 HARNESS = Path(__file__).resolve().parents[1] / "tests" / "ros_harness.py"  # test code, not in the package
 

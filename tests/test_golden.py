@@ -54,7 +54,7 @@ CONVOY_SIZE = "640x192"
 # (position RMSE m, largest position difference m, largest rotation difference deg):
 # the n_features spread, module doc
 TOLERANCE = {"kitti06": (0.055, 0.225, 0.20), "kitti03": (0.070, 0.210, 0.15), "convoy": (0.070, 0.235, 0.65)}
-# accuracy floors of the default pipeline on real KITTI, all frames (issue 23): ATE RMSE (m)
+# accuracy floors of the default pipeline on real KITTI, all frames: ATE RMSE (m)
 FLOOR = {"kitti06": 0.05, "kitti03_default": 0.12}
 
 

@@ -1,4 +1,4 @@
-"""Where objects/world.py puts an object's centre (issue 26): the top view for static
+"""Where objects/world.py puts an object's centre: the top view for static
 vehicles, the far end of a vehicle cut by the image's side, the top row of a box cut by
 the image's bottom, no measurement from an outline mostly without disparity, and the
 measurement (not the filter's position) as the position of an object in full view."""

@@ -4,8 +4,8 @@ The masks want a 15-px matching block (the outline's dominant peak and the motio
 per-object disparity are steadier with it); an object's *position* wants a smaller one: on
 the synthetic scenes with exact object positions, the same outlines with StereoBM's 11-px
 values instead of its 15-px ones place the objects 2-4 cm better (development seeds' runs
-0.273 -> 0.255 m), while the masks and the motion test made from an 11-px disparity get
-worse (the motion test's decisions on ``mixed`` 0.955 -> 0.911).  A second matcher pass over
+0.255 m instead of 0.273 m), while the masks and the motion test made from an 11-px disparity get
+worse (the motion test's decisions on ``mixed`` 0.911 instead of 0.955).  A second matcher pass over
 the frame costs more than the objects' budget, so this module matches each outline's pixels
 again, compiled, in one call a frame, searching only a window around the disparities the
 masker found there: ``[p2 - 2, p98 + 2]`` of the outline's disparities, at least 16
@@ -32,7 +32,7 @@ boxes smallest first while their areas with the block's margin add up to at most
 ``FRAME_BUDGET`` (20,000) pixels, the larger ones beyond keeping the masker's disparity -- on
 the development seeds' crossing scenes the median frame's boxes add up to 17,000 px and the
 90th percentile's to 34,000; with the budget the positions came out 0.264 m against 0.267
-(runs' median, replayed) and the dense held-out scenes' stage 0.95-1.05 -> 0.77-0.83 ms.  An
+(runs' median, replayed) and the dense held-out scenes' stage 0.77-0.83 ms instead of 0.95-1.05 ms.  An
 outline matched on fewer than 30 % of its pixels keeps the masker's disparity: the objects'
 stage would not measure it otherwise (``objects.world.MIN_VALID_FRACTION``).
 """

@@ -18,7 +18,7 @@ the trajectory's frame (the first camera's: x right, y down, z forward):
   of its class height at the depth measured (unless cut by the image's top or bottom):
   a sliver of a car beside a truck 4.5 m away whose pixels carry the truck's disparity
   (block matching fattens a near object's edges) put the car 14-20 m nearer than it was,
-  and the filter coasted on it (dev seeds 10-12: positions off by over 3 m 499 -> 342).
+  and the filter coasted on it (docs/design/objects-motion.md has the measurements).
 * **Centre, not surface.**  Stereo sees the near surface; the object's centre lies behind
   it.  With a class footprint (``CLASS_SIZE``: width, height, length) and a heading (the
   track's velocity when it moves faster than 1 m/s, else the camera's forward axis: parked
@@ -29,7 +29,7 @@ the trajectory's frame (the first camera's: x right, y down, z forward):
   (1.5) class widths and their variance along it is ``AXIS_RATIO`` (4) times that across,
   and, once the track has a velocity, within ``AXIS_AGREE`` (40 degrees) of its heading
   (the velocity's is 15-25 degrees off for a crossing truck); then the top view places it
-  (dev seeds: crossing trucks 1.4 -> 0.25 m, cut ones 3.1 -> 0.31 m).  A vehicle seen
+  (crossing trucks 0.25 m, cut ones 0.31 m, development seeds).  A vehicle seen
   from behind or ahead shows only its width: it keeps the velocity's heading and the ray.
 
   - *top view* (objects the motion test judged static, persons, and objects cut by the
@@ -50,7 +50,7 @@ the trajectory's frame (the first camera's: x right, y down, z forward):
 
   The top-view and heading passes visit every ``st``-th row and column of a box, ``st =
   1 + sqrt(n / SAMPLE_PIXELS)`` for an outline of n pixels (``SAMPLE_PIXELS`` 1000; 2000
-  cost more for the same positions, development seeds replayed: 0.267 against 0.268 m).
+  cost more for the same positions).
 
   Vertically: the box centre's row at the median disparity's depth (the box spans the
   surface seen, nearer than the centre); a box cut by the image's bottom (a person close
@@ -85,8 +85,8 @@ the trajectory's frame (the first camera's: x right, y down, z forward):
   measured).  An object judged static keeps the world position of its last full view
   when it is cut by the image's side or has no measurement: a parked car does not move,
   and the cut view's measurement is biased by the end it cannot see (dev seeds 10-12,
-  replayed: static cars cut by the side 0.30-0.49 -> 0.19-0.23 m; all objects within 30 m,
-  misses counted, 0.327 -> 0.273 m, the median over the runs).  ``world_sigma`` is the
+  replayed: static cars cut by the side 0.19-0.23 m instead of 0.30-0.49 m; all objects
+  within 30 m, misses counted, 0.273 m instead of 0.327 m, the median over the runs).  ``world_sigma`` is the
   measurement's, the filter's or the kept view's accordingly.
 * **No measurement** (an outline mostly without disparity): a track whose filter took a
   measurement within ``COAST_S`` (1 s) gets the filter's prediction, ``p + v dt`` with

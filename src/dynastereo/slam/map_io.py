@@ -11,7 +11,7 @@ ORB settings, disparity offset, free-form meta) and one ``.npy`` entry per array
 length; keyframes are packed into concatenated per-keypoint arrays with offsets, the
 covisibility graph is an edge list.  No pickle anywhere: every entry is read with
 ``allow_pickle=False``.  The layout, dtypes, units, frames and the versioning policy
-are documented in ``docs/map_format.md``.
+are documented in ``docs/reference/map-format.md``.
 
 This module is the container only: the header (format, version, counts, calibration,
 ORB settings, disparity offset, vocabulary / bag-of-words descriptors, meta), the zip

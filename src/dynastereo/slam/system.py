@@ -46,7 +46,7 @@ offset: :mod:`.selfcal` (``stats().disparity_offset``).
 
 Loop closing (``loop_closing.LoopCloser``, after each new keyframe), relocalization with
 the bag-of-words keyframe database and map files (``save_map`` / ``load_map``, with
-``localize_only``) are described in the README and in those modules.
+``localize_only``) are described in docs/guide/slam.md and in those modules.
 """
 
 from __future__ import annotations
@@ -341,7 +341,7 @@ class System:
     # -------------------------------------------------------------- map files
     def save_map(self, path, meta: dict[str, Any] | None = None, optimize: bool = True) -> None:
         """Write the current map (keyframes, map points, covisibility, bag of words, the
-        vocabulary and the disparity offset) to ``path`` (``docs/map_format.md``).  The
+        vocabulary and the disparity offset) to ``path`` (``docs/reference/map-format.md``).  The
         local and full BAs in flight are applied first; with ``optimize`` (and mapping on)
         a final bundle adjustment over the whole map -- self-calibrating, so the disparity
         offset is refined over all keyframes -- makes the map the best it can be for reuse
