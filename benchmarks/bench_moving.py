@@ -1,4 +1,4 @@
-"""Benchmark the per-object motion test ("mask only what moves", ``masking/motion.py``).
+"""Benchmark the per-object motion test ("mask only what moves", ``objects/motion``).
 
 Four parts, each a ``dynastereo.api.run_sequence`` of the whole pipeline (masking on
 the prefetch thread, stereo SLAM with local BA):

@@ -1,4 +1,4 @@
-"""The per-object motion test (``masking/motion.py``): known answers.
+"""The per-object motion test (``objects/motion``): known answers.
 
 * geometry alone (no images): a parked object, one crossing at 1 m/s 15 m ahead and
   one driving 6 m ahead at the camera's 10 m/s, seen by a camera driving forward; their
