@@ -39,6 +39,25 @@ def resolve_ground_truth(gt: str | Path | None, sequence: Any) -> Path | None:
     return find_ground_truth(path) if isinstance(path, (str, Path)) else None
 
 
+def checked_ground_truth(gt: Path, *, explicit: bool) -> Path | None:
+    """``gt`` made absolute once it reads as a trajectory: a bad ``--gt`` (``explicit``) is
+    an :class:`~dynastereo.errors.InputError` before anything is written; a bad one found
+    beside the sequence is left out with a warning."""
+    import logging
+
+    from ..errors import InputError
+    from ..eval.trajectory import read_trajectory
+
+    try:
+        read_trajectory(gt)
+    except InputError as e:
+        if explicit:
+            raise InputError(f"--gt: {e}") from None
+        logging.getLogger(__name__).warning("the ground truth found beside the sequence is not used: %s", e)
+        return None
+    return Path(gt).absolute()
+
+
 def versions() -> dict[str, str]:
     from importlib.metadata import PackageNotFoundError, version
 

@@ -1,15 +1,19 @@
 """The one place a job is assembled and run: :func:`run` (a :class:`~dynastereo.runtime.spec.JobSpec` in, a result out).
 
 Assembly, in this order (each check before the first frame, the output folder last, so
-an earlier run there is cleared only once the inputs proved good):
+an earlier run there is cleared only once every input and option proved good):
 
-1. the source (:func:`~dynastereo.runtime.sources.open_sequence_source`);
-2. the map and cloud files writable; the frames; the stereo pair (``io.stereo_check``);
+1. the source (:func:`~dynastereo.runtime.sources.open_sequence_source`), the ground
+   truth (read once: a bad ``--gt`` fails here), the map, cloud and recording files writable
+   and none of them an input;
+2. the frames; the stereo pair (``io.stereo_check``);
 3. the masker (:func:`dynastereo.masking.build_masker`, which verifies the model), its
    detector's first (slow, lazily initialized) inference made on a black frame;
-4. the output folder (``io.outputs.prepare_output_dir``);
-5. the SLAM system (optionally from a saved map), the motion test, the objects' world tracker;
-6. the sinks and observers (a bag's writer, the viewer, the periodic stereo check).
+4. the SLAM system (its vocabulary, optionally a saved map: both read and checked here);
+5. the output folder: locked against a second job (``io.outputs.OutputLock``), then
+   prepared (``io.outputs.prepare_output_dir``: an earlier run's files cleared);
+6. the motion test, the objects' world tracker, the sinks and observers (a bag's writer,
+   the viewer, the periodic stereo check).
 
 Then the frame loop (:class:`~dynastereo.runtime.loop.FrameLoop`) and the job's last files
 (:mod:`dynastereo.runtime.finish`): whatever happens, they say how the job ended.
@@ -30,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 from ..errors import as_interrupt
 from ..io.base import Sequence
 from ..io.frames import select_frames
-from ..io.outputs import check_output_file, prepare_output_dir
+from ..io.outputs import OutputLock, check_output_file, prepare_output_dir, refuse_input_as_output
 from ..io.stereo_check import PeriodicStereoCheck, check_sequence
 from ..observers import FrameObserver
 from . import finish
@@ -67,11 +71,14 @@ def run(spec: JobSpec, *, progress: Progress | None = None, observers: tuple[Fra
     ``masker``: a ready :class:`~dynastereo.masking.base.Masker` instead of the one the
     configuration builds (e.g. ground-truth masks in a benchmark)."""
     seq = open_sequence_source(spec.source)
+    lock = OutputLock(spec.outputs.dir)
     try:
         gt = _ground_truth(spec, seq)
+        _check_output_files(spec, gt)
         with ExitStack() as stack:
+            stack.callback(lock.release)
             obs = stack.enter_context(_viewers(spec, observers, gt))
-            job = assemble(spec, seq, obs, masker)
+            job = assemble(spec, seq, obs, masker, lock)
             stack.callback(_close_sinks, job)
             result = execute(job, progress)
         return _after(spec, job, result, gt)
@@ -85,7 +92,24 @@ def _ground_truth(spec: JobSpec, seq: Sequence) -> Path | None:
     (a bag: ``--gt`` only); None for a mask job."""
     if spec.kind is not JobKind.RUN:
         return None
-    return spec.gt if spec.source.bag is not None else finish.resolve_ground_truth(spec.gt, seq)
+    gt = spec.gt if spec.source.bag is not None else finish.resolve_ground_truth(spec.gt, seq)
+    if gt is not None:
+        gt = finish.checked_ground_truth(gt, explicit=spec.gt is not None)
+    return gt
+
+
+def _check_output_files(spec: JobSpec, gt: Path | None) -> None:
+    """The single output files (map, cloud, recording) writable, and none of them an input."""
+    o = spec.outputs
+    inputs = (spec.source.name, spec.source.calib, spec.load_map, gt, spec.config.slam.vocabulary or None)
+    for path, what, flag in ((o.save_map, "map file", "--save-map"), (o.save_cloud, "point cloud file", "--save-cloud"),
+                             (o.rrd, "recording", "--rrd")):
+        if path is not None:
+            refuse_input_as_output(path, [i for i in inputs if i != spec.load_map or flag != "--save-map"],
+                                   what=what, flag=flag)
+            check_output_file(path, what=f"{what} ({flag})")
+    if spec.source.name is not None and Path(spec.source.name).is_dir():
+        refuse_input_as_output(o.dir, [spec.source.name], what="output folder", flag="--out")
 
 
 def _viewers(spec: JobSpec, observers: tuple[FrameObserver, ...], gt: Path | None):
@@ -100,11 +124,6 @@ def _checked_frames(spec: JobSpec, seq: Sequence, masker: Any = None) -> tuple[l
     """(frame indices, masker), after the checks made before the first frame (module doc)."""
     from ..masking import build_masker
 
-    o = spec.outputs
-    if o.save_map is not None:
-        check_output_file(o.save_map, what="map file")
-    if o.save_cloud is not None:
-        check_output_file(o.save_cloud, what="point cloud file")
     indices = select_frames(spec.frames, seq)
     if spec.stereo_check:
         check_sequence(seq, indices)
@@ -115,19 +134,34 @@ def _checked_frames(spec: JobSpec, seq: Sequence, masker: Any = None) -> tuple[l
     c = getattr(seq, "calibration", None)
     if hasattr(masker, "warm_up") and c is not None:  # not in the frame loop: its FPS, a camera's first frames
         masker.warm_up(c.height, c.width)
-    prepare_output_dir(o.dir, overwrite=o.overwrite)
     return indices, masker
 
 
-def assemble(spec: JobSpec, seq: Sequence, observers: tuple[FrameObserver, ...], masker: Any = None) -> Job:
+def _prepare_output(spec: JobSpec, lock: OutputLock | None, system: Any) -> None:
+    """The output folder locked and prepared (module doc: step 5); the SLAM system shut
+    down when that fails."""
+    try:
+        if lock is not None:
+            lock.acquire()
+        prepare_output_dir(spec.outputs.dir, overwrite=spec.outputs.overwrite)
+    except BaseException:
+        if system is not None:
+            system.shutdown()
+        raise
+
+
+def assemble(spec: JobSpec, seq: Sequence, observers: tuple[FrameObserver, ...], masker: Any = None,
+             lock: OutputLock | None = None) -> Job:
     """The job's parts (module doc: steps 2-6)."""
     indices, masker = _checked_frames(spec, seq, masker)
     source = SequenceSource(seq, indices)
     if spec.stereo_check:
         observers = (*observers, PeriodicStereoCheck(getattr(seq, "path", None)))
     if spec.kind is JobKind.MASK:
+        _prepare_output(spec, lock, None)
         return Job(spec, seq, indices, FrameProcessor(source, masker), observers=observers)
     system, info = _slam_system(spec, seq)
+    _prepare_output(spec, lock, system)
     from ..masking.motion import build_motion
 
     motion = build_motion(spec.config, seq.calibration, masker)
