@@ -351,7 +351,9 @@ def export_bag_cmd(
     from ..io.times import UNIX_DATE_MIN_S
     from ..ros.bags import BAG_SUFFIX, check_format
 
-    with _job(f"{out} holds the frames written so far (closed, readable)") as job:
+    kept = (f"{out} is the earlier bag, unchanged" if out.exists() and force
+            else f"{out} holds the frames written so far (closed, readable)")
+    with _job(kept) as job:
         if fmt is None:
             suffix = out.suffix.lower()
             fmt = next((k for k, v in BAG_SUFFIX.items() if v == suffix), None)

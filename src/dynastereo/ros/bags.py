@@ -22,6 +22,7 @@ ROS 2 ``.db3`` (sqlite3) and ``.mcap``.
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 import tempfile
 from dataclasses import dataclass, field
@@ -227,28 +228,35 @@ class BagWriter:
 
     ``overwrite``: replace an existing file (else InputError).  Use as a context manager;
     ``add(topic, type)`` before ``write(topic, stamp_ns, msg)``; ``builder`` builds messages.
+    The bag is written under a temporary name beside ``path`` and renamed into place when
+    it is closed: an earlier bag at ``path`` is replaced only by a complete one.  A write
+    that fails (or a signal) leaves an earlier bag as it was; without one, the frames
+    written so far are kept at ``path`` (a closed, readable bag).
     """
 
     def __init__(self, path: str | Path, fmt: str, overwrite: bool = False) -> None:
+        import secrets
+
         self.fmt = check_format(fmt)
         self.path = Path(path)
-        if self.path.exists():
+        self._earlier = self.path.exists() or self.path.is_symlink()
+        if self._earlier:
             if not overwrite:
                 raise InputError("output bag exists already (--overwrite replaces it, or choose another name)",
                                  self.path)
             if self.path.is_dir():
-                shutil.rmtree(self.path)
-            else:
-                self.path.unlink()
+                raise InputError("output bag is a folder, not a file", self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.builder = RosbagsBuilder(ros1=self.fmt == "ros1")
         self.counts: dict[str, int] = {}
         self._conns: dict[str, Any] = {}
         self._tmp: Path | None = None
+        self._part: Path | None = None
         if self.fmt == "ros1":
             from rosbags.rosbag1 import Writer
 
-            self._writer = Writer(self.path)
+            self._part = self.path.with_name(f".{self.path.stem}.{secrets.token_hex(4)}.part{self.path.suffix}")
+            self._writer = Writer(self._part)
             _ros1_lz4(self._writer)
         else:
             from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
@@ -259,7 +267,11 @@ class BagWriter:
             self._writer = Writer(self._tmp / self.path.stem, version=9, storage_plugin=plugin)
             if self.fmt == "mcap":  # zstd-compressed chunks inside the file (standard MCAP)
                 self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        self._writer.open()
+        try:
+            self._writer.open()
+        except BaseException:
+            self._discard()
+            raise
 
     def add(self, topic: str, msgtype: str) -> None:
         if topic in self._conns:
@@ -274,21 +286,37 @@ class BagWriter:
         self._writer.write(self._conns[topic], int(stamp_ns), self.builder.serialize(msg))
         self.counts[topic] += 1
 
-    def close(self) -> None:
+    def _produced(self) -> Path:
+        if self._part is not None:
+            return self._part
+        assert self._tmp is not None
+        return self._tmp / self.path.stem / (self.path.stem + BAG_SUFFIX[self.fmt])
+
+    def _discard(self) -> None:
+        """Remove the temporary bag (an earlier bag at ``path`` stays)."""
+        if self._part is not None:
+            self._part.unlink(missing_ok=True)
+        if self._tmp is not None:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+
+    def close(self, keep: bool = True) -> None:
+        """Close the bag and rename it into place (``keep=False``: discard it)."""
         if self._writer is None:
             return
         w, self._writer = self._writer, None
-        w.close()
-        if self._tmp is not None:
-            produced = self._tmp / self.path.stem / (self.path.stem + BAG_SUFFIX[self.fmt])
-            shutil.move(str(produced), str(self.path))
-            shutil.rmtree(self._tmp, ignore_errors=True)
+        try:
+            w.close()
+            if keep:
+                os.replace(self._produced(), self.path)
+        finally:
+            self._discard()
 
     def __enter__(self) -> "BagWriter":
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: Any, *exc: object) -> None:
+        # a failed or interrupted export: an earlier bag stays whole; else the frames so far are kept
+        self.close(keep=exc_type is None or not self._earlier)
 
 
 # --------------------------------------------------------------------------- reading stereo
