@@ -300,8 +300,14 @@ def report_cmd(
     """One self-contained HTML page of a run: summary, trajectory vs ground truth, APE/RPE/drift, timing, masks, objects."""
     from ..api import make_report
 
+    from ..io.outputs import RUN_OUTPUTS, check_output_file, refuse_input_as_output
+
     _check_option("--overlays", overlays, overlays >= 0, "a count of images >= 0")
     try:
+        if out is not None:
+            refuse_input_as_output(out, [gt, run_dir, *(run_dir / n for n in RUN_OUTPUTS)], what="report file",
+                                   flag="--out")
+            check_output_file(out, what="report file")
         path = make_report(run_dir, gt, out, overlays=overlays, auto_gt=not no_auto_gt)
     except DynastereoError as e:
         _fail(e)
@@ -552,11 +558,16 @@ def _run_ground_truth(estimate: Path) -> Path:
     import json
 
     from ..errors import InputError
-    from ..eval.trajectory import find_ground_truth
+    from ..eval.trajectory import recorded_ground_truth
 
     run = estimate.parent / "run.json"
-    seq = json.loads(run.read_text()).get("sequence") if run.is_file() else None
-    gt = find_ground_truth(seq) if seq else None
+    try:
+        record = json.loads(run.read_text()) if run.is_file() else {}
+    except (OSError, ValueError) as e:
+        raise InputError(f"cannot read it ({e})", run) from None
+    if not isinstance(record, dict):
+        raise InputError("not a JSON object", run)
+    gt = recorded_ground_truth(record, run)
     if gt is None:
         raise InputError("no ground truth given, and none found for the run's sequence (run.json beside the "
                          "estimate: KITTI poses/NN.txt, a KITTI raw drive's oxts/)", estimate)
@@ -576,13 +587,15 @@ def eval_cmd(
     import json
 
     from ..eval import evaluate_files, format_table, plot_trajectories, to_json_dict
-    from ..io.outputs import check_output_file
+    from ..io.outputs import check_output_file, refuse_input_as_output
 
     _check_option("--rpe-delta", rpe_delta, rpe_delta >= 1, "a step of >= 1 frames")
+    implicit = ground_truth is None
     try:
         if ground_truth is None:
             ground_truth = _run_ground_truth(estimate)
         png = plot or estimate.with_name(estimate.name.split(".")[0] + "_vs_gt.png")
+        refuse_input_as_output(png, [estimate, ground_truth], what="plot file", flag="--plot")
         if plot is not None or estimate.is_file():
             check_output_file(png, what="plot file")
         r = evaluate_files(estimate, ground_truth, align=not no_align, rpe_delta=rpe_delta)
@@ -598,6 +611,8 @@ def eval_cmd(
         print(json.dumps(d, indent=1))
     else:
         print(format_table(r))
+        if implicit:
+            print(f"ground truth: {ground_truth} (the run's sequence's, from run.json)")
         print(f"plot: {png}")
 
 

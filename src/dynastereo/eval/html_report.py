@@ -21,6 +21,7 @@ import base64
 import html
 import io
 import json
+import logging
 import math
 from collections import Counter
 from dataclasses import dataclass
@@ -37,11 +38,12 @@ from ..errors import InputError
 from .metrics import STAT_KEYS, EvalResult, evaluate_files
 from .plot import _new_figure, plot_ape_over_time, plot_trajectories
 from .report import format_table
-from .trajectory import FRAMES_NAME, KITTI_NAME, find_ground_truth, read_frame_indices, read_trajectory
+from .trajectory import FRAMES_NAME, KITTI_NAME, read_frame_indices, read_trajectory, recorded_ground_truth
 
 REPORT_NAME = "report.html"
 SUMMARY_KEYS = ("frames_requested", "frames_done", "frames_tracked", "frames_lost", "keyframes", "map_points",
                 "fps", "wall_s")
+log = logging.getLogger(__name__)
 LEGACY_DERIVED = {"mask", "masking"}  # timing.json written before it listed its derived stages
 OVERLAY_WIDTH = 960  # px, the overlays are scaled down to this width
 OVERLAY_JPEG_QUALITY = 85  # camera images: JPEG is ~10x smaller than PNG; the plots stay PNG
@@ -63,9 +65,14 @@ def _read_json(path: Path) -> dict[str, Any] | None:
     if not path.is_file():
         return None
     try:
-        return json.loads(path.read_text())
+        data = json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise InputError(f"not valid JSON ({e.msg}, line {e.lineno})", path) from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"cannot read it ({e})", path) from None
+    if not isinstance(data, dict):
+        raise InputError(f"not a JSON object (a {type(data).__name__}): not written by dynastereo", path)
+    return data
 
 
 def read_run(run_dir: str | Path) -> RunFiles:
@@ -88,6 +95,13 @@ def read_run(run_dir: str | Path) -> RunFiles:
         partial = ("the run was interrupted before it finished (killed?: run.json still says \"running\"): this "
                    f"report is made from the {rows or 0} trajectory rows written")
         run = dict(run, status="interrupted", frames_done=rows or 0)
+    if partial is None and run is not None and "frames_done" in run:
+        # a finished run's files: name those that are gone rather than show an empty page
+        wanted = ["timing.json", KITTI_NAME, "trajectory.tum.txt", FRAMES_NAME] if run.get("frames_done") else []
+        missing = [n for n in wanted if not (root / n).is_file()]
+        if missing:
+            partial = (f"{', '.join(missing)} {'is' if len(missing) == 1 else 'are'} missing from the run folder "
+                       "(deleted or moved?): this report shows only what is left")
     objects = []
     obj_path = root / "objects.jsonl"
     if obj_path.is_file():
@@ -520,8 +534,11 @@ def build_report(
     """
     rf = read_run(run_dir)
     gt_path = Path(gt) if gt is not None else None
-    if gt_path is None and auto_gt and rf.run.get("sequence"):
-        gt_path = find_ground_truth(rf.run["sequence"])
+    if gt_path is None and auto_gt and rf.run:
+        try:
+            gt_path = recorded_ground_truth(rf.run, rf.root / "run.json")
+        except InputError as e:
+            log.warning("no ground truth for the report: %s", e)
     if gt_path is not None and not gt_path.exists():
         raise InputError("ground truth file not found", gt_path)
     ev = None
@@ -545,6 +562,7 @@ def build_report(
             f'<meta name="viewport" content="width=device-width,initial-scale=1"><link rel="icon" href="data:,"><style>{STYLE}</style></head>'
             f'<body>{"".join(b for b in body if b)}</body></html>\n')
     path = Path(out) if out is not None else rf.root / REPORT_NAME
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(page, encoding="utf-8")
+    from ..io.outputs import atomic_write_text
+
+    atomic_write_text(path, page, fsync=False)  # an earlier report stays whole until the new one is
     return path

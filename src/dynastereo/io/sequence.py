@@ -159,6 +159,7 @@ class ImagePairSequence:
                             "to 8 bits", self.left_paths[0], self.bits, 2 ** self.bits - 1, self.bits)
         self.calibration, self.rectifier = rectified_calibration(calibration, self.raw_size, self.left_paths[0],
                                                                  calib_path)
+        self.calibration_file = calib_path  # recorded in run.json, printed by `run`
 
     # -- checks ---------------------------------------------------------------------------
 

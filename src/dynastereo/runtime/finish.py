@@ -83,7 +83,23 @@ def reserve_run_json(out: Path, spec: JobSpec, n_frames: int) -> None:
     """run.json first, with room for the final record: a run killed outright (SIGKILL) is
     known as one (``"status": "running"``, no end)."""
     reserve_json(out / "run.json", json.dumps({"status": "running", "frames_requested": n_frames,
-                                               "sequence": spec.source.name or ""}))
+                                               "sequence": absolute(spec.source.name) or ""}))
+
+
+def absolute(path: Any) -> str | None:
+    """``path`` as an absolute path string (a camera ``cam:N`` and two videos ``a,b`` as
+    they are given, each video made absolute); None for None / ""."""
+    if path is None or str(path) == "":
+        return None
+    text = str(path)
+    if text.startswith("cam:"):
+        return text
+    return ",".join(str(Path(p).absolute()) for p in text.split(","))
+
+
+def calibration_file(seq: Any) -> str | None:
+    """The calibration file a sequence was read with (absolute), when it says."""
+    return absolute(getattr(seq, "calibration_file", None))
 
 
 # --------------------------------------------------------------------------- mask job
@@ -152,7 +168,9 @@ def run_record(job: "Job", n_done: int, stats: dict, map_out: dict, fps: float, 
     states = system.results() if n_done else []
     lost = [k for k, s in enumerate(states) if s.status == "lost"]
     return {
-        "sequence": str(getattr(seq, "path", "")),
+        "sequence": absolute(getattr(seq, "path", None)) or "",
+        "calibration": calibration_file(seq),
+        "ground_truth": absolute(job.ground_truth),
         "timestamps": getattr(seq, "timestamp_source", None),
         "masker": getattr(masker, "name", "none") if masker is not None else "none",
         "motion": ({"mode": "moving", "map_points_forgotten": motion.forgotten} if motion is not None

@@ -62,6 +62,7 @@ class Job:
     observers: tuple[FrameObserver, ...] = ()
     bag_output: Any = None  # ros.bagrun.BagOutput
     map_info: dict = field(default_factory=dict)
+    ground_truth: Path | None = None  # what the report and run.json name
 
 
 def run(spec: JobSpec, *, progress: Progress | None = None, observers: tuple[FrameObserver, ...] = (),
@@ -79,6 +80,7 @@ def run(spec: JobSpec, *, progress: Progress | None = None, observers: tuple[Fra
             stack.callback(lock.release)
             obs = stack.enter_context(_viewers(spec, observers, gt))
             job = assemble(spec, seq, obs, masker, lock)
+            job.ground_truth = gt
             stack.callback(_close_sinks, job)
             result = execute(job, progress)
         return _after(spec, job, result, gt)

@@ -96,8 +96,14 @@ class SourceSpec:
             raise ConfigError("give either a SEQUENCE folder or --bag FILE (not both)")
         if self.bag is not None and self.rate is not None:
             raise ConfigError("--rate is for sequence folders; a bag's images carry their stamps")
-        if self.rate is not None and not self.rate > 0:
-            raise ConfigError(f"--rate must be a frame rate > 0 Hz, got {self.rate:g}")
+        if self.rate is not None:
+            from ..errors import InputError
+            from ..io.times import check_rate
+
+            try:
+                check_rate(self.rate)
+            except InputError as e:
+                raise ConfigError(str(e)) from None
 
     @property
     def name(self) -> str | None:
