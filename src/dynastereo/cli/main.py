@@ -732,10 +732,36 @@ def main() -> None:
         sys.exit(2)
     except OSError as e:
         where = f"{e.filename}: " if e.filename else ""
-        console.print(f"[bold red]error:[/] {where}{e.strerror or e}", soft_wrap=True, highlight=False)
+        text = str(e.strerror or e).strip().splitlines()[0] if str(e.strerror or e).strip() else type(e).__name__
+        if "shared object" in text or "shared library" in text:  # a library that could not be mapped
+            text = text.split(". ")[0] + " (a memory limit (`ulimit -v`) too tight to load it, or a broken install?)"
+        console.print(f"[bold red]error:[/] {where}{text}", soft_wrap=True, highlight=False)
+        sys.exit(2)
+    except MemoryError as e:
+        console.print(f"[bold red]error:[/] {memory_error_line(e)}", soft_wrap=True, highlight=False, markup=True)
+        sys.exit(2)
+    except ImportError as e:
+        console.print(f"[bold red]error:[/] {import_error_line(e)}", soft_wrap=True, highlight=False, markup=True)
         sys.exit(2)
     finally:
         STOP.uninstall()
+
+
+def memory_error_line(e: MemoryError) -> str:
+    """One line for a failed allocation: what could not be allocated, and the way out."""
+    what = str(e).strip().splitlines()[0] if str(e).strip() else "an allocation failed"
+    return (f"out of memory: {what} (the input needs more memory than this process may use: free memory, "
+            "`ulimit -v`; try fewer frames or smaller images)")
+
+
+def import_error_line(e: ImportError) -> str:
+    """One line for a package that failed to load (missing, or no memory to map it)."""
+    name = e.name or (str(e).split("'")[1] if "'" in str(e) else "a package")
+    why = str(e).strip().splitlines()[0] if str(e).strip() else "import failed"
+    low = why.lower()
+    hint = ("a memory limit (`ulimit -v`) too tight to load it?" if any(w in low for w in ("memory", "map", "shared object"))
+            else "is it installed in this environment? (`make install`, or `pip install dynastereo`)")
+    return f"cannot load {name}: {why} ({hint})"
 
 
 if __name__ == "__main__":

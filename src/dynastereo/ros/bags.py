@@ -328,6 +328,18 @@ class _Msg:
     bag_ns: int  # bag (receive) time: where to find the message again
 
 
+def _jumps_back(msgs: list[_Msg], topic: str) -> str | None:
+    """Where the header stamps of ``msgs`` (in bag order) first go back in time, or None."""
+    if len(msgs) < 2:
+        return None
+    h = np.array([m.stamp_ns for m in msgs], np.int64)[np.argsort([m.bag_ns for m in msgs], kind="stable")]
+    back = np.flatnonzero(np.diff(h) < 0)
+    if not back.size:
+        return None
+    k = int(back[0])
+    return f"{topic} message {k + 1}: {h[k] * 1e-9:.3f} s -> {h[k + 1] * 1e-9:.3f} s"
+
+
 def _sibling_info(topic: str) -> str:
     base = topic[: -len("/compressed")] if topic.endswith("/compressed") else topic
     return base.rsplit("/", 1)[0] + "/camera_info" if "/" in base.strip("/") else "camera_info"
@@ -438,6 +450,16 @@ class BagStereoSequence:
             stamps = "bag time"
             self._bag_time_stamps = True
             notes.append("image headers carry no stamps: paired by bag (receive) time")
+            for m in lmsgs + rmsgs:
+                m.stamp_ns = m.bag_ns
+        back = _jumps_back(lmsgs, self.left_topic) or _jumps_back(rmsgs, self.right_topic)
+        if back is not None and not self._bag_time_stamps:
+            # sorted by them, frames recorded later would be fed between earlier ones (0, 5, 1, 6, ...)
+            stamps = "bag time"
+            self._bag_time_stamps = True
+            notes.append(f"image header stamps jump back ({back}): ordered and paired by bag (receive) time")
+            log.warning("%s: image header stamps jump back (%s): the frames are ordered and paired by bag "
+                        "(receive) time instead", self.path, back)
             for m in lmsgs + rmsgs:
                 m.stamp_ns = m.bag_ns
         lmsgs.sort(key=lambda m: (m.stamp_ns, m.bag_ns))
