@@ -249,7 +249,7 @@ def run(
                        OutputSpec(out, overwrite=overwrite, save_masks=save_masks, save_map=save_map,
                                   save_cloud=save_cloud, report=report, viewer=viewer, rrd=rrd),
                        _build_config(config, overrides), frames=frames, models_dir=models_dir, load_map=load_map,
-                       localize_only=localize_only, stereo_check=not no_stereo_check, gt=gt)
+                       localize_only=localize_only, stereo_check=not no_stereo_check, gt=gt, settings=config)
         with _progress() as prog:
             task = prog.add_task("tracking", total=None, info="")
 

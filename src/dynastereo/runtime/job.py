@@ -26,6 +26,7 @@ inside a function to dodge a cycle (``tests/test_imports.py``).
 
 from __future__ import annotations
 
+import logging
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -72,6 +73,13 @@ def run(spec: JobSpec, *, progress: Progress | None = None, observers: tuple[Fra
     ``masker``: a ready :class:`~dynastereo.masking.base.Masker` instead of the one the
     configuration builds (e.g. ground-truth masks in a benchmark)."""
     seq = open_sequence_source(spec.source)
+    if spec.source.bag is None:
+        from .spec import settings_disagreement
+
+        warning = settings_disagreement(spec.settings, getattr(seq, "calibration", None),
+                                        getattr(seq, "calibration_file", None))
+        if warning:
+            logging.getLogger("dynastereo.runtime").warning("%s", warning)
     lock = OutputLock(spec.outputs.dir)
     try:
         gt = _ground_truth(spec, seq)
