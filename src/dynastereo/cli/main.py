@@ -263,6 +263,9 @@ def run(
                 result = result.slam
     bag_report = result.bag
     out_console.print(timing_table(result.summary, "timing (ms per frame)"))
+    if "masking" in result.summary and "total" in result.summary:
+        out_console.print("note: masking runs on its own thread beside tracking (the next frame's, while this one "
+                          "is tracked): its time overlaps the others' and can exceed the total", highlight=False)
     st = result.stats
     out_console.print(
         f"{len(result.frames)} frames, {result.fps:.1f} FPS end to end; lost {len(result.lost)}, "
@@ -283,10 +286,41 @@ def run(
             f"tolerance {r['tolerance_s'] * 1000:g} ms); calibration: {r['calibration_source']}"
             f"{', rectified on read' if r['rectified_on_read'] else ''}; output bag {r['output_bag']}",
             highlight=False)
+    for line in _run_summary_lines(out, result.report):
+        out_console.print(line, highlight=False)
     if result.report is not None:
         out_console.print(f"report: {result.report}", highlight=False)
     if rrd is not None:
         out_console.print(f"recording: {rrd} (open it with `rerun {rrd}`)", highlight=False)
+
+
+def _run_summary_lines(out: Path, report: Optional[Path]) -> list[str]:
+    """What a finished run used and how well it did: the calibration and ground truth it
+    recorded in run.json, and -- with a ground truth -- one line of accuracy (ATE, drift,
+    path length) and where the report is (or how to make one)."""
+    import json
+
+    try:
+        run = json.loads((out / "run.json").read_text())
+    except (OSError, ValueError):
+        return []
+    lines = []
+    if run.get("calibration"):
+        lines.append(f"calibration: {run['calibration']}")
+    gt = run.get("ground_truth")
+    if not gt:
+        return lines + ["ground truth: none found (eval/report take one: `dynastereo eval TRAJ GT`)"]
+    try:
+        from ..eval import evaluate_files
+
+        r = evaluate_files(out / "trajectory.kitti.txt", Path(gt))
+    except DynastereoError as e:
+        return lines + [f"ground truth: {gt} (not evaluated: {e})"]
+    where = f"report: {report}" if report is not None else f"`dynastereo report {out}` makes the report"
+    drift = f"{r.drift_percent:.2f} %" if r.drift_percent is not None else "n/a"
+    lines.append(f"accuracy: ATE {r.ape['rmse']:.3f} m (RMSE), drift {drift}, path {r.path_length_m:.1f} m, "
+                 f"against {gt}; {where}")
+    return lines
 
 
 @app.command("report")
