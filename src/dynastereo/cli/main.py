@@ -616,6 +616,7 @@ def eval_cmd(
     plot: Optional[Path] = typer.Option(None, "--plot", help="Trajectory plot PNG (default: beside the estimate)."),
     no_align: bool = typer.Option(False, "--no-align", help="Do not SE(3)-align before APE."),
     rpe_delta: int = typer.Option(1, "--rpe-delta", help="RPE step in frames."),
+    match: str = typer.Option("auto", "--match", help="How rows are paired: auto (stamps when both have them, else frame index) | index (frame index whatever the stamps say: a video's run against KITTI poses)."),
 ) -> None:
     """APE (thesis table), RPE, drift and the KITTI odometry metric, with evo; writes a top-view plot."""
     import json
@@ -632,7 +633,7 @@ def eval_cmd(
         refuse_input_as_output(png, [estimate, ground_truth], what="plot file", flag="--plot")
         if plot is not None or estimate.is_file():
             check_output_file(png, what="plot file")
-        r = evaluate_files(estimate, ground_truth, align=not no_align, rpe_delta=rpe_delta)
+        r = evaluate_files(estimate, ground_truth, align=not no_align, rpe_delta=rpe_delta, match=match)
         try:
             plot_trajectories(r.estimate, r.ground_truth, png, title=f"{estimate.name} vs {ground_truth.name}")
         except OSError as e:  # disk full, no permission: the plot is named
@@ -656,7 +657,7 @@ def bench_cmd(
     out: Path = typer.Option(..., "--out", "-o", help="Output folder: results.json, tables.md, plots/, runs/<sequence>/<masker>/r<k>/."),
     sequences: Optional[str] = typer.Option(None, "--sequences", help="Which sequences: ranges and names, e.g. 00-10 or 03,07 or 'convoy/*' (default: all found)."),
     maskers: str = typer.Option("none,box,outline,seg", "--maskers", help="Comma list of none, box, outline, seg."),
-    repeats: int = typer.Option(3, "--repeats", help="Runs per sequence and masker (seed = config seed + repeat)."),
+    repeats: int = typer.Option(1, "--repeats", help="Runs per sequence and masker (seed = config seed + repeat); runs are deterministic: more than 1 only to measure timing."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML configuration (or ORB-SLAM2 settings) for every job."),
     detector: Optional[str] = typer.Option(None, "--detector", help="Detector for every job (overrides the configuration), e.g. oracle for synthetic sequences."),
     frames: Optional[str] = typer.Option(None, "--frames", help="Frames of every sequence: a count N or ranges a-b (default: all)."),

@@ -440,7 +440,7 @@ def _object_paths_section(rf: RunFiles) -> str:
     """Top view of the camera path with every object's path (``objects_tracks.csv``,
     coloured by the track's verdict: moving when the motion test said so in most of its
     frames), and speed over time per moving object."""
-    from ..slam.objects import TRACKS_NAME, read_tracks, verdict_rgb
+    from ..slam.objects import MOVING_MIN_FRAMES, TRACKS_NAME, moving_tracks, read_tracks, track_verdict, verdict_rgb
 
     path = rf.root / TRACKS_NAME
     if not path.is_file():
@@ -450,12 +450,8 @@ def _object_paths_section(rf: RunFiles) -> str:
         return ""
     cam = read_trajectory(rf.root / KITTI_NAME).positions if (rf.root / KITTI_NAME).is_file() else None
 
-    def verdict(t):
-        m = t["moving"]
-        dec = m[m >= 0]
-        return None if not len(dec) else bool((dec == 1).mean() > 0.5)
-
-    movers = {k: t for k, t in tracks.items() if verdict(t) is True and len(t["frame"]) >= 3}
+    verdict = track_verdict
+    movers = moving_tracks(tracks)
     fig = _figure((9.0, 6.0))
     ax = fig.subplots()
     for k, t in tracks.items():
@@ -483,7 +479,10 @@ def _object_paths_section(rf: RunFiles) -> str:
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best", fontsize=8)
     html = ["<h2>Objects in the world</h2>",
-            f"<p>{len(tracks)} tracked objects, {len(movers)} judged moving; positions and velocities from "
+            f"<p>{len(tracks)} tracked objects, {len(movers)} judged moving (moving in most of the frames the "
+            f"motion test decided, seen in at least {MOVING_MIN_FRAMES} frames: "
+            "<code>dynastereo.slam.objects.moving_tracks</code>, <code>result.moving_objects</code>); "
+            "positions and velocities from "
             f"<code>{TRACKS_NAME}</code> (<code>objects.jsonl</code>: <code>world</code>, <code>velocity</code>, "
             "<code>speed</code>)</p>", _img(_png_of(fig), "objects' paths, top view")]
     if movers:

@@ -64,6 +64,7 @@ class Job:
     bag_output: Any = None  # ros.bagrun.BagOutput
     map_info: dict = field(default_factory=dict)
     ground_truth: Path | None = None  # what the report and run.json name
+    lock: OutputLock | None = None  # the output folder's, held until the job ends
 
 
 def run(spec: JobSpec, *, progress: Progress | None = None, observers: tuple[FrameObserver, ...] = (),
@@ -80,19 +81,20 @@ def run(spec: JobSpec, *, progress: Progress | None = None, observers: tuple[Fra
                                         getattr(seq, "calibration_file", None))
         if warning:
             logging.getLogger("dynastereo.runtime").warning("%s", warning)
-    lock = OutputLock(spec.outputs.dir)
+    job: Job | None = None
     try:
         gt = _ground_truth(spec, seq)
         _check_output_files(spec, gt)
         with ExitStack() as stack:
-            stack.callback(lock.release)
             obs = stack.enter_context(_viewers(spec, observers, gt))
-            job = assemble(spec, seq, obs, masker, lock)
+            job = assemble(spec, seq, obs, masker)
             job.ground_truth = gt
             stack.callback(_close_sinks, job)
             result = execute(job, progress)
         return _after(spec, job, result, gt)
     finally:
+        if job is not None and job.lock is not None:  # held to the end: the report is written under it too
+            job.lock.release()
         if spec.source.bag is not None:
             seq.close()
 
@@ -147,37 +149,43 @@ def _checked_frames(spec: JobSpec, seq: Sequence, masker: Any = None) -> tuple[l
     return indices, masker
 
 
-def _prepare_output(spec: JobSpec, lock: OutputLock | None, system: Any) -> None:
+def _prepare_output(spec: JobSpec, system: Any) -> OutputLock:
     """The output folder locked and prepared (module doc: step 5); the SLAM system shut
-    down when that fails."""
+    down (and the lock let go) when that fails."""
+    lock = OutputLock(spec.outputs.dir)
     try:
-        if lock is not None:
-            lock.acquire()
+        lock.acquire()
         prepare_output_dir(spec.outputs.dir, overwrite=spec.outputs.overwrite)
     except BaseException:
+        lock.release()
         if system is not None:
             system.shutdown()
         raise
+    return lock
 
 
-def assemble(spec: JobSpec, seq: Sequence, observers: tuple[FrameObserver, ...], masker: Any = None,
-             lock: OutputLock | None = None) -> Job:
+def assemble(spec: JobSpec, seq: Sequence, observers: tuple[FrameObserver, ...], masker: Any = None) -> Job:
     """The job's parts (module doc: steps 2-6)."""
     indices, masker = _checked_frames(spec, seq, masker)
     source = SequenceSource(seq, indices)
     if spec.stereo_check:
         observers = (*observers, PeriodicStereoCheck(getattr(seq, "path", None)))
     if spec.kind is JobKind.MASK:
-        _prepare_output(spec, lock, None)
-        return Job(spec, seq, indices, FrameProcessor(source, masker), observers=observers)
+        lock = _prepare_output(spec, None)
+        return Job(spec, seq, indices, FrameProcessor(source, masker), observers=observers, lock=lock)
     system, info = _slam_system(spec, seq)
-    _prepare_output(spec, lock, system)
-    from ..masking.motion import build_motion
+    lock = _prepare_output(spec, system)
+    try:
+        from ..masking.motion import build_motion
 
-    motion = build_motion(spec.config, seq.calibration, masker)
-    world = _world_objects(seq, masker, spec.config)
+        motion = build_motion(spec.config, seq.calibration, masker)
+        world = _world_objects(seq, masker, spec.config)
+    except BaseException:
+        lock.release()
+        system.shutdown()
+        raise
     return Job(spec, seq, indices, FrameProcessor(source, masker, system=system, motion=motion, world=world),
-               observers=observers, map_info=info)
+               observers=observers, map_info=info, lock=lock)
 
 
 def open_outputs(job: Job) -> None:
