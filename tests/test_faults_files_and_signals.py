@@ -1,4 +1,4 @@
-"""The fault suite, round two (issue 27): truncated model files, calibrations that do not
+"""The fault suite's files and signals: truncated model files, calibrations that do not
 fit the images, gaps in the frame numbering, interrupts during the shutdown, ``eval`` of
 a trajectory away from its run, write errors (disk full, no permission, I/O error), a
 broken ``metadata.yaml``, option values without their unit, ``report`` on a killed run,
@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from conftest import skip_or_fail
-from test_faults import DYN, _env, assert_one_line, cli, stop_then_signal
+from test_faults_inputs import DYN, _env, assert_one_line, cli, stop_then_signal
 
 # --------------------------------------------------------------------------- helpers
 
