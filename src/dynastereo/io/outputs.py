@@ -262,7 +262,10 @@ def check_output_file(path: str | Path, *, what: str = "output file", overwrite:
     if path.exists() and not overwrite:
         raise OutputError(f"{what} exists already; {flag} replaces it", path)
     folder = path.parent if str(path.parent) else Path(".")
-    _make_dir(folder, path)
+    try:
+        _make_dir(folder, path)
+    except OutputError as e:  # the folder is the file's: say which output it is for
+        raise OutputError(f"{what}: {str(e).split(': ', 1)[-1]}", path) from None
     _probe_writable(folder, path, f"the {what}'s folder {folder}")
     if path.exists() and not os.access(path, os.W_OK):
         raise OutputError(f"{what} is not writable ({os.strerror(errno.EACCES)})", path)
