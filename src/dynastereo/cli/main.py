@@ -236,6 +236,8 @@ def run(
     """Mask and track a stereo sequence (a folder or a ROS bag): trajectory, timing and run summary out."""
     from ..runtime import JobKind, JobSpec, OutputSpec, run as run_job
 
+    _check_option("--sync-tolerance", sync_tolerance, 0 <= sync_tolerance <= 10_000,
+                  "a time in 0..10000 ms (milliseconds)")
     kept = _kept_files(out, ("run.json", "timing.json", "trajectory.kitti.txt", "trajectory.tum.txt"),
                        "with the signal; the frames done", (save_map,) if save_map else ())
     with _job(kept) as job:
@@ -292,6 +294,10 @@ def run(
         out_console.print(f"report: {result.report}", highlight=False)
     if rrd is not None:
         out_console.print(f"recording: {rrd} (open it with `rerun {rrd}`)", highlight=False)
+    if result.frames and len(result.lost) == len(result.frames):  # done, but nothing to show for it
+        console.print(f"[bold red]error:[/] every one of the {len(result.frames)} frames was lost: no pose was tracked "
+                      f"({out / 'run.json'}); check the calibration, the images and --load-map", highlight=False)
+        raise typer.Exit(1)
 
 
 def _run_summary_lines(out: Path, report: Optional[Path]) -> list[str]:
@@ -336,7 +342,7 @@ def report_cmd(
 
     from ..io.outputs import RUN_OUTPUTS, check_output_file, refuse_input_as_output
 
-    _check_option("--overlays", overlays, overlays >= 0, "a count of images >= 0")
+    _check_option("--overlays", overlays, 0 <= overlays <= 1000, "a count of images in 0..1000")
     try:
         if out is not None:
             refuse_input_as_output(out, [gt, run_dir, *(run_dir / n for n in RUN_OUTPUTS)], what="report file",
@@ -391,6 +397,7 @@ def export_bag_cmd(
     from ..io.times import UNIX_DATE_MIN_S
     from ..ros.bags import BAG_SUFFIX, check_format
 
+    _check_option("--time-offset", time_offset, abs(time_offset) <= 1e10, "a time in seconds within +-1e10")
     kept = (f"{out} is the earlier bag, unchanged" if out.exists() and force
             else f"{out} holds the frames written so far (closed, readable)")
     with _job(kept) as job:
@@ -527,8 +534,9 @@ def synth(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a sequence generated earlier in OUT."),
 ) -> None:
     """Generate a synthetic dynamic stereo street sequence with exact ground truth."""
-    from ..io.outputs import SYNTH_OUTPUTS, prepare_output_dir
+    from ..io.outputs import SYNTH_OUTPUTS, OutputLock, prepare_output_dir
     from ..synth import SCENARIOS, generate
+    from ..synth.writer import check_options
 
     if list_ or scenario == "list":
         for name, sc in SCENARIOS.items():
@@ -536,11 +544,10 @@ def synth(
         return
     if out is None:
         _fail(DynastereoError("synth needs an output folder OUT (or --list)"))
-    try:
-        w, h = (int(v) for v in size.lower().split("x"))
-    except ValueError:
-        _fail(DynastereoError(f"--size must be WxH, got {size!r}"))
     with _job(f"{out} holds the frames rendered so far (an incomplete sequence)") as job:
+        w, h = check_options(scenario, frames, size)  # before an earlier sequence is cleared
+        job_lock = OutputLock(out)
+        job_lock.acquire()
         prepare_output_dir(out, overwrite=overwrite, names=SYNTH_OUTPUTS)
         with _progress() as prog:
             task = prog.add_task(f"synth {scenario}", total=None, info="")
@@ -624,7 +631,7 @@ def eval_cmd(
     from ..eval import evaluate_files, format_table, plot_trajectories, to_json_dict
     from ..io.outputs import check_output_file, refuse_input_as_output
 
-    _check_option("--rpe-delta", rpe_delta, rpe_delta >= 1, "a step of >= 1 frames")
+    _check_option("--rpe-delta", rpe_delta, 1 <= rpe_delta <= 100_000, "a step of 1..100000 frames")
     implicit = ground_truth is None
     try:
         if ground_truth is None:
@@ -671,9 +678,9 @@ def bench_cmd(
     """Benchmark a whole dataset: every (sequence, masker, repeat) as a job, in parallel, resumable, with the thesis' tables."""
     from ..api import bench
 
-    _check_option("--repeats", repeats, repeats >= 1, "a number of runs >= 1")
-    _check_option("--workers", workers, workers is None or workers >= 1, "a number of jobs at a time >= 1")
-    _check_option("--threads", threads, threads >= 0, "a number of threads >= 0 (0: the library's default)")
+    _check_option("--repeats", repeats, 1 <= repeats <= 100, "a number of runs in 1..100")
+    _check_option("--workers", workers, workers is None or 1 <= workers <= 1024, "a number of jobs at a time in 1..1024")
+    _check_option("--threads", threads, 0 <= threads <= 256, "a number of threads in 0..256 (0: the library's default)")
     bar = _progress()
     task = bar.add_task("bench frames", total=None, info="")
 
@@ -721,9 +728,10 @@ def vocab_cmd(
 
     from ..slam.vocabulary import collect_images, train_from_images
 
-    _check_option("--k", k, k >= 2, "a branching factor >= 2")
-    _check_option("--levels", levels, levels >= 1, "a tree depth >= 1")
-    _check_option("--features", features, features >= 1, "a number of ORB features per image >= 1")
+    _check_option("--k", k, 2 <= k <= 64, "a branching factor in 2..64")
+    _check_option("--levels", levels, 1 <= levels <= 8, "a tree depth in 1..8")
+    _check_option("--k / --levels", k**levels, k**levels <= 10_000_000, "at most 10^7 words (k**levels)")
+    _check_option("--features", features, 1 <= features <= 100_000, "a number of ORB features per image in 1..100000")
 
     from ..io.outputs import check_output_file
 

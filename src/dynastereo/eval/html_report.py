@@ -108,9 +108,13 @@ def read_run(run_dir: str | Path) -> RunFiles:
         for n, line in enumerate(obj_path.read_text().splitlines(), 1):
             if line.strip():
                 try:
-                    objects.append(json.loads(line))
+                    rec = json.loads(line)
                 except json.JSONDecodeError as e:
                     raise InputError(f"line {n}: not valid JSON ({e.msg})", obj_path) from None
+                if not isinstance(rec, dict) or not isinstance(rec.get("objects", []), list):
+                    raise InputError(f"line {n}: not a frame's record (a JSON object with a list of objects)",
+                                     obj_path)
+                objects.append(rec)
     frames = read_frame_indices(root / FRAMES_NAME) if (root / FRAMES_NAME).is_file() else None
     if partial is not None and frames is not None and rows is not None:
         frames = frames[:rows]  # a row cut by the kill: the files agree on the rows they all hold
@@ -369,7 +373,7 @@ def _overlay_section(rf: RunFiles, ev: EvalResult | None, n: int) -> str:
                 for f in available}
         worst, why_worst = max(frac, key=frac.get), "largest masked area"
     seq = None
-    if rf.run.get("sequence"):
+    if rf.run.get("sequence") and Path(str(rf.run["sequence"])).is_absolute():  # a relative one: not known where
         try:
             from ..io import open_sequence
 
@@ -532,6 +536,15 @@ def build_report(
     Returns the path written.
     """
     rf = read_run(run_dir)
+    try:
+        return _build_report(rf, gt, out, overlays, auto_gt)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as e:
+        # a run file edited or from elsewhere (fields of the wrong type): one line, not a traceback
+        raise InputError(f"a run file is malformed ({type(e).__name__}: {e}); was it written by dynastereo?",
+                         rf.root) from None
+
+
+def _build_report(rf: RunFiles, gt: str | Path | None, out: str | Path | None, overlays: int, auto_gt: bool) -> Path:
     gt_path = Path(gt) if gt is not None else None
     if gt_path is None and auto_gt and rf.run:
         try:

@@ -35,6 +35,7 @@ from ..errors import CalibrationError, InputError, SequenceError
 from ..io.calib import RawStereoCalibration, check_intrinsics, load_stereo_yaml
 from ..io.euroc import pair_by_timestamp
 from ..io.rectify import Rectifier
+from ..io.sequence import check_plausible
 from ..datatypes import StereoCalibration, StereoFrame
 from .convert import ImageDecoder, calibration_from_camera_info, CameraInfoData, camera_info_fields
 from .messages import (
@@ -513,6 +514,7 @@ class BagStereoSequence:
                 "given (--left-info/--right-info, --calib YAML, or an ORB-SLAM2 settings file as --config)",
                 self.path)
         check_intrinsics(calibration, raw_size, source)
+        check_plausible(calibration, raw_size, self.path, source)
         self.rectifier: Rectifier | None = None
         if isinstance(calibration, RawStereoCalibration):
             if calibration.size != raw_size:
