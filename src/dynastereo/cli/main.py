@@ -176,6 +176,8 @@ def mask(
             result = run_job(spec, progress=on_frame)
     out_console.print(timing_table(result.summary))
     out_console.print(f"{len(result.frames_done)} frames -> {out}  ({result.wall_s:.1f} s)")
+    for line in [ln for ln in _run_summary_lines(out, None) if ln.startswith("calibration:")]:  # a mask job: no GT
+        out_console.print(line, highlight=False)
 
 
 def _run_source(sequence, bag, calib, rate, config, left_topic, right_topic, left_info, right_info,
@@ -307,8 +309,10 @@ def _run_summary_lines(out: Path, report: Optional[Path]) -> list[str]:
     import json
 
     try:
-        run = json.loads((out / "run.json").read_text())
+        run = json.loads((out / ("run.json" if (out / "run.json").is_file() else "timing.json")).read_text())
     except (OSError, ValueError):
+        return []
+    if not isinstance(run, dict):
         return []
     lines = []
     if run.get("calibration"):
@@ -366,8 +370,12 @@ def gt_cmd(
 ) -> None:
     """Write a sequence's ground truth as camera-0 (rectified) poses in the first frame, KITTI and TUM."""
     from ..api import ground_truth, write_ground_truth
+    from ..eval.trajectory import find_ground_truth
+    from ..io.outputs import refuse_input_as_output
 
     try:
+        refuse_input_as_output(out, [sequence, find_ground_truth(sequence) if sequence.is_dir() else None],
+                               what="poses file", flag="--out")
         paths = write_ground_truth(sequence, out, fmt, at=at)
         traj = ground_truth(sequence, at=at)
     except DynastereoError as e:

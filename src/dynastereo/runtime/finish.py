@@ -112,7 +112,9 @@ def finish_mask(job: "Job", loop: "FrameLoop", error: str | None) -> MaskJobResu
     out = job.spec.outputs.dir
     wall = time.perf_counter() - st.t0
     masker = job.processor.masker
-    extra = {"masker": getattr(masker, "name", type(masker).__name__), "sequence": str(job.sequence.path),
+    extra = {"masker": getattr(masker, "name", type(masker).__name__),
+             "sequence": absolute(getattr(job.sequence, "path", None)) or "",
+             "calibration": calibration_file(job.sequence),
              "frames_done": st.n_done, "frames_requested": len(job.frames), "wall_s": round(wall, 3)}
     if error:
         extra["error"] = error
