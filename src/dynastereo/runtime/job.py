@@ -1,15 +1,19 @@
 """The one place a job is assembled and run: :func:`run` (a :class:`~dynastereo.runtime.spec.JobSpec` in, a result out).
 
 Assembly, in this order (each check before the first frame, the output folder last, so
-an earlier run there is cleared only once the inputs proved good):
+an earlier run there is cleared only once every input and option proved good):
 
-1. the source (:func:`~dynastereo.runtime.sources.open_sequence_source`);
-2. the map and cloud files writable; the frames; the stereo pair (``io.stereo_check``);
+1. the source (:func:`~dynastereo.runtime.sources.open_sequence_source`), the ground
+   truth (read once: a bad ``--gt`` fails here), the map, cloud and recording files writable
+   and none of them an input;
+2. the frames; the stereo pair (``io.stereo_check``);
 3. the masker (:func:`dynastereo.masking.build_masker`, which verifies the model), its
    detector's first (slow, lazily initialized) inference made on a black frame;
-4. the output folder (``io.outputs.prepare_output_dir``);
-5. the SLAM system (optionally from a saved map), the motion test, the objects' world tracker;
-6. the sinks and observers (a bag's writer, the viewer, the periodic stereo check).
+4. the SLAM system (its vocabulary, optionally a saved map: both read and checked here);
+5. the output folder: locked against a second job (``io.outputs.OutputLock``), then
+   prepared (``io.outputs.prepare_output_dir``: an earlier run's files cleared);
+6. the motion test, the objects' world tracker, the sinks and observers (a bag's writer,
+   the viewer, the periodic stereo check).
 
 Then the frame loop (:class:`~dynastereo.runtime.loop.FrameLoop`) and the job's last files
 (:mod:`dynastereo.runtime.finish`): whatever happens, they say how the job ended.
@@ -22,6 +26,7 @@ inside a function to dodge a cycle (``tests/test_imports.py``).
 
 from __future__ import annotations
 
+import logging
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 from ..errors import as_interrupt
 from ..io.base import Sequence
 from ..io.frames import select_frames
-from ..io.outputs import check_output_file, prepare_output_dir
+from ..io.outputs import OutputLock, check_output_file, prepare_output_dir, refuse_input_as_output
 from ..io.stereo_check import PeriodicStereoCheck, check_sequence
 from ..observers import FrameObserver
 from . import finish
@@ -58,6 +63,8 @@ class Job:
     observers: tuple[FrameObserver, ...] = ()
     bag_output: Any = None  # ros.bagrun.BagOutput
     map_info: dict = field(default_factory=dict)
+    ground_truth: Path | None = None  # what the report and run.json name
+    lock: OutputLock | None = None  # the output folder's, held until the job ends
 
 
 def run(spec: JobSpec, *, progress: Progress | None = None, observers: tuple[FrameObserver, ...] = (),
@@ -67,15 +74,27 @@ def run(spec: JobSpec, *, progress: Progress | None = None, observers: tuple[Fra
     ``masker``: a ready :class:`~dynastereo.masking.base.Masker` instead of the one the
     configuration builds (e.g. ground-truth masks in a benchmark)."""
     seq = open_sequence_source(spec.source)
+    if spec.source.bag is None:
+        from .spec import settings_disagreement
+
+        warning = settings_disagreement(spec.settings, getattr(seq, "calibration", None),
+                                        getattr(seq, "calibration_file", None))
+        if warning:
+            logging.getLogger("dynastereo.runtime").warning("%s", warning)
+    job: Job | None = None
     try:
         gt = _ground_truth(spec, seq)
+        _check_output_files(spec, gt)
         with ExitStack() as stack:
             obs = stack.enter_context(_viewers(spec, observers, gt))
             job = assemble(spec, seq, obs, masker)
+            job.ground_truth = gt
             stack.callback(_close_sinks, job)
             result = execute(job, progress)
         return _after(spec, job, result, gt)
     finally:
+        if job is not None and job.lock is not None:  # held to the end: the report is written under it too
+            job.lock.release()
         if spec.source.bag is not None:
             seq.close()
 
@@ -85,7 +104,24 @@ def _ground_truth(spec: JobSpec, seq: Sequence) -> Path | None:
     (a bag: ``--gt`` only); None for a mask job."""
     if spec.kind is not JobKind.RUN:
         return None
-    return spec.gt if spec.source.bag is not None else finish.resolve_ground_truth(spec.gt, seq)
+    gt = spec.gt if spec.source.bag is not None else finish.resolve_ground_truth(spec.gt, seq)
+    if gt is not None:
+        gt = finish.checked_ground_truth(gt, explicit=spec.gt is not None)
+    return gt
+
+
+def _check_output_files(spec: JobSpec, gt: Path | None) -> None:
+    """The single output files (map, cloud, recording) writable, and none of them an input."""
+    o = spec.outputs
+    inputs = (spec.source.name, spec.source.calib, spec.load_map, gt, spec.config.slam.vocabulary or None)
+    for path, what, flag in ((o.save_map, "map file", "--save-map"), (o.save_cloud, "point cloud file", "--save-cloud"),
+                             (o.rrd, "recording", "--rrd")):
+        if path is not None:
+            refuse_input_as_output(path, [i for i in inputs if i != spec.load_map or flag != "--save-map"],
+                                   what=what, flag=flag)
+            check_output_file(path, what=f"{what} ({flag})")
+    if spec.source.name is not None and Path(spec.source.name).is_dir():
+        refuse_input_as_output(o.dir, [spec.source.name], what="output folder", flag="--out")
 
 
 def _viewers(spec: JobSpec, observers: tuple[FrameObserver, ...], gt: Path | None):
@@ -105,11 +141,6 @@ def _checked_frames(spec: JobSpec, seq: Sequence, masker: Any = None) -> tuple[l
     """(frame indices, masker), after the checks made before the first frame (module doc)."""
     from ..masking import build_masker
 
-    o = spec.outputs
-    if o.save_map is not None:
-        check_output_file(o.save_map, what="map file")
-    if o.save_cloud is not None:
-        check_output_file(o.save_cloud, what="point cloud file")
     indices = select_frames(spec.frames, seq)
     if spec.stereo_check:
         check_sequence(seq, indices)
@@ -120,8 +151,22 @@ def _checked_frames(spec: JobSpec, seq: Sequence, masker: Any = None) -> tuple[l
     c = getattr(seq, "calibration", None)
     if hasattr(masker, "warm_up") and c is not None:  # not in the frame loop: its FPS, a camera's first frames
         masker.warm_up(c.height, c.width)
-    prepare_output_dir(o.dir, overwrite=o.overwrite)
     return indices, masker
+
+
+def _prepare_output(spec: JobSpec, system: Any) -> OutputLock:
+    """The output folder locked and prepared (module doc: step 5); the SLAM system shut
+    down (and the lock let go) when that fails."""
+    lock = OutputLock(spec.outputs.dir)
+    try:
+        lock.acquire()
+        prepare_output_dir(spec.outputs.dir, overwrite=spec.outputs.overwrite)
+    except BaseException:
+        lock.release()
+        if system is not None:
+            system.shutdown()
+        raise
+    return lock
 
 
 def assemble(spec: JobSpec, seq: Sequence, observers: tuple[FrameObserver, ...], masker: Any = None) -> Job:
@@ -131,14 +176,21 @@ def assemble(spec: JobSpec, seq: Sequence, observers: tuple[FrameObserver, ...],
     if spec.stereo_check:
         observers = (*observers, PeriodicStereoCheck(getattr(seq, "path", None)))
     if spec.kind is JobKind.MASK:
-        return Job(spec, seq, indices, FrameProcessor(source, masker), observers=observers)
+        lock = _prepare_output(spec, None)
+        return Job(spec, seq, indices, FrameProcessor(source, masker), observers=observers, lock=lock)
     system, info = _slam_system(spec, seq)
-    from ..objects.motion import build_motion
+    lock = _prepare_output(spec, system)
+    try:
+        from ..objects.motion import build_motion
 
-    motion = build_motion(spec.config, seq.calibration, masker)
-    world = _world_objects(seq, masker, spec.config)
+        motion = build_motion(spec.config, seq.calibration, masker)
+        world = _world_objects(seq, masker, spec.config)
+    except BaseException:
+        lock.release()
+        system.shutdown()
+        raise
     return Job(spec, seq, indices, FrameProcessor(source, masker, system=system, motion=motion, world=world),
-               observers=observers, map_info=info)
+               observers=observers, map_info=info, lock=lock)
 
 
 def open_outputs(job: Job) -> None:
