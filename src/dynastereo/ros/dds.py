@@ -460,7 +460,8 @@ class QosKind:
     RELIABLE = "reliable"  # reliable, keep last 10, volatile (the default)
     LATCHED = "latched"  # reliable, keep last 1, transient local (path, map, ready)
     TF = "tf"  # reliable, keep last 100 (tf2_ros' broadcaster)
-    SERVICE = "service"  # reliable, keep all... as rmw: keep last 1000 (services_default)
+    SERVICE = "service"  # reliable, keep last 10, volatile (rmw's services_default)
+    RECORD = "record"  # reliable, keep last 1000: a recorder that reads now and then (tests, the player)
 
 
 def qos(kind: str) -> Any:
@@ -472,7 +473,7 @@ def qos(kind: str) -> Any:
     if kind == QosKind.LATCHED:
         return Qos(Policy.Reliability.Reliable(duration(milliseconds=100)), Policy.History.KeepLast(1),
                    Policy.Durability.TransientLocal)
-    depth = {QosKind.RELIABLE: 10, QosKind.TF: 100, QosKind.SERVICE: 1000}[kind]
+    depth = {QosKind.RELIABLE: 10, QosKind.TF: 100, QosKind.SERVICE: 10, QosKind.RECORD: 1000}[kind]
     return Qos(Policy.Reliability.Reliable(duration(milliseconds=100)), Policy.History.KeepLast(depth),
                Policy.Durability.Volatile)
 

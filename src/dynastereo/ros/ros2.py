@@ -276,8 +276,8 @@ class Ros2Node:
         self.services: dict[str, tuple[Any, Any, Any]] = {}
         for name, fn in (("save_trajectory", self._srv_save), ("status", self._srv_status)):
             rq, rr = service_topics(self._t(name))
-            self.services[name] = (self.dom.reader("", req_t, QosKind.RELIABLE, dds_name=rq),
-                                   self.dom.writer("", self._rep_t, QosKind.RELIABLE, dds_name=rr), fn)
+            self.services[name] = (self.dom.reader("", req_t, QosKind.SERVICE, dds_name=rq),
+                                   self.dom.writer("", self._rep_t, QosKind.SERVICE, dds_name=rr), fn)
         self._publications = self._publication_reader()
         self.dom.announce()
 
@@ -526,8 +526,8 @@ class TriggerClient:
         req_t, self._rep_t = service_types()
         self._req_t = req_t
         rq, rr = service_topics(service)
-        self.w = dom.writer("", req_t, QosKind.RELIABLE, dds_name=rq)
-        self.r = dom.reader("", self._rep_t, QosKind.RELIABLE, dds_name=rr)
+        self.w = dom.writer("", req_t, QosKind.SERVICE, dds_name=rq)
+        self.r = dom.reader("", self._rep_t, QosKind.SERVICE, dds_name=rr)
         self.guid = int.from_bytes(bytes(self.w.writer.guid.bytes[8:16]), "little")
         self.seq = 0
 

@@ -72,7 +72,7 @@ class Ros2Player:
         self.pub_r = w(right_topic, "sensor_msgs/Image", QosKind.RELIABLE)
         self.pub_li = w(left_info, "sensor_msgs/CameraInfo", QosKind.RELIABLE) if left_info else None
         self.pub_ri = w(right_info, "sensor_msgs/CameraInfo", QosKind.RELIABLE) if right_info else None
-        self.odom = self.dom.reader(odometry_topic, "nav_msgs/Odometry", QosKind.RELIABLE)
+        self.odom = self.dom.reader(odometry_topic, "nav_msgs/Odometry", QosKind.RECORD)
         self._odom_t = idl_type("nav_msgs/Odometry")
         self.odometry: list[tuple[int, np.ndarray]] = []  # (stamp ns, 7: position, quaternion xyzw)
         self.dom.announce()
