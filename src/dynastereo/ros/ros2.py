@@ -380,7 +380,8 @@ class Ros2Node:
             self.counts["bad_messages"] += 1
             self._info_error = str(e)
             self.core.stats.last_error = str(e)
-            self._once(f"info:{e}", logging.ERROR, f"dynastereo: CameraInfo refused: {e}")
+            # one line for a camera that sends bad CameraInfo (each message would say the same)
+            self._once("info:refused", logging.ERROR, f"dynastereo: CameraInfo refused: {e}")
             return
         self.core.warm_up()
         self._info0 = (li, ri)
