@@ -75,6 +75,7 @@ class Ros2Player:
         self.odom = self.dom.reader(odometry_topic, "nav_msgs/Odometry", QosKind.RECORD)
         self._odom_t = idl_type("nav_msgs/Odometry")
         self.odometry: list[tuple[int, np.ndarray]] = []  # (stamp ns, 7: position, quaternion xyzw)
+        self.odometry_received: list[float] = []  # wall clock s when each was taken (within ~2 ms)
         self.dom.announce()
 
     def wait_for_subscribers(self, timeout: float = 20.0) -> bool:
@@ -105,6 +106,7 @@ class Ros2Player:
             st = m.header.stamp
             self.odometry.append((int(st.sec) * 1_000_000_000 + int(st.nanosec),
                                   np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w])))
+            self.odometry_received.append(time.time())
 
     def wait_odometry(self, stamp_ns: int, timeout: float) -> bool:
         end = time.monotonic() + timeout
@@ -125,6 +127,9 @@ class Ros2Player:
         for k, i in enumerate(self.frames):
             if not lockstep:
                 when = t0 + (k / float(rate_hz) if rate_hz else (int(self.seq_stamps[i]) - s0) * 1e-9)
+                while when - time.monotonic() > 0.003:  # the odometry taken meanwhile: its receipt time
+                    self._take_odometry()
+                    time.sleep(min(0.002, max(0.0, when - time.monotonic())))
                 delay = when - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
@@ -141,6 +146,13 @@ class Ros2Player:
         if not lockstep:
             self._take_odometry()
         return log
+
+    def drain(self, n: int, timeout: float = 10.0) -> None:
+        """Take odometry until ``n`` messages in all came, or ``timeout`` s."""
+        end = time.monotonic() + timeout
+        while len(self.odometry) < n and time.monotonic() < end:
+            self._take_odometry()
+            time.sleep(0.002)
 
 
 def open_source(source: str, frames: str | None = None, rate: float | None = None) -> tuple[Any, list[int]]:
