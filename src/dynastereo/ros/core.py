@@ -1,7 +1,7 @@
 """The node's logic, transport-agnostic: :class:`StereoNodeCore`.
 
-A ROS adapter (ROS 1: :mod:`dynastereo.ros.ros1`; a ROS 2 ``rclpy`` one would be the same
-size) only converts messages to :class:`StereoInput` (numpy images + stamp), calls
+A ROS adapter (ROS 1: :mod:`dynastereo.ros.ros1`; ROS 2 over DDS: :mod:`dynastereo.ros.ros2`)
+only converts messages to :class:`StereoInput` (numpy images + stamp), calls
 :meth:`StereoNodeCore.submit`, and implements :class:`NodeSink` to publish what the core
 hands back.  Everything else is here: rectification, masking, tracking, odometry and
 disparity, live parameter changes, the bounded queue and the statistics.
