@@ -107,6 +107,7 @@ def run_once_ros2(seq: Path, frames: int, rate: float, pipelined: bool, timeout:
             stamps = {s: k for k, s in enumerate(plog.stamps_ns)}
             lat = [(t - s * 1e-9) * 1000.0 for (s, _), t in zip(player.odometry, player.odometry_received)
                    if s in stamps]
+            player.close()
             del dom, player
         finally:
             node.send_signal(signal.SIGINT)

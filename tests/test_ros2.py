@@ -232,6 +232,7 @@ def live(kitti06: Path, models_dir: Path, tmp_path_factory) -> dict:
         res["odometry"] = list(player.odometry)
         res["raw"] = {k: [bytes(d) for d, _ in r.take(1000)] for k, r in rec.items()}
         res["discovery"] = [disc_t.deserialize(d) for d, _ in disc.take(50)]
+        player.close()
         res["reference"] = track_offline(kitti06, models_dir, LOCKSTEP)[0]
     finally:
         res["rc"] = _stop(node)

@@ -473,6 +473,7 @@ def play_cmd(
     import time
 
     time.sleep(0.5)  # reliable samples still in flight
+    player.close()
 
 
 @models_app.callback()

@@ -556,6 +556,22 @@ def discovery_types(gid_bytes: int) -> tuple[type, type, type]:
     return gid_t, node_t, info_t
 
 
+class Waiter:
+    """Blocks (the GIL released) until one of ``readers`` has data, or ``timeout_s``."""
+
+    def __init__(self, participant: Any, readers: list[RawReader]) -> None:
+        from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet
+
+        self.ws = WaitSet(participant)
+        mask = SampleState.NotRead | ViewState.Any | InstanceState.Any
+        self._conds = [ReadCondition(r.reader, mask) for r in readers]
+        for c in self._conds:
+            self.ws.attach(c)
+
+    def wait(self, timeout_s: float) -> int:
+        return int(self.ws.wait(int(timeout_s * 1e9)))
+
+
 class Domain:
     """One DDS participant in ``ROS_DOMAIN_ID`` (or ``domain``) with ROS 2 names: raw writers and
     readers, and the ``ros_discovery_info`` entry that makes ``ros2 node list`` show the node."""

@@ -57,6 +57,7 @@ from .dds import (
     DdsBuilder,
     Domain,
     QosKind,
+    Waiter,
     decode,
     decode_compressed,
     decode_image,
@@ -279,6 +280,8 @@ class Ros2Node:
             self.services[name] = (self.dom.reader("", req_t, QosKind.SERVICE, dds_name=rq),
                                    self.dom.writer("", self._rep_t, QosKind.SERVICE, dds_name=rr), fn)
         self._publications = self._publication_reader()
+        self._waiter = Waiter(self.dom.participant, [*self.info_readers.values(), *self.readers.values(),
+                                                     *(req for req, _, _ in self.services.values())])
         self.dom.announce()
 
         if calibration is not None:
@@ -333,8 +336,9 @@ class Ros2Node:
                            f"dynastereo: {ros}: a publisher sends {_ros_type(got)}, the node expects "
                            f"{_ros_type(want)}; its messages are ignored")
 
-    def spin_once(self, timeout_s: float = 0.05) -> int:
-        """Take and handle whatever arrived; sleep up to ``timeout_s`` when nothing did."""
+    def spin_once(self, timeout_s: float = 0.1) -> int:
+        """Wait up to ``timeout_s`` for input, then take and handle whatever arrived."""
+        self._waiter.wait(timeout_s)
         n = 0
         for side, r in self.info_readers.items():
             for data, _ in r.take(8):
@@ -350,7 +354,6 @@ class Ros2Node:
                 self._on_request(name, data, rep, fn)
         if n == 0:
             self._check_publications()
-            time.sleep(timeout_s)
         return n
 
     def _on_info(self, side: str, data: bytes) -> None:

@@ -13,6 +13,7 @@ not disturb the pace.
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -21,7 +22,7 @@ import numpy as np
 
 from .bags import _exact_projections
 from .convert import camera_info_fields
-from .dds import DdsBuilder, Domain, QosKind, decode, idl_type
+from .dds import DdsBuilder, Domain, QosKind, Waiter, decode, idl_type
 from .messages import (
     DEFAULT_LEFT_FRAME,
     DEFAULT_LEFT_INFO,
@@ -75,8 +76,23 @@ class Ros2Player:
         self.odom = self.dom.reader(odometry_topic, "nav_msgs/Odometry", QosKind.RECORD)
         self._odom_t = idl_type("nav_msgs/Odometry")
         self.odometry: list[tuple[int, np.ndarray]] = []  # (stamp ns, 7: position, quaternion xyzw)
-        self.odometry_received: list[float] = []  # wall clock s when each was taken (within ~2 ms)
+        self.odometry_received: list[float] = []  # wall clock s when each arrived
+        self._odom_lock = threading.Lock()
+        self._waiter = Waiter(self.dom.participant, [self.odom])
+        self._stop = threading.Event()
+        self._recorder = threading.Thread(target=self._record, name="odometry-recorder", daemon=True)
+        self._recorder.start()
         self.dom.announce()
+
+    def _record(self) -> None:
+        """The odometry as it arrives (its receipt time: the latency figures), on its own thread."""
+        while not self._stop.is_set():
+            if self._waiter.wait(0.1):
+                self._take_odometry()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._recorder.join(1.0)
 
     def wait_for_subscribers(self, timeout: float = 20.0) -> bool:
         pubs = [p for p in (self.pub_l, self.pub_r, self.pub_li, self.pub_ri) if p is not None]
@@ -100,18 +116,19 @@ class Ros2Player:
         self.pub_r.publish(self.b.image(right, stamp_ns, DEFAULT_RIGHT_FRAME))
 
     def _take_odometry(self) -> None:
-        for data, _ in self.odom.take(64):
-            m = decode(self._odom_t, data)
-            p, q = m.pose.pose.position, m.pose.pose.orientation
-            st = m.header.stamp
-            self.odometry.append((int(st.sec) * 1_000_000_000 + int(st.nanosec),
-                                  np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w])))
-            self.odometry_received.append(time.time())
+        with self._odom_lock:
+            for data, _ in self.odom.take(64):
+                t = time.time()
+                m = decode(self._odom_t, data)
+                p, q = m.pose.pose.position, m.pose.pose.orientation
+                st = m.header.stamp
+                self.odometry.append((int(st.sec) * 1_000_000_000 + int(st.nanosec),
+                                      np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w])))
+                self.odometry_received.append(t)
 
     def wait_odometry(self, stamp_ns: int, timeout: float) -> bool:
         end = time.monotonic() + timeout
         while True:
-            self._take_odometry()
             if any(s == stamp_ns for s, _ in self.odometry[-4:]):
                 return True
             if time.monotonic() > end:
@@ -127,9 +144,6 @@ class Ros2Player:
         for k, i in enumerate(self.frames):
             if not lockstep:
                 when = t0 + (k / float(rate_hz) if rate_hz else (int(self.seq_stamps[i]) - s0) * 1e-9)
-                while when - time.monotonic() > 0.003:  # the odometry taken meanwhile: its receipt time
-                    self._take_odometry()
-                    time.sleep(min(0.002, max(0.0, when - time.monotonic())))
                 delay = when - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
@@ -143,16 +157,13 @@ class Ros2Player:
                     log.answered += 1
                 else:
                     log.timeouts += 1
-        if not lockstep:
-            self._take_odometry()
         return log
 
     def drain(self, n: int, timeout: float = 10.0) -> None:
         """Take odometry until ``n`` messages in all came, or ``timeout`` s."""
         end = time.monotonic() + timeout
         while len(self.odometry) < n and time.monotonic() < end:
-            self._take_odometry()
-            time.sleep(0.002)
+            time.sleep(0.005)
 
 
 def open_source(source: str, frames: str | None = None, rate: float | None = None) -> tuple[Any, list[int]]:
