@@ -301,3 +301,44 @@ def test_services_save_and_sigint(live: dict) -> None:
     assert len(rows) == live["status_rate"]["processed"]
     assert live["rc"] == 0, live["log"][-3000:]
     assert "trajectory saved" in live["log"]
+
+
+# --------------------------------------------------------------------------- player source, CLI
+
+
+def test_player_reads_a_ros2_bag_like_the_folder(kitti06: Path, tmp_path: Path) -> None:
+    """``dynastereo play --ros2`` takes a .db3 (or .mcap) bag: the same frames and stamps as the folder."""
+    from dynastereo.io import KittiSequence
+    from dynastereo.ros.bags import export_bag
+    from dynastereo.ros.ros2_player import open_source
+
+    folder = KittiSequence(kitti06)
+    export_bag(folder, tmp_path / "k.db3", "ros2", frames=range(3))
+    seq, frames = open_source(str(tmp_path / "k.db3"))
+    assert frames == [0, 1, 2]
+    assert np.array_equal(seq.frame(1).left, folder.frame(1).left)
+    assert np.allclose(seq.timestamps()[:3], folder.timestamps()[:3], atol=1e-9)
+    assert seq.calibration.baseline == pytest.approx(folder.calibration.baseline, rel=1e-9)
+    seq2, frames2 = open_source(str(kitti06), "0-4")
+    assert frames2 == [0, 1, 2, 3, 4]
+
+
+def test_cli_errors_are_one_line(tmp_path: Path, monkeypatch) -> None:
+    from typer.testing import CliRunner
+
+    from dynastereo.cli.main import app
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("/**:\n  ros__parameters:\n    no_such_parameter: 1\n")
+    r = CliRunner().invoke(app, ["node", "--ros2", "--params", str(bad)])
+    assert r.exit_code == 2 and "bad.yaml: unknown parameter 'no_such_parameter'" in r.output
+    monkeypatch.setenv("ROS_DOMAIN_ID", "999")
+    r = CliRunner().invoke(app, ["node", "--ros2"])
+    assert r.exit_code == 2 and "ROS_DOMAIN_ID must be in 0..232, got 999" in r.output
+    r = CliRunner().invoke(app, ["play", str(tmp_path)])
+    assert r.exit_code == 2 and "play needs --ros2" in r.output
+    import sys as _sys
+
+    monkeypatch.setitem(_sys.modules, "cyclonedds.domain", None)  # as if the ros2 extra were missing
+    with pytest.raises(dds.RosUnavailable, match=r"pip install 'dynastereo\[ros2\]'"):
+        dds.import_cyclonedds()
