@@ -77,6 +77,9 @@ def test_compressed_cloud_and_disparity_match_rosbags() -> None:
         msg = DB.compressed(img, 7 + k, fid)
         c = dds.decode_compressed(dds.encode(msg))
         assert (c.stamp_ns, c.frame_id, c.format) == (7 + k, fid, msg.format) and np.array_equal(c.data, msg.data)
+        from dynastereo.ros.convert import ImageDecoder
+
+        assert np.array_equal(ImageDecoder().decode(c, "t"), img)  # what the node does with compressed: true
         pts = rng.normal(size=(int(rng.integers(0, 50)), 3))
         _same(dds.encode(DB.point_cloud(pts, 11, fid)), _rosbags_bytes(RB.point_cloud(pts, 11, fid)))
         d = DisparityData(rng.random((5, 7), np.float32) * 50 - 5, 707.0, 0.54, 0.0, 96.0)
