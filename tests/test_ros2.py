@@ -21,7 +21,6 @@ import pytest
 
 pytest.importorskip("cyclonedds", reason="the ros2 extra (cyclonedds) is not installed")
 
-from conftest import track_offline  # noqa: E402
 
 from dynastereo.errors import ConfigError, InputError  # noqa: E402
 from dynastereo.ros import dds  # noqa: E402
@@ -169,6 +168,23 @@ def _stop(p: subprocess.Popen) -> int | None:
     return p.wait(10)
 
 
+def offline_run_poses(kitti06: Path, models_dir: Path, out: Path) -> np.ndarray:
+    """The per-frame poses (what tracking returned, as the node's odometry) of the offline
+    ``dynastereo run`` job on frames 0..LOCKSTEP-1: the same runtime, read from the folder."""
+    from dynastereo.config import Config
+    from dynastereo.runtime import JobKind, JobSpec, OutputSpec, SourceSpec, run
+
+    poses: list[np.ndarray] = []
+
+    class Poses:
+        def on_frame(self, ev) -> None:
+            poses.append(np.asarray(ev.pose, np.float64))
+
+    run(JobSpec(JobKind.RUN, SourceSpec(path=kitti06), OutputSpec(out), Config(), frames=f"0-{LOCKSTEP - 1}",
+                models_dir=models_dir), observers=(Poses(),))
+    return np.array(poses)
+
+
 @pytest.fixture(scope="module")
 def live(kitti06: Path, models_dir: Path, tmp_path_factory) -> dict:
     """The node (its own process) and, here, a player and a recorder: bad inputs, lock-step,
@@ -236,7 +252,7 @@ def live(kitti06: Path, models_dir: Path, tmp_path_factory) -> dict:
         res["raw"] = {k: [bytes(d) for d, _ in r.take(1000)] for k, r in rec.items()}
         res["discovery"] = [disc_t.deserialize(d) for d, _ in disc.take(50)]
         player.close()
-        res["reference"] = track_offline(kitti06, models_dir, LOCKSTEP)[0]
+        res["reference"] = offline_run_poses(kitti06, models_dir, work / "offline")
     finally:
         res["rc"] = _stop(node)
         res["log"] = log_path.read_text(errors="replace")
@@ -244,6 +260,7 @@ def live(kitti06: Path, models_dir: Path, tmp_path_factory) -> dict:
 
 
 def test_lockstep_odometry_equals_the_offline_run(live: dict) -> None:
+    """In lock-step, the node's odometry is the offline `dynastereo run` job's per-frame poses."""
     odo = [o for o in live["odometry"] if o[0] in set(live["lock_stamps"])]
     assert live["lock"]["answered"] == LOCKSTEP and [s for s, _ in odo] == live["lock_stamps"], live["log"][-3000:]
     st = live["status_lockstep"]
@@ -254,7 +271,7 @@ def test_lockstep_odometry_equals_the_offline_run(live: dict) -> None:
     v = np.array([x for _, x in odo])
     dpos = np.abs(v[:, :3] - ref[:, :3, 3]).max()
     dang = (Rotation.from_quat(v[:, 3:]).inv() * Rotation.from_matrix(ref[:, :3, :3])).magnitude().max()
-    assert dpos < 1e-6 and dang < 1e-8, (dpos, dang)
+    assert dpos == 0.0 and dang < 1e-12, (dpos, dang)  # bit for bit (the rotation through a quaternion)
     assert np.linalg.norm(v[-1, :3] - v[0, :3]) > 5  # it moved
 
 
