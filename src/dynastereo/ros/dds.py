@@ -579,10 +579,12 @@ class Domain:
     def __init__(self, domain: int | None = None, *, node_name: str = "", namespace: str = "/",
                  distro: str = "humble") -> None:
         import_cyclonedds()
+        from cyclonedds.core import Policy, Qos
         from cyclonedds.domain import DomainParticipant
 
         self.domain_id = domain_id() if domain is None else int(domain)
-        self.participant = DomainParticipant(self.domain_id)
+        # the security enclave in the participant's user data, as rmw_cyclonedds_cpp sets it
+        self.participant = DomainParticipant(self.domain_id, qos=Qos(Policy.Userdata(b"enclave=/;")))
         self.namespace = namespace if namespace.startswith("/") else "/" + namespace
         self.node_name = node_name
         if distro not in GID_BYTES:
