@@ -95,7 +95,9 @@ class Ros2Player:
         self._recorder.join(1.0)
 
     def wait_for_subscribers(self, timeout: float = 20.0) -> bool:
-        pubs = [p for p in (self.pub_l, self.pub_r, self.pub_li, self.pub_ri) if p is not None]
+        """Until both image topics have a subscriber (CameraInfo goes with every frame: a node
+        that reads its calibration from a file subscribes to none)."""
+        pubs = [self.pub_l, self.pub_r]
         end = time.monotonic() + timeout
         while time.monotonic() < end:
             if all(p.matched() > 0 for p in pubs):
