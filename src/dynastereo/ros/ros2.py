@@ -578,6 +578,11 @@ def main(params_file: str | None = None) -> int:
     except (DynastereoError, InputError, ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except Exception as e:  # a DDS start-up failure (a bad CYCLONEDDS_URI, no usable interface): one line
+        if type(e).__module__.split(".")[0] != "cyclonedds":
+            raise
+        print(f"error: DDS could not start ({e}); check CYCLONEDDS_URI and ROS_DOMAIN_ID", file=sys.stderr)
+        return 2
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: node.stop())
     try:
