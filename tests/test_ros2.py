@@ -214,7 +214,9 @@ def live(kitti06: Path, models_dir: Path, tmp_path_factory) -> dict:
         rec = {k: dom.reader(t, ty, dds.QosKind.RECORD if k != "mask" else dds.QosKind.SENSOR) for k, t, ty in (
             ("tf", "/tf", "tf2_msgs/TFMessage"), ("mask", "/dynastereo/left/mask", "sensor_msgs/Image"),
             ("path", "/dynastereo/path", "nav_msgs/Path"), ("objects", "/dynastereo/objects",
-                                                           "visualization_msgs/MarkerArray"))}
+                                                           "visualization_msgs/MarkerArray"),
+            ("odometry", "/dynastereo/odometry", "nav_msgs/Odometry"))}
+        rec["disparity"] = dom.reader("/dynastereo/disparity", "stereo_msgs/DisparityImage", dds.QosKind.SENSOR)
         rec["map"] = dom.reader("/dynastereo/map_points", "sensor_msgs/PointCloud2", dds.QosKind.LATCHED)
         rec["ready"] = dom.reader("/dynastereo/ready", "std_msgs/Bool", dds.QosKind.LATCHED)
         disc_t = dds.discovery_types(24)[2]
@@ -287,6 +289,14 @@ def test_at_10hz_drops_are_counted_and_reported(live: dict) -> None:
 
 def test_published_messages_decode_with_rosbags(live: dict) -> None:
     raw = live["raw"]
+    odo = [TS.deserialize_cdr(b, "nav_msgs/msg/Odometry") for b in raw["odometry"]]
+    assert [o.header.stamp.sec * 10 ** 9 + o.header.stamp.nanosec for o in odo] == [s for s, _ in live["odometry"]]
+    p = odo[-1].pose.pose.position
+    assert np.allclose([p.x, p.y, p.z], live["odometry"][-1][1][:3], rtol=0, atol=0)
+    assert odo[0].header.frame_id == "odom" and odo[0].child_frame_id == "camera_left"
+    disp = [TS.deserialize_cdr(b, "stereo_msgs/msg/DisparityImage") for b in raw["disparity"]]
+    assert disp and disp[-1].image.encoding == "32FC1" and (disp[-1].image.height, disp[-1].image.width) == (370, 1226)
+    assert disp[-1].t == pytest.approx(0.5371506532679237, rel=1e-6) and disp[-1].max_disparity == 96
     tf = [TS.deserialize_cdr(b, "tf2_msgs/msg/TFMessage") for b in raw["tf"]]
     assert len(tf) == live["status_rate"]["processed"] and tf[-1].transforms[0].child_frame_id == "camera_left"
     masks = [TS.deserialize_cdr(b, "sensor_msgs/msg/Image") for b in raw["mask"]]
