@@ -238,7 +238,7 @@ class Ros2Node:
         self._logged: set[str] = set()
         self._stop = threading.Event()
         self._path: tuple[list[np.ndarray], list[int]] = ([], [])
-        from ..slam.objects import ObjectPaths
+        from ..objects.world import ObjectPaths
 
         self._object_paths = ObjectPaths()
 
