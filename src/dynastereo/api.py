@@ -21,10 +21,10 @@ from .io.base import Sequence
 from .io.frames import select_frames
 from .io.outputs import check_output_file
 from .observers import FrameObserver
-from .runtime import BagRunResult, BagSpec, JobKind, JobSpec, MaskJobResult, OutputSpec, SlamJobResult, SourceSpec
+from .runtime import JobKind, JobResult, JobSpec, OutputSpec, SourceSpec
 from .runtime import run as run_job
 from .runtime.finish import resolve_ground_truth  # noqa: F401 -- part of the API (re-exported)
-from .runtime.spec import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC, settings_calibration
+from .runtime.spec import settings_calibration
 from .viz.viewers import viewers  # noqa: F401 -- part of the API
 
 
@@ -113,7 +113,7 @@ def mask_sequence(
     observers: tuple[FrameObserver, ...] = (),
     viewer: bool = False,
     rrd: str | Path | None = None,
-) -> MaskJobResult:
+) -> JobResult:
     """Mask the dynamic objects of ``sequence`` in both images (a :class:`~dynastereo.runtime.JobSpec` of kind ``mask``, run by
     :func:`dynastereo.runtime.run`).
 
@@ -152,7 +152,7 @@ def run_sequence(
     viewer: bool = False,
     rrd: str | Path | None = None,
     save_cloud: str | Path | None = None,
-) -> SlamJobResult:
+) -> JobResult:
     """Mask and track ``sequence`` with the stereo SLAM (a :class:`~dynastereo.runtime.JobSpec` of kind ``run``;
     the outputs are listed in :mod:`dynastereo.runtime.sinks` and :mod:`dynastereo.runtime.finish`).
 
@@ -238,15 +238,18 @@ def run_bag(
     viewer: bool = False,
     rrd: str | Path | None = None,
     save_cloud: str | Path | None = None,
-) -> BagRunResult:
+) -> JobResult:
     """Mask and track a stereo bag (ROS 1 .bag, ROS 2 .db3, .mcap); results as for
     :func:`run_sequence` plus ``out/output.<fmt>`` and ``out/bag.json``.  Calibration:
     ``calib`` (YAML) > the bag's CameraInfo > ``config_path`` when it is an ORB-SLAM2
     settings file.  ``overwrite`` / ``stereo_check`` / ``report`` / ``viewer`` / ``rrd`` /
     ``gt`` as for :func:`run_sequence`.  The output bag's content: :class:`dynastereo.ros.bagrun.BagOutput`."""
-    bag_spec = BagSpec(Path(bag), left_topic or DEFAULT_LEFT_TOPIC, right_topic or DEFAULT_RIGHT_TOPIC, left_info,
+    from .ros.bagrun import BagSource
+    from .ros.messages import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC
+
+    source = BagSource(Path(bag), left_topic or DEFAULT_LEFT_TOPIC, right_topic or DEFAULT_RIGHT_TOPIC, left_info,
                        right_info, tolerance_s, rectify, settings_calibration(config_path), outputs)
-    spec = JobSpec(JobKind.RUN, SourceSpec(bag=bag_spec, calib=Path(calib) if calib else None),
+    spec = JobSpec(JobKind.RUN, SourceSpec(opener=source, calib=Path(calib) if calib else None),
                    OutputSpec(Path(out), overwrite=overwrite, save_masks=save_masks, save_cloud=save_cloud,
                               report=report, viewer=viewer, rrd=rrd),
                    cfg or Config(), frames=frames, models_dir=models_dir, stereo_check=stereo_check, gt=gt)

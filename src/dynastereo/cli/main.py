@@ -199,16 +199,20 @@ def _run_source(sequence, bag, calib, rate, config, left_topic, right_topic, lef
     """The run's :class:`~dynastereo.runtime.SourceSpec`: a folder / video / camera, or a bag
     (its CameraInfo topics ``auto`` / ``none`` / a topic; an ORB-SLAM2 settings file given as
     ``--config`` is its calibration when it has no CameraInfo)."""
-    from ..runtime import BagSpec, SourceSpec
+    from ..runtime import SourceSpec
     from ..runtime.spec import settings_calibration
 
-    if bag is None or sequence is not None:
-        return SourceSpec(path=sequence, bag=None if bag is None else BagSpec(bag), calib=calib, rate=rate)
+    if bag is None:
+        return SourceSpec(path=sequence, calib=calib, rate=rate)
+    from ..ros.bagrun import BagSource
+
+    if sequence is not None:
+        return SourceSpec(path=sequence, opener=BagSource(bag), calib=calib, rate=rate)  # refused: both given
     info = {"auto": "auto", "none": None}
-    spec = BagSpec(bag, left_topic, right_topic, info.get(left_info.lower(), left_info),
-                   info.get(right_info.lower(), right_info), sync_tolerance / 1000.0, rectify,
-                   settings_calibration(config), bag_outputs)
-    return SourceSpec(bag=spec, calib=calib, rate=rate)
+    source = BagSource(bag, left_topic, right_topic, info.get(left_info.lower(), left_info),
+                       info.get(right_info.lower(), right_info), sync_tolerance / 1000.0, rectify,
+                       settings_calibration(config), bag_outputs)
+    return SourceSpec(opener=source, calib=calib, rate=rate)
 
 
 @app.command()
@@ -277,8 +281,6 @@ def run(
                 job.tick(done, total)
 
             result = run_job(spec, progress=on_frame)
-            if bag is not None:
-                result = result.slam
     bag_report = result.bag
     out_console.print(timing_table(result.summary, "timing (ms per frame)"))
     if "masking" in result.summary and "total" in result.summary:

@@ -1176,7 +1176,7 @@ def track_verdict(track: dict[str, np.ndarray]) -> bool | None:
 
 def moving_tracks(tracks: dict[int, dict[str, np.ndarray]]) -> dict[int, dict[str, np.ndarray]]:
     """The objects judged moving -- the one definition the report, ``run``'s summary and
-    :attr:`~dynastereo.runtime.results.SlamJobResult.moving_objects` share: tracks whose
+    :attr:`~dynastereo.runtime.results.JobResult.moving_objects` share: tracks whose
     verdict (:func:`track_verdict`) is moving, seen in at least :data:`MOVING_MIN_FRAMES`
     frames.  (Counting the tracks with any row ``moving == 1`` counts more: a track can be
     judged moving in a frame or two and static in most.)"""

@@ -18,8 +18,7 @@ Nothing here imports ``rospy`` or ``cyclonedds`` at import time; only :mod:`.ros
 
 from __future__ import annotations
 
-from ..runtime.spec import BAG_OUTPUTS
-from .bagrun import BagOutput
+from .bagrun import BAG_OUTPUTS, BagOutput, BagSource, parse_bag_outputs
 from .bags import BAG_FORMATS, BagStereoSequence, BagWriter, ExportResult, bag_format, bag_topics, export_bag, \
     read_messages, read_odometry
 from .convert import ImageDecoder, calibration_from_camera_info, camera_info_fields, image_fields
@@ -37,6 +36,7 @@ from .messages import (
 __all__ = [
     "BAG_OUTPUTS",
     "BagOutput",
+    "BagSource",
     "BAG_FORMATS",
     "BagStereoSequence",
     "BagWriter",
@@ -60,6 +60,7 @@ __all__ = [
     "camera_info_fields",
     "export_bag",
     "image_fields",
+    "parse_bag_outputs",
     "read_messages",
     "read_odometry",
 ]

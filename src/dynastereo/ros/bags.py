@@ -439,6 +439,26 @@ class BagStereoSequence:
         return out, zero
 
     def _setup(self, left_topic, right_topic, left_info, right_info, calib, tol, rectify) -> None:
+        n_left, n_right, n_pairs, stamps, notes = self._pair(left_topic, right_topic, tol)
+        calibration, raw_size, source, li, ri = self._calibrate(left_info, right_info, calib, rectify)
+        self.rectifier: Rectifier | None = None
+        if isinstance(calibration, RawStereoCalibration):
+            self.rectifier = Rectifier(calibration)
+            self.calibration: StereoCalibration = self.rectifier.calibration
+        else:
+            self.calibration = calibration
+        self.raw_size = raw_size
+        self.frame_id = self._frame_id(self._lconns, self._left[0]) or DEFAULT_LEFT_FRAME
+        self.report = PairingReport(
+            left_topic=self.left_topic, right_topic=self.right_topic, left_messages=n_left,
+            right_messages=n_right, pairs=n_pairs, unpaired_left=self.unpaired_left,
+            unpaired_right=self.unpaired_right, tolerance_s=tol, left_info=li, right_info=ri,
+            calibration_source=source, rectified_on_read=self.rectifier is not None, stamps=stamps, notes=notes)
+
+    def _pair(self, left_topic: str, right_topic: str, tol: float) -> tuple[int, int, int, str, list[str]]:
+        """The left and right image messages paired by stamp (within ``tol`` seconds):
+        ``self._left`` / ``self._right`` / ``self.stamps_ns``.  Returns ``(left messages,
+        right messages, pairs, which stamps paired them, notes)``."""
         self._lconns = self._conn(left_topic, IMAGE_TYPES, "left image")
         self._rconns = self._conn(right_topic, IMAGE_TYPES, "right image")
         self.left_topic, self.right_topic = self._lconns[0].topic, self._rconns[0].topic
@@ -480,8 +500,12 @@ class BagStereoSequence:
         if self.unpaired_left or self.unpaired_right:
             log.warning("%s: %d left and %d right images have no partner within %g ms and are skipped",
                         self.path, self.unpaired_left, self.unpaired_right, tol * 1e3)
+        return len(lmsgs), len(rmsgs), len(il), stamps, notes
 
-        # calibration
+    def _calibrate(self, left_info, right_info, calib, rectify):
+        """The rig's calibration: ``calib`` (a file or a calibration), else the bag's
+        CameraInfo, else the fallback file; checked against the images' size.  Returns
+        ``(calibration, raw image size, its source, left and right CameraInfo topics)``."""
         topics = {c.topic for c in self._reader.connections}
         li = _sibling_info(self.left_topic) if left_info == "auto" else left_info
         ri = _sibling_info(self.right_topic) if right_info == "auto" else right_info
@@ -515,25 +539,10 @@ class BagStereoSequence:
                 self.path)
         check_intrinsics(calibration, raw_size, source)
         check_plausible(calibration, raw_size, self.path, source)
-        self.rectifier: Rectifier | None = None
-        if isinstance(calibration, RawStereoCalibration):
-            if calibration.size != raw_size:
-                raise CalibrationError(f"calibration is for {calibration.width}x{calibration.height} images, "
-                                       f"{self.left_topic} carries {raw_size[0]}x{raw_size[1]}", source)
-            self.rectifier = Rectifier(calibration)
-            self.calibration: StereoCalibration = self.rectifier.calibration
-        else:
-            if calibration.size != raw_size:
-                raise CalibrationError(f"calibration is for {calibration.width}x{calibration.height} images, "
-                                       f"{self.left_topic} carries {raw_size[0]}x{raw_size[1]}", source)
-            self.calibration = calibration
-        self.raw_size = raw_size
-        self.frame_id = self._frame_id(self._lconns, self._left[0]) or DEFAULT_LEFT_FRAME
-        self.report = PairingReport(
-            left_topic=self.left_topic, right_topic=self.right_topic, left_messages=len(lmsgs),
-            right_messages=len(rmsgs), pairs=len(il), unpaired_left=self.unpaired_left,
-            unpaired_right=self.unpaired_right, tolerance_s=tol, left_info=li, right_info=ri,
-            calibration_source=source, rectified_on_read=self.rectifier is not None, stamps=stamps, notes=notes)
+        if calibration.size != raw_size:
+            raise CalibrationError(f"calibration is for {calibration.width}x{calibration.height} images, "
+                                   f"{self.left_topic} carries {raw_size[0]}x{raw_size[1]}", source)
+        return calibration, raw_size, source, li, ri
 
     def _camera_info(self, topic: str) -> CameraInfoData:
         conns = self._conn(topic, (CAMERA_INFO_TYPE,), "CameraInfo")

@@ -51,7 +51,9 @@ import numpy as np
 
 from .convert import camera_info_fields, encode_compressed, image_fields, pose_quaternion, stamp_split
 
-from ..runtime.spec import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC  # noqa: F401 -- the input topics, re-exported
+#: The input topics' defaults (``~left_topic`` / ``--left-topic`` ...).
+DEFAULT_LEFT_TOPIC = "/camera/left/image_raw"
+DEFAULT_RIGHT_TOPIC = "/camera/right/image_raw"
 DEFAULT_LEFT_INFO = "/camera/left/camera_info"
 DEFAULT_RIGHT_INFO = "/camera/right/camera_info"
 DEFAULT_LEFT_FRAME = "camera_left"

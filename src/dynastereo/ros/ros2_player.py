@@ -174,7 +174,8 @@ def open_source(source: str, frames: str | None = None, rate: float | None = Non
 
     from ..io.frames import select_frames
     from ..runtime.sources import open_sequence_source
-    from ..runtime.spec import BagSpec, SourceSpec
+    from ..runtime.spec import SourceSpec
+    from .bagrun import BagSource
     from .bags import bag_format
 
     p = Path(source)
@@ -182,6 +183,6 @@ def open_source(source: str, frames: str | None = None, rate: float | None = Non
         is_bag = bag_format(p) is not None
     except Exception:  # noqa: BLE001 -- not a bag: a sequence folder
         is_bag = False
-    spec = SourceSpec(bag=BagSpec(p)) if is_bag else SourceSpec(path=p, rate=None)
+    spec = SourceSpec(opener=BagSource(p)) if is_bag else SourceSpec(path=p, rate=None)
     seq = open_sequence_source(spec)
     return seq, select_frames(frames, seq)

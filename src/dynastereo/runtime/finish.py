@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import DynastereoError, OutputError
 from ..io.outputs import atomic_write_text, reserve_json, write_failed, write_json_reserved, write_ply
-from .results import MaskJobResult, SlamJobResult
+from .results import JobResult
 from .spec import JobSpec
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -105,7 +105,7 @@ def calibration_file(seq: Any) -> str | None:
 # --------------------------------------------------------------------------- mask job
 
 
-def finish_mask(job: "Job", loop: "FrameLoop", error: str | None) -> MaskJobResult:
+def finish_mask(job: "Job", loop: "FrameLoop", error: str | None) -> JobResult:
     """``timing.json`` of a mask job (with ``error`` when it failed)."""
     st, timer = loop.state, loop.timer
     loop.close()
@@ -123,7 +123,7 @@ def finish_mask(job: "Job", loop: "FrameLoop", error: str | None) -> MaskJobResu
     except OSError as e:
         if error is None:  # else the first error is the one to report
             raise write_failed(e, out / "timing.json") from None
-    return MaskJobResult(out, list(job.frames[:st.n_done]), timer, error, wall)
+    return JobResult(out, list(job.frames[:st.n_done]), timer, wall, error=error)
 
 
 # --------------------------------------------------------------------------- SLAM run
@@ -197,7 +197,7 @@ def run_record(job: "Job", n_done: int, stats: dict, map_out: dict, fps: float, 
     }
 
 
-def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> SlamJobResult:
+def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> JobResult:
     """The run's last files (module doc); raises the first late error when the run itself went well."""
     st, timer, system, out = loop.state, loop.timer, job.processor.system, job.spec.outputs.dir
     n_done, first_error, late = st.n_done, error, None
@@ -208,8 +208,8 @@ def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> SlamJobResul
     except BaseException as e:  # noqa: BLE001 -- a signal breaking a wait: the files below are still written
         late, error = e, error or f"{type(e).__name__}: {e}"
     loop.close()
-    if job.bag_output is not None:
-        job.bag_output.close()  # its final map: after the last BA
+    outputs, late = _close_output_observers(job, late)  # a bag's final map: after the last BA
+    error = error or (f"{type(late).__name__}: {late}" if late is not None else None)
     wall = time.perf_counter() - st.t0
     fps = n_done / wall if wall > 0 else 0.0
     poses = system.trajectory() if n_done else np.zeros((0, 3, 4))
@@ -233,7 +233,23 @@ def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> SlamJobResul
     if "save_error" in map_out and first_error is None:  # else the run's own error is the one raised
         raise DynastereoError(f"{job.spec.outputs.save_map}: saving the map failed ({map_out['save_error']})")
     lost = system.lost_frames() if n_done else []
-    return SlamJobResult(out, poses, list(job.frames[:n_done]), stats, timer, wall, fps, lost)
+    return JobResult(out, list(job.frames[:n_done]), timer, wall, fps=fps, poses=poses, stats=stats, lost=lost,
+                     outputs=outputs)
+
+
+def _close_output_observers(job: "Job", late: BaseException | None) -> tuple[dict, BaseException | None]:
+    """Every :class:`~dynastereo.observers.OutputObserver` of the job closed (each even when
+    one before it failed): ``({name: what it wrote}, the first failure)``."""
+    from ..observers import OutputObserver
+
+    outputs: dict = {}
+    for ob in job.observers:
+        if isinstance(ob, OutputObserver):
+            try:
+                outputs[ob.name] = ob.close()
+            except BaseException as e:  # noqa: BLE001 -- the run's own files are still written
+                late = late or e
+    return outputs, late
 
 
 def _write_run_json(job: "Job", loop: "FrameLoop", error: str | None, stats: dict, map_out: dict, fps: float,
@@ -249,14 +265,3 @@ def _write_run_json(job: "Job", loop: "FrameLoop", error: str | None, stats: dic
     except OutputError as e:
         return e
     return None
-
-
-def write_bag_json(spec: JobSpec, job: "Job") -> dict:
-    """``DIR/bag.json``: the pairing (pairs, unpaired messages, tolerance), the calibration
-    source and what went into the output bag."""
-    seq, b = job.sequence, spec.source.bag
-    report = {"bag": str(b.path), "format": seq.format, **seq.report.to_dict(),
-              "frames_requested": len(job.frames), "output_bag": str(job.bag_output.path),
-              "output_topics": job.bag_output.writer.counts}
-    atomic_write_text(spec.outputs.dir / "bag.json", json.dumps(report, indent=1))
-    return report

@@ -38,12 +38,12 @@ from ..io.base import Sequence
 from ..io.frames import select_frames
 from ..io.outputs import OutputLock, check_output_file, prepare_output_dir, refuse_input_as_output
 from ..io.stereo_check import PeriodicStereoCheck, check_sequence
-from ..observers import FrameObserver
+from ..observers import FrameObserver, OutputObserver
 from . import finish
 from .assembly import assemble_stages
 from .loop import FrameLoop, Progress
 from .processor import FrameProcessor
-from .results import BagRunResult, MaskJobResult, SlamJobResult, new_mask_timer, new_run_timer
+from .results import JobResult, new_mask_timer, new_run_timer
 from .sinks import (DisparitySink, MaskSink, ObjectsLogSink, ObserverSink, OverlaySink, Sink, TracksSink,
                     TrajectorySink)
 from .sources import SequenceSource, open_sequence_source
@@ -60,26 +60,24 @@ class Job:
     processor: FrameProcessor
     sinks: list[Sink] = field(default_factory=list)
     observers: tuple[FrameObserver, ...] = ()
-    bag_output: Any = None  # ros.bagrun.BagOutput
     map_info: dict = field(default_factory=dict)
     ground_truth: Path | None = None  # what the report and run.json name
     lock: OutputLock | None = None  # the output folder's, held until the job ends
 
 
 def run(spec: JobSpec, *, progress: Progress | None = None, observers: tuple[FrameObserver, ...] = (),
-        masker: Any = None) -> MaskJobResult | SlamJobResult | BagRunResult:
+        masker: Any = None) -> JobResult:
     """Run the job ``spec`` describes (module doc).  ``progress(done, total, record)`` after
     each frame; ``observers`` get a :class:`~dynastereo.observers.FrameEvent` per frame;
     ``masker``: a ready :class:`~dynastereo.masking.base.Masker` instead of the one the
     configuration builds (e.g. ground-truth masks in a benchmark)."""
     seq = open_sequence_source(spec.source)
-    if spec.source.bag is None:
-        from .spec import settings_disagreement
+    from .spec import settings_disagreement
 
-        warning = settings_disagreement(spec.settings, getattr(seq, "calibration", None),
-                                        getattr(seq, "calibration_file", None))
-        if warning:
-            logging.getLogger("dynastereo.runtime").warning("%s", warning)
+    warning = settings_disagreement(spec.settings, getattr(seq, "calibration", None),
+                                    getattr(seq, "calibration_file", None))
+    if warning:
+        logging.getLogger("dynastereo.runtime").warning("%s", warning)
     job: Job | None = None
     try:
         gt = _ground_truth(spec, seq)
@@ -94,16 +92,16 @@ def run(spec: JobSpec, *, progress: Progress | None = None, observers: tuple[Fra
     finally:
         if job is not None and job.lock is not None:  # held to the end: the report is written under it too
             job.lock.release()
-        if spec.source.bag is not None:
+        if spec.source.sequence is None and hasattr(seq, "close"):  # what the runtime opened, it closes
             seq.close()
 
 
 def _ground_truth(spec: JobSpec, seq: Sequence) -> Path | None:
     """A run's ground truth for the viewer and the report: ``--gt``, else the sequence's own
-    (a bag: ``--gt`` only); None for a mask job."""
+    (a bag has none: ``--gt`` only); None for a mask job."""
     if spec.kind is not JobKind.RUN:
         return None
-    gt = spec.gt if spec.source.bag is not None else finish.resolve_ground_truth(spec.gt, seq)
+    gt = finish.resolve_ground_truth(spec.gt, seq)
     if gt is not None:
         gt = finish.checked_ground_truth(gt, explicit=spec.gt is not None)
     return gt
@@ -127,7 +125,7 @@ def _viewers(spec: JobSpec, observers: tuple[FrameObserver, ...], gt: Path | Non
     from ..viz.viewers import viewers
 
     name = {JobKind.MASK: "dynastereo mask", JobKind.RUN: "dynastereo run"}[spec.kind]
-    name += " --bag" if spec.source.bag is not None else ""
+    name += f" --{spec.source.opener.kind}" if spec.source.opener is not None else ""
     positions = None
     if gt is not None and (spec.outputs.viewer or spec.outputs.rrd is not None):
         from ..eval.trajectory import read_trajectory
@@ -141,8 +139,10 @@ def _checked_frames(spec: JobSpec, seq: Sequence, masker: Any = None) -> tuple[l
     indices = select_frames(spec.frames, seq)
     if spec.stereo_check:
         check_sequence(seq, indices)
-    # a bag has no synthetic ground truth: detector 'oracle' is refused by the masker factory
-    truth = None if spec.source.bag is not None else getattr(seq, "path", None)
+    # synthetic ground truth (detector 'oracle') is a sequence folder's; a file (a bag, a
+    # video) has none: the oracle is refused by the masker factory
+    path = getattr(seq, "path", None)
+    truth = path if path is not None and Path(path).is_dir() else None
     if masker is None:
         masker = assemble_stages(spec.config, seq.calibration, slam=False, models_dir=spec.models_dir,
                                  ground_truth=truth).masker
@@ -184,17 +184,18 @@ def assemble(spec: JobSpec, seq: Sequence, observers: tuple[FrameObserver, ...],
 
 
 def open_outputs(job: Job) -> None:
-    """A run's first files: run.json (room reserved), then the sinks' files and a bag's
-    output bag.  A failure here (a file that cannot be written) ends the job like any
-    other: its run.json says so."""
+    """A run's first files: run.json (room reserved), then the sinks' files and the files of
+    the source's own observers (a bag's output bag: ``OpenableSource.job_observers``),
+    and every :class:`~dynastereo.observers.OutputObserver` opened.  A failure here (a file
+    that cannot be written) ends the job like any other: its run.json says so."""
     spec, proc = job.spec, job.processor
     finish.reserve_run_json(spec.outputs.dir, spec, len(job.frames))
     _open_run_sinks(job.sinks, spec, proc.masker, proc.world)
-    if spec.source.bag is not None:
-        from ..ros.bagrun import open_bag_output
-
-        job.bag_output = open_bag_output(spec, job.sequence)
-        job.observers = (*job.observers, job.bag_output)
+    if spec.source.opener is not None:
+        job.observers = (*job.observers, *spec.source.opener.job_observers(spec, job.sequence))
+    for ob in job.observers:
+        if isinstance(ob, OutputObserver):
+            ob.open(spec.outputs.dir, len(job.frames))
 
 
 def _mask_sinks(spec: JobSpec, masker: Any) -> list[Sink]:
@@ -226,7 +227,7 @@ def _close_sinks(job: Job) -> None:
     job.sinks = []
 
 
-def execute(job: Job, progress: Progress | None) -> MaskJobResult | SlamJobResult:
+def execute(job: Job, progress: Progress | None) -> JobResult:
     """The frame loop over the job, then its last files (whatever happened)."""
     spec = job.spec
     run_job = spec.kind is JobKind.RUN
@@ -261,14 +262,10 @@ def execute(job: Job, progress: Progress | None) -> MaskJobResult | SlamJobResul
     return result
 
 
-def _after(spec: JobSpec, job: Job, result: Any, gt: Path | None) -> Any:
-    """The report and a bag run's bag.json, once the job's files are written."""
+def _after(spec: JobSpec, job: Job, result: JobResult, gt: Path | None) -> JobResult:
+    """The report, once the job's files are written."""
     if spec.outputs.report:
         from ..eval.html_report import build_report
 
         result.report = build_report(spec.outputs.dir, gt, None)
-    if job.bag_output is None:
-        return result
-    report = finish.write_bag_json(spec, job)
-    result.bag = report
-    return BagRunResult(spec.outputs.dir, job.bag_output.path, result, report)
+    return result
