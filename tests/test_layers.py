@@ -119,3 +119,26 @@ def test_the_checks_see_an_upward_import_and_a_cycle(tmp_path):
     graph = package_graph(pkg)
     assert graph["slam"] == {"masking"}
     assert cycles(graph) == [["masking", "slam"]]
+
+
+def _constructions(name: str) -> list[str]:
+    """``file`` (relative to the package) of every call of ``name(...)`` in the source."""
+    out = []
+    for path in sorted(SRC.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Call):
+                f = node.func
+                called = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else None
+                if called == name:
+                    out.append(path.relative_to(SRC).as_posix())
+    return out
+
+
+def test_both_ros_nodes_run_the_one_runtime():
+    """The ROS 1 and the ROS 2 node are adapters over ``ros/core.py``'s StereoNodeCore, whose
+    FrameLoop and FrameProcessor are the runtime's: no other place builds a frame loop."""
+    cores = _constructions("StereoNodeCore")
+    assert "ros/ros1.py" in cores and "ros/ros2.py" in cores, cores
+    for name in ("FrameLoop", "FrameProcessor"):
+        where = set(_constructions(name))
+        assert where and where <= {"runtime/job.py", "ros/core.py"}, (name, where)
