@@ -171,14 +171,15 @@ def machine(**extra: Any) -> dict[str, Any]:
 # statistics
 
 
-def _values(values: Iterable[Any]) -> np.ndarray:
-    return np.asarray([float(v) for v in values if v is not None], np.float64)
+def _values(values: Iterable[Any], finite: bool = False) -> np.ndarray:
+    a = np.asarray([float(v) for v in values if v is not None], np.float64)
+    return a[np.isfinite(a)] if finite else a
 
 
-def median(values: Iterable[Any], digits: int | None = None) -> float | None:
-    """The median of ``values`` (``None`` entries left out); ``None`` when none is left;
-    rounded to ``digits`` when given."""
-    a = _values(values)
+def median(values: Iterable[Any], digits: int | None = None, finite: bool = False) -> float | None:
+    """The median of ``values`` (``None`` entries left out, and NaN / inf with ``finite``);
+    ``None`` when none is left; rounded to ``digits`` when given."""
+    a = _values(values, finite)
     if a.size == 0:
         return None
     m = float(np.median(a))
@@ -229,12 +230,14 @@ def results_path(name: str) -> Path:
     return RESULTS / f"{name}.json"
 
 
-def write_json(path: str | Path, obj: Any, *, indent: int = 1, default: Callable[[Any], Any] | None = None) -> Path:
-    """Write ``obj`` as JSON to ``path`` atomically (a temporary file beside it, flushed,
-    then renamed over it: a reader never sees half a file); the folder is made."""
+def write_json(path: str | Path, obj: Any, *, indent: int | None = 1, default: Callable[[Any], Any] | None = None,
+               **dumps: Any) -> Path:
+    """Write ``obj`` as JSON (``json.dumps`` with ``indent``, ``default`` and ``dumps``) to
+    ``path`` atomically (a temporary file beside it, flushed, then renamed over it: a reader
+    never sees half a file); the folder is made."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(obj, indent=indent, default=default) + "\n"
+    text = json.dumps(obj, indent=indent, default=default, **dumps) + "\n"
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w") as f:
