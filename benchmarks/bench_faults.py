@@ -12,13 +12,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-from _common import CLIPS, ROOT, data_path, results_path, write_json
+from _common import CLIPS, ROOT, data_path, median, results_path, write_json
 
 
 def run_once(src: str, seq: Path, out: Path) -> float:
@@ -47,7 +46,7 @@ def main() -> None:
                 f = run_once(a.before if name == "before" else a.after, seq, Path(tmp) / name)
                 fps[name].append(f)
                 print(f"run {k + 1} {name:6s} {f:.2f} FPS", flush=True)
-    med = {k: statistics.median(v) for k, v in fps.items()}
+    med = {k: median(v) for k, v in fps.items()}
     print(f"median FPS: before {med['before']:.2f}, after {med['after']:.2f} "
           f"({100 * (med['after'] / med['before'] - 1):+.1f} %)")
     res = {"sequence": str(seq), "frames": "all (51)", "repeats": a.repeats, "fps": fps, "median_fps": med}

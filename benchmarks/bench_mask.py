@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import data_dir, machine, models_dir, results_path, write_json
+from _common import data_dir, machine, models_dir, results_path, stats, write_json
 from dynastereo.config import DetectorConfig, OutlineConfig, StereoConfig
 from dynastereo.errors import ModelError
 from dynastereo.io import open_sequence
@@ -64,14 +64,6 @@ class Fixed:
 
     def detect(self, image):  # pragma: no cover - not used (mask_labels gets detections)
         raise RuntimeError
-
-
-def stats(v) -> dict[str, float]:
-    a = np.asarray(list(v), np.float64)
-    if a.size == 0:
-        return {"median": float("nan"), "p90": float("nan"), "mean": float("nan"), "n": 0}
-    return {"median": round(float(np.median(a)), 3), "p90": round(float(np.percentile(a, 90)), 3),
-            "mean": round(float(a.mean()), 3), "n": int(a.size)}
 
 
 def run_timed(fn, repeats: int) -> tuple[dict[str, float], object]:

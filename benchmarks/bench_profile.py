@@ -68,12 +68,12 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import data_dir, load, machine, models_dir, write_json
+from _common import data_dir, load, machine, models_dir, now, results_path, write_json
 from _shared_cpu import LoopCpu, children_cpu
 from dynastereo.api import mask_sequence, run_sequence
 from dynastereo.config import Config
 
-RESULTS = Path(__file__).resolve().parent / "results" / "profile.json"
+RESULTS = results_path("profile")
 TICK = os.sysconf("SC_CLK_TCK")
 
 
@@ -360,7 +360,7 @@ def main() -> None:
     if args.part in ("all", "stages"):
         stages = {"method": "exclusive process CPU per SLAM entry point (bench_profile.py doc), masker none, "
                             "slam.threads 1, slam.local_ba inline, slam.local_mapping inline; calls: sys.setprofile call + c_call events",
-                  "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_before": load(),
+                  "date": now(), "load_before": load(),
                   "sequences": {}}
         for name in args.sequences.split(","):
             seq = data / "kitti_odometry" / "dataset" / "sequences" / name

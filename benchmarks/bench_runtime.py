@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -31,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import ROOT, data_dir, results_path, write_json
+from _common import ROOT, data_dir, median, results_path, write_json
 
 OUT_JSON = results_path("runtime_refactor")
 FILES = ("trajectory.kitti.txt", "trajectory.tum.txt", "trajectory.frames.txt", "objects.jsonl",
@@ -134,7 +133,7 @@ def main() -> None:
     worst = max((r.get("max_abs_diff", 0.0) for r in rows), default=0.0)
     res = {"before": args.before, "after": args.after, "files_compared": len(rows), "files_differing": len(differ),
            "differing": [r["file"] for r in differ], "max_abs_trajectory_difference": worst,
-           "fps_run06": {k: {"runs": v, "median": round(statistics.median(v), 3)} for k, v in fps.items()},
+           "fps_run06": {k: {"runs": v, "median": median(v, digits=3)} for k, v in fps.items()},
            "cases": sorted({r["file"].split("/")[0] for r in rows})}
     write_json(OUT_JSON, res)
     print(f"{len(rows)} files compared over {', '.join(res['cases'])}: {len(differ)} differ; "
