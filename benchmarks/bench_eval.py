@@ -7,6 +7,7 @@ Run: DYNASTEREO_DATA=/work/shared/data .venv/bin/python benchmarks/bench_eval.py
 
 from __future__ import annotations
 
+import argparse
 import math
 import tempfile
 from pathlib import Path
@@ -51,6 +52,9 @@ def devkit_loop(gt, est, lengths=(100, 200, 300, 400, 500, 600, 700, 800), step=
 
 
 def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", type=Path, default=results_path("eval"))
+    args = ap.parse_args()
     poses_dir = data_path("kitti_odometry/dataset/poses")
     rng = np.random.default_rng(0)
     rows = []
@@ -82,7 +86,7 @@ def main() -> int:
     print(f"{'seq':>4} " + " ".join(f"{k:>20}" for k in keys))
     for r in rows:
         print(f"{r['sequence']:>4} " + " ".join(f"{r[k]:>20.1f}" for k in keys))
-    out = write_json(results_path("eval"), {"repeats": REPEATS, "rows": rows}, indent=2)
+    out = write_json(args.out, {"repeats": REPEATS, "rows": rows}, indent=2)
     print(f"wrote {out}")
     return 0
 
