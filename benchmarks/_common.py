@@ -14,7 +14,7 @@
   measures), :func:`write_json` (atomic: a temporary file beside it, then renamed) and
   :func:`markdown_table` / :func:`print_table`.
 
-A script run as ``python benchmarks/bench_x.py`` has its own folder on ``sys.path``, so
+A script run as ``python benchmarks/bench_x.py`` has its own folder on the import path, so
 ``from _common import ...`` works as it is; nothing here imports ``dynastereo`` at import
 time (the scripts also run against older source trees through ``PYTHONPATH``).
 """
