@@ -263,8 +263,9 @@ def compile_times(old_src: Path) -> dict:
     beside it), then the first call of every kernel with an empty cache (compile) and with
     the cache filled (load)."""
     code = ("import sys, time; t0=time.perf_counter(); import dynastereo.slam.tracking, dynastereo.slam.local_mapping; "
-            "t1=time.perf_counter(); from dynastereo.slam.warmup import warm_up_kernels; "
-            "t2=time.perf_counter(); c2=time.process_time(); warm_up_kernels(ba=False); "
+            "t1=time.perf_counter(); "
+            "t2=time.perf_counter(); c2=time.process_time(); "
+            "from dynastereo.slam.warmup import warm_up_kernels; warm_up_kernels(ba=False); "  # as warm_all()
             "print(t1-t0, time.perf_counter()-t2, time.process_time()-c2)")
 
     def once(env):
