@@ -70,7 +70,7 @@ def capture(seq: Path) -> list:
     lm.run_ba = cap
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            run_sequence(seq, Path(tmp) / "run", Config(), stereo_check=False)
+            run_sequence(seq, Path(tmp) / "run", Config(), stereo_check=False, overwrite=True)
     finally:
         lm.run_ba = orig
     return probs
@@ -112,7 +112,7 @@ seq, masker, nf, out = Path(sys.argv[1]), sys.argv[2], int(sys.argv[3]), Path(sy
 over = {"slam.n_features": nf}
 if masker == "none":
     over["masker.kind"] = "none"
-res = run_sequence(seq, out, Config().with_overrides(over), stereo_check=False)
+res = run_sequence(seq, out, Config().with_overrides(over), stereo_check=False, overwrite=True)
 ev = evaluate_files(out / "trajectory.kitti.txt", seq.parent.parent / "poses" / f"{seq.name}.txt")
 st = json.loads((out / "run.json").read_text())["stats"]
 print(json.dumps({"ate_m": round(float(ev.ape["rmse"]), 4), "lost": len(res.lost), "local_ba_runs": st["local_ba_runs"],

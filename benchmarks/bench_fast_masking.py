@@ -78,7 +78,7 @@ def _parse(v: str):
 def one_run(seq_dir: Path, out: Path, over: dict) -> dict:
     cfg = Config().with_overrides(over)
     c0, t0 = time.process_time(), time.perf_counter()
-    res = run_sequence(seq_dir, out, cfg, stereo_check=False)
+    res = run_sequence(seq_dir, out, cfg, stereo_check=False, overwrite=True)
     cpu, wall = time.process_time() - c0, time.perf_counter() - t0
     ev = evaluate_files(out / "trajectory.kitti.txt", find_ground_truth(seq_dir))
     return {"frames": len(res.frames), "lost": len(res.lost), "ate_m": round(float(ev.ape["rmse"]), 4),

@@ -1,9 +1,11 @@
 """Golden trajectories (``tests/data/golden/``) and the spread that sets their tolerance.
 
-Three cases, each a ``dynastereo run`` of today's code (the CLI, its own process):
+Four cases, each a ``dynastereo run`` of today's code (the CLI, its own process):
 
 * ``kitti06``: KITTI 06, all 51 frames, the default pipeline (outline masks of what moves,
   yolox-nano from ``$DYNASTEREO_MODELS``);
+* ``raw0001``: KITTI raw drive 0001, all 108 frames, the default pipeline (real moving
+  traffic; ground truth: its ``oxts/``);
 * ``kitti03``: KITTI 03, all 99 frames, ``--masker none`` (the SLAM alone);
 * ``convoy``: the synthetic ``convoy`` scenario (``dynastereo.synth.generate``, seed 0,
   640x192, ``CONVOY_FRAMES`` frames), the default pipeline with the ground-truth
@@ -52,6 +54,9 @@ def case_args(case: str, data: Path, synth_root: Path) -> tuple[Path, list[str],
         return kitti / "sequences" / "06", [], kitti / "poses" / "06.txt"
     if case == "kitti03":
         return kitti / "sequences" / "03", ["--masker", "none"], kitti / "poses" / "03.txt"
+    if case == "raw0001":
+        drive = data / "kitti_raw" / "2011_09_26" / "2011_09_26_drive_0001_sync"
+        return drive, [], drive  # the ground truth: the drive's oxts/
     if case == "convoy":
         from dynastereo.synth import generate
 
@@ -59,7 +64,7 @@ def case_args(case: str, data: Path, synth_root: Path) -> tuple[Path, list[str],
         if not (seq / "calib.txt").exists():
             seq = generate(synth_root / "convoy", "convoy", frames=CONVOY_FRAMES, seed=0, size=CONVOY_SIZE)
         return seq, ["--detector", "oracle"], seq.parent.parent / "poses" / "00.txt"
-    raise SystemExit(f"unknown case {case!r}: kitti06, kitti03 or convoy")
+    raise SystemExit(f"unknown case {case!r}: kitti06, raw0001, kitti03 or convoy")
 
 
 def cli_run(seq: Path, out: Path, extra: list[str], n_features: int | None = None) -> dict:

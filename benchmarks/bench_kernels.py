@@ -222,7 +222,7 @@ def side_by_side(seq: Path) -> dict:
     sbs = SideBySide()
     sbs.install()
     with tempfile.TemporaryDirectory() as tmp:
-        res = run_sequence(seq, Path(tmp) / "run", cfg)
+        res = run_sequence(seq, Path(tmp) / "run", cfg, overwrite=True)
     n = sbs.frame + 1
     return {"frames": n, "lost": len(res.lost), "stages": sbs.summary(n)}
 

@@ -60,7 +60,7 @@ def synthetic_loop(seeds: list[int], size: str, cache: Path, work: Path, masker:
             )
             out = work / f"loop-s{seed}-{'lc' if lc else 'nolc'}"
             t0 = time.perf_counter()
-            res = run_sequence(seq, out, cfg)
+            res = run_sequence(seq, out, cfg, overwrite=True)
             wall = time.perf_counter() - t0
             run = json.loads((out / "run.json").read_text())
             key = "lc" if lc else "nolc"
@@ -107,7 +107,7 @@ def kitti_parts(seq: Path, gt: Path, work: Path) -> dict:
     out: dict = {}
     # kidnapped: 0-98 then 40-60
     d = work / "kidnapped"
-    run_sequence(seq, d, cfg, frames="0-98,40-60")
+    run_sequence(seq, d, cfg, frames="0-98,40-60", overwrite=True)
     run = json.loads((d / "run.json").read_text())
     P = _poses(d)
     first, again = P[40:61], P[99:120]
@@ -130,9 +130,9 @@ def kitti_parts(seq: Path, gt: Path, work: Path) -> dict:
     # map, then localize only
     m = work / "map03"
     map_file = work / "kitti03.dsmap"
-    run_sequence(seq, m, cfg, frames="0-98", save_map=map_file)
+    run_sequence(seq, m, cfg, frames="0-98", save_map=map_file, overwrite=True)
     loc = work / "loc03"
-    run_sequence(seq, loc, cfg, frames="0-98", load_map=map_file, localize_only=True)
+    run_sequence(seq, loc, cfg, frames="0-98", load_map=map_file, localize_only=True, overwrite=True)
     run = json.loads((loc / "run.json").read_text())
     out["localize_only"] = {
         "ate_mapping_run": _ate(m, gt),
@@ -168,7 +168,7 @@ def black_frames(seq: Path, work: Path) -> dict:
                 os.symlink(src, d / cam / f"{i:06d}.png")
     cfg = Config().with_overrides({"masker.kind": "outline", "detector.name": "yolox-nano"})
     r = d / "run"
-    run_sequence(d, r, cfg, frames="0-98")
+    run_sequence(d, r, cfg, frames="0-98", overwrite=True)
     run = json.loads((r / "run.json").read_text())
     res = {
         "rows": int(len(_poses(r))),

@@ -110,7 +110,7 @@ def main() -> None:
     cfg = Config().with_overrides({"masker.kind": args.masker, "detector.name": "oracle"})
     probe = LapProbe(n)
     with tempfile.TemporaryDirectory() as tmp:
-        res = run_sequence(seq, Path(tmp) / "run", cfg, frames=spec, observers=(probe,))
+        res = run_sequence(seq, Path(tmp) / "run", cfg, frames=spec, observers=(probe,), overwrite=True)
     rows = probe.rows
     first = rows[0]["main_mb"] + rows[0]["workers_mb"] - probe.start["main_mb"]
     later = [(b["main_mb"] + b["workers_mb"]) - (a["main_mb"] + a["workers_mb"]) for a, b in zip(rows, rows[1:])]

@@ -109,7 +109,7 @@ def run(seq_dir: Path, out: Path, mode: str, detector: str | None, **settings) -
     over.update(settings)
     cfg = Config().with_overrides(over)
     t0 = time.perf_counter()
-    res = run_sequence(seq_dir, out, cfg, stereo_check=False)
+    res = run_sequence(seq_dir, out, cfg, stereo_check=False, overwrite=True)
     wall = time.perf_counter() - t0
     gt = seq_dir.parent.parent / "poses" / f"{seq_dir.name}.txt"
     ev = evaluate_files(out / "trajectory.kitti.txt", gt)
@@ -345,7 +345,7 @@ def raw_drive(drive: Path, work: Path, overlays: Path | None) -> dict:
         overlays.mkdir(parents=True, exist_ok=True)
         obs = (_Overlays(overlays, RAW_OVERLAY_FRAMES),)
     out = work / "raw0001_moving"
-    res = run_sequence(drive, out, Config(), stereo_check=False, observers=obs)
+    res = run_sequence(drive, out, Config(), stereo_check=False, observers=obs, overwrite=True)
     return {"frames": len(res.frames), "lost": len(res.lost), "decisions": _kitti_decisions(out),
             "overlays": sorted(str(p) for p in overlays.glob("motion_raw0001_*.jpg")) if overlays else [],
             **motion_ms(out)}

@@ -223,7 +223,7 @@ def run(seq_dir: Path, out: Path, detector: str | None = None, **settings) -> di
         over["detector.name"] = detector
     cfg = Config().with_overrides(over)
     t0 = time.perf_counter()
-    res = run_sequence(seq_dir, out, cfg, stereo_check=False)
+    res = run_sequence(seq_dir, out, cfg, stereo_check=False, overwrite=True)
     return {"frames": len(res.frames), "lost": len(res.lost), "wall_s": round(time.perf_counter() - t0, 2)}
 
 

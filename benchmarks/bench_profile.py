@@ -111,7 +111,7 @@ def profile_once(seq: Path, cfg: Config, models: Path | None) -> dict:
     before_t, before_c = _thread_cpu(), children_cpu()
     sampler, loop = ThreadSampler(), LoopCpu()
     with tempfile.TemporaryDirectory() as tmp:
-        res = run_sequence(seq, Path(tmp) / "run", cfg, models_dir=models, observers=(sampler, loop))
+        res = run_sequence(seq, Path(tmp) / "run", cfg, models_dir=models, observers=(sampler, loop), overwrite=True)
         timing = json.loads((Path(tmp) / "run" / "timing.json").read_text())
     after_t, after_c = {**sampler.cpu, **_thread_cpu()}, children_cpu()
     threads = {k: round(v - before_t.get(k, 0.0), 2) for k, v in after_t.items() if v - before_t.get(k, 0.0) > 0.005}
@@ -137,10 +137,10 @@ def alone_once(seq: Path, cfg: Config, models: Path | None) -> dict:
     alone and of the SLAM job alone (``masker none``), on the same frames."""
     lm, ls = LoopCpu(), LoopCpu()
     with tempfile.TemporaryDirectory() as tmp:
-        m = mask_sequence(seq, Path(tmp) / "mask", cfg, models_dir=models, observers=(lm,))
+        m = mask_sequence(seq, Path(tmp) / "mask", cfg, models_dir=models, observers=(lm,), overwrite=True)
         w1 = children_cpu()
         s = run_sequence(seq, Path(tmp) / "slam", cfg.with_overrides({"masker.kind": "none"}), models_dir=models,
-                         observers=(ls,))
+                         observers=(ls,), overwrite=True)
         w2 = children_cpu()
         mask_t = json.loads((Path(tmp) / "mask" / "timing.json").read_text())["summary"]
         slam_t = json.loads((Path(tmp) / "slam" / "timing.json").read_text())["summary"]

@@ -149,7 +149,7 @@ def run_job_fps(seq_path: Path, kind: str, models: Path, repeats: int) -> dict:
         with tempfile.TemporaryDirectory() as d:
             cfg = Config()
             cfg.masker.kind = kind
-            res = run_sequence(seq_path, d, cfg, models_dir=models)
+            res = run_sequence(seq_path, d, cfg, models_dir=models, overwrite=True)
             summary = json.loads((Path(d) / "timing.json").read_text())["summary"]
             fps.append(float(summary["fps"]))
     return {"fps_median": round(float(np.median(fps)), 2), "fps_runs": [round(f, 2) for f in fps], "frames": len(res.frames)}

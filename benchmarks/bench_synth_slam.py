@@ -166,7 +166,7 @@ def slam_run(seq: Path, work: Path, detector: str, masker: str, seed: int, model
         res = run(JobSpec(JobKind.RUN, SourceSpec(path=seq), OutputSpec(run_dir), cfg), masker=GTMasker(seq))
     else:
         cfg = Config().with_overrides({"detector.name": detector, "masker.kind": masker, "seed": seed})
-        res = run_sequence(seq, run_dir, cfg, models_dir=models_dir, save_masks=masker != "none")
+        res = run_sequence(seq, run_dir, cfg, models_dir=models_dir, save_masks=masker != "none", overwrite=True)
     ev = evaluate_files(run_dir / "trajectory.kitti.txt", seq.parent.parent / "poses" / "00.txt")
     rec = {
         "ate_rmse": round(float(ev.ape["rmse"]), 4),

@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -66,6 +67,7 @@ def old_tree(commit: str, dest: Path) -> Path:
 
 def run_one(src: Path, seq: Path, out: Path, nf: int, masker: str, mode: str) -> dict:
     env = dict(os.environ, PYTHONPATH=str(src))
+    shutil.rmtree(out, ignore_errors=True)  # this benchmark's own folder: the API refuses to overwrite by default
     p = subprocess.run([sys.executable, "-c", CHILD, str(seq), str(out), str(nf), masker, mode], env=env,
                        capture_output=True, text=True)
     if p.returncode != 0:

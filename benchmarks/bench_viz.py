@@ -46,7 +46,7 @@ def main() -> None:
         rows: dict[str, list[float]] = {k: [] for k in ("report_s", "report_kib", "run_ms", "rrd_ms", "rrd_kib_per_frame")}
         for r in range(a.repeats):
             t0 = time.perf_counter()
-            run_sequence(seq, tmp / "run", cfg, save_masks=True)
+            run_sequence(seq, tmp / "run", cfg, save_masks=True, overwrite=True)
             rows["run_ms"].append((time.perf_counter() - t0) * 1000 / a.frames)
             t0 = time.perf_counter()
             page = make_report(tmp / "run")
@@ -54,7 +54,7 @@ def main() -> None:
             rows["report_kib"].append(page.stat().st_size / 1024)
             rrd = tmp / f"run{r}.rrd"
             t0 = time.perf_counter()
-            run_sequence(seq, tmp / "run_rrd", cfg, save_masks=True, rrd=rrd)
+            run_sequence(seq, tmp / "run_rrd", cfg, save_masks=True, rrd=rrd, overwrite=True)
             rows["rrd_ms"].append((time.perf_counter() - t0) * 1000 / a.frames)
             rows["rrd_kib_per_frame"].append(rrd.stat().st_size / 1024 / a.frames)
         med = {k: round(float(np.median(v)), 3) for k, v in rows.items()}

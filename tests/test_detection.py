@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import require
+from conftest import require, skip_or_fail
 from dynastereo.config import DetectorConfig
 from dynastereo.errors import ConfigError, InputError, ModelError
 from dynastereo.masking.base import Detector
@@ -493,7 +493,7 @@ def test_openvino_matches_onnxruntime_on_kitti_frames(models_dir, kitti06, grey_
     from dynastereo.masking.boxes import box_iou
 
     if not openvino_available():
-        pytest.skip("OpenVINO is not installed (pip install 'dynastereo[openvino]')")
+        skip_or_fail("OpenVINO is not installed (pip install 'dynastereo[openvino]')")
     require(models_dir / "yolox-nano", "model yolox-nano")
     runs = {}
     for label, kw in {"ort": {"runtime": "onnxruntime"}, "f32": {"runtime": "openvino", "precision": "f32"},
@@ -667,7 +667,7 @@ def test_openvino_session_threads_and_streams(models_dir):
     from dynastereo.masking.detection import OpenVinoSession, openvino_available
 
     if not openvino_available():
-        pytest.skip("OpenVINO is not installed (pip install 'dynastereo[openvino]')")
+        skip_or_fail("OpenVINO is not installed (pip install 'dynastereo[openvino]')")
     model = require(models_dir / "yolox-nano" / "yolox_nano.onnx", "YOLOX-nano model")
     s = OpenVinoSession(model, 1, "f32")
     assert int(s.compiled.get_property("INFERENCE_NUM_THREADS")) == 1

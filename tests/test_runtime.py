@@ -43,8 +43,10 @@ def test_job_spec_refuses_bad_combinations(kw, match) -> None:
 def test_source_and_bag_specs_check_their_options() -> None:
     with pytest.raises(ConfigError, match="--rate is for sequence folders"):
         SourceSpec(bag=BagSpec("b.bag"), rate=10.0)
-    with pytest.raises(ConfigError, match="--rate must be a frame rate > 0 Hz"):
+    with pytest.raises(ConfigError, match="--rate must be a frame rate in Hz"):
         SourceSpec(path="a", rate=0.0)
+    with pytest.raises(ConfigError, match="--rate must be a frame rate in Hz"):
+        SourceSpec(path="a", rate=1e-300)
     with pytest.raises(ConfigError, match="--sync-tolerance must be a time >= 0 ms"):
         BagSpec("b.bag", tolerance_s=-0.001)
     with pytest.raises(ConfigError, match="--rectify"):

@@ -108,7 +108,7 @@ def mask_sequence(
     save_disparity: bool = False,
     overlays: bool = False,
     progress: Callable[[int, int, dict], None] | None = None,
-    overwrite: bool = True,
+    overwrite: bool = False,
     stereo_check: bool = True,
     observers: tuple[FrameObserver, ...] = (),
     viewer: bool = False,
@@ -117,8 +117,8 @@ def mask_sequence(
     """Mask the dynamic objects of ``sequence`` in both images (a :class:`~dynastereo.runtime.JobSpec` of kind ``mask``, run by
     :func:`dynastereo.runtime.run`).
 
-    ``overwrite``: the outputs of an earlier run in ``out`` are deleted first (False: an
-    :class:`~dynastereo.errors.OutputError`, as the CLI without ``--overwrite``);
+    ``overwrite``: the outputs of an earlier run in ``out`` are deleted first (default False:
+    an :class:`~dynastereo.errors.OutputError`, as the CLI without ``--overwrite``);
     ``stereo_check``: refuse pairs that are identical, swapped or not rectified
     (:class:`~dynastereo.errors.StereoCheckError`; ``io.stereo_check``).  ``viewer`` /
     ``rrd``: show the frames in the rerun viewer / record them (see :func:`viewers`).
@@ -144,7 +144,7 @@ def run_sequence(
     save_map: str | Path | None = None,
     load_map: str | Path | None = None,
     localize_only: bool = False,
-    overwrite: bool = True,
+    overwrite: bool = False,
     stereo_check: bool = True,
     report: bool = False,
     gt: str | Path | None = None,
@@ -185,7 +185,7 @@ def bench(
     *,
     sequences: str | None = None,
     maskers: str | list[str] = "none,box,outline,seg",
-    repeats: int = 3,
+    repeats: int = 1,
     config: str | Path | None = None,
     overrides: dict | None = None,
     frames: str | None = None,
@@ -230,7 +230,7 @@ def run_bag(
     save_masks: bool = False,
     outputs: str | None = None,
     progress: Callable[[int, int, dict], None] | None = None,
-    overwrite: bool = True,
+    overwrite: bool = False,
     stereo_check: bool = True,
     report: bool = False,
     gt: str | Path | None = None,

@@ -19,6 +19,7 @@ import cattrs.gen
 import yaml
 
 from .dotted import nest_dotted
+from .yamlcheck import duplicate_key
 from .errors import ConfigError
 from .datatypes import DEFAULT_DYNAMIC_CLASSES
 
@@ -667,6 +668,85 @@ class ObjectsConfig:
             raise _bad("objects.stride", "in [1, 8]", self.stride)
 
 
+
+# Every numeric key's bounds (inclusive), checked with finiteness whenever a Config is made
+# or loaded: a value past them (``masker.outline.dilate: 100000`` would allocate tens of
+# GB; ``motion.chi2: .inf`` turns the motion test off unseen) is a one-line ConfigError
+# naming the key.  tests/test_config.py checks that every numeric key has its bounds here.
+BOUNDS: dict[str, tuple[float, float]] = {
+    "stereo.min_disparity": (-256, 256), "stereo.num_disparities": (16, 1024), "stereo.block_size": (1, 255),
+    "stereo.p1": (0, 10_000_000), "stereo.p2": (0, 10_000_000), "stereo.disp12_max_diff": (-1, 1024),
+    "stereo.pre_filter_cap": (1, 255), "stereo.uniqueness_ratio": (0, 100), "stereo.speckle_window_size": (0, 10_000),
+    "stereo.speckle_range": (0, 1024), "stereo.texture_threshold": (0, 100_000), "stereo.wls_lambda": (0, 1e6),
+    "stereo.wls_sigma": (0, 100), "stereo.scale": (1, 4),
+    "detector.score_threshold": (0, 1), "detector.nms_threshold": (0, 1), "detector.input_size": (32, 4096),
+    "detector.threads": (0, 256), "detector.min_box_size": (0, 10_000), "detector.scale": (0.05, 8),
+    "detector.tiles": (1, 16), "detector.tile_overlap": (0, 1), "detector.band_top": (0, 1),
+    "detector.interval": (1, 1000), "detector.max_carry": (0, 1000), "detector.carry_downscale": (1, 16),
+    "masker.outline.bin_width": (0, 64), "masker.outline.peak_tolerance": (0, 256),
+    "masker.outline.peak_tolerance_rel": (0, 1), "masker.outline.min_valid_fraction": (0, 1),
+    "masker.outline.min_box_pixels": (0, 10_000_000), "masker.outline.min_box_side": (0, 10_000),
+    "masker.outline.dilate": (0, 64), "masker.outline.near_peak_ratio": (0, 1),
+    "masker.outline.peak_extend_ratio": (0, 1), "masker.outline.min_outline_fraction": (0, 1),
+    "masker.outline.carry_max_scale": (0, 1), "masker.outline.carry_max_shift": (0, 10),
+    "masker.outline.overlap_weight": (0, 1), "masker.outline.claim_fraction": (0, 1),
+    "masker.outline.ground_tolerance": (0, 64), "masker.outline.ground_min_height": (0, 100),
+    "masker.outline.ground_max_height": (0, 100), "masker.outline.ground_baseline": (0, 10),
+    "masker.outline.ground_fit_tolerance": (0, 64), "masker.outline.ground_min_inliers": (0, 10_000_000),
+    "masker.outline.ground_rows_from": (0, 1), "masker.outline.ground_max_fraction": (0, 1),
+    "masker.box_margin": (0, 512),
+    "slam.n_features": (50, 100_000), "slam.scale_factor": (1, 4), "slam.n_levels": (1, 32),
+    "slam.ini_th_fast": (1, 255), "slam.min_th_fast": (1, 255), "slam.oversample": (1, 64), "slam.mask_margin": (0, 512),
+    "slam.th_depth": (0, 10_000), "slam.disparity_offset": (-5, 5), "slam.selfcal_keyframes": (3, 10_000),
+    "slam.selfcal_rounds": (1, 100), "slam.selfcal_min_sigmas": (0, 100), "slam.min_inliers": (0, 100_000),
+    "slam.min_inlier_fraction": (0, 1), "slam.reloc_candidates": (0, 1000), "slam.reloc_min_inliers": (0, 100_000),
+    "slam.min_init_points": (0, 100_000), "slam.max_frames": (1, 100_000), "slam.min_frames": (0, 100_000),
+    "slam.ba_iterations": (1, 1000), "slam.ba_refine_iterations": (0, 1000), "slam.ba_wait_s": (0, 86_400),
+    "slam.ba_max_keyframes": (1, 1000), "slam.ba_max_fixed": (0, 1000), "slam.ba_lag_frames": (0, 1000),
+    "slam.triangulation_neighbours": (0, 1000), "slam.fuse_neighbours": (0, 1000),
+    "slam.loop_min_kf_gap": (0, 1_000_000), "slam.loop_consistency": (0, 1000), "slam.loop_min_matches": (0, 100_000),
+    "slam.loop_min_inliers": (10, 100_000), "slam.loop_min_close_inliers": (0, 100_000),
+    "slam.loop_max_verify": (1, 1000), "slam.loop_covis_edge_weight": (0, 100_000),
+    "slam.loop_full_ba_iterations": (1, 1000), "slam.loop_ba_lag_frames": (0, 100_000),
+    "slam.loop_ba_wait_s": (0, 86_400), "slam.threads": (1, 256),
+    "motion.sigma_px": (0, 100), "motion.sigma_disparity": (0, 100), "motion.sigma_pose_deg": (0, 90),
+    "motion.sigma_pose_m": (0, 100), "motion.chi2": (0, 1e6), "motion.moving_fraction": (0, 1),
+    "motion.static_fraction": (0, 1), "motion.min_points": (3, 10_000), "motion.max_points": (3, 10_000),
+    "motion.object_chi2": (0, 1e6), "motion.object_chi2_static": (0, 1e6), "motion.rest_resolution": (0, 1000),
+    "motion.rest_resolution_vehicle": (0, 1000), "motion.object_points": (1, 10_000), "motion.window_frames": (1, 10_000),
+    "motion.confirm_frames": (1, 10_000), "motion.release_frames": (1, 10_000), "motion.suspect_fraction": (0, 1),
+    "motion.duplicate_iou": (0, 1),
+    "objects.block_size": (0, 255), "objects.stride": (1, 8),
+    "seed": (0, 2**32 - 1),
+}
+
+
+def numeric_keys(obj: Any, prefix: str = "") -> typing.Iterator[tuple[str, Any]]:
+    """``(dotted key, value)`` of every int / float key of a configuration (bools and
+    strings left out; an optional number's None too)."""
+    hints = typing.get_type_hints(type(obj))
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(v):
+            yield from numeric_keys(v, f"{prefix}{f.name}.")
+            continue
+        args = set(typing.get_args(hints[f.name])) - {type(None)} or {hints[f.name]}
+        if args & {int, float} and not args & {bool, str}:
+            yield f"{prefix}{f.name}", v
+
+
+def check_bounds(cfg: Any) -> None:
+    """Every numeric key finite and within :data:`BOUNDS` (ConfigError naming the key)."""
+    import math
+
+    for key, v in numeric_keys(cfg):
+        if v is None or isinstance(v, bool):
+            continue
+        lo, hi = BOUNDS[key]
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
+            raise _bad(key, f"a finite number in [{lo:g}, {hi:g}]", v)
+
+
 @dataclass
 class Config:
     stereo: StereoConfig = field(default_factory=StereoConfig)
@@ -680,6 +760,7 @@ class Config:
     def __post_init__(self) -> None:
         if self.seed < 0:
             raise _bad("seed", ">= 0", self.seed)
+        check_bounds(self)
 
     def validate(self) -> None:
         """Every section's checks again (a configuration changed after it was made)."""
@@ -839,6 +920,9 @@ def load_config(path: str | Path | None = None) -> Config:
         data = yaml.safe_load(text) or {}
     except (OSError, yaml.YAMLError) as e:
         raise ConfigError(f"cannot parse YAML: {e}", p) from None
+    dup = duplicate_key(text)
+    if dup is not None:
+        raise ConfigError(f"line {dup[1]}: key '{dup[0]}' is given twice (which one is meant?)", p)
     if not isinstance(data, dict):
         raise ConfigError("top level must be a mapping", p)
     # ORB-SLAM2 settings files have flat dotted keys ("Camera.fx"); they carry no

@@ -156,6 +156,26 @@ def find_ground_truth(sequence: str | Path) -> Path | None:
     return oxts_dir(seq) if seq.is_dir() else None
 
 
+def recorded_ground_truth(run: dict, run_json: Path) -> Path | None:
+    """The ground truth of the run whose ``run.json`` (at ``run_json``) holds ``run``: the
+    one it recorded (``ground_truth``), else the one beside its ``sequence`` -- which must
+    be an absolute path: a relative one (an older run.json) was relative to a folder that
+    is not known, and resolving it here could score against another sequence's poses
+    (:class:`InputError` naming run.json)."""
+    gt = run.get("ground_truth")
+    if isinstance(gt, str) and gt:
+        if not Path(gt).is_absolute():
+            raise InputError(f"its ground_truth {gt!r} is a relative path; give the ground truth explicitly", run_json)
+        return Path(gt)
+    seq = run.get("sequence")
+    if not isinstance(seq, str) or not seq:
+        return None
+    if not Path(seq).is_absolute():
+        raise InputError(f"its sequence {seq!r} is a relative path (relative to where the run was started, not "
+                         "known here); give the ground truth explicitly", run_json)
+    return find_ground_truth(seq)
+
+
 def read_trajectory(path: str | Path, name: str | None = None, at: str = "images") -> Trajectory:
     """Read a KITTI (12 numbers a row) or TUM (8 numbers a row) trajectory file, or the
     OXTS ground truth of a KITTI raw drive (its folder or ``oxts/`` folder; ``at``: the

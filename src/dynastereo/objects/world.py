@@ -1159,3 +1159,25 @@ def read_tracks(path: str | Path) -> dict[int, dict[str, np.ndarray]]:
             t["speed_sigma"].append(float(row["speed_sigma"]) if row["speed_sigma"] else np.nan)
             t["moving"].append({"": -1, "0": 0, "1": 1}[row["moving"]])
     return {k: {kk: (np.asarray(vv) if kk != "label" else vv) for kk, vv in v.items()} for k, v in out.items()}
+
+
+#: A track counts as an object judged moving (:func:`moving_tracks`) when the motion test
+#: said "moving" in most of the frames it decided, over at least this many frames.
+MOVING_MIN_FRAMES = 3
+
+
+def track_verdict(track: dict[str, np.ndarray]) -> bool | None:
+    """A track's verdict from its rows' ``moving`` column (1, 0, -1 undecided): moving when
+    most of its decided frames say so; None when none decided."""
+    m = np.asarray(track["moving"])
+    dec = m[m >= 0]
+    return None if not len(dec) else bool((dec == 1).mean() > 0.5)
+
+
+def moving_tracks(tracks: dict[int, dict[str, np.ndarray]]) -> dict[int, dict[str, np.ndarray]]:
+    """The objects judged moving -- the one definition the report, ``run``'s summary and
+    :attr:`~dynastereo.runtime.results.SlamJobResult.moving_objects` share: tracks whose
+    verdict (:func:`track_verdict`) is moving, seen in at least :data:`MOVING_MIN_FRAMES`
+    frames.  (Counting the tracks with any row ``moving == 1`` counts more: a track can be
+    judged moving in a frame or two and static in most.)"""
+    return {k: t for k, t in tracks.items() if track_verdict(t) is True and len(t["frame"]) >= MOVING_MIN_FRAMES}

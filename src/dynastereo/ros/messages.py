@@ -1,10 +1,10 @@
 """What dynastereo publishes, built once for every message library.
 
 The output of one frame is plain data (:class:`OdometryData`, :class:`DisparityData`,
-numpy images); :class:`MessageBuilder` turns it into ROS messages.  Two builders exist:
+numpy images); :class:`MessageBuilder` turns it into ROS messages.  Three builders exist:
 :class:`RosbagsBuilder` (the ``rosbags`` dataclasses, for ROS 1 ``.bag`` and ROS 2
-``.db3``/``.mcap`` files) here, and ``GenpyBuilder`` (``rospy``'s classes) in
-:mod:`dynastereo.ros.ros1`; a ROS 2 ``rclpy`` adapter needs one more small builder.  The
+``.db3``/``.mcap`` files) here, ``GenpyBuilder`` (``rospy``'s classes) in
+:mod:`dynastereo.ros.ros1` and ``DdsBuilder`` (the ROS 2 node's DDS types) in :mod:`dynastereo.ros.dds`.  The
 builders differ only in how a time, a float array and a byte blob are represented and in
 field spellings (``K``/``k``, ``T``/``t``, ``seq``), which :meth:`MessageBuilder.make`
 smooths over.

@@ -39,6 +39,25 @@ def resolve_ground_truth(gt: str | Path | None, sequence: Any) -> Path | None:
     return find_ground_truth(path) if isinstance(path, (str, Path)) else None
 
 
+def checked_ground_truth(gt: Path, *, explicit: bool) -> Path | None:
+    """``gt`` made absolute once it reads as a trajectory: a bad ``--gt`` (``explicit``) is
+    an :class:`~dynastereo.errors.InputError` before anything is written; a bad one found
+    beside the sequence is left out with a warning."""
+    import logging
+
+    from ..errors import InputError
+    from ..eval.trajectory import read_trajectory
+
+    try:
+        read_trajectory(gt)
+    except InputError as e:
+        if explicit:
+            raise InputError(f"--gt: {e}") from None
+        logging.getLogger(__name__).warning("the ground truth found beside the sequence is not used: %s", e)
+        return None
+    return Path(gt).absolute()
+
+
 def versions() -> dict[str, str]:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -64,7 +83,23 @@ def reserve_run_json(out: Path, spec: JobSpec, n_frames: int) -> None:
     """run.json first, with room for the final record: a run killed outright (SIGKILL) is
     known as one (``"status": "running"``, no end)."""
     reserve_json(out / "run.json", json.dumps({"status": "running", "frames_requested": n_frames,
-                                               "sequence": spec.source.name or ""}))
+                                               "sequence": absolute(spec.source.name) or ""}))
+
+
+def absolute(path: Any) -> str | None:
+    """``path`` as an absolute path string (a camera ``cam:N`` and two videos ``a,b`` as
+    they are given, each video made absolute); None for None / ""."""
+    if path is None or str(path) == "":
+        return None
+    text = str(path)
+    if text.startswith("cam:"):
+        return text
+    return ",".join(str(Path(p).absolute()) for p in text.split(","))
+
+
+def calibration_file(seq: Any) -> str | None:
+    """The calibration file a sequence was read with (absolute), when it says."""
+    return absolute(getattr(seq, "calibration_file", None))
 
 
 # --------------------------------------------------------------------------- mask job
@@ -77,7 +112,9 @@ def finish_mask(job: "Job", loop: "FrameLoop", error: str | None) -> MaskJobResu
     out = job.spec.outputs.dir
     wall = time.perf_counter() - st.t0
     masker = job.processor.masker
-    extra = {"masker": getattr(masker, "name", type(masker).__name__), "sequence": str(job.sequence.path),
+    extra = {"masker": getattr(masker, "name", type(masker).__name__),
+             "sequence": absolute(getattr(job.sequence, "path", None)) or "",
+             "calibration": calibration_file(job.sequence),
              "frames_done": st.n_done, "frames_requested": len(job.frames), "wall_s": round(wall, 3)}
     if error:
         extra["error"] = error
@@ -133,7 +170,9 @@ def run_record(job: "Job", n_done: int, stats: dict, map_out: dict, fps: float, 
     states = system.results() if n_done else []
     lost = [k for k, s in enumerate(states) if s.status == "lost"]
     return {
-        "sequence": str(getattr(seq, "path", "")),
+        "sequence": absolute(getattr(seq, "path", None)) or "",
+        "calibration": calibration_file(seq),
+        "ground_truth": absolute(job.ground_truth),
         "timestamps": getattr(seq, "timestamp_source", None),
         "masker": getattr(masker, "name", "none") if masker is not None else "none",
         "motion": ({"mode": "moving", "map_points_forgotten": motion.forgotten} if motion is not None

@@ -56,6 +56,17 @@ class SlamJobResult:
     def summary(self) -> dict[str, dict[str, float]]:
         return self.timer.summary()
 
+    @property
+    def moving_objects(self) -> list[int]:
+        """The track ids of the objects judged moving (``objects_tracks.csv``;
+        :func:`dynastereo.objects.world.moving_tracks`, the report's count); [] without tracks."""
+        from ..objects.world import TRACKS_NAME, moving_tracks, read_tracks
+
+        path = Path(self.out) / TRACKS_NAME
+        if not path.is_file():
+            return []
+        return sorted(moving_tracks(read_tracks(path)))
+
 
 @dataclass
 class BagRunResult:

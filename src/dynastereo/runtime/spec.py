@@ -53,6 +53,36 @@ def settings_calibration(config: str | Path | None) -> Path | None:
     return Path(config)
 
 
+def settings_disagreement(config: str | Path | None, calibration: Any, calib_file: Any = None) -> str | None:
+    """A one-line warning when ``config`` is an ORB-SLAM2 settings file whose camera
+    (``Camera.fx``, ``Camera.bf``) disagrees (by more than 1 %) with the sequence's own
+    ``calibration`` -- which is the one used -- else None."""
+    if config is None or calibration is None:
+        return None
+    try:
+        s = read_yaml_file(config)
+        if not is_orbslam2_settings(s):
+            return None
+        from ..io.calib import load_orbslam2_settings
+
+        s = load_orbslam2_settings(config)
+        fx, bf = float(s["Camera.fx"]), float(s["Camera.bf"])
+    except (KeyError, TypeError, ValueError, ConfigError, OSError):
+        return None
+    except Exception:  # noqa: BLE001 -- an unreadable settings file is the configuration loader's to report
+        return None
+    if not (fx > 0 and bf > 0):
+        return None
+    own_fx, own_b = float(calibration.K[0, 0]), float(calibration.baseline)
+    b = bf / fx
+    if abs(fx - own_fx) <= 0.01 * own_fx and abs(b - own_b) <= 0.01 * own_b:
+        return None
+    src = f" ({calib_file})" if calib_file else ""
+    return (f"{config}: its camera (Camera.fx {fx:g} px, Camera.bf {bf:g}: baseline {b:.4g} m) disagrees with the "
+            f"sequence's calibration{src} (fx {own_fx:g} px, baseline {own_b:.4g} m); the sequence's is used "
+            "(--calib FILE chooses another)")
+
+
 @dataclass(frozen=True)
 class BagSpec:
     """A stereo ROS bag as input (``run --bag``): topics, CameraInfo, pairing, rectification,
@@ -96,8 +126,14 @@ class SourceSpec:
             raise ConfigError("give either a SEQUENCE folder or --bag FILE (not both)")
         if self.bag is not None and self.rate is not None:
             raise ConfigError("--rate is for sequence folders; a bag's images carry their stamps")
-        if self.rate is not None and not self.rate > 0:
-            raise ConfigError(f"--rate must be a frame rate > 0 Hz, got {self.rate:g}")
+        if self.rate is not None:
+            from ..errors import InputError
+            from ..io.times import check_rate
+
+            try:
+                check_rate(self.rate)
+            except InputError as e:
+                raise ConfigError(str(e)) from None
 
     @property
     def name(self) -> str | None:
@@ -146,6 +182,7 @@ class JobSpec:
     stereo_check: bool = True
     gt: Path | None = None
     prefetch: bool = True
+    settings: Path | None = None  # the --config file: an ORB-SLAM2 one's camera is compared with the sequence's
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "kind", JobKind(self.kind))

@@ -321,18 +321,26 @@ class _Reader:
     def err(self, msg: str) -> MapFileError:
         return MapFileError(msg, self.path)
 
-    def raw(self, name: str) -> bytes:
+    def raw(self, name: str, limit: int | None = None) -> bytes:
+        """Entry ``name``'s bytes; an entry that would inflate past ``limit`` bytes (default:
+        half the memory this process may still use) is refused before it is inflated."""
         if name not in self.names:
             raise self.err(f"corrupt or incomplete map file: entry '{name}' is missing")
+        size = self.zf.getinfo(name).file_size
+        cap = memory_budget() if limit is None else limit
+        if size > cap:
+            why = (f"the header's counts allow {cap} bytes" if limit is not None
+                   else f"more than half the memory available ({cap / 2**30:.1f} GiB)")
+            raise self.err(f"corrupt map file: entry '{name}' would inflate to {size / 2**30:.2f} GiB; {why}")
         try:
             return self.zf.read(name)
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError, ValueError) as e:
             raise self.err(f"corrupt map file: entry '{name}' cannot be read ({e})") from None
 
-    def array(self, name: str) -> np.ndarray:
+    def array(self, name: str, limit: int | None = None) -> np.ndarray:
         if name + ".npy" not in self.names:
             raise self.err(f"corrupt or incomplete map file: entry '{name}' is missing")
-        data = self.raw(name + ".npy")
+        data = self.raw(name + ".npy", limit)
         try:
             return np.lib.format.read_array(io.BytesIO(data), allow_pickle=False)
         except (ValueError, EOFError, OSError) as e:
@@ -340,13 +348,53 @@ class _Reader:
 
     def checked(self, name: str, dtype: np.dtype | str, shape: tuple, counts: dict[str, int]) -> np.ndarray:
         try:
-            return check_entry(name, self.array(name), dtype, shape, counts)
+            return check_entry(name, self.array(name, entry_limit(dtype, shape, counts)), dtype, shape, counts)
         except MapFileError as e:
             raise self.named(e) from None
 
     def named(self, e: MapFileError) -> MapFileError:
         """``e`` naming this file (the tables' errors name the entry only)."""
         return e if e.path is not None else self.err(str(e))
+
+
+def memory_budget() -> int:
+    """Half the memory this process may still take (free memory, and an address-space
+    limit such as ``ulimit -v``): no single map entry may inflate beyond it."""
+    avail = 1 << 62
+    try:
+        avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        pass
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if soft != resource.RLIM_INFINITY:
+            avail = min(avail, soft)
+    except (ImportError, ValueError, OSError):
+        pass
+    return max(avail // 2, 1 << 20)
+
+
+def entry_limit(dtype: np.dtype | str, shape: tuple, counts: dict[str, int]) -> int | None:
+    """The largest size an array entry of ``shape`` (count names) may have: its data at the
+    header's counts plus the .npy header; None when a count is unknown."""
+    try:
+        n = 1
+        for s in shape:
+            n *= (counts[s[:-2]] + 1 if s.endswith("+1") else counts[s]) if isinstance(s, str) else int(s)
+    except (KeyError, TypeError):
+        return None
+    item = np.dtype(dtype).itemsize if not isinstance(dtype, str) else 8
+    return n * item + 4096
+
+
+def _check_counts_fit(r: "_Reader", counts: dict[str, int]) -> None:
+    """The arrays the header's counts announce must fit in memory (a forged header)."""
+    total = sum(entry_limit(dt, shape, counts) or 0 for dt, shape in Map.entries().values())
+    if total > memory_budget():
+        raise r.err(f"corrupt map file: the header's counts need {total / 2**30:.1f} GiB of arrays, more than "
+                    f"half the memory available ({memory_budget() / 2**30:.1f} GiB)")
 
 
 def read_header(path: str | os.PathLike) -> dict:
@@ -363,7 +411,7 @@ def _header(r: _Reader) -> dict:
     if HEADER not in r.names:
         raise r.err(f"not a {FORMAT} file: the archive has no '{HEADER}' entry")
     try:
-        h = json.loads(r.raw(HEADER).decode("utf-8"))
+        h = json.loads(r.raw(HEADER, 16 << 20).decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as e:
         raise r.err(f"corrupt map file: '{HEADER}' is not valid JSON ({e})") from None
     if not isinstance(h, dict):
@@ -450,7 +498,8 @@ def load_map(path: str | os.PathLike, vocabulary_cls: type | None = None) -> Map
         h = _header(r)
         calib = _calibration(r, h["calibration"])
         counts = dict(h["counts"])
-        a = {name: r.array(name) for name in Map.entries()}
+        _check_counts_fit(r, counts)
+        a = {name: r.array(name, entry_limit(dt, shape, counts)) for name, (dt, shape) in Map.entries().items()}
         bow_present = any(name + ".npy" in r.names for name in BOW_ENTRIES) or "bow_keyframes" in counts
         if bow_present:
             for key in ("bow_keyframes", "bow_entries"):

@@ -1,4 +1,4 @@
-"""The fault suite, round two (issue 27): truncated model files, calibrations that do not
+"""The fault suite's files and signals: truncated model files, calibrations that do not
 fit the images, gaps in the frame numbering, interrupts during the shutdown, ``eval`` of
 a trajectory away from its run, write errors (disk full, no permission, I/O error), a
 broken ``metadata.yaml``, option values without their unit, ``report`` on a killed run,
@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from test_faults import DYN, _env, assert_one_line, cli, stop_then_signal
+from conftest import skip_or_fail
+from test_faults_inputs import DYN, _env, assert_one_line, cli, stop_then_signal
 
 # --------------------------------------------------------------------------- helpers
 
@@ -353,12 +354,12 @@ def _consistent(out: Path, masks: bool) -> int:
 def small_tmpfs(tmp_path: Path):
     """A 100 KiB tmpfs (root only): the disk fills up a few frames into a run."""
     if os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root (disk-full test)")
+        skip_or_fail("mounting a tmpfs needs root (disk-full test)")
     d = tmp_path / "small"
     d.mkdir()
     r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=100k", "tmpfs", str(d)], capture_output=True, text=True)
     if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+        skip_or_fail(f"cannot mount a tmpfs here: {r.stderr.strip()}")
     try:
         yield d
     finally:
