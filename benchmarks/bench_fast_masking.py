@@ -32,21 +32,18 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
-import platform
 import resource
 import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
+from _common import CLIPS, data_dir, machine, median, results_path, write_json
 from dynastereo.api import run_sequence
 from dynastereo.config import Config
 from dynastereo.eval import evaluate_files
 from dynastereo.eval.trajectory import find_ground_truth
 
-OUT = Path(__file__).resolve().parent / "results" / "fast_masking.json"
+OUT = results_path("fast_masking")
 FAST = {"detector.runtime": "auto", "detector.band_top": 0.25, "detector.carry_downscale": 2}
 SLOW = {"detector.runtime": "onnxruntime", "detector.band_top": 0.0, "detector.carry_downscale": 1}
 SETTINGS = {
@@ -64,16 +61,11 @@ SETTINGS = {
     "stereo2": {"stereo.scale": 2},  # the masks' disparity on half-size images
     "fast_stereo2": {**FAST, "stereo.scale": 2},  # the fast settings and stereo2 (configs/fast.yaml's comments)
 }
-SEQS = {
-    "raw0001": Path("kitti_raw") / "2011_09_26" / "2011_09_26_drive_0001_sync",
-    "06": Path("kitti_odometry") / "dataset" / "sequences" / "06",
-    "03": Path("kitti_odometry") / "dataset" / "sequences" / "03",
-}
+SEQS = CLIPS
 
 
 def _median(v):
-    v = [x for x in v if x is not None]
-    return float(np.median(v)) if v else None
+    return median(v)
 
 
 def _parse(v: str):
@@ -104,10 +96,10 @@ def main() -> int:
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
     logging.getLogger("dynastereo").setLevel(logging.ERROR)
-    if not os.environ.get("DYNASTEREO_DATA"):
+    data = data_dir(required=False)
+    if data is None:
         print("skipped: DYNASTEREO_DATA is not set (KITTI raw 0001 and odometry 06 / 03 are needed)")
         return 0
-    data = Path(os.environ["DYNASTEREO_DATA"])
     extra = {k: _parse(v) for k, v in (s.split("=", 1) for s in args.set)}
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_fast_masking_"))
     variants = [int(v) for v in args.variants.split(",") if v]
@@ -135,13 +127,10 @@ def main() -> int:
             print(f"  {seq:8s} {name:14s} ATE {m['ate_m']:.4f} m ({m['ate_range'][0]:.4f}-{m['ate_range'][1]:.4f})"
                   f"  drift {m['drift_percent']:.3f} %  cpu {m['cpu_s']} s{ratio}")
     result = {"benchmark": "fast_masking",
-              "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                          "python": platform.python_version(), "loadavg_at_end": list(os.getloadavg()),
-                          "maxrss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)},
+              "machine": machine(maxrss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)),
               "settings": {s: SETTINGS[s] for s in settings}, "extra": extra, "variants": variants,
               "work": str(work), "runs": runs, "medians": med}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_json(args.out, result)
     print(f"-> {args.out}")
     return 0
 

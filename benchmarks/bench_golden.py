@@ -31,8 +31,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -40,8 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-OUT = ROOT / "benchmarks" / "results" / "golden_spread.json"
+from _common import ROOT, data_dir, machine, print_table, results_path, write_json
+
+OUT = results_path("golden_spread")
 GOLDEN = ROOT / "tests" / "data" / "golden"
 VARIANTS = (2000, 1950, 2050, 2100)
 CONVOY_FRAMES = 40
@@ -104,7 +103,7 @@ def main() -> None:
     args = ap.parse_args()
     from dynastereo.eval import evaluate_files
 
-    data = Path(os.environ.get("DYNASTEREO_DATA", ROOT.parent / "shared" / "data"))
+    data = data_dir()
     results = json.loads(OUT.read_text()) if OUT.exists() else {}
     results.setdefault("cases", {})
     with tempfile.TemporaryDirectory(prefix="golden-") as tmp:
@@ -127,27 +126,25 @@ def main() -> None:
                 if nf == 2000 and args.write:
                     GOLDEN.mkdir(parents=True, exist_ok=True)
                     (GOLDEN / f"{case}.kitti.txt").write_bytes((out / "trajectory.kitti.txt").read_bytes())
-                    (GOLDEN / f"{case}.json").write_text(json.dumps(
-                        {"case": case, "options": extra, "frames": run["frames_done"],
-                         "frames_lost": run["frames_lost"], "lost_positions": [x["position"] for x in run["lost"]],
-                         "keyframes": run["keyframes"], "ate_gt_m": ate}, indent=1) + "\n")
+                    write_json(GOLDEN / f"{case}.json",
+                               {"case": case, "options": extra, "frames": run["frames_done"],
+                                "frames_lost": run["frames_lost"], "lost_positions": [x["position"] for x in run["lost"]],
+                                "keyframes": run["keyframes"], "ate_gt_m": ate})
             var = [runs[nf] for nf in VARIANTS[1:]]
             results["cases"][case] = {
                 "options": extra, "runs": {str(k): v for k, v in runs.items()},
                 "spread": {k: max(v[k] for v in var) for k in ("rmse_m", "max_m", "rot_max_deg", "ate_aligned_m")},
             }
     results["variants"] = list(VARIANTS)
-    results["machine"] = {"cpus": os.cpu_count(), "python": platform.python_version()}
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(results, indent=1) + "\n")
-    print("\n| case | ATE vs GT (2000) | largest variant vs default: position RMSE / max / aligned ATE (m) "
-          "| rotation max (deg) | lost |")
-    print("|---|---|---|---|---|")
-    for case, r in results["cases"].items():
-        s = r["spread"]
-        lost = [r["runs"][str(v)]["frames_lost"] for v in VARIANTS]
-        print(f"| {case} | {r['runs']['2000']['ate_gt_m']:.4f} | {s['rmse_m']:.4f} / {s['max_m']:.4f} / "
-              f"{s['ate_aligned_m']:.4f} | {s['rot_max_deg']:.3f} | {lost} |")
+    results["machine"] = machine()
+    write_json(OUT, results)
+    print()
+    print_table(("case", "ATE vs GT (2000)", "largest variant vs default: position RMSE / max / aligned ATE (m)",
+                 "rotation max (deg)", "lost"),
+                [(case, f"{r['runs']['2000']['ate_gt_m']:.4f}",
+                  f"{r['spread']['rmse_m']:.4f} / {r['spread']['max_m']:.4f} / {r['spread']['ate_aligned_m']:.4f}",
+                  f"{r['spread']['rot_max_deg']:.3f}", [r["runs"][str(v)]["frames_lost"] for v in VARIANTS])
+                 for case, r in results["cases"].items()])
     print(f"-> {OUT}")
 
 

@@ -25,18 +25,18 @@ import argparse
 import json
 import logging
 import os
-import platform
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from _common import data_dir, machine, results_path, write_json
 from dynastereo.api import run_sequence
 from dynastereo.config import Config
 from dynastereo.eval import evaluate_files
 
-RESULTS = Path(__file__).resolve().parent / "results" / "loop.json"
+RESULTS = results_path("loop")
 
 
 def _ate(run_dir: Path, gt: Path) -> float:
@@ -223,7 +223,7 @@ def main() -> None:
     logging.basicConfig(level=logging.ERROR)
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
-    result: dict = {"machine": platform.machine(), "cpus": os.cpu_count()}
+    result: dict = {"machine": machine()}
     result["pose_graph"] = pose_graph_scaling()
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
@@ -231,7 +231,7 @@ def main() -> None:
             result["synthetic_loop"] = synthetic_loop(
                 [int(s) for s in args.seeds.split(",")], args.size, cache, work, args.masker
             )
-        data = os.environ.get("DYNASTEREO_DATA")
+        data = data_dir(required=False)
         seq = Path(data or "") / "kitti_odometry" / "dataset" / "sequences" / "03"
         if not args.no_kitti and data and seq.is_dir():
             gt = Path(data) / "kitti_odometry" / "dataset" / "poses" / "03.txt"
@@ -247,8 +247,7 @@ def main() -> None:
             f"loops detected in {s['loops_detected']}/{len(s['runs'])}; query {s['loop_query_ms_median']:.1f} ms, "
             f"pose graph {s['pose_graph_ms_median']} ms, full BA {s['full_ba_ms_median']} ms"
         )
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(result, indent=1, default=float))
+    write_json(args.out, result, default=float)
     print(f"wrote {args.out}")
 
 

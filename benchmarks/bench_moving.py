@@ -45,23 +45,20 @@ import argparse
 import json
 import logging
 import os
-import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_synth_slam import sequence  # noqa: E402  (the cached synthetic sequences)
+from _common import data_dir, machine, median, models_dir, results_path, write_json
+from _shared_runs import sequence  # the cached synthetic sequences
+from dynastereo.api import run_sequence
+from dynastereo.config import Config
+from dynastereo.eval import evaluate_files
+from dynastereo.synth import read_objects
 
-from dynastereo.api import run_sequence  # noqa: E402
-from dynastereo.config import Config  # noqa: E402
-from dynastereo.eval import evaluate_files  # noqa: E402
-from dynastereo.synth import read_objects  # noqa: E402
-
-OUT = Path(__file__).resolve().parent / "results" / "moving.json"
+OUT = results_path("moving")
 MIN_PIXELS = 300
 SKIP_FRAMES = 3
 MODES = ("none", "all", "moving")
@@ -138,7 +135,7 @@ def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int 
 
     cfg = Config().with_overrides({"detector.name": detector} if detector else {})
     seq = open_sequence(seq_dir)
-    masker = build_masker(cfg, seq.calibration, models_dir=os.environ.get("DYNASTEREO_MODELS"),
+    masker = build_masker(cfg, seq.calibration, models_dir=models_dir(required=False),
                           ground_truth=seq_dir)
     poses = read_trajectory(run_dir / "trajectory.kitti.txt").poses
     n = min(frames, len(seq), len(poses))
@@ -166,8 +163,7 @@ def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int 
 
 
 def _median(v):
-    v = [x for x in v if x is not None]
-    return float(np.median(v)) if v else None
+    return median(v)
 
 
 def main() -> int:
@@ -221,7 +217,7 @@ def main() -> int:
                 row = {"sequence": f"synth {sc} seed {seed}", **run(seq, out, mode, "oracle")}
                 ate.append(row)
                 print(f"{row['sequence']:22s} {mode:7s} ATE {row['ate_m']:.4f} m  lost {row['lost']}", flush=True)
-    data = os.environ.get("DYNASTEREO_DATA")
+    data = data_dir(required=False)
     if data and args.kitti:
         kitti = Path(data) / "kitti_odometry" / "dataset" / "sequences"
         variants = [int(v) for v in args.kitti_variants.split(",") if v]
@@ -308,8 +304,7 @@ def main() -> int:
         print(f"target {k}: {'met' if t['met'] else 'NOT met'} ({t})")
     result = {
         "benchmark": "moving",
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "loadavg_at_end": list(os.getloadavg())},
+        "machine": machine(),
         "config": {"motion": vars(Config().motion), "frames": args.frames, "size": args.size, "seeds": seeds,
                    "ate_seeds": ate_seeds, "tuned_on_seed": 0, "kitti_n_features": args.kitti_variants},
         "decisions": decisions,
@@ -321,8 +316,7 @@ def main() -> int:
                "replay_total_worst_sequence": ms_worst, "in_pipeline_total": pipe_ms},
         "targets": targets,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1, default=float))
+    write_json(args.out, result, default=float)
     print(f"-> {args.out}")
     return 0
 

@@ -44,7 +44,6 @@ import argparse
 import json
 import logging
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -53,16 +52,14 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_synth_slam import sequence  # noqa: E402  (the cached synthetic sequences)
+from _common import ROOT, data_dir, machine, median, models_dir, results_path, write_json
+from _shared_runs import sequence  # the cached synthetic sequences
+from dynastereo.api import run_sequence
+from dynastereo.config import Config
+from dynastereo.eval import evaluate_files
+from dynastereo.synth import read_objects
 
-from dynastereo.api import run_sequence  # noqa: E402
-from dynastereo.config import Config  # noqa: E402
-from dynastereo.eval import evaluate_files  # noqa: E402
-from dynastereo.synth import read_objects  # noqa: E402
-
-ROOT = Path(__file__).resolve().parent.parent
-OUT = ROOT / "benchmarks" / "results" / "objects.json"
+OUT = results_path("objects")
 LABELS = ROOT / "tests" / "data" / "raw0001_motion_labels.json"
 DRIVE = Path("kitti_raw") / "2011_09_26" / "2011_09_26_drive_0001_sync"
 BANDS = ((0.0, 15.0), (15.0, 30.0), (30.0, 50.0))
@@ -74,8 +71,7 @@ MODES = {"default": {}, "none": {"masker.kind": "none"}, "mask_all": {"motion.mo
 
 
 def _median(v):
-    v = [x for x in v if x is not None and np.isfinite(x)]
-    return float(np.median(v)) if v else None
+    return median(v, finite=True)
 
 
 def _objects_lines(run_dir: Path):
@@ -180,7 +176,7 @@ def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int 
 
     cfg = Config().with_overrides({**(settings or {}), **({"detector.name": detector} if detector else {})})
     seq = open_sequence(seq_dir)
-    masker = build_masker(cfg, seq.calibration, models_dir=os.environ.get("DYNASTEREO_MODELS"), ground_truth=seq_dir)
+    masker = build_masker(cfg, seq.calibration, models_dir=models_dir(required=False), ground_truth=seq_dir)
     poses = read_trajectory(run_dir / "trajectory.kitti.txt").poses
     recs = {r["frame"]: r["objects"] for r in _objects_lines(run_dir)}
     n = min(frames, len(seq), len(poses))
@@ -294,7 +290,7 @@ def main() -> int:
                   f"({row['speed_frames']} mover-frames); objects stage {row['objects_ms']} ms/frame", flush=True)
 
     raw = None
-    data = os.environ.get("DYNASTEREO_DATA")
+    data = data_dir(required=False)
     if data and args.raw:
         raw = raw_part(Path(data) / DRIVE, work, [int(v) for v in args.variants.split(",") if v], settings)
     # the objects stage alone, replayed (the in-pipeline stage times include a busy masking thread's waits)
@@ -367,8 +363,7 @@ def main() -> int:
         print(f"target {k}: {'met' if t['met'] else 'NOT met'} ({t})")
     result = {
         "benchmark": "objects",
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "loadavg_at_end": list(os.getloadavg())},
+        "machine": machine(),
         "config": {"frames": args.frames, "size": args.size, "seeds": seeds, "developed_on_seeds": [10, 11, 12],
                    "n_features": args.variants, "settings": settings},
         "synthetic": synth,
@@ -381,8 +376,7 @@ def main() -> int:
         "kitti_raw_0001": raw,
         "targets": targets,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1, default=float))
+    write_json(args.out, result, default=float)
     print(f"-> {args.out}")
     return 0
 
@@ -603,8 +597,7 @@ def make_labels(drive: Path, ref_dir: Path, out: Path, overlays: Path | None = N
               "method": make_labels.__doc__.split("\n\n")[0] if make_labels.__doc__ else "",
               "thresholds": {"moving_mps": MOVING_MPS, "sigma_disparity_px": SIGMA_D},
               "classes": sorted(LABEL_CLASSES), "objects": objects}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(labels, indent=None, separators=(",", ":")) + "\n")
+    write_json(out, labels, indent=None, separators=(",", ":"))
     if overlays is not None:
         draw_label_overlays(seq, labels, overlays)
     return labels
@@ -638,7 +631,7 @@ def draw_label_overlays(seq, labels: dict, folder: Path, frames=(10, 30, 45, 60,
 
 if __name__ == "__main__":
     if "--make-labels" in sys.argv:
-        data = Path(os.environ["DYNASTEREO_DATA"])
+        data = data_dir()
         ref = data.parent / "reference" / "refmasks" / "raw_0001"
         i = sys.argv.index("--make-labels") + 1
         ov = Path(sys.argv[i]) if len(sys.argv) > i else None

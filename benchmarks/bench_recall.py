@@ -35,9 +35,6 @@ Run: DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import subprocess
 import sys
 import time
@@ -47,6 +44,7 @@ from typing import Iterator
 
 import numpy as np
 
+from _common import data_dir, data_path, machine, models_dir, results_path, write_json
 from dynastereo.config import Config
 from dynastereo.errors import ModelError
 from dynastereo.eval.refmasks import load_references, score_frame
@@ -54,7 +52,7 @@ from dynastereo.io import open_sequence
 from dynastereo.masking import BoxMasker, build_masker
 from dynastereo.timing import StageTimer
 
-OUT = Path(__file__).resolve().parent / "results" / "recall.json"
+OUT = results_path("recall")
 DETECT_STAGES = ("detect", "contrast", "carry")
 MASK_STAGES = ("disparity", "outline", "transfer")
 
@@ -227,10 +225,8 @@ def main() -> None:
     ap.add_argument("--seqs", default="", help="comma-separated subset of 06,raw0001,03")
     ap.add_argument("--out", type=Path, default=OUT)
     a = ap.parse_args()
-    data = Path(os.environ.get("DYNASTEREO_DATA", "")).expanduser()
-    models = Path(os.environ.get("DYNASTEREO_MODELS", "")).expanduser()
-    if not (data / "kitti_odometry").is_dir() or not models.is_dir():
-        sys.exit("set DYNASTEREO_DATA and DYNASTEREO_MODELS (see the docstring)")
+    data, models = data_dir(), models_dir()
+    data_path("kitti_odometry", data=data)
     ref03 = None
     if not a.no_03 and not a.cpu_03:
         ref03 = a.ref03 or Path.home() / ".cache/dynastereo/refmasks/seq03"
@@ -268,10 +264,8 @@ def main() -> None:
                   f"{r['detect_ms']['mean']:.1f} / mask {r['mask_ms']['mean']:.1f}  [{r['runtime']}]", flush=True)
             print("    stages (CPU ms, mean over all frames): "
                   + "  ".join(f"{k} {v:.1f}" for k, v in r["stage_ms"].items()), flush=True)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    doc = {"machine": platform.platform(), "cpus": os.cpu_count(), "rows": results,
-           "default": Config().detector.__dict__}
-    a.out.write_text(json.dumps(doc, indent=1, default=str))
+    doc = {"machine": machine(), "rows": results, "default": Config().detector.__dict__}
+    write_json(a.out, doc, default=str)
     print(f"wrote {a.out}")
 
 

@@ -19,9 +19,7 @@ Writes benchmarks/results/ros2_codec.json.  The machine is shared: medians.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -30,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from _common import CLIPS, data_path, load, machine, median_ms, results_path, write_json
+
 CDDS_XML = """<CycloneDDS><Domain Id="any"><General><Interfaces><NetworkInterface address="127.0.0.1"/></Interfaces>
 <AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex>
 <MaxAutoParticipantIndex>40</MaxAutoParticipantIndex><Peers><Peer address="127.0.0.1"/></Peers></Discovery>
@@ -37,12 +37,7 @@ CDDS_XML = """<CycloneDDS><Domain Id="any"><General><Interfaces><NetworkInterfac
 
 
 def _median_ms(fn, n: int) -> float:
-    ts = []
-    for _ in range(n):
-        t = time.perf_counter()
-        fn()
-        ts.append((time.perf_counter() - t) * 1000.0)
-    return float(np.median(ts))
+    return median_ms(fn, n)
 
 
 def codec(img: np.ndarray, repeats: int) -> dict:
@@ -138,14 +133,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeats", type=int, default=200)
     ap.add_argument("--pairs", type=int, default=100)
-    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "ros2_codec.json")
+    ap.add_argument("--out", type=Path, default=results_path("ros2_codec"))
     args = ap.parse_args()
-    data = os.environ.get("DYNASTEREO_DATA")
-    if not data:
-        raise SystemExit("set DYNASTEREO_DATA (e.g. ../shared/data)")
+    seq = data_path(CLIPS["06"])
     from dynastereo.io import KittiSequence
 
-    f = KittiSequence(Path(data) / "kitti_odometry/dataset/sequences/06").frame(0)
+    f = KittiSequence(seq).frame(0)
     c = codec(f.left, args.repeats)
     rt = round_trip(f.left, f.right, args.pairs)
     print(f"KITTI 06 left image as sensor_msgs/Image: {c['sample_bytes']} bytes (medians, ms)")
@@ -155,14 +148,12 @@ def main() -> None:
         print(f"  decode  {k:28s} {v:9.3f}")
     print(f"round trip, image pair -> echo process -> Odometry, loopback: median {rt['median_ms']:.2f} ms, "
           f"p95 {rt['p95_ms']:.2f} ms, max {rt['max_ms']:.2f} ms ({rt['answered']}/{rt['pairs']} answered); "
-          f"load {os.getloadavg()[0]:.1f}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({
+          f"load {load():.1f}")
+    write_json(args.out, {
         "benchmark": "ros2_codec",
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "loadavg_at_end": list(os.getloadavg())},
+        "machine": machine(),
         "image": "KITTI 06 frame 0, 1226x370 mono8", "codec": c, "round_trip": rt,
-    }, indent=1))
+    })
     print(f"wrote {args.out}")
 
 

@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -39,10 +38,12 @@ from pathlib import Path
 
 import numpy as np
 
+from _common import ROOT, data_dir, load, machine, models_dir, results_path, write_json
+
 TARGET_MEDIAN_MS = 100.0
 TARGET_P95_MS = 100.0  # target: image stamp -> odometry p95, no drops
 SETTLE = 5  # odometry messages left out of the "after start-up" figures: the first CameraInfo builds the SLAM
-HARNESS = Path(__file__).resolve().parents[1] / "tests" / "ros_harness.py"  # test code, not in the package
+HARNESS = ROOT / "tests" / "ros_harness.py"  # test code, not in the package
 
 
 def run_once(seq: Path, frames: int, rate: float, pipelined: bool, timeout: float) -> dict:
@@ -131,18 +132,16 @@ def main() -> None:
     ap.add_argument("--modes", default="serial,pipelined")
     ap.add_argument("--timeout", type=float, default=120.0)
     ap.add_argument("--transports", default="ros1,ros2")
-    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "ros_latency.json")
+    ap.add_argument("--out", type=Path, default=results_path("ros_latency"))
     args = ap.parse_args()
-    data = os.environ.get("DYNASTEREO_DATA")
-    if not data or not os.environ.get("DYNASTEREO_MODELS"):
-        raise SystemExit("set DYNASTEREO_DATA and DYNASTEREO_MODELS (e.g. ../shared/data, ../shared/models)")
+    data, _ = data_dir(), models_dir()
     transports = [t.strip() for t in args.transports.split(",") if t.strip()]
     if "ros1" in transports:
         try:
             import rospy  # noqa: F401
         except ImportError as e:
             raise SystemExit(f"ROS 1 not importable ({e}); install the Debian packages as .ci/run does")
-    seq = Path(data) / "kitti_odometry/dataset/sequences/06"
+    seq = data / "kitti_odometry/dataset/sequences/06"
     rows = []
     for transport, mode in [(t, m.strip()) for m in args.modes.split(",") if m.strip() for t in transports]:
         lat: list[float] = []
@@ -161,7 +160,7 @@ def main() -> None:
                 "node_stamp_to_publish_ms": st["latency_stamp_ms"], "player_late_ms_max": round(res["late_ms_max"], 1),
                 "stages_median_ms": {k: v["median"] for k, v in res.get("stages", {}).items()
                                      if isinstance(v, dict) and "median" in v},
-                "loadavg": os.getloadavg()[0],
+                "loadavg": load(),
             })
             lat += res["latency_ms"]
             settled += res["latency_ms"][SETTLE:]
@@ -196,16 +195,14 @@ def main() -> None:
         st = r["runs"][0]["stages_median_ms"]
         keep = ("detect", "disparity", "outline", "transfer", "features", "stereo", "track", "local_mapping", "total")
         print(f"  {r['transport']} {r['mode']} node stages (median ms, run 1): " + ", ".join(f"{k} {st[k]:.1f}" for k in keep if k in st))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({
+    write_json(args.out, {
         "benchmark": "ros_latency",
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "loadavg_at_end": list(os.getloadavg())},
+        "machine": machine(),
         "target": {"median_ms": TARGET_MEDIAN_MS, "p95_ms": TARGET_P95_MS, "drops": 0},
         "sequence": "KITTI 06 (gray 1226x370)",
         "config": "default (outline masker, yolox-nano, StereoBM, 2000 ORB features); queue_size 1",
         "results": rows,
-    }, indent=1))
+    })
     print(f"wrote {args.out}")
 
 

@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -31,8 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-OUT_JSON = ROOT / "benchmarks" / "results" / "runtime_refactor.json"
+from _common import ROOT, data_dir, median, results_path, write_json
+
+OUT_JSON = results_path("runtime_refactor")
 FILES = ("trajectory.kitti.txt", "trajectory.tum.txt", "trajectory.frames.txt", "objects.jsonl",
          "objects_tracks.csv", "output.bag")
 NODE = r"""
@@ -115,7 +115,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=1, help="folder runs per tree for the FPS (alternated)")
     ap.add_argument("--quick", action="store_true", help="leave out the 576-frame loop and the node")
     args = ap.parse_args()
-    data = Path(os.environ.get("DYNASTEREO_DATA", ROOT.parent / "shared" / "data"))
+    data = data_dir()
     with tempfile.TemporaryDirectory(prefix="bench-runtime-") as tmp_s:
         tmp = Path(tmp_s)
         trees = {"before": _src(args.before, tmp), "after": Path(args.after).resolve()}
@@ -133,10 +133,9 @@ def main() -> None:
     worst = max((r.get("max_abs_diff", 0.0) for r in rows), default=0.0)
     res = {"before": args.before, "after": args.after, "files_compared": len(rows), "files_differing": len(differ),
            "differing": [r["file"] for r in differ], "max_abs_trajectory_difference": worst,
-           "fps_run06": {k: {"runs": v, "median": round(statistics.median(v), 3)} for k, v in fps.items()},
+           "fps_run06": {k: {"runs": v, "median": median(v, digits=3)} for k, v in fps.items()},
            "cases": sorted({r["file"].split("/")[0] for r in rows})}
-    OUT_JSON.parent.mkdir(parents=True, exist_ok=True)
-    OUT_JSON.write_text(json.dumps(res, indent=1))
+    write_json(OUT_JSON, res)
     print(f"{len(rows)} files compared over {', '.join(res['cases'])}: {len(differ)} differ; "
           f"largest trajectory difference {worst:g}")
     for k, v in res["fps_run06"].items():

@@ -30,22 +30,16 @@ import argparse
 import json
 import os
 import shutil
-import platform
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-OUT = ROOT / "benchmarks" / "results" / "then_now.json"
-CLIPS = {
-    "06": "kitti_odometry/dataset/sequences/06",
-    "03": "kitti_odometry/dataset/sequences/03",
-    "raw0001": "kitti_raw/2011_09_26/2011_09_26_drive_0001_sync",
-}
+from _common import CLIPS, ROOT, data_dir, machine, now, results_path, write_json
+
+OUT = results_path("then_now")
 VARIANTS = tuple(range(1900, 2176, 25))
 # the child: one run of the tree on PYTHONPATH (its own process: nothing shared between codes)
 CHILD = (
@@ -128,10 +122,7 @@ def main() -> int:
     ap.add_argument("--work", type=Path, default=None, help="run folders (default: a new temporary folder)")
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
-    data = os.environ.get("DYNASTEREO_DATA")
-    if not data:
-        print("DYNASTEREO_DATA is not set: nothing to measure", file=sys.stderr)
-        return 2
+    data = data_dir()
     from dynastereo.eval.trajectory import find_ground_truth
 
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_then_now_"))
@@ -139,13 +130,13 @@ def main() -> int:
     new_src = ROOT / "src"
     variants = [int(v) for v in args.variants.split(",") if v]
     mode = "all" if args.mask_all else "moving"
-    result = {"benchmark": "then_now", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+    result = {"benchmark": "then_now", "date": now(),
               "old": args.old_commit if args.old_src is None else str(args.old_src),
               "new": _head(),
-              "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+              "machine": machine(),
               "masker": args.masker, "motion_mode": mode, "variants": variants, "clips": {}}
     for clip in [c for c in args.clips.split(",") if c]:
-        seq = Path(data) / CLIPS[clip]
+        seq = data / CLIPS[clip]
         gt = find_ground_truth(seq)
         if gt is None:
             print(f"{clip}: no ground truth next to {seq}: skipped", flush=True)
@@ -171,8 +162,7 @@ def main() -> int:
               f"{s['ate_mean_new']:7.4f} {s['paired_difference_median_m']:+15.4f} "
               f"{s['new_more_accurate']:>5d} of {s['variants']:<3d} {s['drift_median_old']:9.3f}% "
               f"{s['drift_median_new']:5.3f}% {s['lost_old']:>3d}/{s['lost_new']}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    write_json(args.out, result)
     print(f"-> {args.out}")
     return 0
 

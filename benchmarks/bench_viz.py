@@ -19,8 +19,6 @@ Run: .venv/bin/python benchmarks/bench_viz.py [--frames 40] [--repeats 3]
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import shutil
 import tempfile
 import time
@@ -28,11 +26,12 @@ from pathlib import Path
 
 import numpy as np
 
+from _common import machine, results_path, write_json
 from dynastereo.api import make_report, run_sequence
 from dynastereo.config import Config
 from dynastereo.synth import generate
 
-OUT = Path(__file__).resolve().parent / "results" / "viz.json"
+OUT = results_path("viz")
 
 
 def main() -> None:
@@ -62,10 +61,8 @@ def main() -> None:
         med["rrd_extra_ms"] = round(med["rrd_ms"] - med["run_ms"], 3)
         for k, v in med.items():
             print(f"{k:20s} {v:10.3f}")
-        OUT.parent.mkdir(parents=True, exist_ok=True)
-        OUT.write_text(json.dumps({"frames": a.frames, "repeats": a.repeats, "size": [640, 192], "median": med,
-                                   "runs": rows, "machine": platform.platform(), "python": platform.python_version()},
-                                  indent=1))
+        write_json(OUT, {"frames": a.frames, "repeats": a.repeats, "size": [640, 192], "median": med,
+                         "runs": rows, "machine": machine()})
         print(f"wrote {OUT}")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
