@@ -392,8 +392,8 @@ def test_the_warm_up_loads_every_kernel_a_run_calls(kitti06, models_dir, tmp_pat
     run_sequence(kitti06, tmp_path / "m", own, stereo_check=False, frames="0-12", models_dir=models_dir)
     after = _kernel_signatures()
     called = {k: v for k, v in after.items() if v}
-    assert len(called) >= 22 and any("objects._track_frame" in k for k in called)  # the runs went through them
+    assert len(called) >= 22 and any("objects.world._track_frame" in k for k in called)  # the runs went through them
     assert all(any(name in k for k in called)
                for name in ("outline._fill_rows", "outline._peak_bins", "_median_flow", "_greedy_regions",
-                            "transfer._affine_paint", "object_disparity.object_disparity"))
+                            "transfer._affine_paint", "objects.disparity.object_disparity"))
     assert {k: sorted(v - before.get(k, set())) for k, v in after.items() if v - before.get(k, set())} == {}

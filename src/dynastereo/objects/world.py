@@ -106,7 +106,7 @@ import csv
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any
+from typing import IO, TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -133,7 +133,14 @@ BIN = 1.0 / 16.0  # px, disparity histogram bin
 N_BINS = 4096  # disparities up to 256 px
 AB_STEP = 0.02  # m, top-view histogram bin
 AB_BINS = 2500  # +-25 m around the median point
-N_STATS = 17  # columns of _object_stats' output
+#: :func:`_object_stats`' output, one record per object: named fields, not columns
+STATS = np.dtype([
+    ("n_disparity", np.float64), ("d_median", np.float64), ("d_p10", np.float64), ("d_p90", np.float64),
+    ("a_median", np.float64), ("a_p10", np.float64), ("a_p90", np.float64), ("a_p5", np.float64),
+    ("a_p95", np.float64), ("b_p10", np.float64), ("b_p90", np.float64), ("b_p5", np.float64),
+    ("b_p95", np.float64), ("n_outline", np.float64), ("axis_from_points", np.float64), ("d_p5", np.float64),
+    ("d_p95", np.float64),
+])
 SAMPLE_PIXELS = 1000.0  # the top-view and heading passes visit every st-th row and column: ~ this many pixels
 FIRST_PASS_PIXELS = 8000  # the disparity histogram of a box of A pixels: every (A // this)-th row
 AXIS_EXTENT = 1.5  # the heading from the points: their spread along it, class widths (at least)
@@ -145,20 +152,130 @@ COAST_S = 1.0  # s: an object without a measurement gets its filter's prediction
 GATE = 40.0  # chi-square (3 dof) of an innovation that restarts the track
 VERTICAL = np.diag([1.0, 1e-3, 1.0])  # the filter's acceleration noise per world axis (y: down)
 MOVING_HEADING_SPEED = 1.0  # m/s: above it, the velocity gives the heading
-# the columns of _track_frame's output per object: world (0-2), then
-O_SIG, O_EXT, O_HEAD, O_DIST, O_CAM, O_VEL, O_VSIG, O_SPEED = 3, 6, 9, 12, 13, 16, 19, 22  # speed, its sigma: 22, 23
-N_OUT = 24
+#: :func:`_track_frame`'s output, one record per object (the fields of :class:`ObjectState`)
+STATE = np.dtype([
+    ("world", np.float64, (3,)), ("world_sigma", np.float64, (3,)), ("extent", np.float64, (3,)),
+    ("heading", np.float64, (3,)), ("distance", np.float64), ("camera", np.float64, (3,)),
+    ("velocity", np.float64, (3,)), ("velocity_sigma", np.float64, (3,)), ("speed", np.float64),
+    ("speed_sigma", np.float64),
+])
+
+
+class Camera(NamedTuple):
+    """The rectified left camera, as the kernels take it (pixels; ``bf`` px·m)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    bf: float
+    height: float  # the image's rows
+
+    @classmethod
+    def of(cls, c: StereoCalibration, height: float | None = None) -> "Camera":
+        return cls(float(c.fx), float(c.fy), float(c.cx), float(c.cy), float(c.bf),
+                   float(c.height if height is None else height))
+
+
+class Images(NamedTuple):
+    """A frame's images for :func:`_object_stats`: instance labels (``use_labels``: whether
+    they are the outlines), the masker's disparity and the objects' own (``own``)."""
+
+    labels: np.ndarray
+    disp: np.ndarray
+    own: np.ndarray
+    use_labels: bool
+
+
+class StatsInputs(NamedTuple):
+    """Per object, for :func:`_object_stats` (docstring there)."""
+
+    own_k: np.ndarray
+    boxes: np.ndarray
+    peak: np.ndarray
+    head: np.ndarray
+    need_ab: np.ndarray
+    axis: np.ndarray
+    width: np.ndarray
+    v_known: np.ndarray
+
+
+class Histograms(NamedTuple):
+    """The kernel's histogram buffers (zeroed when they come in and when they leave)."""
+
+    d: np.ndarray  # (N, N_BINS) disparities
+    a: np.ndarray  # (N, AB_BINS) top view, along the heading
+    b: np.ndarray  # (N, AB_BINS) top view, across it
+
+
+class CentreInputs(NamedTuple):
+    """Per object, for :func:`_centres`: boxes (N, 4) float, sizes (N, 3), heading (N, 2),
+    cut by the image's left / right side, small (no length), measured in the top view."""
+
+    boxes: np.ndarray
+    sizes: np.ndarray
+    head: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+    small: np.ndarray
+    top_view: np.ndarray
+
+
+class Measurements(NamedTuple):
+    """Per object, :func:`_centres`' output and :func:`_track_frame`'s input: whether it
+    gives a measurement, its centre in the camera, the range sigma of its median disparity,
+    its box's width / height at unit depth, cut by the image's side, its heading (x, z) in
+    the camera's top view, its class size (w, h, l)."""
+
+    valid: np.ndarray
+    X: np.ndarray
+    sigma_r: np.ndarray
+    size_unit: np.ndarray
+    cut: np.ndarray
+    head: np.ndarray
+    sizes: np.ndarray
+
+
+class Verdicts(NamedTuple):
+    """Per object, for :func:`_track_frame`: its track's slot (-1: none), the motion test's
+    verdict static, its speed (NaN: none) and that speed's sigma (NaN: unknown)."""
+
+    slots: np.ndarray
+    still: np.ndarray
+    speed: np.ndarray
+    speed_sigma: np.ndarray
+
+
+class Filter(NamedTuple):
+    """The filter's settings: acceleration noise per world axis, the innovation gate, how
+    long a track coasts on its prediction."""
+
+    qa: np.ndarray
+    gate: float
+    coast_s: float
+
+
+class TrackArrays(NamedTuple):
+    """The track table's arrays (:class:`_TrackTable`), updated in place by the kernels."""
+
+    x: np.ndarray
+    P: np.ndarray
+    t: np.ndarray
+    n: np.ndarray
+    full: np.ndarray
+    has_full: np.ndarray
 SPEED_DIRECTION = 0.3  # m/s: the filter's velocity gives a direction for the motion test's speed above it
 SPEED_SIGMA = 0.3  # m/s, the motion test's speed at least (its own sigma where larger; plus 10 %)
 STILL_SIGMA = 0.1  # m/s, the velocity of an object the motion test judged static
 
 
 @jit
-def _quantiles(hist, n, lo, hi, origin, step, out, k, col, b0=0, b1=-1):  # pragma: no cover - compiled
-    """out[k, col], out[k, col + 1] = the ``lo`` and ``hi`` quantiles of a histogram whose
-    counts all lie in bins ``b0 .. b1`` (default: all)."""
+def _quantiles(hist, n, lo, hi, origin, step, b0=0, b1=-1):  # pragma: no cover - compiled
+    """The ``lo`` and ``hi`` quantiles of a histogram whose counts (``n`` of them) all lie in
+    bins ``b0 .. b1`` (default: all); 0.0 for one not reached."""
     c = 0
     got = False
+    q_lo = 0.0
     tl = lo * n
     th = hi * n
     if b1 < 0:
@@ -166,33 +283,33 @@ def _quantiles(hist, n, lo, hi, origin, step, out, k, col, b0=0, b1=-1):  # prag
     for b in range(b0, b1 + 1):
         c += hist[b]
         if not got and c >= tl:
-            out[k, col] = origin + (b + 0.5) * step
+            q_lo = origin + (b + 0.5) * step
             got = True
         if c >= th:
-            out[k, col + 1] = origin + (b + 0.5) * step
-            return
+            return q_lo, origin + (b + 0.5) * step
+    return q_lo, 0.0
 
 
 @jit(inline="always")
-def _median_point(boxes, out, k, bf, fx, cx):  # pragma: no cover - compiled
+def _median_point(boxes, out, k, cam):  # pragma: no cover - compiled
     """(x, z) in the camera's top view of object k's median disparity on its box centre's column."""
-    zm = bf / max(out[k, 1], 1e-3)
-    return (0.5 * (boxes[k, 0] + boxes[k, 2]) - cx) * zm / fx, zm
+    zm = cam.bf / max(out[k].d_median, 1e-3)
+    return (0.5 * (boxes[k, 0] + boxes[k, 2]) - cam.cx) * zm / cam.fx, zm
 
 
 @jit
-def _object_stats(labels, disp, own, own_k, boxes, peak, use_labels, head, need_ab, axis, width, v_known, bf, fx, cx,
-                  hist, hist_a, hist_b, out):  # pragma: no cover - compiled
+def _object_stats(images, objs, cam, hists, out):  # pragma: no cover - compiled
     """Per object k (boxes int (N, 4) clipped x0, y0, x1, y1; ``head`` (N, 2) its heading
     (x, z) in the camera's top view; ``need_ab``: whether it needs the top-view pass;
     ``axis``: whether to try the heading from its points, ``width`` its class width,
-    ``v_known`` whether ``head`` is its velocity's): out[k] (``N_STATS`` columns) = (0:
-    pixels with a disparity, 1: median, 2: p10, 3: p90 disparity; then its pixels'
-    top-view coordinates along the heading (a) -- 4: median, 5: p10, 6: p90, 7: p5, 8: p95
-    -- and across it (b) -- 9: p10, 10: p90, 11: p5, 12: p95 -- metres; 13: its outline's
-    pixels, with a disparity or not; 14: 1 where the heading came from its points (then
-    ``head[k]`` is that heading and ``need_ab[k]`` set, in place); 15, 16: p5, p95
-    disparity).  The heading from the points (module doc): the principal axis of their
+    ``v_known`` whether ``head`` is its velocity's): ``out[k]``, a :data:`STATS` record =
+    ``n_disparity`` (pixels with a disparity), ``d_median`` / ``d_p10`` / ``d_p90`` / ``d_p5`` /
+    ``d_p95`` (its disparities' quantiles), then its pixels' top-view coordinates along the
+    heading (``a_median``, ``a_p10``, ``a_p90``, ``a_p5``, ``a_p95``) and across it (``b_p10``,
+    ``b_p90``, ``b_p5``, ``b_p95``), metres; ``n_outline`` its outline's pixels, with a
+    disparity or not; ``axis_from_points`` 1 where the heading came from its points (then
+    ``head[k]`` is that heading and ``need_ab[k]`` set, in place); ``out`` comes in zeroed.
+    The heading from the points (module doc): the principal axis of their
     top-view coordinates (those within the p5-p95 disparities), taken when they spread
     along it over ``AXIS_EXTENT`` class widths (a uniform spread's ``sqrt(12 λ1)``) and
     ``AXIS_RATIO`` times their spread across it (variances), and when within
@@ -202,14 +319,16 @@ def _object_stats(labels, disp, own, own_k, boxes, peak, use_labels, head, need_
     With instance labels each box's own outline (its label's pixels); without, each box's
     pixels within 15 % of the object's peak disparity.  Object k's disparities are ``own``'s
     where ``own_k[k]`` (its outline matched again: ``objects.disparity``), else
-    ``disp``'s."""
+    ``disp``'s.  ``images`` / ``objs`` / ``cam`` / ``hists``: :class:`Images`,
+    :class:`StatsInputs`, :class:`Camera`, :class:`Histograms`."""
+    labels, disp, own, use_labels = images.labels, images.disp, images.own, images.use_labels
+    own_k, boxes, peak, head, need_ab, axis, width, v_known = objs
+    bf, fx, cx = cam.bf, cam.fx, cam.cx
+    hist, hist_a, hist_b = hists.d, hists.a, hists.b
     n_obj = boxes.shape[0]
     nb = hist.shape[1]
     na = hist_a.shape[1]
     half = 0.5 * na * AB_STEP
-    for k in range(n_obj):
-        for c in range(N_STATS):
-            out[k, c] = 0.0
     if n_obj == 0:
         return
     # first pass: the disparity histograms (and the range of bins each one uses)
@@ -243,8 +362,8 @@ def _object_stats(labels, disp, own, own_k, boxes, peak, use_labels, head, need_
                     lo_b = min(lo_b, b)
                     hi_b = max(hi_b, b)
             n_hist[k] = c_d
-            out[k, 0] = c_d * sy  # the outline's pixels (with a disparity), estimated
-            out[k, 13] = c_all * sy
+            out[k].n_disparity = c_d * sy  # the outline's pixels (with a disparity), estimated
+            out[k].n_outline = c_all * sy
             bmin[k] = lo_b
             bmax[k] = hi_b
     else:
@@ -258,36 +377,36 @@ def _object_stats(labels, disp, own, own_k, boxes, peak, use_labels, head, need_
                         continue
                     b = min(int(d * 16.0), nb - 1)
                     hist[k, b] += 1
-                    out[k, 0] += 1
-                    out[k, 13] += 1
+                    out[k].n_disparity += 1
+                    out[k].n_outline += 1
                     bmin[k] = min(bmin[k], b)
                     bmax[k] = max(bmax[k], b)
     am = np.zeros(n_obj)
     bm = np.zeros(n_obj)
     any_ab = False
     for k in range(n_obj):
-        n = n_hist[k] if use_labels else int(out[k, 0])
+        n = n_hist[k] if use_labels else int(out[k].n_disparity)
         if n == 0:
             continue
-        _quantiles(hist[k], n, 0.5, 0.5, 0.0, BIN, out, k, 1, bmin[k], bmax[k])
-        _quantiles(hist[k], n, 0.1, 0.9, 0.0, BIN, out, k, 2, bmin[k], bmax[k])
-        _quantiles(hist[k], n, 0.05, 0.95, 0.0, BIN, out, k, 15, bmin[k], bmax[k])
+        out[k].d_median, _ = _quantiles(hist[k], n, 0.5, 0.5, 0.0, BIN, bmin[k], bmax[k])
+        out[k].d_p10, out[k].d_p90 = _quantiles(hist[k], n, 0.1, 0.9, 0.0, BIN, bmin[k], bmax[k])
+        out[k].d_p5, out[k].d_p95 = _quantiles(hist[k], n, 0.05, 0.95, 0.0, BIN, bmin[k], bmax[k])
         hist[k, bmin[k]:bmax[k] + 1] = 0  # left zeroed for the next frame
     # the heading from the points: their top-view second moments (about the median
     # point), in a pass over the objects that try it
     for k in range(n_obj):
-        if not axis[k] or out[k, 0] < 30:
+        if not axis[k] or out[k].n_disparity < 30:
             continue
-        xm, zm = _median_point(boxes, out, k, bf, fx, cx)
-        lo = out[k, 15] - 0.5 * BIN
-        hi = out[k, 16] + 0.5 * BIN
+        xm, zm = _median_point(boxes, out, k, cam)
+        lo = out[k].d_p5 - 0.5 * BIN
+        hi = out[k].d_p95 + 0.5 * BIN
         m0 = 0.0
         sx = 0.0
         sz = 0.0
         sxx = 0.0
         sxz = 0.0
         szz = 0.0
-        st = 1 + int(np.sqrt(out[k, 0] / SAMPLE_PIXELS))
+        st = 1 + int(np.sqrt(out[k].n_disparity / SAMPLE_PIXELS))
         src = own if own_k[k] else disp
         for y in range(boxes[k, 1], boxes[k, 3], st):
             for x in range(boxes[k, 0], boxes[k, 2], st):
@@ -333,11 +452,11 @@ def _object_stats(labels, disp, own, own_k, boxes, peak, use_labels, head, need_
         head[k, 0] = ex
         head[k, 1] = ez
         need_ab[k] = True
-        out[k, 14] = 1.0
+        out[k].axis_from_points = 1.0
     for k in range(n_obj):
-        if need_ab[k] and out[k, 0] > 0:
+        if need_ab[k] and out[k].n_disparity > 0:
             any_ab = True
-            xm, zm = _median_point(boxes, out, k, bf, fx, cx)
+            xm, zm = _median_point(boxes, out, k, cam)
             am[k] = xm * head[k, 0] + zm * head[k, 1]
             bm[k] = xm * head[k, 1] - zm * head[k, 0]
     if not any_ab:
@@ -345,13 +464,13 @@ def _object_stats(labels, disp, own, own_k, boxes, peak, use_labels, head, need_
     # second pass, for the objects that need it: the pixels' top-view coordinates along /
     # across the heading, around the median point of the box centre's column
     for k in range(n_obj):
-        if not need_ab[k] or out[k, 0] == 0:
+        if not need_ab[k] or out[k].n_disparity == 0:
             continue
         hx, hz = head[k, 0], head[k, 1]
         lo = 0.85 * peak[k] - 1.0
         hi = 1.15 * peak[k] + 1.0
         a0, a1, c0, c1 = na, 0, na, 0
-        st = 1 + int(np.sqrt(out[k, 0] / SAMPLE_PIXELS))  # every st-th row and column
+        st = 1 + int(np.sqrt(out[k].n_disparity / SAMPLE_PIXELS))  # every st-th row and column
         src = own if own_k[k] else disp
         cnt = 0
         for y in range(boxes[k, 1], boxes[k, 3], st):
@@ -377,11 +496,11 @@ def _object_stats(labels, disp, own, own_k, boxes, peak, use_labels, head, need_
         if cnt == 0:
             continue
         n = cnt
-        _quantiles(hist_a[k], n, 0.5, 0.5, am[k] - half, AB_STEP, out, k, 4, a0, a1)
-        _quantiles(hist_a[k], n, 0.1, 0.9, am[k] - half, AB_STEP, out, k, 5, a0, a1)
-        _quantiles(hist_a[k], n, 0.05, 0.95, am[k] - half, AB_STEP, out, k, 7, a0, a1)
-        _quantiles(hist_b[k], n, 0.1, 0.9, bm[k] - half, AB_STEP, out, k, 9, c0, c1)
-        _quantiles(hist_b[k], n, 0.05, 0.95, bm[k] - half, AB_STEP, out, k, 11, c0, c1)
+        out[k].a_median, _ = _quantiles(hist_a[k], n, 0.5, 0.5, am[k] - half, AB_STEP, a0, a1)
+        out[k].a_p10, out[k].a_p90 = _quantiles(hist_a[k], n, 0.1, 0.9, am[k] - half, AB_STEP, a0, a1)
+        out[k].a_p5, out[k].a_p95 = _quantiles(hist_a[k], n, 0.05, 0.95, am[k] - half, AB_STEP, a0, a1)
+        out[k].b_p10, out[k].b_p90 = _quantiles(hist_b[k], n, 0.1, 0.9, bm[k] - half, AB_STEP, c0, c1)
+        out[k].b_p5, out[k].b_p95 = _quantiles(hist_b[k], n, 0.05, 0.95, bm[k] - half, AB_STEP, c0, c1)
         hist_a[k, a0:a1 + 1] = 0
         hist_b[k, c0:c1 + 1] = 0
 
@@ -397,8 +516,7 @@ def _axis_centre(mid, lo, hi, extent):  # pragma: no cover - compiled
 
 
 @jit
-def _centres(out, boxes, sizes, head, left, right, small, top_view, cx, cy, fx, fy, bf, h_img, sigma_d, X, valid,
-             sigma_r, size_unit):  # pragma: no cover - compiled
+def _centres(out, objs, cam, sigma_d, meas):  # pragma: no cover - compiled
     """Per object k, from :func:`_object_stats`' ``out[k]`` (module doc, "Centre, not
     surface"): whether it gives a measurement (``valid[k]``: a disparity on at least
     ``MIN_VALID_FRACTION`` of its outline, and a box not shorter than ``MIN_VISIBLE_HEIGHT``
@@ -411,24 +529,29 @@ def _centres(out, boxes, sizes, head, left, right, small, top_view, cx, cy, fx, 
     half the class height below the top row of a box cut by the image's bottom), the range
     sigma of the median disparity ``sigma_r[k]`` and the box's width / height at unit
     depth ``size_unit[k]``.  ``sizes`` (N, 3) width, height, length; ``head`` (N, 2) the
-    heading (x, z) in the camera's top view; ``boxes`` (N, 4) float."""
+    heading (x, z) in the camera's top view; ``boxes`` (N, 4) float (``objs``:
+    :class:`CentreInputs`; ``cam``: :class:`Camera`; the results into ``meas``, a
+    :class:`Measurements`)."""
+    boxes, sizes, head, left, right, small, top_view = objs
+    cx, cy, fx, fy, bf, h_img = cam.cx, cam.cy, cam.fx, cam.fy, cam.bf, cam.height
+    X, valid, sigma_r, size_unit = meas.X, meas.valid, meas.sigma_r, meas.size_unit
     for k in range(boxes.shape[0]):
         x0, y0, x1, y1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
         w_, h_, l_ = sizes[k, 0], sizes[k, 1], sizes[k, 2]
-        n, dmed = out[k, 0], out[k, 1]
+        n, dmed = out[k].n_disparity, out[k].d_median
         # an outline mostly without disparity (occluded, or another object's disparity
         # leaking in): no measurement; nor from a box too short for its class at the depth
         # measured, not cut by the image's top or bottom: a sliver beside a nearer object
         # whose disparity leaked in (stereo matching fattens a near object's edges)
-        ok = n >= 10 and dmed > 0.5 and n >= MIN_VALID_FRACTION * out[k, 13]
+        ok = n >= 10 and dmed > 0.5 and n >= MIN_VALID_FRACTION * out[k].n_outline
         v_cut = y0 <= 1.0 or y1 >= h_img - 1.0
         tall = (y1 - y0) >= MIN_VISIBLE_HEIGHT * h_ * fy * max(dmed, 0.0) / bf
         ok = ok and (v_cut or tall)
         # top view: per axis (along the heading, extent l; across it, extent w) the face
         # toward the camera (at 0) plus half the extent; a camera within the object's span
         # (5th / 95th percentiles' middle) sees both ends: their middle
-        a_lo, a_hi, a_5, a_95 = out[k, 5], out[k, 6], out[k, 7], out[k, 8]
-        b_lo, b_hi, b_5, b_95 = out[k, 9], out[k, 10], out[k, 11], out[k, 12]
+        a_lo, a_hi, a_5, a_95 = out[k].a_p10, out[k].a_p90, out[k].a_p5, out[k].a_p95
+        b_lo, b_hi, b_5, b_95 = out[k].b_p10, out[k].b_p90, out[k].b_p5, out[k].b_p95
         a_mid = 0.5 * (a_5 + a_95)
         b_mid = 0.5 * (b_5 + b_95)
         a_c = _axis_centre(a_mid, a_lo, a_hi, l_)
@@ -462,7 +585,7 @@ def _centres(out, boxes, sizes, head, left, right, small, top_view, cx, cy, fx, 
             rz = 1.0 / nr
             cos_phi = abs(rx * hx + rz * hz)
             e = l_ * cos_phi + w_ * np.sqrt(max(1.0 - cos_phi * cos_phi, 0.0))
-            r_near = bf / (max(out[k, 3], 0.5) if ok else 1.0) / rz
+            r_near = bf / (max(out[k].d_p90, 0.5) if ok else 1.0) / rz
             r = max(r_near + 0.5 * e, bf / dm / rz)
             X[k, 0] = rx * r
             X[k, 2] = rz * r
@@ -614,18 +737,18 @@ def _headings(R, slots, tx, tn, head, moves):  # pragma: no cover - compiled
 
 @jit(inline="always")
 def _speed_into(v, Pv, out, k):  # pragma: no cover - compiled
-    """``out[k]``'s velocity columns from a filter's velocity ``v`` (3,) and its covariance
+    """``out[k]``'s velocity fields from a filter's velocity ``v`` (3,) and its covariance
     ``Pv`` (3, 3): velocity, its sigmas per axis, speed ``|v|`` and its sigma
     ``sqrt(vᵀ P_v v) / |v|`` (at rest: the mean axis sigma)."""
     sp = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     vpv = 0.0
     for i in range(3):
-        out[k, O_VEL + i] = v[i]
-        out[k, O_VSIG + i] = np.sqrt(Pv[i, i])
+        out[k].velocity[i] = v[i]
+        out[k].velocity_sigma[i] = np.sqrt(Pv[i, i])
         for j in range(3):
             vpv += v[i] * Pv[i, j] * v[j]
-    out[k, O_SPEED] = sp
-    out[k, O_SPEED + 1] = (np.sqrt(vpv) / max(sp, 1e-6) if sp > 1e-6
+    out[k].speed = sp
+    out[k].speed_sigma = (np.sqrt(vpv) / max(sp, 1e-6) if sp > 1e-6
                            else np.sqrt((Pv[0, 0] + Pv[1, 1] + Pv[2, 2]) / 3.0))
 
 
@@ -633,13 +756,12 @@ def _speed_into(v, Pv, out, k):  # pragma: no cover - compiled
 def _to_camera(R, t_c, out, k):  # pragma: no cover - compiled
     """``out[k]``'s camera centre from its world one: ``R^T (world - t_c)``."""
     for j in range(3):
-        out[k, O_CAM + j] = (R[0, j] * (out[k, 0] - t_c[0]) + R[1, j] * (out[k, 1] - t_c[1])
-                             + R[2, j] * (out[k, 2] - t_c[2]))
+        out[k].camera[j] = (R[0, j] * (out[k].world[0] - t_c[0]) + R[1, j] * (out[k].world[1] - t_c[1])
+                             + R[2, j] * (out[k].world[2] - t_c[2]))
 
 
 @jit
-def _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still, speed, speed_sigma, R, t_c, stamp,
-                 fx, qa, gate, coast_s, tx, tP, tt, tn, tfull, thas, out, flags):  # pragma: no cover - compiled
+def _track_frame(meas, verdicts, R, t_c, stamp, fx, filt, tracks, out, flags):  # pragma: no cover - compiled
     """The frame's states from the measurements (module doc: uncertainty, velocity,
     position out, no measurement), one call a frame.
 
@@ -650,22 +772,26 @@ def _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still,
     the camera's pose; ``qa`` the filter's acceleration noise per world axis.  The track
     table (``tx`` (S, 6) states, ``tP`` (S, 6, 6) covariances, ``tt`` stamps of the last
     update, ``tn`` updates, 0: no state yet; ``tfull`` (S, 6) / ``thas`` a static track's
-    last full view, world and sigma) is updated in place.  Writes ``out`` (N, ``N_OUT``:
-    world, world sigma, extent, heading in the world, distance, camera centre, velocity,
-    its sigmas, speed, its sigma) and ``flags``
+    last full view, world and sigma) is updated in place.  Writes ``out`` (N :data:`STATE`
+    records, zeroed when they come in: world, world sigma, extent, heading in the world,
+    distance, camera centre, velocity, its sigmas, speed, its sigma) and ``flags``
     (N, 3: 0 none / 1 measured / 2 the filter's prediction, 1 where it has a velocity, the
-    track's updates); returns the number of tracks restarted (an innovation over ``gate``)."""
+    track's updates); returns the number of tracks restarted (an innovation over ``gate``).
+    ``meas``: :class:`Measurements`; ``verdicts``: :class:`Verdicts`; ``filt``:
+    :class:`Filter`; ``tracks``: :class:`TrackArrays`."""
+    valid, X_c, sigma_r, size_unit, cut, head, sizes = meas
+    slots, still, speed, speed_sigma = verdicts
+    qa, gate, coast_s = filt
+    tx, tP, tt, tn, tfull, thas = tracks
     N = X_c.shape[0]
     Cw = np.empty((N, 3, 3))
     for k in range(N):
-        for c in range(N_OUT):
-            out[k, c] = 0.0
         flags[k, 0] = 0
         flags[k, 1] = 0
         flags[k, 2] = 1
         x0, x1, x2 = X_c[k, 0], X_c[k, 1], X_c[k, 2]
         r = np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
-        out[k, O_DIST] = r
+        out[k].distance = r
         # covariance: sig_along^2 r r^T + sig_lat^2 (I - r r^T), into the world (R r)
         sa = np.sqrt(sigma_r[k] ** 2 + (0.1 * sizes[k, 2]) ** 2)
         sl = np.sqrt((r * max(0.05 * size_unit[k, 0] * fx, 1.0) / fx) ** 2 + (0.1 * sizes[k, 0]) ** 2)
@@ -674,9 +800,9 @@ def _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still,
         inv = 1.0 / max(r, 1e-9)
         hx, hz = head[k, 0], head[k, 1]
         for i in range(3):
-            out[k, i] = R[i, 0] * x0 + R[i, 1] * x1 + R[i, 2] * x2 + t_c[i]
-            out[k, O_HEAD + i] = R[i, 0] * hx + R[i, 2] * hz
-            out[k, O_CAM + i] = X_c[k, i]
+            out[k].world[i] = R[i, 0] * x0 + R[i, 1] * x1 + R[i, 2] * x2 + t_c[i]
+            out[k].heading[i] = R[i, 0] * hx + R[i, 2] * hz
+            out[k].camera[i] = X_c[k, i]
         u0 = (R[0, 0] * x0 + R[0, 1] * x1 + R[0, 2] * x2) * inv
         u1 = (R[1, 0] * x0 + R[1, 1] * x1 + R[1, 2] * x2) * inv
         u2 = (R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2) * inv
@@ -684,11 +810,11 @@ def _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still,
         Cw[k, 1, 0], Cw[k, 1, 1], Cw[k, 1, 2] = a * u1 * u0, a * u1 * u1 + b, a * u1 * u2
         Cw[k, 2, 0], Cw[k, 2, 1], Cw[k, 2, 2] = a * u2 * u0, a * u2 * u1, a * u2 * u2 + b
         for i in range(3):
-            out[k, O_SIG + i] = np.sqrt(Cw[k, i, i])
+            out[k].world_sigma[i] = np.sqrt(Cw[k, i, i])
         depth = max(x2, 0.0)
-        out[k, O_EXT] = size_unit[k, 0] * depth
-        out[k, O_EXT + 1] = size_unit[k, 1] * depth
-        out[k, O_EXT + 2] = sizes[k, 2]
+        out[k].extent[0] = size_unit[k, 0] * depth
+        out[k].extent[1] = size_unit[k, 1] * depth
+        out[k].extent[2] = sizes[k, 2]
     # the filter: one row per track with a measurement (its first object; a second
     # detection under the same id shares it)
     row = np.full(tn.shape[0], -1, np.int64)
@@ -716,7 +842,7 @@ def _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still,
             Pg[g] = tP[s]
             dt[g] = max(stamp - tt[s], 1e-3)
         for i in range(3):
-            z[g, i] = out[k, i]
+            z[g, i] = out[k].world[i]
         Rz[g] = Cw[k]
         spd[g] = speed[k]
         # the motion test's speed sigma, at least SPEED_SIGMA (unknown: SPEED_SIGMA)
@@ -747,8 +873,9 @@ def _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still,
     for k in range(N):
         s = slots[k]
         if s >= 0 and valid[k] and not cut[k] and still[k]:
-            for i in range(6):
-                tfull[s, i] = out[k, i] if i < 3 else out[k, O_SIG + i - 3]
+            for i in range(3):
+                tfull[s, i] = out[k].world[i]
+                tfull[s, 3 + i] = out[k].world_sigma[i]
             thas[s] = True
     for k in range(N):
         if slots[k] >= 0 and not still[k]:
@@ -763,12 +890,13 @@ def _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still,
         g = row[s]
         if cut[k] and rows[g] == k:  # cut by the image's side: the filter's position
             for i in range(3):
-                out[k, i] = xg[g, i]
-                out[k, O_SIG + i] = np.sqrt(Pg[g, i, i])
+                out[k].world[i] = xg[g, i]
+                out[k].world_sigma[i] = np.sqrt(Pg[g, i, i])
             _to_camera(R, t_c, out, k)
         if cut[k] and still[k] and thas[s]:  # judged static: where its last full view put it
-            for i in range(6):
-                out[k, i if i < 3 else O_SIG + i - 3] = tfull[s, i]
+            for i in range(3):
+                out[k].world[i] = tfull[s, i]
+                out[k].world_sigma[i] = tfull[s, 3 + i]
             _to_camera(R, t_c, out, k)
         _speed_into(xg[g, 3:], Pg[g, 3:, 3:], out, k)
         flags[k, 1] = 1
@@ -781,17 +909,18 @@ def _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still,
             continue
         d = stamp - tt[s]
         for i in range(3):
-            out[k, i] = tx[s, i] + d * tx[s, 3 + i]
-            out[k, O_SIG + i] = np.sqrt(tP[s, i, i] + d * d * tP[s, 3 + i, 3 + i])
+            out[k].world[i] = tx[s, i] + d * tx[s, 3 + i]
+            out[k].world_sigma[i] = np.sqrt(tP[s, i, i] + d * d * tP[s, 3 + i, 3 + i])
         _to_camera(R, t_c, out, k)
         if still[k] and thas[s]:
-            for i in range(6):
-                out[k, i if i < 3 else O_SIG + i - 3] = tfull[s, i]
+            for i in range(3):
+                out[k].world[i] = tfull[s, i]
+                out[k].world_sigma[i] = tfull[s, 3 + i]
             _to_camera(R, t_c, out, k)
-        c0, c1, c2 = out[k, O_CAM], out[k, O_CAM + 1], out[k, O_CAM + 2]
-        out[k, O_DIST] = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
-        out[k, O_EXT] = size_unit[k, 0] * max(c2, 0.0)
-        out[k, O_EXT + 1] = size_unit[k, 1] * max(c2, 0.0)
+        c0, c1, c2 = out[k].camera[0], out[k].camera[1], out[k].camera[2]
+        out[k].distance = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        out[k].extent[0] = size_unit[k, 0] * max(c2, 0.0)
+        out[k].extent[1] = size_unit[k, 1] * max(c2, 0.0)
         _speed_into(tx[s, 3:], tP[s, 3:, 3:], out, k)
         flags[k, 0] = 2
         flags[k, 1] = 1
@@ -835,6 +964,10 @@ class _TrackTable:
                 self.slot[t], self.ids[s], self.n[s], self.has_full[s] = s, t, 0, False
             out[i] = s
         return out
+
+    def arrays(self) -> TrackArrays:
+        """The table's arrays, as the kernels take them (updated in place)."""
+        return TrackArrays(self.x, self.P, self.t, self.n, self.full, self.has_full)
 
     def last_stamp(self, default: float) -> float:
         used = (self.ids >= 0) & (self.n > 0)
@@ -929,26 +1062,26 @@ class WorldObjects:
             stereo.warm_up()
         self._tracks = _TrackTable()  # the filters' states per track id
         self._qa = self.q * np.diag(VERTICAL)  # the filter's acceleration noise per world axis
+        self._filter = Filter(self._qa, float(self.gate), float(COAST_S))
         self._hist = np.zeros((0, N_BINS), np.int32)  # the kernel's histograms (module doc)
         self._hist_ab = np.zeros((2, 0, AB_BINS), np.int32)
         self.last: list[ObjectState | None] = []
         self._mover_boxes: deque = deque(maxlen=20000)  # (centre, extent, heading) of movers, every frame
         # the compiled kernels loaded (or compiled) now, not in the first frames
-        _object_stats(np.zeros((1, 1), np.int32), np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32),
-                      np.zeros(0, np.bool_), np.zeros((0, 4), np.int64),
-                      np.zeros(0), True, np.zeros((0, 2)), np.zeros(0, np.bool_), np.zeros(0, np.bool_), np.zeros(0),
-                      np.zeros(0, np.bool_), 1.0, 1.0, 0.0,
-                      np.zeros((0, N_BINS), np.int32), np.zeros((0, AB_BINS), np.int32),
-                      np.zeros((0, AB_BINS), np.int32), np.zeros((0, N_STATS)))
-        _centres(np.zeros((0, N_STATS)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0, np.bool_),
-                 np.zeros(0, np.bool_), np.zeros(0, np.bool_), np.zeros(0, np.bool_), 0.0, 0.0, 1.0, 1.0, 1.0, 1.0,
-                 1.0, np.zeros((0, 3)), np.zeros(0, np.bool_), np.zeros(0), np.zeros((0, 2)))
+        b0, f0, i0, z2 = np.zeros(0, np.bool_), np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 2))
+        cam = Camera(1.0, 1.0, 0.0, 0.0, 1.0, 1.0)
+        _object_stats(Images(np.zeros((1, 1), np.int32), np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32),
+                             True),
+                      StatsInputs(b0, np.zeros((0, 4), np.int64), f0, z2, b0, b0, f0, b0), cam,
+                      Histograms(np.zeros((0, N_BINS), np.int32), np.zeros((0, AB_BINS), np.int32),
+                                 np.zeros((0, AB_BINS), np.int32)), np.zeros(0, STATS))
+        meas = Measurements(b0, np.zeros((0, 3)), f0, z2, b0, z2, np.zeros((0, 3)))
+        _centres(np.zeros(0, STATS), CentreInputs(np.zeros((0, 4)), np.zeros((0, 3)), z2, b0, b0, b0, b0), cam, 1.0,
+                 meas)
         tb = self._tracks
-        _headings(np.eye(3), np.zeros(0, np.int64), tb.x, tb.n, np.zeros((0, 2)), np.zeros(0, np.bool_))
-        _track_frame(np.zeros((0, 3)), np.zeros(0, np.bool_), np.zeros(0), np.zeros((0, 2)), np.zeros(0, np.bool_),
-                     np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.bool_), np.zeros(0),
-                     np.zeros(0), np.eye(3), np.zeros(3), 0.0, 1.0, self._qa, float(self.gate), COAST_S, tb.x, tb.P,
-                     tb.t, tb.n, tb.full, tb.has_full, np.zeros((0, N_OUT)), np.zeros((0, 3), np.int64))
+        _headings(np.eye(3), i0, tb.x, tb.n, z2, b0)
+        _track_frame(meas, Verdicts(i0, b0, f0, f0), np.eye(3), np.zeros(3), 0.0, 1.0, self._filter, tb.arrays(),
+                     np.zeros(0, STATE), np.zeros((0, 3), np.int64))
 
     @classmethod
     def from_config(cls, calibration: StereoCalibration, cfg: Config) -> "WorldObjects":
@@ -978,13 +1111,13 @@ class WorldObjects:
 
     # ------------------------------------------------------------------ measurement
     def measure(self, masks: StereoMasks, head_c: np.ndarray, sizes: np.ndarray,
-                v_known: np.ndarray | None = None, frame: StereoFrame | None = None) -> tuple[np.ndarray, ...]:
+                v_known: np.ndarray | None = None, frame: StereoFrame | None = None) -> Measurements:
         """Per object (``head_c`` (N, 2): heading (x, z) in the camera's top view; ``sizes``
         (N, 3) width, height, length; ``v_known`` (N,): whether the heading is the track's
-        velocity's): (valid (N,), centre in the camera (N, 3), range sigma of the median
-        disparity (N,), box width / height at unit depth (N, 2), cut by the image's left /
-        right side (N,), the heading used (N, 2): a moving vehicle's from its points where
-        they show it): module doc.  With ``frame`` and the objects' own matching
+        velocity's), a :class:`Measurements`: valid (N,), centre in the camera (N, 3), range
+        sigma of the median disparity (N,), box width / height at unit depth (N, 2), cut by
+        the image's left / right side (N,), the heading used (N, 2: a moving vehicle's from
+        its points where they show it), the sizes (module doc).  With ``frame`` and the objects' own matching
         (``stereo``), the outlines' disparity is matched again first."""
         c = self.calib
         objs = masks.objects
@@ -1000,7 +1133,7 @@ class WorldObjects:
         moving = np.array([o.moving is True for o in objs], bool)
         head_c = np.array(head_c, np.float64, order="C").reshape(N, 2)  # a copy: the kernel may replace a heading
         v_known = np.zeros(N, np.bool_) if v_known is None else np.asarray(v_known, np.bool_)
-        out = np.zeros((N, N_STATS))
+        out = np.zeros(N, STATS)
         use = False
         if disp is not None and N:
             bi = np.empty((N, 4), np.int64)
@@ -1020,16 +1153,16 @@ class WorldObjects:
             if self._hist.shape[0] < N:  # the kernel leaves them zeroed: allocated once
                 self._hist = np.zeros((N, N_BINS), np.int32)
                 self._hist_ab = np.zeros((2, N, AB_BINS), np.int32)
-            _object_stats(labels if use else np.zeros((1, 1), np.int32), disp, own, own_k, bi, peak, use, head_c,
-                          top_view, moving & ~small, np.ascontiguousarray(sizes[:, 0]), v_known, c.bf, c.fx, c.cx,
-                          self._hist[:N], self._hist_ab[0, :N], self._hist_ab[1, :N], out)
-        X = np.empty((N, 3))
-        valid = np.empty(N, np.bool_)
-        sigma_r = np.empty(N)
-        size_unit = np.empty((N, 2))
-        _centres(out, boxes, np.ascontiguousarray(sizes, np.float64), head_c, left, right, small, top_view,
-                 c.cx, c.cy, c.fx, c.fy, c.bf, float(h_img), self.sigma_d, X, valid, sigma_r, size_unit)
-        return valid, X, sigma_r, size_unit, cut, head_c
+            _object_stats(Images(labels if use else np.zeros((1, 1), np.int32), disp, own, use),
+                          StatsInputs(own_k, bi, peak, head_c, top_view, moving & ~small,
+                                      np.ascontiguousarray(sizes[:, 0]), v_known),
+                          Camera.of(c, h_img), Histograms(self._hist[:N], self._hist_ab[0, :N], self._hist_ab[1, :N]),
+                          out)
+        sizes = np.ascontiguousarray(sizes, np.float64)
+        meas = Measurements(np.empty(N, np.bool_), np.empty((N, 3)), np.empty(N), np.empty((N, 2)), cut, head_c, sizes)
+        _centres(out, CentreInputs(boxes, sizes, head_c, left, right, small, top_view), Camera.of(c, h_img),
+                 self.sigma_d, meas)
+        return meas
 
     # ------------------------------------------------------------------ the frame
     def update(self, masks: StereoMasks | None, pose: np.ndarray, ok: bool = True,
@@ -1063,20 +1196,19 @@ class WorldObjects:
         head = np.empty((N, 2))
         moves = np.empty(N, np.bool_)
         _headings(R, slots, tb.x, tb.n, head, moves)
-        valid, X_c, sigma_r, size_unit, cut, head = self.measure(masks, head, sizes, moves, frame)
-        out = np.empty((N, N_OUT))
+        meas = self.measure(masks, head, sizes, moves, frame)
+        out = np.zeros(N, STATE)
         flags = np.empty((N, 3), np.int64)
-        self.restarts += _track_frame(X_c, valid, sigma_r, size_unit, cut, head, sizes, slots, still, speed,
-                                      speed_sigma, R, t_c, stamp, float(self.calib.fx), self._qa, float(self.gate),
-                                      COAST_S, tb.x, tb.P, tb.t, tb.n, tb.full, tb.has_full, out, flags)
+        self.restarts += _track_frame(meas, Verdicts(slots, still, speed, speed_sigma), R, t_c, stamp,
+                                      float(self.calib.fx), self._filter, tb.arrays(), out, flags)
         for k in np.flatnonzero(flags[:, 0]).tolist():
             o = out[k]
-            st = ObjectState(tracks[k], o[:3], o[O_SIG:O_SIG + 3], o[O_EXT:O_EXT + 3], o[O_HEAD:O_HEAD + 3],
-                             float(o[O_DIST]), o[O_CAM:O_CAM + 3], updates=int(flags[k, 2]),
+            st = ObjectState(tracks[k], o["world"].copy(), o["world_sigma"].copy(), o["extent"].copy(),
+                             o["heading"].copy(), float(o["distance"]), o["camera"].copy(), updates=int(flags[k, 2]),
                              predicted=bool(flags[k, 0] == 2))
             if flags[k, 1]:
-                st.velocity, st.velocity_sigma = o[O_VEL:O_VEL + 3], o[O_VSIG:O_VSIG + 3]
-                st.speed, st.speed_sigma = float(o[O_SPEED]), float(o[O_SPEED + 1])
+                st.velocity, st.velocity_sigma = o["velocity"].copy(), o["velocity_sigma"].copy()
+                st.speed, st.speed_sigma = float(o["speed"]), float(o["speed_sigma"])
             states[k] = st
             if objs[k].moving is not False:  # moving, or undecided (masked): never in the map
                 # copies: views would keep every frame's whole output alive in the deque
