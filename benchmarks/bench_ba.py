@@ -19,7 +19,7 @@ Each problem is solved by
 Time: wall ms and CPU ms (``time.process_time``: all threads of the process) per problem,
 the fastest of ``--repeats`` (default 3) solves, the solvers alternated.  The kernel is
 compiled / loaded from cache before timing (its first-call times are reported apart).
-Target (issue 23): kernel CPU <= 1/4 of gtsam's, medians over the problems.
+Target: kernel CPU <= 1/4 of gtsam's, medians over the problems.
 
 Prints medians; writes benchmarks/results/ba.json.  Run:
 

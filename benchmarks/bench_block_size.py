@@ -9,7 +9,7 @@ from ``$DYNASTEREO_DATA``), with blocks ``--blocks`` (halved drive) and ``--full
 ``--masker none``, and reports the ATE (APE RMSE, SE(3)-aligned) and end-point drift against
 the OXTS poses at the images' times: medians over the variants.  (The synthetic scenes'
 object positions and motion decisions per block: ``bench_objects.py``, ``bench_moving.py``
-and README.)
+and docs/design/objects-motion.md.)
 
 Writes ``benchmarks/results/block_size.json``.  Run:
 

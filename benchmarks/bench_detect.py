@@ -6,7 +6,7 @@
 2. Post-processing of the SAME raw YOLOv3-tiny output: array-wise (thesis Algorithm 2)
    vs the per-row Python loop (thesis Algorithm 1; thesis 4.2: 4 ms vs 27.9 ms for YOLOv3).
 
-3. ``--runtimes`` (issue 24): yolox-nano as the masking runs it (the frame's canvas at
+3. ``--runtimes``: yolox-nano as the masking runs it (the frame's canvas at
    scale 1, 1248x384 on KITTI, and its band without the top quarter, 1248x288) on each
    runtime / precision / thread count (onnxruntime f32; OpenVINO f32 and bf16 where the
    CPU has it), the grey frame as three equal channels or into the one-channel graph

@@ -1,4 +1,4 @@
-"""The SLAM's accuracy with the fast masking settings against the defaults (issue 24).
+"""The SLAM's accuracy with the fast masking settings against the defaults.
 
 The fast masking settings (``detector: {runtime: auto, band_top: 0.25, carry_downscale:
 2}``: OpenVINO bf16, the band canvas, the carrying's flow at half size) cut masking CPU
@@ -6,7 +6,7 @@ by 20-30 % with recall / IoU held; this benchmark asks whether they keep the SLA
 trajectory.  Per sequence (KITTI raw drive 0001 against its OXTS ground truth, KITTI
 odometry 06 and 03 against their poses) and per setting, one ``run_sequence`` per
 ``slam.n_features`` variant (2000, 1950, 2050, 2100: a short clip's ATE moves by tens of
-per cent with a few more or fewer features, README "SLAM on KITTI"), then the medians of
+per cent with a few more or fewer features, docs/design/slam-accuracy.md), then the medians of
 ATE (APE RMSE, SE(3)-aligned) and drift (% of the path, start-anchored) over the
 variants.  The runs are deterministic, so the load of a shared machine moves only their
 times (reported: process time of the whole run, beside the wall time).
@@ -15,7 +15,7 @@ Settings (``--settings``, comma-separated): ``default`` (the Config defaults),
 ``fast`` (the three fast settings), ``none`` (masking off), ``ov`` / ``band`` /
 ``carry`` (one fast setting alone over the defaults), ``fast_no_ov`` / ``fast_no_band``
 / ``fast_no_carry`` (the fast settings less one), ``three_channels`` (grey frames fed to
-the network as three equal channels, as before the grey-input graph of session 13),
+the network as three equal channels, rather than the one-channel grey-input graph),
 ``stereo2`` (the masks' disparity on half-size images, ``stereo.scale: 2``),
 ``fast_stereo2`` (both).  Extra overrides for every run:
 ``--set key=value`` (repeatable).
@@ -51,7 +51,7 @@ FAST = {"detector.runtime": "auto", "detector.band_top": 0.25, "detector.carry_d
 SLOW = {"detector.runtime": "onnxruntime", "detector.band_top": 0.0, "detector.carry_downscale": 1}
 SETTINGS = {
     "default": {},
-    "accurate": dict(SLOW),  # the pre-session-12 defaults, explicit
+    "accurate": dict(SLOW),  # the earlier, slower defaults, explicit
     "fast": dict(FAST),
     "none": {"masker.kind": "none"},
     "ov": {**SLOW, "detector.runtime": "auto"},
@@ -60,7 +60,7 @@ SETTINGS = {
     "fast_no_ov": {**FAST, "detector.runtime": "onnxruntime"},
     "fast_no_band": {**FAST, "detector.band_top": 0.0},
     "fast_no_carry": {**FAST, "detector.carry_downscale": 1},
-    "three_channels": {"detector.grey_input": False},  # grey frames as three equal channels (before session 13)
+    "three_channels": {"detector.grey_input": False},  # grey frames as three equal channels (not the one-channel graph)
     "stereo2": {"stereo.scale": 2},  # the masks' disparity on half-size images
     "fast_stereo2": {**FAST, "stereo.scale": 2},  # the fast settings and stereo2 (configs/fast.yaml's comments)
 }

@@ -16,7 +16,7 @@ change that should not matter, as ``bench_moving.py`` takes it) and each variant
 trajectory is compared with the default's (2000): the RMSE and the largest of the
 per-frame camera-position differences, *not aligned* (both start at the identity), and
 the ATE of the variant against the default after SE(3) alignment.  The golden test's
-tolerance is derived from these figures (see tests/test_golden.py and README).
+tolerance is derived from these figures (see tests/test_golden.py and docs/design/slam-accuracy.md).
 
 ``--write`` also (re)writes the golden files from the default run: ``CASE.kitti.txt``
 (the run's ``trajectory.kitti.txt``, byte for byte) and ``CASE.json`` (frames lost,

@@ -21,8 +21,8 @@ calls a frame (counted on frames 1-10 in an extra, untimed call; median per call
 
 Part 2, the whole ``dynastereo run --masker none`` (``api.run_sequence``, its own process
 each time) with the old code (``--old SRC``: a source tree from before the kernels, e.g.
-``git archive 45948c1 src | tar -x -C /tmp/base`` and ``--old /tmp/base/src``; the README's
-figures were measured so) and this checkout's, alternated, ``--repeats`` times: the frame loop's FPS and the process
+``git archive 45948c1 src | tar -x -C /tmp/base`` and ``--old /tmp/base/src``; the design
+notes' figures were measured so) and this checkout's, alternated, ``--repeats`` times: the frame loop's FPS and the process
 tree's CPU a frame over the frame loop (start-up left out), medians; and the trajectories'
 largest difference between old and new.
 

@@ -8,7 +8,7 @@ the **process time a pair** (all threads: the masker's own CPU, the detector's r
 included), mean and median over the frames, medians over the repeats, and a hash of the
 outputs (left / right masks, label images, each object's box, method and disparity): equal
 hashes mean the same masks bit for bit; and a hash of the mask and label images alone
-("pixels": the same masks, boxes that may differ by float rounding).  Session 12 measured its masking kernels with it.
+("pixels": the same masks, boxes that may differ by float rounding).  The masking kernels were measured with it.
 
 Prints a table; writes ``benchmarks/results/mask_cpu.json`` (``--out``).  Run:
 

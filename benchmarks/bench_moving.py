@@ -1,4 +1,4 @@
-"""Benchmark the per-object motion test ("mask only what moves", ``masking/motion.py``).
+"""Benchmark the per-object motion test ("mask only what moves", ``objects/motion``).
 
 Four parts, each a ``dynastereo.api.run_sequence`` of the whole pipeline (masking on
 the prefetch thread, stereo SLAM with local BA):
@@ -28,9 +28,9 @@ the prefetch thread, stereo SLAM with local BA):
   on shared cores) are reported beside.
 * **KITTI raw drive 0001** (an oncoming tram, cyclists, a passing car, parked cars; no
   ground-truth poses): the decisions per label, and overlays of frames 30, 60, 90 written
-  to ``docs/motion_raw0001_NNN.jpg`` (README) to check by eye.
+  to ``docs/motion_raw0001_NNN.jpg`` (docs/guide/masking.md) to check by eye.
 
-Targets (issue 13): decisions >= 90 % on mixed; KITTI ATE(moving) <= 1.10 x ATE(none);
+Targets: decisions >= 90 % on mixed; KITTI ATE(moving) <= 1.10 x ATE(none);
 convoy / crossing ATE(moving) <= ATE(none) / 3; motion_flow + motion <= 3 ms per frame.
 
 Prints tables of medians; writes benchmarks/results/moving.json.  Run:
@@ -134,7 +134,7 @@ def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int 
     from dynastereo.eval.trajectory import read_trajectory
     from dynastereo.io import open_sequence
     from dynastereo.masking import build_masker
-    from dynastereo.masking.motion import MotionJudge, SceneFlow
+    from dynastereo.objects.motion import MotionJudge, SceneFlow
 
     cfg = Config().with_overrides({"detector.name": detector} if detector else {})
     seq = open_sequence(seq_dir)

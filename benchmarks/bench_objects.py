@@ -1,4 +1,4 @@
-"""Benchmark every object's track in the world (``slam/objects.py``) and the motion test on real movers.
+"""Benchmark every object's track in the world (``objects/world.py``) and the motion test on real movers.
 
 Two parts, each from ``dynastereo.api.run_sequence`` runs of the whole pipeline:
 
@@ -27,7 +27,7 @@ Two parts, each from ``dynastereo.api.run_sequence`` runs of the whole pipeline:
   run once per ``slam.n_features`` variant (2000, 1950, 2050, 2100; see
   ``bench_moving.py``: a short clip's ATE moves with such small changes), medians.
 
-Targets (issue 26): position error median <= 0.3 m (objects within 30 m, misses counted); speed error
+Targets: position error median <= 0.3 m (objects within 30 m, misses counted); speed error
 median <= 0.3 m/s (movers); raw 0001 verdicts right >= 90 % of the decided object-frames;
 default ATE median <= none's and <= 0.058 m; drift <= 0.25 %; the objects stage <= 1 ms
 per frame.
@@ -176,7 +176,7 @@ def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int 
     from dynastereo.eval.trajectory import read_trajectory
     from dynastereo.io import open_sequence
     from dynastereo.masking import build_masker
-    from dynastereo.slam.objects import WorldObjects
+    from dynastereo.objects.world import WorldObjects
 
     cfg = Config().with_overrides({**(settings or {}), **({"detector.name": detector} if detector else {})})
     seq = open_sequence(seq_dir)
@@ -520,7 +520,7 @@ def make_labels(drive: Path, ref_dir: Path, out: Path, overlays: Path | None = N
 
     from dynastereo.io import open_sequence
     from dynastereo.masking.boxes import box_iou
-    from dynastereo.masking.motion.verdicts import _group
+    from dynastereo.objects.motion.verdicts import _group
 
     seq = open_sequence(drive)
     c = seq.calibration

@@ -30,7 +30,7 @@ with ``--masker none``: ``summary.fps``, medians over the repeats.
 Prints a table per sequence (medians over the repeats) and writes
 benchmarks/results/profile.json.
 
-**The SLAM's stages** (``--part stages``, issue 23's "profile first"): the SLAM alone
+**The SLAM's stages** (``--part stages``, "profile first"): the SLAM alone
 (``masker none``) driven frame by frame from this process, with ``slam.threads 1`` (the
 right image's ORB not on a second thread), ``slam.local_ba inline`` (the BA solve in
 this thread) and ``slam.local_mapping inline`` (local mapping in this thread), so that every

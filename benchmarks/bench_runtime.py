@@ -1,4 +1,4 @@
-"""The runtime refactor, bit for bit (issue 25): the same jobs with an older tree and this
+"""The runtime refactor, bit for bit: the same jobs with an older tree and this
 one, outputs compared byte by byte, trajectories as numbers (max abs difference), and the
 folder run's FPS side by side.
 

@@ -1,6 +1,6 @@
 """As accurate as before? This checkout's SLAM against an older source tree's, paired.
 
-Issue 23 rewrote the SLAM's hot loops as compiled kernels and asks for a SLAM "as accurate
+The SLAM's hot loops were rewritten as compiled kernels; the aim was a SLAM "as accurate
 as today" (the code before them, commit 45948c1).  A 51-108-frame clip's ATE moves by a
 fifth with changes that should not matter (``slam.n_features`` 2000 vs 2050), so four
 variants' medians -- what ``bench_objects.py`` and ``bench_moving.py`` take -- differ by

@@ -98,7 +98,8 @@ def track_offline(sequence: Path, models_dir: Path, n_frames: int):
     from dynastereo.masking import build_masker
     from dynastereo.slam import System
 
-    from dynastereo.masking.motion import build_motion
+    from dynastereo.objects.motion import build_motion
+    from dynastereo.runtime.processor import apply_map_edits
 
     seq = KittiSequence(sequence)
     cfg = Config()
@@ -111,7 +112,7 @@ def track_offline(sequence: Path, models_dir: Path, n_frames: int):
         masks = masker.mask(f)
         motion.measure(f, masks)
         res = system.track(f, motion.select(masks))
-        motion.update(masks, res, system)
+        motion.forgot(apply_map_edits(system, motion.update(masks, res).edits))
         poses.append(res.pose)
     system.shutdown()
     return np.array(poses), system

@@ -1,4 +1,4 @@
-"""Every object's track in the world (slam/objects.py), its outputs (objects.jsonl,
+"""Every object's track in the world (objects/world.py), its outputs (objects.jsonl,
 objects_tracks.csv, rerun, HTML report, ROS MarkerArray), the static map export
 (--save-cloud) and the raw 0001 reference labels of the motion test."""
 
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from dynastereo.slam.objects import TRACKS_NAME, ObjectPaths, WorldObjects, read_tracks
+from dynastereo.objects.world import TRACKS_NAME, ObjectPaths, WorldObjects, read_tracks
 from dynastereo.datatypes import MaskMethod, ObjectMask, StereoCalibration, StereoMasks
 
 W, H = 640, 240

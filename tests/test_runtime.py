@@ -1,4 +1,4 @@
-"""The one runtime (issue 25): every entry point through :func:`dynastereo.runtime.run` /
+"""The one runtime: every entry point through :func:`dynastereo.runtime.run` /
 the one :class:`~dynastereo.runtime.loop.FrameLoop`, the job spec's validation, the stage
 pipeline's hand-over, and the modes that must give the same results bit for bit --
 prefetch on vs off, the live node pipelined vs serial -- with the default configuration

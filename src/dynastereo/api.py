@@ -1,8 +1,10 @@
 """High-level Python API: the same jobs the CLI runs.
 
->>> from dynastereo.api import mask_sequence
->>> result = mask_sequence("KITTI/sequences/06", "out/", frames="0-9")
->>> result.summary["mask"]["median"]
+```python
+from dynastereo.api import mask_sequence
+result = mask_sequence("KITTI/sequences/06", "out/", frames="0-9")
+result.summary["mask"]["median"]
+```
 
 Each function builds a :class:`~dynastereo.runtime.JobSpec` and runs it with
 :func:`dynastereo.runtime.run`, the one place a job is assembled (the CLI does the same).

@@ -25,6 +25,20 @@ app = typer.Typer(
 console = Console(stderr=True, width=None if sys.stderr.isatty() else 160, soft_wrap=True)
 out_console = Console(width=None if sys.stdout.isatty() else 160, soft_wrap=True)
 
+def _print_version(value: bool) -> None:
+    if value:
+        from .. import __version__
+
+        out_console.print(f"dynastereo {__version__}", highlight=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                       help="Print the version and exit.")) -> None:
+    pass
+
+
 models_app = typer.Typer(help="List, download and verify detector models.", invoke_without_command=True)
 app.add_typer(models_app, name="models")
 
@@ -222,7 +236,7 @@ def run(
     sync_tolerance: float = typer.Option(5.0, "--sync-tolerance", help="[--bag] Largest left/right stamp difference of a pair, ms."),
     rectify: str = typer.Option("auto", "--rectify", help="[--bag] Rectify with CameraInfo: auto (unless already rectified) | yes | no."),
     bag_outputs: str = typer.Option("all", "--bag-outputs", help="[--bag] Output bag content: all, or a comma list of odometry,tf,masked,masks,disparity,path,map_points,objects."),
-    save_map: Optional[Path] = typer.Option(None, "--save-map", help="Write the final map to FILE (docs/map_format.md)."),
+    save_map: Optional[Path] = typer.Option(None, "--save-map", help="Write the final map to FILE (docs/reference/map-format.md)."),
     load_map: Optional[Path] = typer.Option(None, "--load-map", help="Start from the map in FILE (from --save-map)."),
     save_cloud: Optional[Path] = typer.Option(None, "--save-cloud", help="Write the final map's points as a PLY point cloud (none on a moving object)."),
     localize_only: bool = typer.Option(False, "--localize-only", help="With --load-map: localize in the map, add no keyframes."),
@@ -446,8 +460,20 @@ def node(
     ctx: typer.Context,
     launch: bool = typer.Option(False, "--launch", help="Run `roslaunch dynastereo dynastereo.launch ARGS` (arg:=value ...)."),
     package_path: bool = typer.Option(False, "--package-path", help="Print the ROS package folder (for ROS_PACKAGE_PATH) and exit."),
+    ros2: bool = typer.Option(False, "--ros2", help="The live ROS 2 node over DDS (no rclpy; needs the ros2 extra: pip install 'dynastereo[ros2]')."),
+    params: Optional[Path] = typer.Option(None, "--params", help="ROS 2 parameters file (with --ros2): '/**: ros__parameters:' or 'dynastereo: ros__parameters:'."),
 ) -> None:
-    """The live ROS 1 node (needs Debian's python3-rospy etc.; extra arguments go to ROS: remaps, _param:=value)."""
+    """The live ROS 1 node (needs Debian's python3-rospy etc.; extra arguments go to ROS: remaps, _param:=value), or with --ros2 the ROS 2 node."""
+    if ros2:
+        from ..ros.ros2 import main as ros2_main
+
+        if ctx.args:
+            _fail(DynastereoError(f"unexpected arguments for the ROS 2 node: {' '.join(ctx.args)} "
+                                  "(its parameters come from --params FILE)"))
+        STOP.uninstall()  # the node handles SIGINT / SIGTERM itself (final BA, save)
+        raise typer.Exit(ros2_main(str(params) if params is not None else None))
+    if params is not None:
+        _fail(DynastereoError("--params is for the ROS 2 node (--ros2); the ROS 1 node reads _param:=value"))
     from importlib.resources import files
 
     pkg = str(files("dynastereo.ros") / "ros_package")
@@ -468,6 +494,43 @@ def node(
 
     STOP.uninstall()  # the node handles its signals itself (rospy)
     raise typer.Exit(node_main(["dynastereo_node", *ctx.args]))
+
+
+@app.command("play")
+def play_cmd(
+    source: str = typer.Argument(..., help="A ROS 2 bag (.db3, .mcap) or a sequence folder."),
+    ros2: bool = typer.Option(False, "--ros2", help="Publish over ROS 2 (DDS, no rclpy; the ros2 extra)."),
+    rate: Optional[float] = typer.Option(None, "--rate", help="Frames per second (default: the stamps' own pace)."),
+    lockstep: bool = typer.Option(False, "--lockstep", help="Each frame once the node's odometry of the previous one came back."),
+    frames: Optional[str] = typer.Option(None, "--frames", help="Frames to play, e.g. 0-49."),
+    stamp: str = typer.Option("sequence", "--stamp", help="Header stamps: 'sequence' (the source's) or 'now' (wall clock, for latency)."),
+    wait: float = typer.Option(20.0, "--wait", help="Seconds to wait for the node's subscriptions."),
+) -> None:
+    """Publish a bag or a sequence folder as live camera topics (images + CameraInfo)."""
+    if not ros2:
+        _fail(DynastereoError("play needs --ros2 (the ROS 1 player: python -m dynastereo.ros.player SEQUENCE)"))
+    _check_option("--rate", rate, rate is None or rate > 0, "a frame rate > 0 Hz")
+    _check_option("--stamp", stamp, stamp in ("sequence", "now"), "sequence or now")
+    from ..ros.dds import import_cyclonedds
+    from ..ros.ros2_player import Ros2Player, open_source
+
+    try:
+        import_cyclonedds()
+        seq, idx = open_source(source, frames)
+        player = Ros2Player(seq, idx)
+    except DynastereoError as e:
+        _fail(e)
+    if not player.wait_for_subscribers(wait):
+        console.print(f"no subscriber after {wait:g} s; publishing anyway", highlight=False)
+    log = player.play(rate, stamp=stamp, lockstep=lockstep)
+    s = log.summary()
+    out_console.print(f"published {s['published']} frames"
+                      + (f", {s['answered']} answered, {s['timeouts']} timed out" if lockstep else
+                         f" (late median {s['late_ms_median']:.1f} ms)"), highlight=False)
+    import time
+
+    time.sleep(0.5)  # reliable samples still in flight
+    player.close()
 
 
 @models_app.callback()

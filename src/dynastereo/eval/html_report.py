@@ -444,7 +444,7 @@ def _object_paths_section(rf: RunFiles) -> str:
     """Top view of the camera path with every object's path (``objects_tracks.csv``,
     coloured by the track's verdict: moving when the motion test said so in most of its
     frames), and speed over time per moving object."""
-    from ..slam.objects import MOVING_MIN_FRAMES, TRACKS_NAME, moving_tracks, read_tracks, track_verdict, verdict_rgb
+    from ..objects.world import MOVING_MIN_FRAMES, TRACKS_NAME, moving_tracks, read_tracks, track_verdict, verdict_rgb
 
     path = rf.root / TRACKS_NAME
     if not path.is_file():
@@ -485,7 +485,7 @@ def _object_paths_section(rf: RunFiles) -> str:
     html = ["<h2>Objects in the world</h2>",
             f"<p>{len(tracks)} tracked objects, {len(movers)} judged moving (moving in most of the frames the "
             f"motion test decided, seen in at least {MOVING_MIN_FRAMES} frames: "
-            "<code>dynastereo.slam.objects.moving_tracks</code>, <code>result.moving_objects</code>); "
+            "<code>dynastereo.objects.world.moving_tracks</code>, <code>result.moving_objects</code>); "
             "positions and velocities from "
             f"<code>{TRACKS_NAME}</code> (<code>objects.jsonl</code>: <code>world</code>, <code>velocity</code>, "
             "<code>speed</code>)</p>", _img(_png_of(fig), "objects' paths, top view")]

@@ -28,7 +28,7 @@ sequence frame index of each row, so that frames lost by tracking or revisited f
 still match the ground truth) and flushes after every row, so a crash mid-sequence
 keeps every row already written.
 
-Why not ``evo.tools.file_interface`` (checked for issue 25): its writers use
+Why not ``evo.tools.file_interface`` (checked): its writers use
 ``np.savetxt``'s ``%.18e`` (ours: ``%.9e`` KITTI, ``%.9f`` TUM, so the files would change)
 and write whole files only; its readers split on single spaces only (tabs, commas,
 repeated or trailing spaces, blank and indented-comment lines are refused), give one

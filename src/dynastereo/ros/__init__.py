@@ -8,8 +8,12 @@
 * :mod:`.core` -- :class:`StereoNodeCore`, the node's transport-agnostic logic.
 * :mod:`.ros1` -- the ``rospy`` adapter (``dynastereo_node``), :mod:`.player` -- a sequence
   published as live topics.  Both need ROS 1 (Debian: ``python3-rospy`` ...).
+* :mod:`.ros2` -- the ROS 2 node over DDS without rclpy (``dynastereo node --ros2``),
+  :mod:`.ros2_player` -- ``dynastereo play --ros2``, :mod:`.dds` -- ROS 2's wire types,
+  codecs and QoS over Cyclone DDS (the ``ros2`` extra).
 
-Nothing here imports ``rospy`` at import time; only :mod:`.ros1` and :mod:`.player` need it.
+Nothing here imports ``rospy`` or ``cyclonedds`` at import time; only :mod:`.ros1` and
+:mod:`.player` need the first, :mod:`.ros2` / :mod:`.ros2_player` the second.
 """
 
 from __future__ import annotations

@@ -43,7 +43,7 @@ class BagOutput:
         self._matcher = None
         self._prev: tuple[np.ndarray, int] | None = None
         self._path: tuple[list[np.ndarray], list[int]] = ([], [])
-        from ..slam.objects import ObjectPaths
+        from ..objects.world import ObjectPaths
 
         self._object_paths = ObjectPaths()
         self._system: Any = None  # the SLAM system of the frames written (for the final map)

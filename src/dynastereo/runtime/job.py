@@ -7,13 +7,14 @@ an earlier run there is cleared only once every input and option proved good):
    truth (read once: a bad ``--gt`` fails here), the map, cloud and recording files writable
    and none of them an input;
 2. the frames; the stereo pair (``io.stereo_check``);
-3. the masker (:func:`dynastereo.masking.build_masker`, which verifies the model), its
+3. the masker (:func:`~dynastereo.runtime.assembly.assemble_stages`, which verifies the model), its
    detector's first (slow, lazily initialized) inference made on a black frame;
-4. the SLAM system (its vocabulary, optionally a saved map: both read and checked here);
+4. the SLAM system (its vocabulary, optionally a saved map: both read and checked here), the
+   motion test and the objects' world tracker (:func:`~dynastereo.runtime.assembly.assemble_stages`,
+   the one assembly jobs and nodes share);
 5. the output folder: locked against a second job (``io.outputs.OutputLock``), then
    prepared (``io.outputs.prepare_output_dir``: an earlier run's files cleared);
-6. the motion test, the objects' world tracker, the sinks and observers (a bag's writer,
-   the viewer, the periodic stereo check).
+6. the sinks and observers (a bag's writer, the viewer, the periodic stereo check).
 
 Then the frame loop (:class:`~dynastereo.runtime.loop.FrameLoop`) and the job's last files
 (:mod:`dynastereo.runtime.finish`): whatever happens, they say how the job ended.
@@ -30,7 +31,7 @@ import logging
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from ..errors import as_interrupt
 from ..io.base import Sequence
@@ -39,6 +40,7 @@ from ..io.outputs import OutputLock, check_output_file, prepare_output_dir, refu
 from ..io.stereo_check import PeriodicStereoCheck, check_sequence
 from ..observers import FrameObserver
 from . import finish
+from .assembly import assemble_stages
 from .loop import FrameLoop, Progress
 from .processor import FrameProcessor
 from .results import BagRunResult, MaskJobResult, SlamJobResult, new_mask_timer, new_run_timer
@@ -46,9 +48,6 @@ from .sinks import (DisparitySink, MaskSink, ObjectsLogSink, ObserverSink, Overl
                     TrajectorySink)
 from .sources import SequenceSource, open_sequence_source
 from .spec import JobKind, JobSpec
-
-if TYPE_CHECKING:
-    from ..config import Config
 
 
 @dataclass
@@ -129,20 +128,24 @@ def _viewers(spec: JobSpec, observers: tuple[FrameObserver, ...], gt: Path | Non
 
     name = {JobKind.MASK: "dynastereo mask", JobKind.RUN: "dynastereo run"}[spec.kind]
     name += " --bag" if spec.source.bag is not None else ""
-    return viewers(observers, viewer=spec.outputs.viewer, rrd=spec.outputs.rrd, gt=gt, name=name)
+    positions = None
+    if gt is not None and (spec.outputs.viewer or spec.outputs.rrd is not None):
+        from ..eval.trajectory import read_trajectory
+
+        positions = read_trajectory(gt, name="ground truth").positions
+    return viewers(observers, viewer=spec.outputs.viewer, rrd=spec.outputs.rrd, gt=positions, name=name)
 
 
 def _checked_frames(spec: JobSpec, seq: Sequence, masker: Any = None) -> tuple[list[int], Any]:
     """(frame indices, masker), after the checks made before the first frame (module doc)."""
-    from ..masking import build_masker
-
     indices = select_frames(spec.frames, seq)
     if spec.stereo_check:
         check_sequence(seq, indices)
     # a bag has no synthetic ground truth: detector 'oracle' is refused by the masker factory
     truth = None if spec.source.bag is not None else getattr(seq, "path", None)
     if masker is None:
-        masker = build_masker(spec.config, seq.calibration, models_dir=spec.models_dir, ground_truth=truth)
+        masker = assemble_stages(spec.config, seq.calibration, slam=False, models_dir=spec.models_dir,
+                                 ground_truth=truth).masker
     c = getattr(seq, "calibration", None)
     if hasattr(masker, "warm_up") and c is not None:  # not in the frame loop: its FPS, a camera's first frames
         masker.warm_up(c.height, c.width)
@@ -173,19 +176,11 @@ def assemble(spec: JobSpec, seq: Sequence, observers: tuple[FrameObserver, ...],
     if spec.kind is JobKind.MASK:
         lock = _prepare_output(spec, None)
         return Job(spec, seq, indices, FrameProcessor(source, masker), observers=observers, lock=lock)
-    system, info = _slam_system(spec, seq)
-    lock = _prepare_output(spec, system)
-    try:
-        from ..masking.motion import build_motion
-
-        motion = build_motion(spec.config, seq.calibration, masker)
-        world = _world_objects(seq, masker, spec.config)
-    except BaseException:
-        lock.release()
-        system.shutdown()
-        raise
-    return Job(spec, seq, indices, FrameProcessor(source, masker, system=system, motion=motion, world=world),
-               observers=observers, map_info=info, lock=lock)
+    st = assemble_stages(spec.config, getattr(seq, "calibration", None), masker=masker, load_map=spec.load_map,
+                         localize_only=spec.localize_only)
+    lock = _prepare_output(spec, st.system)
+    proc = FrameProcessor(source, st.masker, system=st.system, motion=st.motion, world=st.world)
+    return Job(spec, seq, indices, proc, observers=observers, map_info=st.map_info, lock=lock)
 
 
 def open_outputs(job: Job) -> None:
@@ -223,30 +218,6 @@ def _open_run_sinks(sinks: list[Sink], spec: JobSpec, masker: Any, world: Any) -
         sinks.append(MaskSink(out))
     if masker is not None:
         sinks.append(ObjectsLogSink(out))
-
-
-def _slam_system(spec: JobSpec, seq: Sequence) -> tuple[Any, dict]:
-    """The SLAM system for ``seq`` (from ``spec.load_map`` when given) and run.json's ``map`` entry."""
-    from ..slam import System
-
-    system = System(spec.config, seq.calibration)
-    if spec.load_map is None:
-        return system, {}
-    try:
-        system.load_map(spec.load_map, localize_only=spec.localize_only)
-    except BaseException:
-        system.shutdown()
-        raise
-    return system, {"loaded": str(spec.load_map), "localize_only": bool(spec.localize_only)}
-
-
-def _world_objects(seq: Sequence, masker: Any, cfg: Config) -> Any:
-    """The objects' world tracker of a masked run (slam.objects), or None."""
-    if masker is None or getattr(seq, "calibration", None) is None:
-        return None
-    from ..slam.objects import WorldObjects
-
-    return WorldObjects.from_config(seq.calibration, cfg)
 
 
 def _close_sinks(job: Job) -> None:

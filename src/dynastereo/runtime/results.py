@@ -59,8 +59,8 @@ class SlamJobResult:
     @property
     def moving_objects(self) -> list[int]:
         """The track ids of the objects judged moving (``objects_tracks.csv``;
-        :func:`dynastereo.slam.objects.moving_tracks`, the report's count); [] without tracks."""
-        from ..slam.objects import TRACKS_NAME, moving_tracks, read_tracks
+        :func:`dynastereo.objects.world.moving_tracks`, the report's count); [] without tracks."""
+        from ..objects.world import TRACKS_NAME, moving_tracks, read_tracks
 
         path = Path(self.out) / TRACKS_NAME
         if not path.is_file():

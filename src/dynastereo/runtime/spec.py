@@ -146,7 +146,7 @@ class SourceSpec:
 
 @dataclass(frozen=True)
 class OutputSpec:
-    """Where the results go and which are written (see README "Outputs")."""
+    """Where the results go and which are written (docs/guide/outputs.md)."""
 
     dir: Path
     overwrite: bool = True  # clear an earlier run's outputs there (False: refuse)

@@ -8,7 +8,7 @@ point id)`` with an alive flag and per-point lists; each keyframe keeps, per key
 its point id and its observation row.  The map keeps what links keyframes and points
 (adding / erasing observations, culling, fusing, normals and descriptors, frustum
 tests) and works on the tables' arrays at once.  ``to_arrays()`` / ``from_arrays()``
-are the map-file entries (``docs/map_format.md``; ``map_io`` writes the container).
+are the map-file entries (``docs/reference/map-format.md``; ``map_io`` writes the container).
 """
 
 from __future__ import annotations
@@ -311,7 +311,7 @@ class Map:
     @staticmethod
     def entries() -> dict[str, tuple[np.dtype, tuple]]:
         """Map-file entry -> (dtype, shape with the header's count names), in file order
-        (``docs/map_format.md``)."""
+        (``docs/reference/map-format.md``)."""
         return {"map/scales": _OWN_ENTRIES["map/scales"], **MapPoints.entries(), **Observations.entries(),
                 **_OWN_ENTRIES}
 

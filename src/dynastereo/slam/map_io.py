@@ -11,7 +11,7 @@ ORB settings, disparity offset, free-form meta) and one ``.npy`` entry per array
 length; keyframes are packed into concatenated per-keypoint arrays with offsets, the
 covisibility graph is an edge list.  No pickle anywhere: every entry is read with
 ``allow_pickle=False``.  The layout, dtypes, units, frames and the versioning policy
-are documented in ``docs/map_format.md``.
+are documented in ``docs/reference/map-format.md``.
 
 This module is the container only: the header (format, version, counts, calibration,
 ORB settings, disparity offset, vocabulary / bag-of-words descriptors, meta), the zip
@@ -155,6 +155,37 @@ def _npy_bytes(a: np.ndarray) -> bytes:
 # ----------------------------------------------------------------------- save
 def _collect(mf: MapFile) -> tuple[dict, dict[str, np.ndarray]]:
     """(header, arrays) of a map file; raises ValueError / TypeError for a bad MapFile."""
+    off, orb = _check_map_file(mf)
+    mp, calib = mf.map, mf.calibration
+    arrays = mp.to_arrays()
+    header_counts = Map.counts_of(arrays)
+    bow_hdr = _bow_arrays(mf, arrays, header_counts)  # optional: bag of words per keyframe
+    vocab_hdr = _vocabulary_arrays(mf, arrays)  # optional: the vocabulary's arrays
+    meta = dict(mf.meta or {})
+    meta.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+    meta.setdefault("dynastereo_version", __version__)
+    header = {
+        "format": FORMAT,
+        "version": VERSION,
+        "counts": header_counts,
+        "next_kf_id": int(mp.next_kf_id),
+        "calibration": _calib_dict(calib),
+        "disparity_offset": off,
+        "orb": orb,
+        "vocabulary": vocab_hdr,
+        "bow": bow_hdr,
+        "meta": meta,
+    }
+    try:
+        json.dumps(header, default=_json_default, allow_nan=False)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"map file header (meta / orb) is not JSON data: {e}") from None
+    return header, arrays
+
+
+def _check_map_file(mf: MapFile) -> tuple[float, dict]:
+    """``(disparity offset, ORB settings)`` of a map file whose map, calibration, offset and
+    ORB settings agree; raises ValueError / TypeError otherwise."""
     mp, calib = mf.map, mf.calibration
     if not isinstance(mp, Map):
         raise TypeError(f"MapFile.map must be a dynastereo.slam.map.Map, got {type(mp).__name__}")
@@ -177,9 +208,13 @@ def _collect(mf: MapFile) -> tuple[dict, dict[str, np.ndarray]]:
     for kf in mp.keyframes.values():
         if not _same_calib(kf.calib, calib):
             raise ValueError(f"keyframe {kf.id} has another calibration than MapFile.calibration")
-    arrays = mp.to_arrays()
-    header_counts = Map.counts_of(arrays)
-    # optional: bag of words per keyframe
+    return off, orb
+
+
+def _bow_arrays(mf: MapFile, arrays: dict[str, np.ndarray], header_counts: dict) -> dict | None:
+    """The keyframes' bags of words (``mf.bow``) added to ``arrays`` and their counts to
+    ``header_counts``; returns the header's ``bow`` entry (None without them)."""
+    mp = mf.map
     bow_hdr = None
     if mf.bow is not None:
         ids = [int(k) for k in mf.bow]
@@ -205,7 +240,12 @@ def _collect(mf: MapFile) -> tuple[dict, dict[str, np.ndarray]]:
         header_counts["bow_keyframes"] = len(ids)
         header_counts["bow_entries"] = int(boff[-1])
         bow_hdr = {"words_dtype": str(arrays["bow/words"].dtype), "weights_dtype": str(arrays["bow/weights"].dtype)}
-    # optional: the vocabulary's arrays
+    return bow_hdr
+
+
+def _vocabulary_arrays(mf: MapFile, arrays: dict[str, np.ndarray]) -> dict | None:
+    """The vocabulary's arrays (``mf.vocabulary``) added to ``arrays``; returns the header's
+    ``vocabulary`` entry (None without one)."""
     vocab_hdr = None
     if mf.vocabulary is not None:
         va = mf.vocabulary.to_arrays()
@@ -220,26 +260,7 @@ def _collect(mf: MapFile) -> tuple[dict, dict[str, np.ndarray]]:
             arrays[f"vocab/{key}"] = a
         t = type(mf.vocabulary)
         vocab_hdr = {"class": f"{t.__module__}.{t.__qualname__}", "entries": list(va)}
-    meta = dict(mf.meta or {})
-    meta.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
-    meta.setdefault("dynastereo_version", __version__)
-    header = {
-        "format": FORMAT,
-        "version": VERSION,
-        "counts": header_counts,
-        "next_kf_id": int(mp.next_kf_id),
-        "calibration": _calib_dict(calib),
-        "disparity_offset": off,
-        "orb": orb,
-        "vocabulary": vocab_hdr,
-        "bow": bow_hdr,
-        "meta": meta,
-    }
-    try:
-        json.dumps(header, default=_json_default, allow_nan=False)
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"map file header (meta / orb) is not JSON data: {e}") from None
-    return header, arrays
+    return vocab_hdr
 
 
 def save_map(path: str | os.PathLike, mf: MapFile) -> None:
