@@ -157,3 +157,24 @@ def test_the_api_refuses_an_earlier_run_by_default(earlier) -> None:
         run_sequence(seq, out, Config().with_overrides({"masker.kind": "none"}), stereo_check=False)
     assert _digest(out) == before
     assert json.loads((out / "run.json").read_text())["status"] == "done"
+
+
+def test_synth_checks_its_options_before_it_clears_an_earlier_sequence(tmp_path: Path) -> None:
+    out = tmp_path / "syn"
+    assert cli(["synth", out, "--frames", 3, "--size", "64x32"], tmp_path).returncode == 0
+    before = _digest(out)
+    for bad, needle in ((["--scenario", "nope"], "unknown scenario"), (["--frames", 10**9], "--frames"),
+                        (["--size", "100000x100000"], "--size")):
+        assert_one_line(cli(["synth", out, "--overwrite", *bad], tmp_path), 2, needle)
+        assert _digest(out) == before, bad
+
+
+def test_gt_refuses_to_write_over_the_ground_truth_it_reads(kitti06: Path, tmp_path: Path) -> None:
+    root = tmp_path / "k"
+    seq = mini06(kitti06, root / "sequences" / "06")
+    (root / "poses").mkdir()
+    poses = root / "poses" / "06.txt"
+    poses.write_bytes((kitti06.parents[1] / "poses" / "06.txt").read_bytes())
+    before = poses.read_bytes()
+    assert_one_line(cli(["gt", seq, "--out", poses, "--format", "kitti"], tmp_path), 2, "--out", "input")
+    assert poses.read_bytes() == before

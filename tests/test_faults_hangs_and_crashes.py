@@ -241,3 +241,23 @@ def test_the_missing_default_model_names_every_way_to_supply_it(tmp_path: Path) 
     msg = str(e.value)
     assert "yolox-nano" in msg and "dynastereo models download yolox-nano" in msg
     assert "--models-dir" in msg and "$DYNASTEREO_MODELS" in msg and "\n" not in msg
+
+
+def test_a_run_that_lost_every_frame_does_not_end_as_done(kitti06: Path, tmp_path: Path, monkeypatch) -> None:
+    """Its files are written as they are, but the command says that nothing was tracked and
+    exits 1 (a map that fits nothing, black images) instead of "done"."""
+    from typer.testing import CliRunner
+
+    import dynastereo.runtime as runtime
+    from dynastereo.cli.main import app
+    from dynastereo.runtime.results import SlamJobResult, new_run_timer
+
+    def all_lost(spec, progress=None, **kw):
+        return SlamJobResult(spec.outputs.dir, np.zeros((5, 3, 4)), list(range(5)), {}, new_run_timer(), 1.0, 5.0,
+                             lost=list(range(5)))
+
+    monkeypatch.setattr(runtime, "run", all_lost)
+    seq = mini06(kitti06, tmp_path / "seq", 2)
+    r = CliRunner().invoke(app, ["run", str(seq), "--out", str(tmp_path / "out"), "--masker", "none"])
+    assert r.exit_code == 1, r.output
+    assert "every one of the 5 frames was lost" in r.output

@@ -107,7 +107,7 @@ def test_bag_header_stamps_that_jump_back_do_not_shuffle_the_frames(kitti06: Pat
             w.write(DEFAULT_RIGHT_INFO, t, b.camera_info(infos[1], head, DEFAULT_RIGHT_FRAME, seq=k))
     with caplog.at_level(logging.WARNING):
         s = BagStereoSequence(bag)
-    assert "jump back" in caplog.text and s.report.stamps == "bag time"
+    assert "jump back" in caplog.text and s.report.stamps == "bag time" and "receive" in s.timestamp_source
     assert len(s) == n and np.all(np.diff(s.timestamps()) > 0)
     for k in (1, 5, 6):
         assert np.array_equal(s.frame(k).left, seq.frame(k).left), k
@@ -230,3 +230,28 @@ def test_an_orbslam2_config_whose_camera_contradicts_the_calibration_is_named(ki
     p.write_text(f"%YAML:1.0\nCamera.fx: {fx}\nCamera.fy: {fx}\nCamera.cx: 600.0\nCamera.cy: 180.0\n"
                  f"Camera.bf: {fx * calib.baseline}\n")
     assert settings_disagreement(p, calib, kitti06 / "calib.txt") is None
+
+
+def test_kitti_raw_left_and_right_stamps_that_disagree_are_refused(data_dir: Path, tmp_path: Path) -> None:
+    """A drive whose right camera's timestamps.txt is another cut (shifted by half a frame
+    from pair 3 on): its images would be paired across time."""
+    from dynastereo.errors import SequenceError
+    from dynastereo.io import open_sequence
+
+    src = data_dir / "kitti_raw" / "2011_09_26"
+    drive = tmp_path / "2011_09_26" / "2011_09_26_drive_0001_sync"
+    for f in src.glob("calib_*.txt"):
+        (tmp_path / "2011_09_26").mkdir(exist_ok=True)
+        shutil.copy(f, tmp_path / "2011_09_26" / f.name)
+    for cam in ("image_00", "image_01"):
+        (drive / cam).mkdir(parents=True)
+        (drive / cam / "data").symlink_to(src / drive.name / cam / "data")
+        shutil.copy(src / drive.name / cam / "timestamps.txt", drive / cam / "timestamps.txt")
+    assert len(open_sequence(drive)) == 108  # as it is: fine
+    lines = (drive / "image_01" / "timestamps.txt").read_text().splitlines()
+    half = np.timedelta64(50_000_000, "ns")
+    shifted = [str(np.datetime64(ln.replace(" ", "T")) + half).replace("T", " ") if k >= 3 else ln
+               for k, ln in enumerate(lines)]
+    (drive / "image_01" / "timestamps.txt").write_text("\n".join(shifted) + "\n")
+    with pytest.raises(SequenceError, match=r"image_01/timestamps\.txt: the left and right stamps of pair 3 differ"):
+        open_sequence(drive)

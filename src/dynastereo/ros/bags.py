@@ -483,6 +483,8 @@ class BagStereoSequence:
                         "(receive) time instead", self.path, back)
             for m in lmsgs + rmsgs:
                 m.stamp_ns = m.bag_ns
+        if self._bag_time_stamps:  # run.json's "timestamps" says where they came from
+            self.timestamp_source = "bag (receive) time of the left images"
         lmsgs.sort(key=lambda m: (m.stamp_ns, m.bag_ns))
         rmsgs.sort(key=lambda m: (m.stamp_ns, m.bag_ns))
         lns = np.array([m.stamp_ns for m in lmsgs], np.int64)
