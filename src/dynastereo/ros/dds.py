@@ -14,7 +14,7 @@ node; ``rmw_fastrtps_cpp`` nodes reach it through RTPS as well.
 * :func:`encode` -- a message's serialized bytes.  The image-carrying messages (``Image``,
   ``CompressedImage``, ``PointCloud2``, ``DisparityImage``) are written here with numpy
   (:class:`CdrWriter`: the pixels are copied once, at memory speed); the others, small,
-  by cyclonedds' own serializer.  ``tests/test_ros2.py`` checks both against rosbags' ROS 2
+  by cyclonedds' own serializer.  ``tests/test_ros2_node.py`` checks both against rosbags' ROS 2
   serializer, byte for byte.
 * :func:`decode_image` / :func:`decode_compressed` -- the received image messages as numpy
   views of the sample's bytes (cyclonedds' generic decoder would make a Python list of

@@ -222,6 +222,9 @@ def live(kitti06: Path, models_dir: Path, tmp_path_factory) -> dict:
         disc_t = dds.discovery_types(24)[2]
         disc = dom.reader("", disc_t, dds.QosKind.LATCHED, dds_name="ros_discovery_info")
         assert player.wait_for_subscribers(90), "the node did not subscribe within 90 s:\n" + log_path.read_text()
+        end = time.monotonic() + 30
+        while not (player.pub_li.matched() and player.pub_ri.matched()) and time.monotonic() < end:
+            time.sleep(0.05)  # the CameraInfo subscriptions too (the player waits for the images' only)
         # bad inputs first: a CameraInfo of zeros, and a String on an image topic
         zero = {"width": 1226, "height": 370, "distortion_model": "plumb_bob", "D": np.zeros(5), "K": np.zeros(9),
                 "R": np.zeros(9), "P": np.zeros(12)}
