@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -26,6 +27,8 @@ from .spec import JobSpec
 if TYPE_CHECKING:  # pragma: no cover
     from .job import Job
     from .loop import FrameLoop
+
+log = logging.getLogger("dynastereo.mesh")
 
 
 def resolve_ground_truth(gt: str | Path | None, sequence: Any) -> Path | None:
@@ -110,6 +113,29 @@ def _save_map_and_cloud(job: "Job", n_done: int) -> dict:
     return map_out
 
 
+def save_mesh(job: "Job") -> dict:
+    """The static world's mesh (``--save-mesh``) and dense cloud (``--save-dense-cloud``),
+    fused at the final poses (the SLAM shut down: its last BA done) from the keyframes the
+    run kept (:mod:`dynastereo.mesh`); run.json's ``mesh`` entry.  Built after the frame
+    loop: tracking never waits for it."""
+    from ..mesh import fuse_system, write_cloud_ply, write_mesh_ply
+
+    o, rec = job.spec.outputs, job.mesh_recorder
+    res = fuse_system(rec, job.processor.system, job.sequence.calibration, job.spec.config)
+    info = res.stats.to_dict()
+    if o.save_mesh is not None:
+        write_mesh_ply(o.save_mesh, res.mesh)
+        info["file"] = str(o.save_mesh)
+    if o.save_dense_cloud is not None:
+        write_cloud_ply(o.save_dense_cloud, res.mesh)
+        info["dense_cloud"] = str(o.save_dense_cloud)
+    s = res.stats
+    log.info("mesh: %d vertices, %d triangles from %d keyframes (%.1f MB of voxels, %.2f s CPU) -> %s",
+             s.vertices, s.triangles, s.keyframes, s.voxel_bytes / 1e6, s.disparity_s + s.fusion_s + s.marching_s,
+             o.save_mesh or o.save_dense_cloud)
+    return info
+
+
 def _write_final_trajectory(out: Path, poses: np.ndarray, stamps: np.ndarray, done: list[int]) -> None:
     """The trajectory files again, with the final (bundle-adjusted) poses of the frames done."""
     from ..eval.trajectory import FRAMES_NAME, write_kitti, write_tum
@@ -151,6 +177,7 @@ def run_record(job: "Job", n_done: int, stats: dict, map_out: dict, fps: float, 
         "loops": [e.to_dict() for e in system.loops()] if n_done else [],
         "recoveries": [dataclasses.asdict(r) for r in system.recoveries()] if n_done else [],
         "map": map_out,
+        **({"mesh": job.mesh_info} if job.mesh_info else {}),
         "fps": round(fps, 3),
         "wall_s": round(wall, 3),
         "config": to_dict(job.spec.config),
@@ -180,6 +207,12 @@ def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> SlamJobResul
             _write_final_trajectory(out, poses, stamps, job.frames[:n_done])
         except OutputError as e:
             late, error = e, f"{type(e).__name__}: {e}"
+    if job.mesh_recorder is not None and n_done:
+        try:
+            job.mesh_info = save_mesh(job)
+        except OutputError as e:
+            job.mesh_info = {"error": str(e)}
+            late, error = late or e, error or f"{type(e).__name__}: {e}"
     stats = system.stats().to_dict() if n_done else {}
     try:
         timer.write(out / "timing.json", summary_extra={"fps": round(fps, 3)}, wall_s=round(wall, 3),
@@ -194,7 +227,8 @@ def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> SlamJobResul
     if "save_error" in map_out and first_error is None:  # else the run's own error is the one raised
         raise DynastereoError(f"{job.spec.outputs.save_map}: saving the map failed ({map_out['save_error']})")
     lost = system.lost_frames() if n_done else []
-    return SlamJobResult(out, poses, list(job.frames[:n_done]), stats, timer, wall, fps, lost)
+    return SlamJobResult(out, poses, list(job.frames[:n_done]), stats, timer, wall, fps, lost,
+                         mesh=job.mesh_info or None)
 
 
 def _write_run_json(job: "Job", loop: "FrameLoop", error: str | None, stats: dict, map_out: dict, fps: float,

@@ -37,7 +37,7 @@ from . import finish
 from .loop import FrameLoop, Progress
 from .processor import FrameProcessor
 from .results import BagRunResult, MaskJobResult, SlamJobResult, new_mask_timer, new_run_timer
-from .sinks import (DisparitySink, MaskSink, ObjectsLogSink, ObserverSink, OverlaySink, Sink, TracksSink,
+from .sinks import (DisparitySink, MaskSink, MeshSink, ObjectsLogSink, ObserverSink, OverlaySink, Sink, TracksSink,
                     TrajectorySink)
 from .sources import SequenceSource, open_sequence_source
 from .spec import JobKind, JobSpec
@@ -58,6 +58,8 @@ class Job:
     observers: tuple[FrameObserver, ...] = ()
     bag_output: Any = None  # ros.bagrun.BagOutput
     map_info: dict = field(default_factory=dict)
+    mesh_recorder: Any = None  # mesh.KeyframeRecorder (--save-mesh / --save-dense-cloud)
+    mesh_info: dict = field(default_factory=dict)  # run.json's "mesh"
 
 
 def run(spec: JobSpec, *, progress: Progress | None = None, observers: tuple[FrameObserver, ...] = (),
@@ -105,6 +107,10 @@ def _checked_frames(spec: JobSpec, seq: Sequence, masker: Any = None) -> tuple[l
         check_output_file(o.save_map, what="map file")
     if o.save_cloud is not None:
         check_output_file(o.save_cloud, what="point cloud file")
+    if o.save_mesh is not None:
+        check_output_file(o.save_mesh, what="mesh file")
+    if o.save_dense_cloud is not None:
+        check_output_file(o.save_dense_cloud, what="dense cloud file")
     indices = select_frames(spec.frames, seq)
     if spec.stereo_check:
         check_sequence(seq, indices)
@@ -143,6 +149,11 @@ def open_outputs(job: Job) -> None:
     spec, proc = job.spec, job.processor
     finish.reserve_run_json(spec.outputs.dir, spec, len(job.frames))
     _open_run_sinks(job.sinks, spec, proc.masker, proc.world)
+    if spec.outputs.mesh_wanted:
+        from ..mesh import KeyframeRecorder
+
+        job.mesh_recorder = KeyframeRecorder()
+        job.sinks.append(MeshSink(job.mesh_recorder))
     if spec.source.bag is not None:
         from ..ros.bagrun import open_bag_output
 

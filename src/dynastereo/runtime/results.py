@@ -51,6 +51,7 @@ class SlamJobResult:
     lost: list[int] = field(default_factory=list)  # positions (in the order fed) of lost frames
     report: Path | None = None  # the HTML report, when one was asked for
     bag: dict[str, Any] | None = None  # a bag run: pairing and output counts (bag.json)
+    mesh: dict[str, Any] | None = None  # --save-mesh / --save-dense-cloud: run.json's "mesh"
 
     @property
     def summary(self) -> dict[str, dict[str, float]]:

@@ -1,0 +1,188 @@
+"""The dense, mover-free mesh of the static world: keyframes in, a triangle mesh out.
+
+:class:`KeyframeRecorder` keeps, for each keyframe tracked, its stereo pair and the mask of
+what must stay out of the map: every object judged moving or not yet judged in that frame
+(the masks SLAM got) and every object whose track was judged moving at any frame of the
+run (a car that was still when first seen and drove off later).  It keeps references, no
+copies: the frame loop pays nothing.  Parked cars stay, as part of the street.
+
+:func:`fuse` runs once the poses are final (after the last BA and any loop closure): per
+keyframe the full-frame disparity (the ``stereo`` matcher; ``mesh.confidence`` as its
+uniqueness margin), the movers' masks grown by ``mesh.mask_margin``, pixels on disparity
+edges (``mesh.max_step``) and outside ``[min_depth, max_depth]`` dropped, the rig's
+disparity offset (the SLAM's self-calibration) applied; then TSDF fusion at the final
+keyframe poses and marching cubes (:mod:`.tsdf`).  World frame: the first camera's, as
+the trajectory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..config import Config, MeshConfig
+from ..datatypes import StereoCalibration, StereoMasks
+from .tsdf import Mesh, TSDFVolume
+
+log = logging.getLogger("dynastereo.mesh")
+
+
+@dataclass
+class KeyframeView:
+    """One keyframe's inputs to the fusion: its images, what to leave out."""
+
+    position: int  # in the order fed (the trajectory's row)
+    left: np.ndarray  # grey or BGR: the colour
+    right: np.ndarray
+    mask: np.ndarray | None  # uint8 255 = a mover (moving or not yet judged): left out
+    labels: np.ndarray | None = None  # int32 instance labels (k + 1 = tracks[k]), for the run's movers
+    tracks: np.ndarray | None = None  # int64 track id per object
+
+
+@dataclass
+class MeshStats:
+    """What the fusion did (run.json's ``mesh`` entry, the log line)."""
+
+    keyframes: int = 0
+    vertices: int = 0
+    triangles: int = 0
+    blocks: int = 0
+    voxel_bytes: int = 0  # the voxel grid's peak memory
+    disparity_s: float = 0.0  # CPU seconds
+    fusion_s: float = 0.0
+    marching_s: float = 0.0
+    masked: bool = True
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        for k in ("disparity_s", "fusion_s", "marching_s"):
+            d[k] = round(d[k], 3)
+        return d
+
+
+@dataclass
+class DenseResult:
+    mesh: Mesh
+    stats: MeshStats
+
+
+class KeyframeRecorder:
+    """The keyframes of a run and the tracks judged moving (module doc)."""
+
+    def __init__(self) -> None:
+        self.views: list[KeyframeView] = []
+        self.moving_tracks: set[int] = set()
+
+    def add(self, position: int, left: np.ndarray, right: np.ndarray, masks: StereoMasks | None,
+            slam_masks: StereoMasks | None, keyframe: bool) -> None:
+        """One frame: the movers' track ids from its verdicts; its images when a keyframe."""
+        objs = masks.objects if masks is not None else []
+        self.moving_tracks.update(o.track_id for o in objs if o.moving and o.track_id >= 0)
+        if not keyframe:
+            return
+        tracks = np.array([o.track_id for o in objs], np.int64) if objs else None
+        labels = masks.labels_left if masks is not None and tracks is not None else None
+        self.views.append(KeyframeView(position, left, right, None if slam_masks is None else slam_masks.left,
+                                       labels, tracks))
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    def leave_out(self, view: KeyframeView) -> np.ndarray | None:
+        """The pixels of ``view`` kept out of the map: its movers' mask, plus the objects of
+        tracks judged moving at any frame (None: nothing)."""
+        mask = view.mask
+        if view.labels is None or view.tracks is None or not self.moving_tracks:
+            return mask
+        ever = np.isin(view.tracks, np.fromiter(self.moving_tracks, np.int64))
+        if not ever.any():
+            return mask
+        lut = np.zeros(len(view.tracks) + 1, bool)
+        lut[1:] = ever
+        extra = lut[np.clip(view.labels, 0, len(view.tracks))]
+        out = np.zeros(view.labels.shape, np.uint8) if mask is None else mask.copy()
+        out[extra] = 255
+        return out
+
+
+def keyframe_depth(view: KeyframeView, mask: np.ndarray | None, calib: StereoCalibration, matcher: Any,
+                   cfg: MeshConfig, disparity_offset: float = 0.0) -> np.ndarray:
+    """Depth (float32 m, 0 = none) of the keyframe's static pixels (module doc)."""
+    lg = view.left if view.left.ndim == 2 else cv2.cvtColor(view.left, cv2.COLOR_BGR2GRAY)
+    rg = view.right if view.right.ndim == 2 else cv2.cvtColor(view.right, cv2.COLOR_BGR2GRAY)
+    d = matcher.compute(lg, rg)
+    valid = d > 0
+    d = d + np.float32(disparity_offset)
+    # disparity edges: a 3x3 neighbourhood whose valid disparities spread more than max_step
+    k = np.ones((3, 3), np.uint8)
+    hi = cv2.dilate(np.where(valid, d, 0).astype(np.float32), k)
+    lo = cv2.erode(np.where(valid, d, 1e6).astype(np.float32), k)
+    valid &= (hi - lo) <= cfg.max_step
+    if mask is not None and mask.any():
+        m = mask > 0
+        if cfg.mask_margin > 0:
+            r = int(cfg.mask_margin)
+            m = cv2.dilate(m.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
+        valid &= ~m
+    with np.errstate(divide="ignore"):
+        z = np.where(valid & (d > 0), calib.bf / np.maximum(d, 1e-6), 0.0).astype(np.float32)
+    z[(z < cfg.min_depth) | (z > cfg.max_depth)] = 0.0
+    return z
+
+
+def mesh_matcher(config: Config):
+    """The stereo matcher of the mesh: the configured one over the full frame, with
+    ``mesh.confidence`` as its uniqueness margin."""
+    from ..masking.disparity import StereoMatcher
+
+    st = dataclasses.replace(config.stereo, region="full", uniqueness_ratio=int(config.mesh.confidence))
+    return StereoMatcher(st)
+
+
+def fuse(recorder: KeyframeRecorder, poses: np.ndarray, calib: StereoCalibration, config: Config, *,
+         disparity_offset: float = 0.0, masked: bool = True, ok: np.ndarray | None = None) -> DenseResult:
+    """The mesh of ``recorder``'s keyframes at ``poses`` ((N, 3, 4) camera-to-world, one per
+    frame fed: ``System.trajectory()``), module doc.  ``masked`` False: the movers are fused
+    too (the comparison the benchmark shows); ``ok``: per frame, whether it was tracked
+    (lost frames' predicted poses are not fused)."""
+    cfg = config.mesh
+    stats = MeshStats(masked=masked)
+    vol = TSDFVolume(cfg.voxel_size, cfg.truncation, cfg.min_weight)
+    matcher = mesh_matcher(config)
+    for view in recorder.views:
+        if view.position >= len(poses) or (ok is not None and not ok[view.position]):
+            continue
+        t0 = time.process_time()
+        depth = keyframe_depth(view, recorder.leave_out(view) if masked else None, calib, matcher, cfg,
+                               disparity_offset)
+        t1 = time.process_time()
+        vol.integrate(depth, view.left, calib.K, np.asarray(poses[view.position], np.float64))
+        t2 = time.process_time()
+        stats.disparity_s += t1 - t0
+        stats.fusion_s += t2 - t1
+        stats.keyframes += 1
+    t0 = time.process_time()
+    mesh = vol.mesh()
+    stats.marching_s = time.process_time() - t0
+    stats.vertices, stats.triangles = len(mesh.vertices), len(mesh.faces)
+    stats.blocks, stats.voxel_bytes = vol.n_blocks, vol.peak_bytes
+    return DenseResult(mesh, stats)
+
+
+def fuse_system(recorder: KeyframeRecorder, system: Any, calib: StereoCalibration, config: Config, *,
+                masked: bool = True) -> DenseResult:
+    """:func:`fuse` at a SLAM system's final poses (after its shutdown: the last BA done)."""
+    poses = system.trajectory()
+    ok = np.array([str(s.status) in ("tracked", "init") for s in system.results()], bool)
+    return fuse(recorder, poses, calib, config, disparity_offset=float(system.disparity_offset), masked=masked,
+                ok=ok)
+
+
+__all__ = ["KeyframeRecorder", "KeyframeView", "MeshStats", "DenseResult", "fuse", "fuse_system", "keyframe_depth",
+           "mesh_matcher"]
