@@ -111,23 +111,56 @@ class KeyframeRecorder:
         return out
 
 
+def downscale(img: np.ndarray, scale: int) -> np.ndarray:
+    if scale == 1:
+        return img
+    h, w = img.shape[:2]
+    return cv2.resize(img, (w // scale, h // scale), interpolation=cv2.INTER_AREA)
+
+
+def scaled_K(K: np.ndarray, scale: int) -> np.ndarray:
+    """The intrinsics of an image downscaled by ``scale`` (pixel centres kept)."""
+    Ks = np.array(K, np.float64)
+    Ks[0, 0] /= scale
+    Ks[1, 1] /= scale
+    Ks[0, 2] = (K[0, 2] + 0.5) / scale - 0.5
+    Ks[1, 2] = (K[1, 2] + 0.5) / scale - 0.5
+    return Ks
+
+
+def disparity_edges(d: np.ndarray, max_step: float) -> np.ndarray:
+    """Pixels next to a disparity jump: a second difference (across or along the rows)
+    above ``max_step`` -- zero on any plane, whatever its slant (a road's disparity
+    changes every row), the size of the jump at an object's border."""
+    edge = np.zeros(d.shape, bool)
+    valid = d > 0
+    for axis in (0, 1):
+        a = np.moveaxis(d, axis, 0)
+        ok = np.moveaxis(valid, axis, 0)
+        sec = np.abs(a[:-2] + a[2:] - 2.0 * a[1:-1])
+        bad = (sec > max_step) & ok[:-2] & ok[2:] & ok[1:-1]
+        jump = np.moveaxis(edge, axis, 0)
+        jump[1:-1] |= bad
+        jump[:-2] |= bad
+        jump[2:] |= bad
+    return edge
+
+
 def keyframe_depth(view: KeyframeView, mask: np.ndarray | None, calib: StereoCalibration, matcher: Any,
                    cfg: MeshConfig, disparity_offset: float = 0.0) -> np.ndarray:
-    """Depth (float32 m, 0 = none) of the keyframe's static pixels (module doc)."""
+    """Depth (float32 m, 0 = none) of the keyframe's static pixels at 1/``cfg.scale`` of
+    the image's resolution (module doc)."""
+    s = int(cfg.scale)
     lg = view.left if view.left.ndim == 2 else cv2.cvtColor(view.left, cv2.COLOR_BGR2GRAY)
     rg = view.right if view.right.ndim == 2 else cv2.cvtColor(view.right, cv2.COLOR_BGR2GRAY)
-    d = matcher.compute(lg, rg)
+    d = matcher.compute(downscale(lg, s), downscale(rg, s)) * np.float32(s)  # full-resolution pixels
     valid = d > 0
-    d = d + np.float32(disparity_offset)
-    # disparity edges: a 3x3 neighbourhood whose valid disparities spread more than max_step
-    k = np.ones((3, 3), np.uint8)
-    hi = cv2.dilate(np.where(valid, d, 0).astype(np.float32), k)
-    lo = cv2.erode(np.where(valid, d, 1e6).astype(np.float32), k)
-    valid &= (hi - lo) <= cfg.max_step
+    d[valid] += np.float32(disparity_offset)
+    valid &= ~disparity_edges(np.where(valid, d, 0), cfg.max_step)
     if mask is not None and mask.any():
-        m = mask > 0
-        if cfg.mask_margin > 0:
-            r = int(cfg.mask_margin)
+        m = downscale((mask > 0).astype(np.uint8) * 255, s) > 0
+        r = int(round(cfg.mask_margin / s))
+        if r > 0:
             m = cv2.dilate(m.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
         valid &= ~m
     with np.errstate(divide="ignore"):
@@ -137,12 +170,20 @@ def keyframe_depth(view: KeyframeView, mask: np.ndarray | None, calib: StereoCal
 
 
 def mesh_matcher(config: Config):
-    """The stereo matcher of the mesh: the configured one over the full frame, with
-    ``mesh.confidence`` as its uniqueness margin."""
+    """The stereo matcher of the mesh, for images downscaled by ``mesh.scale``:
+    ``mesh.algorithm`` / ``block_size`` (SGBM's P1 / P2 from the block), the disparity
+    range shrunk with the images, ``mesh.confidence`` its uniqueness margin, the other
+    settings from ``stereo``."""
+    from ..config import StereoConfig
     from ..masking.disparity import StereoMatcher
 
-    st = dataclasses.replace(config.stereo, region="full", uniqueness_ratio=int(config.mesh.confidence))
-    return StereoMatcher(st)
+    m, s = config.mesh, int(config.mesh.scale)
+    nd = max(16, -(-config.stereo.num_disparities // (16 * s)) * 16)
+    st = dataclasses.replace(config.stereo, algorithm=m.algorithm, block_size=m.block_size, p1=None, p2=None,
+                             uniqueness_ratio=int(m.confidence), region="full", wls=False, scale=1,
+                             num_disparities=nd, min_disparity=config.stereo.min_disparity // s,
+                             speckle_window_size=config.stereo.speckle_window_size // (s * s))
+    return StereoMatcher(StereoConfig(**dataclasses.asdict(st)))
 
 
 def fuse(recorder: KeyframeRecorder, poses: np.ndarray, calib: StereoCalibration, config: Config, *,
@@ -162,7 +203,8 @@ def fuse(recorder: KeyframeRecorder, poses: np.ndarray, calib: StereoCalibration
         depth = keyframe_depth(view, recorder.leave_out(view) if masked else None, calib, matcher, cfg,
                                disparity_offset)
         t1 = time.process_time()
-        vol.integrate(depth, view.left, calib.K, np.asarray(poses[view.position], np.float64))
+        vol.integrate(depth, downscale(view.left, cfg.scale), scaled_K(calib.K, cfg.scale),
+                      np.asarray(poses[view.position], np.float64))
         t2 = time.process_time()
         stats.disparity_s += t1 - t0
         stats.fusion_s += t2 - t1

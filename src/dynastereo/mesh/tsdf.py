@@ -31,6 +31,7 @@ B3 = BLOCK ** 3
 _OFF_B = 1 << 20  # block coordinates packed 21 bits each
 _OFF_V = 1 << 19  # voxel coordinates packed 20 bits each (edge keys)
 MAX_WEIGHT = 255.0
+MIN_INCIDENCE = 0.15  # a ray's distance shrinks to the plane's by at most this factor (~81 degrees)
 
 
 def block_keys(coords: np.ndarray) -> np.ndarray:
@@ -44,9 +45,9 @@ def key_coords(keys: np.ndarray) -> np.ndarray:
 
 
 @nb.njit(cache=True, nogil=True)
-def _touched_blocks(depth, stride, fx, fy, cx, cy, R, t, trunc, block_m, out):  # pragma: no cover - compiled
-    """Keys of the blocks around each valid pixel's surface point (at depth - trunc,
-    depth, depth + trunc along its ray); returns how many were written into ``out``."""
+def _touched_blocks(depth, incidence, stride, fx, fy, cx, cy, R, t, trunc, block_m, out):  # pragma: no cover
+    """Keys of the blocks along each valid pixel's ray within the truncation of its surface
+    (``trunc / incidence`` along the ray); returns how many were written into ``out``."""
     h, w = depth.shape
     n = 0
     for v in range(0, h, stride):
@@ -56,8 +57,10 @@ def _touched_blocks(depth, stride, fx, fy, cx, cy, R, t, trunc, block_m, out):  
                 continue
             rx = (u - cx) / fx
             ry = (v - cy) / fy
-            for s in range(3):
-                z = d + (s - 1) * trunc
+            band = trunc / incidence[v, u]
+            ns = int(np.ceil(2.0 * band / (0.9 * block_m))) + 1
+            for s in range(ns):
+                z = d - band + 2.0 * band * s / (ns - 1)
                 if z <= 0.0:
                     continue
                 px, py = rx * z, ry * z
@@ -73,7 +76,7 @@ def _touched_blocks(depth, stride, fx, fy, cx, cy, R, t, trunc, block_m, out):  
 
 
 @nb.njit(cache=True, nogil=True)
-def _integrate(blocks, coords, tsdf, weight, color, depth, image, fx, fy, cx, cy, Rcw, tcw, voxel,
+def _integrate(blocks, coords, tsdf, weight, color, depth, incidence, image, fx, fy, cx, cy, Rcw, tcw, voxel,
                trunc):  # pragma: no cover - compiled
     h, w = depth.shape
     ch = image.shape[2]
@@ -97,7 +100,7 @@ def _integrate(blocks, coords, tsdf, weight, color, depth, image, fx, fy, cx, cy
             d = depth[v, u]
             if d <= 0.0:
                 continue
-            sdf = d - z
+            sdf = (d - z) * incidence[v, u]  # along the ray -> to the surface's plane
             if sdf < -trunc:
                 continue
             val = min(1.0, sdf / trunc)
@@ -187,6 +190,27 @@ class Mesh:
         return len(self.vertices)
 
 
+def incidence(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float, step: int = 4) -> np.ndarray:
+    """Per pixel, |cos| of the angle between its ray and its surface's normal (from the
+    depth map's neighbours ``step`` px away; 1 where they are missing), at least
+    :data:`MIN_INCIDENCE`: a distance along the ray times it is the distance to the
+    surface's plane -- so a road seen at a grazing angle keeps a band of voxels behind it
+    as thick as a wall's (a projective distance alone leaves it a sliver, and no surface)."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    z = depth
+    P = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1)
+    out = np.ones((h, w), np.float32)
+    s = step
+    a, b = P[s:-s, 2 * s:] - P[s:-s, :-2 * s], P[2 * s:, s:-s] - P[:-2 * s, s:-s]
+    ok = (z[s:-s, 2 * s:] > 0) & (z[s:-s, :-2 * s] > 0) & (z[2 * s:, s:-s] > 0) & (z[:-2 * s, s:-s] > 0)
+    n = np.cross(a, b)
+    ray = P[s:-s, s:-s]
+    c = np.abs((n * ray).sum(-1)) / np.maximum(np.linalg.norm(n, axis=-1) * np.linalg.norm(ray, axis=-1), 1e-12)
+    out[s:-s, s:-s] = np.where(ok, np.maximum(c, MIN_INCIDENCE), 1.0)
+    return out
+
+
 class TSDFVolume:
     """The sparse volume (module doc); ``voxel_size`` and ``truncation`` in metres."""
 
@@ -249,8 +273,11 @@ class TSDFVolume:
         R = np.ascontiguousarray(pose[:3, :3], np.float64)
         t = np.ascontiguousarray(pose[:3, 3], np.float64)
         h, w = depth.shape
-        out = np.empty(3 * ((h + stride - 1) // stride) * ((w + stride - 1) // stride), np.int64)
-        n = _touched_blocks(depth, stride, fx, fy, cx, cy, R, t, self.trunc, self.block_m, out)
+        inc = incidence(depth, fx, fy, cx, cy)
+        band = self.trunc / MIN_INCIDENCE
+        per_px = int(np.ceil(2.0 * band / (0.9 * self.block_m))) + 1
+        out = np.empty(per_px * ((h + stride - 1) // stride) * ((w + stride - 1) // stride), np.int64)
+        n = _touched_blocks(depth, inc, stride, fx, fy, cx, cy, R, t, self.trunc, self.block_m, out)
         self._allocate(out[:n])
         if not self.n:
             return
@@ -260,7 +287,7 @@ class TSDFVolume:
         if not len(valid):
             return
         blocks = self._in_view(Rcw, tcw, fx, fy, cx, cy, w, h, float(valid.max()) + self.trunc)
-        _integrate(blocks, self.coords, self.tsdf, self.weight, self.color, depth, img, fx, fy, cx, cy, Rcw,
+        _integrate(blocks, self.coords, self.tsdf, self.weight, self.color, depth, inc, img, fx, fy, cx, cy, Rcw,
                    tcw, self.voxel, self.trunc)
 
     def _in_view(self, Rcw, tcw, fx, fy, cx, cy, w, h, z_max) -> np.ndarray:
