@@ -691,7 +691,8 @@ class MeshConfig:
     confidence: int = 15  # disparity confidence: the best match beats every other by this %, 0: all
     max_step: float = 2.0  # px: a second difference of the disparity above it marks an edge (flying pixels), left out
     mask_margin: int = 8  # px the movers' masks are grown by (half the matcher's block: its border bleed)
-    min_weight: int = 2  # observations a voxel needs to carry the surface
+    min_weight: int = 1  # observations a voxel needs to carry the surface
+    compare: bool = False  # also fuse the keyframes with the masks ignored: FILE_unmasked.ply, the report shows both
 
     def __post_init__(self) -> None:
         self.validate()

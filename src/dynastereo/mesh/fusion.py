@@ -58,10 +58,11 @@ class MeshStats:
     fusion_s: float = 0.0
     marching_s: float = 0.0
     masked: bool = True
+    compare_s: float = 0.0  # the unmasked comparison's fusion and marching cubes (mesh.compare)
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
-        for k in ("disparity_s", "fusion_s", "marching_s"):
+        for k in ("disparity_s", "fusion_s", "marching_s", "compare_s"):
             d[k] = round(d[k], 3)
         return d
 
@@ -70,6 +71,7 @@ class MeshStats:
 class DenseResult:
     mesh: Mesh
     stats: MeshStats
+    unmasked: Mesh | None = None  # the same keyframes fused with the masks ignored (compare)
 
 
 class KeyframeRecorder:
@@ -150,23 +152,36 @@ def keyframe_depth(view: KeyframeView, mask: np.ndarray | None, calib: StereoCal
                    cfg: MeshConfig, disparity_offset: float = 0.0) -> np.ndarray:
     """Depth (float32 m, 0 = none) of the keyframe's static pixels at 1/``cfg.scale`` of
     the image's resolution (module doc)."""
+    z, m = depth_and_movers(view, mask, calib, matcher, cfg, disparity_offset)
+    if m is not None:
+        z[m] = 0.0
+    return z
+
+
+def depth_and_movers(view: KeyframeView, mask: np.ndarray | None, calib: StereoCalibration, matcher: Any,
+                     cfg: MeshConfig, disparity_offset: float = 0.0) -> tuple[np.ndarray, np.ndarray | None]:
+    """(depth of every pixel, the movers' pixels grown by the margin or None) at
+    1/``cfg.scale`` resolution: :func:`keyframe_depth` before the mask is applied."""
     s = int(cfg.scale)
     lg = view.left if view.left.ndim == 2 else cv2.cvtColor(view.left, cv2.COLOR_BGR2GRAY)
     rg = view.right if view.right.ndim == 2 else cv2.cvtColor(view.right, cv2.COLOR_BGR2GRAY)
     d = matcher.compute(downscale(lg, s), downscale(rg, s)) * np.float32(s)  # full-resolution pixels
     valid = d > 0
+    # the left border, where the right image may not hold the match at all (the matcher's
+    # disparity range): a wrong match there is not told from a right one
+    valid[:, :matcher.cfg.num_disparities] = False
     d[valid] += np.float32(disparity_offset)
     valid &= ~disparity_edges(np.where(valid, d, 0), cfg.max_step)
+    m = None
     if mask is not None and mask.any():
         m = downscale((mask > 0).astype(np.uint8) * 255, s) > 0
         r = int(round(cfg.mask_margin / s))
         if r > 0:
             m = cv2.dilate(m.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
-        valid &= ~m
     with np.errstate(divide="ignore"):
         z = np.where(valid & (d > 0), calib.bf / np.maximum(d, 1e-6), 0.0).astype(np.float32)
     z[(z < cfg.min_depth) | (z > cfg.max_depth)] = 0.0
-    return z
+    return z, m
 
 
 def mesh_matcher(config: Config):
@@ -187,43 +202,61 @@ def mesh_matcher(config: Config):
 
 
 def fuse(recorder: KeyframeRecorder, poses: np.ndarray, calib: StereoCalibration, config: Config, *,
-         disparity_offset: float = 0.0, masked: bool = True, ok: np.ndarray | None = None) -> DenseResult:
+         disparity_offset: float = 0.0, masked: bool = True, ok: np.ndarray | None = None,
+         compare: bool = False) -> DenseResult:
     """The mesh of ``recorder``'s keyframes at ``poses`` ((N, 3, 4) camera-to-world, one per
     frame fed: ``System.trajectory()``), module doc.  ``masked`` False: the movers are fused
-    too (the comparison the benchmark shows); ``ok``: per frame, whether it was tracked
-    (lost frames' predicted poses are not fused)."""
+    too; ``compare``: both, the unmasked one in ``result.unmasked`` (the same disparity,
+    fused twice); ``ok``: per frame, whether it was tracked (lost frames' predicted poses
+    are not fused)."""
     cfg = config.mesh
     stats = MeshStats(masked=masked)
     vol = TSDFVolume(cfg.voxel_size, cfg.truncation, cfg.min_weight)
+    both = TSDFVolume(cfg.voxel_size, cfg.truncation, cfg.min_weight) if compare else None
     matcher = mesh_matcher(config)
+    K = scaled_K(calib.K, cfg.scale)
+    compare_s = 0.0
     for view in recorder.views:
         if view.position >= len(poses) or (ok is not None and not ok[view.position]):
             continue
         t0 = time.process_time()
-        depth = keyframe_depth(view, recorder.leave_out(view) if masked else None, calib, matcher, cfg,
-                               disparity_offset)
+        z, movers = depth_and_movers(view, recorder.leave_out(view) if (masked or compare) else None, calib,
+                                     matcher, cfg, disparity_offset)
+        img = downscale(view.left, cfg.scale)
+        pose = np.asarray(poses[view.position], np.float64)
         t1 = time.process_time()
-        vol.integrate(depth, downscale(view.left, cfg.scale), scaled_K(calib.K, cfg.scale),
-                      np.asarray(poses[view.position], np.float64))
+        if both is not None:
+            both.integrate(z, img, K, pose)
         t2 = time.process_time()
+        if masked and movers is not None:
+            z[movers] = 0.0
+        vol.integrate(z, img, K, pose)
+        t3 = time.process_time()
         stats.disparity_s += t1 - t0
-        stats.fusion_s += t2 - t1
+        stats.fusion_s += t3 - t2
+        compare_s += t2 - t1
         stats.keyframes += 1
     t0 = time.process_time()
     mesh = vol.mesh()
     stats.marching_s = time.process_time() - t0
     stats.vertices, stats.triangles = len(mesh.vertices), len(mesh.faces)
     stats.blocks, stats.voxel_bytes = vol.n_blocks, vol.peak_bytes
-    return DenseResult(mesh, stats)
+    unmasked = None
+    if both is not None:
+        t0 = time.process_time()
+        unmasked = both.mesh()
+        stats.compare_s = compare_s + time.process_time() - t0
+    return DenseResult(mesh, stats, unmasked)
 
 
 def fuse_system(recorder: KeyframeRecorder, system: Any, calib: StereoCalibration, config: Config, *,
                 masked: bool = True) -> DenseResult:
-    """:func:`fuse` at a SLAM system's final poses (after its shutdown: the last BA done)."""
+    """:func:`fuse` at a SLAM system's final poses (after its shutdown: the last BA done);
+    the unmasked comparison too with ``mesh.compare``."""
     poses = system.trajectory()
     ok = np.array([str(s.status) in ("tracked", "init") for s in system.results()], bool)
     return fuse(recorder, poses, calib, config, disparity_offset=float(system.disparity_offset), masked=masked,
-                ok=ok)
+                ok=ok, compare=bool(config.mesh.compare))
 
 
 __all__ = ["KeyframeRecorder", "KeyframeView", "MeshStats", "DenseResult", "fuse", "fuse_system", "keyframe_depth",

@@ -69,22 +69,32 @@ def _draw(sx, sy, sz, mesh: Mesh, light: np.ndarray, size: tuple[int, int]) -> n
     return out
 
 
-def render_top(mesh: Mesh, size: tuple[int, int] = (480, 640), bounds: tuple[float, float, float, float] | None = None,
-               ) -> np.ndarray:
-    """The mesh seen from above: x right, z (the first camera's forward) up; ``bounds``
-    ``(x0, x1, z0, z1)`` m (default: the mesh's, with a margin)."""
+def mesh_bounds(mesh: Mesh, margin: float = 1.0) -> tuple[float, float, float, float]:
+    """``(x0, x1, z0, z1)`` of the mesh from above, with ``margin`` m around."""
+    V = mesh.vertices
+    if not len(V):
+        return (-margin, margin, -margin, margin)
+    lo, hi = V.min(0), V.max(0)
+    return (float(lo[0]) - margin, float(hi[0]) + margin, float(lo[2]) - margin, float(hi[2]) + margin)
+
+
+def top_pixels(xz: np.ndarray, bounds: tuple[float, float, float, float], size: tuple[int, int]) -> np.ndarray:
+    """World (x, z) (N, 2) -> pixel (u, v) of :func:`render_top` with the same ``bounds``
+    and ``size``: the same scale on both axes, the bounds centred."""
     w, h = size
-    V = mesh.vertices.astype(np.float64)
-    if bounds is None:
-        lo = V.min(0) if len(V) else np.zeros(3)
-        hi = V.max(0) if len(V) else np.ones(3)
-        bounds = (lo[0] - 1, hi[0] + 1, lo[2] - 1, hi[2] + 1)
     x0, x1, z0, z1 = bounds
     s = max((x1 - x0) / w, (z1 - z0) / h)  # metres per pixel
     cx, cz = (x0 + x1) / 2, (z0 + z1) / 2
-    sx = (V[:, 0] - cx) / s + w / 2
-    sy = h / 2 - (V[:, 2] - cz) / s
-    return _draw(sx, sy, V[:, 1], mesh, np.array([0.3, -1.0, 0.2]), size)
+    return np.stack([(xz[:, 0] - cx) / s + w / 2, h / 2 - (xz[:, 1] - cz) / s], 1)
+
+
+def render_top(mesh: Mesh, size: tuple[int, int] = (480, 640), bounds: tuple[float, float, float, float] | None = None,
+               ) -> np.ndarray:
+    """The mesh seen from above: x right, z (the first camera's forward) up; ``bounds``
+    ``(x0, x1, z0, z1)`` m (default: :func:`mesh_bounds`)."""
+    V = mesh.vertices.astype(np.float64)
+    uv = top_pixels(V[:, [0, 2]], bounds or mesh_bounds(mesh), size)
+    return _draw(uv[:, 0], uv[:, 1], V[:, 1], mesh, np.array([0.3, -1.0, 0.2]), size)
 
 
 def render_camera(mesh: Mesh, K: np.ndarray, size: tuple[int, int], near: float = 0.5) -> np.ndarray:

@@ -107,10 +107,9 @@ def _integrate(blocks, coords, tsdf, weight, color, depth, incidence, image, fx,
             w0 = weight[bi, k]
             w1 = w0 + 1.0
             tsdf[bi, k] = (tsdf[bi, k] * w0 + val) / w1
-            if sdf <= trunc:  # colour from the surface, not from what lies behind free space
-                for c in range(3):
-                    g = image[v, u, c if ch == 3 else 0]
-                    color[bi, k, c] = np.uint8(min(255.0, (color[bi, k, c] * w0 + g) / w1 + 0.5))
+            for c in range(3):  # the colour of the surface the voxel's ray meets
+                g = image[v, u, c if ch == 3 else 0]
+                color[bi, k, c] = np.uint8(min(255.0, (color[bi, k, c] * w0 + g) / w1 + 0.5))
             weight[bi, k] = min(w1, MAX_WEIGHT)
 
 

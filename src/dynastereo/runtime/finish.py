@@ -123,12 +123,19 @@ def save_mesh(job: "Job") -> dict:
     o, rec = job.spec.outputs, job.mesh_recorder
     res = fuse_system(rec, job.processor.system, job.sequence.calibration, job.spec.config)
     info = res.stats.to_dict()
+    c = job.sequence.calibration
+    info["camera"] = {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width, "height": c.height}
     if o.save_mesh is not None:
         write_mesh_ply(o.save_mesh, res.mesh)
         info["file"] = str(o.save_mesh)
     if o.save_dense_cloud is not None:
         write_cloud_ply(o.save_dense_cloud, res.mesh)
         info["dense_cloud"] = str(o.save_dense_cloud)
+    if res.unmasked is not None:
+        first = Path(o.save_mesh or o.save_dense_cloud)
+        other = first.with_name(first.stem + "_unmasked.ply")
+        (write_mesh_ply if o.save_mesh is not None else write_cloud_ply)(other, res.unmasked)
+        info["unmasked_file"], info["unmasked_vertices"] = str(other), len(res.unmasked.vertices)
     s = res.stats
     log.info("mesh: %d vertices, %d triangles from %d keyframes (%.1f MB of voxels, %.2f s CPU) -> %s",
              s.vertices, s.triangles, s.keyframes, s.voxel_bytes / 1e6, s.disparity_s + s.fusion_s + s.marching_s,
