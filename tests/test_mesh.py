@@ -194,9 +194,10 @@ def test_pictures_show_the_mesh():
     cam = render_camera(mesh, CALIB.K, (W, H))
     assert top.shape == (300, 200, 3) and cam.shape == (H, W, 3)
     assert (top.sum(-1) != 120).mean() > 0.1  # not the background alone (a wedge of road)
-    # from the camera: the road below the horizon, nothing above it
+    # from the camera: the road from 15 m (row CY + F * HEIGHT / 15) down, nothing above the horizon
     lit = cam.sum(-1) != 120
-    assert lit[int(CY) + 20:].mean() > 0.8 and lit[: int(CY) - 2].mean() == 0
+    near = int(CY + F * HEIGHT / 15) + 2
+    assert lit[near:H - 10].mean() > 0.9 and lit[: int(CY) - 2].mean() == 0
 
 
 @pytest.mark.parametrize("key,value,words", [
