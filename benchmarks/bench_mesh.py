@@ -5,9 +5,9 @@ job, :func:`dynastereo.runtime.run`): the mesh it writes is the *masked* one.  T
 run's keyframes are tapped by an observer and fused again with the masks ignored
 (*unmasked*: the same keyframes, poses and settings) -- what the masks remove.
 
-**Synthetic scenes** with exact ground truth (``dynastereo.synth``; ``--scenarios``,
-default oncoming and crossing, ``--seeds``, ``--frames``; oracle boxes, the outline masker
-and the motion test, as a default run):
+**Synthetic scenes** with exact ground truth (``dynastereo.synth`` at KITTI's image size
+and focal length; ``--scenarios``, default oncoming and crossing, ``--seeds``, ``--frames``;
+oracle boxes, the outline masker and the motion test, as a default run):
 
 * the GT *static surface*: the GT disparity of the pixels outside every GT instance mask,
   within 20 m, back-projected with the GT poses (every frame; 5 cm grid); the *parked*
@@ -116,11 +116,14 @@ def generator_version() -> str:
     return h.hexdigest()[:10]
 
 
+SIZE = (1241, 376)  # KITTI's camera (fx 719 px, baseline 0.54 m): the mesh's defaults are for it
+
+
 def sequence(cache: Path, scenario: str, frames: int, seed: int) -> Path:
-    root = cache / f"{scenario}_n{frames}_s{seed}_640x192_{generator_version()}"
+    root = cache / f"{scenario}_n{frames}_s{seed}_{SIZE[0]}x{SIZE[1]}_{generator_version()}"
     if not (root / "done").is_file():
         shutil.rmtree(root, ignore_errors=True)
-        generate(root, scenario, frames=frames, seed=seed)
+        generate(root, scenario, frames=frames, seed=seed, size=SIZE)
         (root / "done").write_text("ok\n")
     return root / "sequences" / "00"
 
@@ -327,7 +330,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenarios", default="oncoming,crossing")
     ap.add_argument("--seeds", default="0,1")
-    ap.add_argument("--frames", type=int, default=100)
+    ap.add_argument("--frames", type=int, default=80)
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "dynastereo-synth-cache")
     ap.add_argument("--skip-kitti", action="store_true")
     ap.add_argument("--skip-synthetic", action="store_true")

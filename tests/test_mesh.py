@@ -245,3 +245,51 @@ def test_run_writes_the_mesh_the_log_counts(tmp_path: Path):
     assert "<h2>Static world</h2>" in page
     bad = runner.invoke(app, ["mask", str(seq), "--out", str(tmp_path / "m"), "--save-mesh", "x.ply"])
     assert bad.exit_code != 0
+
+
+def _small_mesh() -> Mesh:
+    vol = TSDFVolume(0.1, 0.3, 1)
+    v, _ = np.mgrid[0:H, 0:W]
+    depth = np.where(v > CY, F * HEIGHT / np.maximum(v - CY, 1e-6), 0).astype(np.float32)
+    depth[depth > 8] = 0
+    vol.integrate(depth, np.full((H, W), 90, np.uint8), CALIB.K, np.eye(4)[:3])
+    return vol.mesh()
+
+
+def test_mesh_marker_serializes_for_ros1_and_ros2():
+    from dynastereo.ros.messages import RosbagsBuilder
+
+    mesh = _small_mesh()
+    assert len(mesh.faces) > 50
+    for ros1 in (True, False):
+        b = RosbagsBuilder(ros1)
+        raw = b.serialize(b.mesh_marker(mesh, 5_000_000, "odom"))
+        back = (b.typestore.deserialize_ros1 if ros1 else b.typestore.deserialize_cdr)(
+            raw, "visualization_msgs/msg/Marker")
+        assert back.type == 11 and len(back.points) == 3 * len(mesh.faces) == len(back.colors)
+        f0 = mesh.vertices[mesh.faces[0]]
+        assert [back.points[0].x, back.points[0].y, back.points[0].z] == pytest.approx(f0[0].tolist(), abs=1e-5)
+        assert back.colors[0].r == pytest.approx(90 / 255, abs=0.01)
+
+
+def test_live_core_builds_the_mesh_on_request(tmp_path: Path):
+    """The live node's core keeps the keyframes when asked (``mesh``) and fuses them on
+    request; without it there is nothing to build."""
+    from dynastereo.io import KittiSequence
+    from dynastereo.ros.core import StereoInput, StereoNodeCore
+    from dynastereo.synth import generate
+
+    seq = KittiSequence(generate(tmp_path / "seq", "static", frames=8, seed=1, size=(480, 144)))
+    cfg = Config().with_overrides({"masker.kind": "none"})
+    core = StereoNodeCore(cfg, calibration=seq.calibration, mesh=True)
+    plain = StereoNodeCore(cfg, calibration=seq.calibration)
+    try:
+        for i in range(8):
+            f = seq.frame(i)
+            core.process(StereoInput(f.left, f.right, int(i * 100_000_000)))
+        res = core.build_mesh()
+        assert res is not None and res.stats.keyframes >= 1 and len(res.mesh.vertices) > 1000
+        assert plain.build_mesh() is None
+    finally:
+        core.shutdown()
+        plain.shutdown()
