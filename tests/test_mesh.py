@@ -219,9 +219,9 @@ def test_bad_settings_are_refused_in_one_line(key, value, words, tmp_path: Path)
 
 
 def test_run_writes_the_mesh_the_log_counts(tmp_path: Path):
-    """A whole run (synthetic convoy, oracle boxes) with --save-mesh / --save-dense-cloud:
-    the PLY loads with plyfile, its vertex count is the one printed and in run.json, the
-    report shows the mesh; a mask job refuses --save-mesh."""
+    """A whole run (synthetic, oracle boxes) with --save-mesh / --save-dense-cloud: the PLY
+    loads with plyfile, its vertex count is the one printed and in run.json; the report and
+    the rerun recording show the mesh; a mask job refuses --save-mesh."""
     plyfile = pytest.importorskip("plyfile")
     from typer.testing import CliRunner
 
@@ -232,7 +232,8 @@ def test_run_writes_the_mesh_the_log_counts(tmp_path: Path):
     out = tmp_path / "run"
     runner = CliRunner()
     r = runner.invoke(app, ["run", str(seq), "--out", str(out), "--detector", "oracle", "--save-mesh",
-                            str(out / "world.ply"), "--save-dense-cloud", str(out / "dense.ply"), "--report"])
+                            str(out / "world.ply"), "--save-dense-cloud", str(out / "dense.ply"), "--report",
+                            "--rrd", str(tmp_path / "run.rrd")])
     assert r.exit_code == 0, r.output
     info = json.loads((out / "run.json").read_text())["mesh"]
     ply = plyfile.PlyData.read(str(out / "world.ply"))
@@ -242,7 +243,11 @@ def test_run_writes_the_mesh_the_log_counts(tmp_path: Path):
     assert plyfile.PlyData.read(str(out / "dense.ply"))["vertex"].count == n
     assert info["keyframes"] >= 2 and info["masked"] is True
     page = (out / "report.html").read_text()
-    assert "<h2>Static world</h2>" in page
+    assert "<h2>Static world</h2>" in page and 'data-key="mesh.vertices">' + str(n) in page
+    # the rerun recording holds it
+    from dynastereo.viz.rerun import recorded_entities
+
+    assert "/world/static_mesh" in recorded_entities(tmp_path / "run.rrd")
     bad = runner.invoke(app, ["mask", str(seq), "--out", str(tmp_path / "m"), "--save-mesh", "x.ply"])
     assert bad.exit_code != 0
 

@@ -136,6 +136,9 @@ def save_mesh(job: "Job") -> dict:
         other = first.with_name(first.stem + "_unmasked.ply")
         (write_mesh_ply if o.save_mesh is not None else write_cloud_ply)(other, res.unmasked)
         info["unmasked_file"], info["unmasked_vertices"] = str(other), len(res.unmasked.vertices)
+    for ob in job.observers:  # the viewers: the rerun viewer shows it (viz.rerun.RerunObserver.on_mesh)
+        if hasattr(ob, "on_mesh"):
+            ob.on_mesh(res.mesh)
     s = res.stats
     log.info("mesh: %d vertices, %d triangles from %d keyframes (%.1f MB of voxels, %.2f s CPU) -> %s",
              s.vertices, s.triangles, s.keyframes, s.voxel_bytes / 1e6, s.disparity_s + s.fusion_s + s.marching_s,
