@@ -136,6 +136,22 @@ def test_masked_mover_leaves_nothing_where_it_drove():
     assert road.sum() > 200
 
 
+def test_compare_fuses_both_from_one_disparity():
+    """``compare``: the masked mesh and, beside it, the same keyframes fused without masks --
+    each the same as its own fusion."""
+    rec = KeyframeRecorder()
+    for k, x in enumerate([-1.5, 1.5]):
+        left, right, mask = _pair(20 + k, x)
+        rec.views.append(KeyframeView(k, left, right, mask))
+    poses = np.repeat(np.eye(4)[None, :3], 2, axis=0)
+    both = fuse(rec, poses, CALIB, _cfg(), compare=True)
+    alone = fuse(rec, poses, CALIB, _cfg())
+    plain = fuse(rec, poses, CALIB, _cfg(), masked=False)
+    np.testing.assert_array_equal(both.mesh.vertices, alone.mesh.vertices)
+    np.testing.assert_array_equal(both.unmasked.vertices, plain.mesh.vertices)
+    assert len(both.unmasked.vertices) > len(both.mesh.vertices) and alone.unmasked is None
+
+
 def test_a_track_judged_moving_later_is_left_out_of_earlier_keyframes():
     """The recorder keeps a keyframe's instance labels; an object whose track turns moving
     at a later frame is left out of it too (its first frames' verdict was 'still')."""
@@ -298,3 +314,19 @@ def test_live_core_builds_the_mesh_on_request(tmp_path: Path):
     finally:
         core.shutdown()
         plain.shutdown()
+
+
+def test_report_shows_the_mesh_and_the_unmasked_one_beside(tmp_path: Path):
+    from dynastereo.eval.html_report import build_report
+
+    mesh = _small_mesh()
+    write_mesh_ply(tmp_path / "world.ply", mesh)
+    write_mesh_ply(tmp_path / "world_unmasked.ply", mesh)
+    info = {"vertices": len(mesh.vertices), "triangles": len(mesh.faces), "keyframes": 1, "voxel_bytes": 1000,
+            "file": str(tmp_path / "world.ply"), "unmasked_file": str(tmp_path / "world_unmasked.ply"),
+            "camera": {"fx": F, "fy": F, "cx": CX, "cy": CY, "width": W, "height": H}}
+    (tmp_path / "run.json").write_text(json.dumps({"status": "done", "frames_done": 1, "mesh": info}))
+    page = build_report(tmp_path, auto_gt=False).read_text()
+    assert "<h2>Static world</h2>" in page
+    for label in ("movers left out", "the same fusion without masks"):
+        assert f"from above, {label}" in page and f"from the first camera, {label}" in page
