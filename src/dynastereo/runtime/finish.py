@@ -217,7 +217,9 @@ def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> SlamJobResul
             _write_final_trajectory(out, poses, stamps, job.frames[:n_done])
         except OutputError as e:
             late, error = e, f"{type(e).__name__}: {e}"
-    if job.mesh_recorder is not None and n_done:
+    if job.mesh_recorder is not None and n_done and error is not None:
+        job.mesh_info = {"skipped": "the run did not finish: no mesh built"}
+    elif job.mesh_recorder is not None and n_done:
         try:
             job.mesh_info = save_mesh(job)
         except OutputError as e:
