@@ -250,11 +250,11 @@ def test_a_run_that_lost_every_frame_does_not_end_as_done(kitti06: Path, tmp_pat
 
     import dynastereo.runtime as runtime
     from dynastereo.cli.main import app
-    from dynastereo.runtime.results import SlamJobResult, new_run_timer
+    from dynastereo.runtime.results import JobResult, new_run_timer
 
     def all_lost(spec, progress=None, **kw):
-        return SlamJobResult(spec.outputs.dir, np.zeros((5, 3, 4)), list(range(5)), {}, new_run_timer(), 1.0, 5.0,
-                             lost=list(range(5)))
+        return JobResult(spec.outputs.dir, list(range(5)), new_run_timer(), 1.0, fps=5.0, poses=np.zeros((5, 3, 4)),
+                         lost=list(range(5)))
 
     monkeypatch.setattr(runtime, "run", all_lost)
     seq = mini06(kitti06, tmp_path / "seq", 2)

@@ -152,6 +152,8 @@ def run_sequence(
     viewer: bool = False,
     rrd: str | Path | None = None,
     save_cloud: str | Path | None = None,
+    save_mesh: str | Path | None = None,
+    save_dense_cloud: str | Path | None = None,
 ) -> JobResult:
     """Mask and track ``sequence`` with the stereo SLAM (a :class:`~dynastereo.runtime.JobSpec` of kind ``run``;
     the outputs are listed in :mod:`dynastereo.runtime.sinks` and :mod:`dynastereo.runtime.finish`).
@@ -166,11 +168,15 @@ def run_sequence(
     (:func:`viewers`).  ``gt``: ground truth for both (default: ``poses/NN.txt`` of a KITTI
     layout, when present).  ``rate``: as for :func:`mask_sequence`; where the stamps came
     from is ``run.json``'s ``timestamps``.  ``save_cloud``: write the final map's points as
-    PLY, none on an object judged moving or undecided.
+    PLY, none on an object judged moving or undecided.  ``save_mesh`` / ``save_dense_cloud``:
+    the static world's dense mesh / its points as PLY, fused from the keyframes at the final
+    poses with the movers left out (:mod:`dynastereo.mesh`; settings ``cfg.mesh``; what it
+    did in ``result.mesh``).
     """
     spec = JobSpec(JobKind.RUN, source_spec(sequence, calib, rate),
                    OutputSpec(Path(out), overwrite=overwrite, save_masks=save_masks, save_map=save_map,
-                              save_cloud=save_cloud, report=report, viewer=viewer, rrd=rrd),
+                              save_cloud=save_cloud, save_mesh=save_mesh, save_dense_cloud=save_dense_cloud,
+                              report=report, viewer=viewer, rrd=rrd),
                    cfg or Config(), frames=frames, models_dir=models_dir, load_map=load_map,
                    localize_only=localize_only, stereo_check=stereo_check, gt=gt)
     return run_job(spec, progress=progress, observers=observers)
@@ -238,6 +244,8 @@ def run_bag(
     viewer: bool = False,
     rrd: str | Path | None = None,
     save_cloud: str | Path | None = None,
+    save_mesh: str | Path | None = None,
+    save_dense_cloud: str | Path | None = None,
 ) -> JobResult:
     """Mask and track a stereo bag (ROS 1 .bag, ROS 2 .db3, .mcap); results as for
     :func:`run_sequence` plus ``out/output.<fmt>`` and ``out/bag.json``.  Calibration:
@@ -251,7 +259,8 @@ def run_bag(
                        right_info, tolerance_s, rectify, settings_calibration(config_path), outputs)
     spec = JobSpec(JobKind.RUN, SourceSpec(opener=source, calib=Path(calib) if calib else None),
                    OutputSpec(Path(out), overwrite=overwrite, save_masks=save_masks, save_cloud=save_cloud,
-                              report=report, viewer=viewer, rrd=rrd),
+                              save_mesh=save_mesh, save_dense_cloud=save_dense_cloud, report=report, viewer=viewer,
+                              rrd=rrd),
                    cfg or Config(), frames=frames, models_dir=models_dir, stereo_check=stereo_check, gt=gt)
     return run_job(spec, progress=progress, observers=observers)
 

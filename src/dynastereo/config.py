@@ -748,6 +748,61 @@ def check_bounds(cfg: Any) -> None:
 
 
 @dataclass
+class MeshConfig:
+    """The dense, mover-free mesh of the static world (``run --save-mesh``, ``mesh/``).
+
+    Each keyframe's full-frame disparity (OpenCV's ``algorithm`` with ``block_size`` at
+    1/``scale`` resolution, the other matcher settings from ``stereo``; ``confidence`` its
+    uniqueness margin), outside the masks of objects judged moving or not yet judged (grown
+    by ``mask_margin`` px), between ``min_depth`` and ``max_depth`` m, is fused at the final
+    poses into a TSDF of ``voxel_size`` m voxels truncated at ``truncation`` m; marching
+    cubes gives the mesh, kept where a voxel was seen ``min_weight`` times.  Defaults suit
+    KITTI (fx 720 px, baseline 0.54 m): semi-global matching at half resolution, 13 ms of
+    CPU a keyframe, where the masks' block matcher leaves smooth asphalt empty."""
+
+    algorithm: StereoAlgorithm = "sgbm3way"
+    block_size: int = 5  # odd
+    scale: int = 2  # the disparity's downscale factor (1, 2 or 4)
+    voxel_size: float = 0.1  # m
+    truncation: float = 0.3  # m, >= voxel_size
+    min_depth: float = 1.0  # m
+    max_depth: float = 20.0  # m
+    confidence: int = 15  # disparity confidence: the best match beats every other by this %, 0: all
+    max_step: float = 2.0  # px: a second difference of the disparity above it marks an edge (flying pixels), left out
+    mask_margin: int = 8  # px the movers' masks are grown by (half the matcher's block: its border bleed)
+    min_weight: int = 1  # observations a voxel needs to carry the surface
+    compare: bool = False  # also fuse the keyframes with the masks ignored: FILE_unmasked.ply, the report shows both
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        if str(self.algorithm).lower() not in STEREO_ALGORITHMS:
+            raise _bad("mesh.algorithm", "one of " + ", ".join(STEREO_ALGORITHMS), self.algorithm)
+        lo = 5 if str(self.algorithm).lower() == "bm" else 1
+        if self.block_size % 2 != 1 or not (lo <= self.block_size <= 255):
+            raise _bad("mesh.block_size", f"odd and in [{lo}, 255] for {self.algorithm}", self.block_size)
+        if self.scale not in STEREO_SCALES:
+            raise _bad("mesh.scale", f"one of {STEREO_SCALES}", self.scale)
+        if not self.voxel_size > 0:
+            raise _bad("mesh.voxel_size", "> 0 m", self.voxel_size)
+        if not self.truncation >= self.voxel_size:
+            raise ConfigError(f"mesh.truncation must be at least one voxel (mesh.voxel_size {self.voxel_size:g} m), "
+                              f"got {self.truncation!r}")
+        if not 0 < self.min_depth < self.max_depth:
+            raise ConfigError(f"mesh.min_depth and mesh.max_depth must satisfy 0 < min_depth < max_depth, got "
+                              f"{self.min_depth!r} and {self.max_depth!r}")
+        if not 0 <= self.confidence <= 100:
+            raise _bad("mesh.confidence", "in [0, 100] (%)", self.confidence)
+        if not self.max_step > 0:
+            raise _bad("mesh.max_step", "> 0 px", self.max_step)
+        if not 0 <= self.mask_margin <= 64:
+            raise _bad("mesh.mask_margin", "in [0, 64] px", self.mask_margin)
+        if not 1 <= self.min_weight <= 1000:
+            raise _bad("mesh.min_weight", "in [1, 1000]", self.min_weight)
+
+
+@dataclass
 class Config:
     stereo: StereoConfig = field(default_factory=StereoConfig)
     detector: DetectorConfig = field(default_factory=DetectorConfig)
@@ -755,6 +810,7 @@ class Config:
     slam: SlamConfig = field(default_factory=SlamConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
     objects: ObjectsConfig = field(default_factory=ObjectsConfig)
+    mesh: MeshConfig = field(default_factory=MeshConfig)
     seed: int = 0  # seed of the SLAM's random choices (RANSAC): the same seed, the same run
 
     def __post_init__(self) -> None:
@@ -764,7 +820,7 @@ class Config:
 
     def validate(self) -> None:
         """Every section's checks again (a configuration changed after it was made)."""
-        for section in (self.stereo, self.detector, self.masker, self.slam, self.motion, self.objects):
+        for section in (self.stereo, self.detector, self.masker, self.slam, self.motion, self.objects, self.mesh):
             section.validate()
         self.__post_init__()
 

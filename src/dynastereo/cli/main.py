@@ -243,6 +243,8 @@ def run(
     save_map: Optional[Path] = typer.Option(None, "--save-map", help="Write the final map to FILE (docs/reference/map-format.md)."),
     load_map: Optional[Path] = typer.Option(None, "--load-map", help="Start from the map in FILE (from --save-map)."),
     save_cloud: Optional[Path] = typer.Option(None, "--save-cloud", help="Write the final map's points as a PLY point cloud (none on a moving object)."),
+    save_mesh: Optional[Path] = typer.Option(None, "--save-mesh", help="Write the static world as a dense PLY triangle mesh (the keyframes' disparity fused at the final poses, movers left out; settings mesh.*)."),
+    save_dense_cloud: Optional[Path] = typer.Option(None, "--save-dense-cloud", help="Write the same fused surface's points as a PLY point cloud (no triangles)."),
     localize_only: bool = typer.Option(False, "--localize-only", help="With --load-map: localize in the map, add no keyframes."),
     no_loop_closing: bool = typer.Option(False, "--no-loop-closing", help="Turn loop closing off (slam.loop_closing: false)."),
     vocabulary: Optional[Path] = typer.Option(None, "--vocabulary", help="ORB vocabulary file from `dynastereo vocab` (default: the built-in one)."),
@@ -269,7 +271,8 @@ def run(
         spec = JobSpec(JobKind.RUN, _run_source(sequence, bag, calib, rate, config, left_topic, right_topic,
                                                 left_info, right_info, sync_tolerance, rectify, bag_outputs),
                        OutputSpec(out, overwrite=overwrite, save_masks=save_masks, save_map=save_map,
-                                  save_cloud=save_cloud, report=report, viewer=viewer, rrd=rrd),
+                                  save_cloud=save_cloud, save_mesh=save_mesh, save_dense_cloud=save_dense_cloud,
+                                  report=report, viewer=viewer, rrd=rrd),
                        _build_config(config, overrides), frames=frames, models_dir=models_dir, load_map=load_map,
                        localize_only=localize_only, stereo_check=not no_stereo_check, gt=gt, settings=config)
         with _progress() as prog:
@@ -298,6 +301,10 @@ def run(
         out_console.print(f"map saved to {save_map}")
     if save_cloud:
         out_console.print(f"static map points saved to {save_cloud}")
+    if result.mesh and "vertices" in result.mesh:
+        m = result.mesh
+        out_console.print(f"static world: {m['vertices']} vertices, {m['triangles']} triangles from {m['keyframes']} "
+                          f"keyframes -> {save_mesh or save_dense_cloud}")
     if bag_report is not None:
         r = bag_report
         out_console.print(

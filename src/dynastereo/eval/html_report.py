@@ -9,7 +9,8 @@ JPEG) inlined as a ``data:`` URI; the page needs no network and no other file.
 Sections (each only when its input exists): summary, trajectory (top and side view),
 accuracy (APE over time, the thesis' APE table, RPE, drift, KITTI metric), time per
 stage (stacked per frame, medians), mask overlays (first, worst, evenly spaced),
-objects per frame (by class; by ``moving`` decision when the records carry one).
+objects per frame (by class; by ``moving`` decision when the records carry one), the
+static world's mesh (``--save-mesh``: from above and through the first camera).
 
 Every key number is also in the page as ``<td data-key="KEY">`` (``frames_tracked``,
 ``ape.rmse``, ``timing.track.median``...) so that a test or a script can read it back.
@@ -508,6 +509,46 @@ def _object_paths_section(rf: RunFiles) -> str:
     return "".join(html)
 
 
+def _mesh_section(rf: RunFiles) -> str:
+    """The static world's mesh (``--save-mesh``, run.json's ``mesh``): rendered from above
+    and through the first camera; with the unmasked comparison beside it when the run
+    wrote one (``mesh.compare``)."""
+    info = rf.run.get("mesh") or {}
+    path = Path(info["file"]) if info.get("file") else None
+    if path is not None and not path.is_absolute() and not path.is_file():
+        path = rf.root / path.name
+    if path is None or not path.is_file():
+        return ""
+    from ..mesh import read_ply
+    from ..mesh.render import mesh_bounds, render_camera, render_top
+
+    meshes = [("movers left out", read_ply(path))]
+    other = Path(info["unmasked_file"]) if info.get("unmasked_file") else None
+    if other is not None and other.is_file():
+        meshes.append(("the same fusion without masks", read_ply(other)))
+    bounds = mesh_bounds(meshes[0][1])
+    cam = info.get("camera")
+    tops, views = [], []
+    for label, m in meshes:
+        tops.append(f"<figure>{_img(cv2.imencode('.png', render_top(m, (520, 640), bounds))[1].tobytes(), f'mesh from above, {label}')}"
+                    f"<figcaption>from above, {_esc(label)}</figcaption></figure>")
+        if cam:
+            K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1]])
+            scale = min(1.0, OVERLAY_WIDTH / max(cam["width"], 1))
+            img = render_camera(m, K, (int(cam["width"]), int(cam["height"])))
+            if scale < 1.0:
+                img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+            views.append(f"<figure>{_img(cv2.imencode('.png', img)[1].tobytes(), f'mesh from the first camera, {label}')}"
+                         f"<figcaption>from the first camera, {_esc(label)}</figcaption></figure>")
+    rows = [("vertices", info.get("vertices"), "mesh.vertices"), ("triangles", info.get("triangles"), "mesh.triangles"),
+            ("keyframes fused", info.get("keyframes"), "mesh.keyframes"),
+            ("voxel grid (MB)", round(info.get("voxel_bytes", 0) / 1e6, 1), "mesh.voxel_mb"),
+            ("CPU (s)", round(sum(info.get(k, 0.0) for k in ("disparity_s", "fusion_s", "marching_s")), 2), "mesh.cpu_s")]
+    return ("<h2>Static world</h2><p>the keyframes' dense disparity fused at the final poses (TSDF, marching "
+            f"cubes), objects judged moving or not yet judged left out: <code>{_esc(path.name)}</code></p>"
+            + _kv_table(rows) + f'<div class="row">{"".join(tops)}</div>' + "".join(views))
+
+
 STYLE = """
 body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:1.5em auto;max-width:1100px;
 color:#222;background:#fff;padding:0 1em}
@@ -569,7 +610,7 @@ def _build_report(rf: RunFiles, gt: str | Path | None, out: str | Path | None, o
     body = [f"<h1>{_esc(title)}</h1>", f"<p>run folder {_esc(rf.root.resolve())}; report made {stamp}</p>",
             _summary_section(rf), _trajectory_section(rf, ev, gt_path), _accuracy_section(ev),
             _timing_section(rf.timing), _overlay_section(rf, ev, overlays), _objects_section(rf),
-            _object_paths_section(rf)]
+            _object_paths_section(rf), _mesh_section(rf)]
     page = (f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8"><title>{_esc(title)}</title>'
             f'<meta name="viewport" content="width=device-width,initial-scale=1"><link rel="icon" href="data:,"><style>{STYLE}</style></head>'
             f'<body>{"".join(b for b in body if b)}</body></html>\n')

@@ -192,6 +192,7 @@ class StereoNodeCore:
         sink: NodeSink | None = None,
         odom_frame: str = ODOM_FRAME,
         camera_frame: str = "",
+        mesh: bool = False,
     ) -> None:
         self.cfg = cfg or Config()
         self.models_dir = Path(models_dir) if models_dir else None
@@ -224,6 +225,13 @@ class StereoNodeCore:
         self._last: NodeResult | None = None
         self.loop = FrameLoop(self.processor, self.timer, pipelined=self.pipelined, on_error=self._error,
                               after=self._publish)
+        self.mesh_recorder = None  # mesh: the keyframes kept for build_mesh (their images: memory grows with them)
+        if mesh:
+            from ..mesh import KeyframeRecorder
+            from ..runtime.sinks import MeshSink
+
+            self.mesh_recorder = KeyframeRecorder()
+            self.loop.sinks.append(MeshSink(self.mesh_recorder))
         self._thread: threading.Thread | None = None
         self._running = False
         self.stereo_watch = StereoWatch("stereo input")  # warns once if the pairs look wrong
@@ -488,6 +496,27 @@ class StereoNodeCore:
             if not ok or self._system is None or not self._stamps:
                 return np.zeros((0, 3, 4)), np.zeros(0, np.int64)
             return self._system.trajectory(), np.asarray(self._stamps, np.int64)
+
+    def build_mesh(self) -> Any:
+        """The static world's mesh so far (:mod:`dynastereo.mesh`, a
+        :class:`~dynastereo.mesh.DenseResult`; None before the first keyframe or without
+        ``mesh``): the keyframes kept, at the current (bundle-adjusted) poses.  The SLAM is
+        held only to copy the poses; the fusion runs on the calling thread meanwhile."""
+        rec = self.mesh_recorder
+        if rec is None or not rec.views or self._system is None:
+            return None
+        from ..mesh import KeyframeRecorder, fuse
+
+        with self._slam_locked("mesh", "no mesh built") as ok:
+            if not ok:
+                return None
+            sysm = self._system
+            poses = sysm.trajectory()
+            done = np.array([str(s.status) in ("tracked", "init") for s in sysm.results()], bool)
+            offset = float(sysm.disparity_offset)
+            snap = KeyframeRecorder()
+            snap.views, snap.moving_tracks = list(rec.views), set(rec.moving_tracks)
+        return fuse(snap, poses, self.calibration, self._masker_cfg, disparity_offset=offset, ok=done)
 
     def status(self) -> dict[str, Any]:
         d = self.stats.summary()

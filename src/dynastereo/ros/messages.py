@@ -118,6 +118,8 @@ class DisparityData:
         return np.where(d > 0, d, np.float32(INVALID_DISPARITY)).astype(np.float32)
 
 
+MESH_MARKER_MAX = 100_000  # triangles in a mesh marker
+
 class MessageBuilder:
     """Builds ROS messages for one message library (subclass per library)."""
 
@@ -253,6 +255,19 @@ class MessageBuilder:
             lifetime=self.duration(lifetime_ns), frame_locked=False,
             points=[self._vec3("geometry_msgs/Point", p) for p in points], colors=[], text=text, mesh_resource="",
             mesh_use_embedded_materials=False, **extra)
+
+    def mesh_marker(self, mesh: Any, stamp_ns: int, frame_id: str, seq: int = 0) -> Any:
+        """``visualization_msgs/Marker`` TRIANGLE_LIST of a :class:`dynastereo.mesh.Mesh`
+        (vertex colours), at most :data:`MESH_MARKER_MAX` triangles (evenly spaced beyond)."""
+        F = mesh.faces
+        if len(F) > MESH_MARKER_MAX:
+            F = F[np.linspace(0, len(F) - 1, MESH_MARKER_MAX).astype(np.int64)]
+        idx = F.reshape(-1)
+        m = self._marker(stamp_ns, frame_id, "static_world", 0, 11, seq=seq,  # 11: TRIANGLE_LIST
+                         points=mesh.vertices[idx].astype(float).tolist())
+        m.colors = [self.make("std_msgs/ColorRGBA", r=r, g=g, b=b, a=1.0)
+                    for r, g, b in (mesh.colors[idx].astype(float) / 255.0).tolist()]
+        return m
 
     def object_markers(self, objects: list, stamp_ns: int, frame_id: str, seq: int = 0,
                        paths: list | None = None) -> Any:

@@ -27,7 +27,11 @@ Publishes
 
 Services (std_srvs/Trigger)
     ``~save_trajectory`` -- trajectory (KITTI, TUM), timing.json, node.json into ``~save_dir``;
-    ``~status`` -- statistics (received, processed, dropped, latency), configuration (JSON).
+    ``~status`` -- statistics (received, processed, dropped, latency), configuration (JSON);
+    ``~build_mesh`` (with ``~mesh: true``, which keeps the keyframes from the start) -- the
+    static world's mesh so far (``dynastereo.mesh``) into ``~save_dir/mesh.ply``, published
+    on ``~mesh`` (visualization_msgs/Marker TRIANGLE_LIST, latched, at most
+    ``messages.MESH_MARKER_MAX`` triangles) and ``~dense_cloud`` (sensor_msgs/PointCloud2, latched); replies its counts (JSON).
 
 Parameters (private)
     ``~stereo/*``, ``~masker/*``, ``~detector/*`` -- the Config sections; changed at run time
@@ -197,7 +201,8 @@ class Ros1Node:
             calibration = load_stereo_yaml(config_file)  # an ORB-SLAM2 settings file carries the camera
         self.core = StereoNodeCore(self.cfg, models_dir=models_dir, queue_size=int(p("~queue_size", 1)),
                                    pipelined=bool(p("~pipelined", True)), sink=self,
-                                   odom_frame=str(p("~odom_frame", ODOM_FRAME)), camera_frame=str(p("~camera_frame", "")))
+                                   odom_frame=str(p("~odom_frame", ODOM_FRAME)), camera_frame=str(p("~camera_frame", "")),
+                                   mesh=bool(p("~mesh", False)))
         self.decoder = ImageDecoder(p("~mono16_shift", None))
         self._info0: tuple[CameraInfoData, CameraInfoData] | None = None
         self._info_warned = False
@@ -275,6 +280,14 @@ class Ros1Node:
         # services and parameter polling
         self.srv_save = rospy.Service("~save_trajectory", Trigger, self._srv_save)
         self.srv_status = rospy.Service("~status", Trigger, self._srv_status)
+        self.pub_mesh = self.pub_dense = None
+        if self.core.mesh_recorder is not None:
+            if self.pub_objects is not None:  # visualization_msgs is there
+                from visualization_msgs.msg import Marker
+
+                self.pub_mesh = rospy.Publisher("~mesh", Marker, queue_size=1, latch=True)
+            self.pub_dense = rospy.Publisher("~dense_cloud", PointCloud2, queue_size=1, latch=True)
+            self.srv_mesh = rospy.Service("~build_mesh", Trigger, self._srv_mesh)
         self._poll_timer = rospy.Timer(rospy.Duration(float(p("~param_poll_period", 0.5))), self._poll_params)
         rospy.on_shutdown(self._on_shutdown)
         self.core.start()
@@ -379,6 +392,23 @@ class Ros1Node:
             paths = self.core.save(self.save_dir)
             return self._TriggerResponse(True, json.dumps(paths))
         except Exception as e:  # noqa: BLE001 - reported to the caller
+            return self._TriggerResponse(False, f"{type(e).__name__}: {e}")
+
+    def _srv_mesh(self, _req: Any) -> Any:
+        try:
+            from ..mesh import write_mesh_ply
+
+            res = self.core.build_mesh()
+            if res is None:
+                return self._TriggerResponse(False, "no keyframe yet")
+            path = write_mesh_ply(self.save_dir / "mesh.ply", res.mesh)
+            stamp = self._path[1][-1] if self._path[1] else 0
+            if self.pub_dense is not None:
+                self.pub_dense.publish(self.b.point_cloud(res.mesh.vertices, stamp, self.core.odom_frame))
+            if self.pub_mesh is not None:
+                self.pub_mesh.publish(self.b.mesh_marker(res.mesh, stamp, self.core.odom_frame))
+            return self._TriggerResponse(True, json.dumps({**res.stats.to_dict(), "file": str(path)}))
+        except Exception as e:  # noqa: BLE001 -- the node goes on; the caller is told
             return self._TriggerResponse(False, f"{type(e).__name__}: {e}")
 
     def _srv_status(self, _req: Any) -> Any:

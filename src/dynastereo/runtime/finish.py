@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -26,6 +27,8 @@ from .spec import JobSpec
 if TYPE_CHECKING:  # pragma: no cover
     from .job import Job
     from .loop import FrameLoop
+
+log = logging.getLogger("dynastereo.mesh")
 
 
 def resolve_ground_truth(gt: str | Path | None, sequence: Any) -> Path | None:
@@ -147,6 +150,39 @@ def _save_map_and_cloud(job: "Job", n_done: int) -> dict:
     return map_out
 
 
+def save_mesh(job: "Job") -> dict:
+    """The static world's mesh (``--save-mesh``) and dense cloud (``--save-dense-cloud``),
+    fused at the final poses (the SLAM shut down: its last BA done) from the keyframes the
+    run kept (:mod:`dynastereo.mesh`); run.json's ``mesh`` entry.  Built after the frame
+    loop: tracking never waits for it."""
+    from ..mesh import fuse_system, write_cloud_ply, write_mesh_ply
+
+    o, rec = job.spec.outputs, job.mesh_recorder
+    res = fuse_system(rec, job.processor.system, job.sequence.calibration, job.spec.config)
+    info = res.stats.to_dict()
+    c = job.sequence.calibration
+    info["camera"] = {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width, "height": c.height}
+    if o.save_mesh is not None:
+        write_mesh_ply(o.save_mesh, res.mesh)
+        info["file"] = str(o.save_mesh)
+    if o.save_dense_cloud is not None:
+        write_cloud_ply(o.save_dense_cloud, res.mesh)
+        info["dense_cloud"] = str(o.save_dense_cloud)
+    if res.unmasked is not None:
+        first = Path(o.save_mesh or o.save_dense_cloud)
+        other = first.with_name(first.stem + "_unmasked.ply")
+        (write_mesh_ply if o.save_mesh is not None else write_cloud_ply)(other, res.unmasked)
+        info["unmasked_file"], info["unmasked_vertices"] = str(other), len(res.unmasked.vertices)
+    for ob in job.observers:  # the viewers: the rerun viewer shows it (viz.rerun.RerunObserver.on_mesh)
+        if hasattr(ob, "on_mesh"):
+            ob.on_mesh(res.mesh)
+    s = res.stats
+    log.info("mesh: %d vertices, %d triangles from %d keyframes (%.1f MB of voxels, %.2f s CPU) -> %s",
+             s.vertices, s.triangles, s.keyframes, s.voxel_bytes / 1e6, s.disparity_s + s.fusion_s + s.marching_s,
+             o.save_mesh or o.save_dense_cloud)
+    return info
+
+
 def _write_final_trajectory(out: Path, poses: np.ndarray, stamps: np.ndarray, done: list[int]) -> None:
     """The trajectory files again, with the final (bundle-adjusted) poses of the frames done."""
     from ..eval.trajectory import FRAMES_NAME, write_kitti, write_tum
@@ -190,6 +226,7 @@ def run_record(job: "Job", n_done: int, stats: dict, map_out: dict, fps: float, 
         "loops": [e.to_dict() for e in system.loops()] if n_done else [],
         "recoveries": [dataclasses.asdict(r) for r in system.recoveries()] if n_done else [],
         "map": map_out,
+        **({"mesh": job.mesh_info} if job.mesh_info else {}),
         "fps": round(fps, 3),
         "wall_s": round(wall, 3),
         "config": to_dict(job.spec.config),
@@ -219,6 +256,14 @@ def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> JobResult:
             _write_final_trajectory(out, poses, stamps, job.frames[:n_done])
         except OutputError as e:
             late, error = e, f"{type(e).__name__}: {e}"
+    if job.mesh_recorder is not None and n_done and error is not None:
+        job.mesh_info = {"skipped": "the run did not finish: no mesh built"}
+    elif job.mesh_recorder is not None and n_done:
+        try:
+            job.mesh_info = save_mesh(job)
+        except OutputError as e:
+            job.mesh_info = {"error": str(e)}
+            late, error = late or e, error or f"{type(e).__name__}: {e}"
     stats = system.stats().to_dict() if n_done else {}
     try:
         timer.write(out / "timing.json", summary_extra={"fps": round(fps, 3)}, wall_s=round(wall, 3),
@@ -234,7 +279,7 @@ def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> JobResult:
         raise DynastereoError(f"{job.spec.outputs.save_map}: saving the map failed ({map_out['save_error']})")
     lost = system.lost_frames() if n_done else []
     return JobResult(out, list(job.frames[:n_done]), timer, wall, fps=fps, poses=poses, stats=stats, lost=lost,
-                     outputs=outputs)
+                     outputs=outputs, mesh=job.mesh_info or None)
 
 
 def _close_output_observers(job: "Job", late: BaseException | None) -> tuple[dict, BaseException | None]:

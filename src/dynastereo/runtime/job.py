@@ -44,7 +44,7 @@ from .assembly import assemble_stages
 from .loop import FrameLoop, Progress
 from .processor import FrameProcessor
 from .results import JobResult, new_mask_timer, new_run_timer
-from .sinks import (DisparitySink, MaskSink, ObjectsLogSink, ObserverSink, OverlaySink, Sink, TracksSink,
+from .sinks import (DisparitySink, MaskSink, MeshSink, ObjectsLogSink, ObserverSink, OverlaySink, Sink, TracksSink,
                     TrajectorySink)
 from .sources import SequenceSource, open_sequence_source
 from .spec import JobKind, JobSpec
@@ -63,6 +63,8 @@ class Job:
     map_info: dict = field(default_factory=dict)
     ground_truth: Path | None = None  # what the report and run.json name
     lock: OutputLock | None = None  # the output folder's, held until the job ends
+    mesh_recorder: Any = None  # mesh.KeyframeRecorder (--save-mesh / --save-dense-cloud)
+    mesh_info: dict = field(default_factory=dict)  # run.json's "mesh"
 
 
 def run(spec: JobSpec, *, progress: Progress | None = None, observers: tuple[FrameObserver, ...] = (),
@@ -112,7 +114,8 @@ def _check_output_files(spec: JobSpec, gt: Path | None) -> None:
     o = spec.outputs
     inputs = (spec.source.name, spec.source.calib, spec.load_map, gt, spec.config.slam.vocabulary or None)
     for path, what, flag in ((o.save_map, "map file", "--save-map"), (o.save_cloud, "point cloud file", "--save-cloud"),
-                             (o.rrd, "recording", "--rrd")):
+                             (o.save_mesh, "mesh file", "--save-mesh"),
+                             (o.save_dense_cloud, "dense cloud file", "--save-dense-cloud"), (o.rrd, "recording", "--rrd")):
         if path is not None:
             refuse_input_as_output(path, [i for i in inputs if i != spec.load_map or flag != "--save-map"],
                                    what=what, flag=flag)
@@ -191,6 +194,11 @@ def open_outputs(job: Job) -> None:
     spec, proc = job.spec, job.processor
     finish.reserve_run_json(spec.outputs.dir, spec, len(job.frames))
     _open_run_sinks(job.sinks, spec, proc.masker, proc.world)
+    if spec.outputs.mesh_wanted:
+        from ..mesh import KeyframeRecorder
+
+        job.mesh_recorder = KeyframeRecorder()
+        job.sinks.append(MeshSink(job.mesh_recorder))
     if spec.source.opener is not None:
         job.observers = (*job.observers, *spec.source.opener.job_observers(spec, job.sequence))
     for ob in job.observers:

@@ -78,6 +78,7 @@ class Processed:
     status: str  # "init" | "tracked" | "lost"; "" without SLAM
     ms: dict[str, float] = field(default_factory=dict)  # every stage of this frame
     payload: Any = None  # the source's own data of the frame (the live node's StereoInput)
+    keyframe: bool = False  # the SLAM made it a keyframe
 
 
 class FrameProcessor:
@@ -134,7 +135,7 @@ class FrameProcessor:
                 with timer.stage("objects"):
                     self.world.update(masks, tracked.pose, str(tracked.status) in ("tracked", "init"), stamp, frame)
         return Processed(position, item.index, stamp, frame, masks, slam_masks, tracked.pose, str(tracked.status),
-                         payload=item.payload)
+                         payload=item.payload, keyframe=bool(tracked.keyframe))
 
 
 def apply_map_edits(system, edits) -> int:

@@ -34,7 +34,8 @@ class JobResult:
     camera-to-world, the final ones, one per frame done), ``stats``, ``fps``, ``lost``
     (positions of the lost frames), ``report`` (the HTML report, when asked for) and
     ``outputs``: what the source's own observers wrote (a bag run: ``outputs["bag"]``, the
-    pairing and the output bag's counts, as in ``bag.json``)."""
+    pairing and the output bag's counts, as in ``bag.json``); ``mesh``: the static world's
+    mesh and dense cloud when asked for (``--save-mesh``; run.json's ``mesh``)."""
 
     out: Path
     frames: list[int]
@@ -47,6 +48,7 @@ class JobResult:
     lost: list[int] = field(default_factory=list)
     report: Path | None = None
     outputs: dict[str, dict[str, Any]] = field(default_factory=dict)
+    mesh: dict[str, Any] | None = None  # --save-mesh / --save-dense-cloud: run.json's "mesh"
 
     @property
     def summary(self) -> dict[str, dict[str, float]]:

@@ -178,6 +178,25 @@ class TracksSink:
         self.tracks.close()
 
 
+class MeshSink:
+    """The keyframes the static world's mesh is fused from (``--save-mesh``): references
+    kept (:class:`~dynastereo.mesh.fusion.KeyframeRecorder`), nothing written per frame;
+    the mesh is built once the poses are final (``runtime.finish``)."""
+
+    def __init__(self, recorder: Any) -> None:
+        self.recorder = recorder
+
+    def write(self, p: Processed, written: list[Path]) -> None:
+        ok = p.status in ("tracked", "init")
+        self.recorder.add(p.position, p.frame.left, p.frame.right, p.masks, p.slam_masks, p.keyframe and ok)
+
+    def truncate(self, n_done: int) -> None:
+        self.recorder.views = [v for v in self.recorder.views if v.position < n_done]
+
+    def close(self) -> None:
+        pass
+
+
 class ObserverSink:
     """The frame as a :class:`~dynastereo.observers.FrameEvent` to each observer."""
 

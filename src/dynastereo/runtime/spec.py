@@ -137,12 +137,18 @@ class OutputSpec:
     overlays: bool = False  # mask jobs: DIR/overlays/NNNNNN.png
     save_map: Path | None = None
     save_cloud: Path | None = None  # the final map's points as PLY, none on a mover
+    save_mesh: Path | None = None  # the static world's dense mesh as PLY (mesh/), movers left out
+    save_dense_cloud: Path | None = None  # the same fused surface's points, without triangles
     report: bool = False  # DIR/report.html
     viewer: bool = False  # spawn the rerun viewer
     rrd: Path | None = None  # record for rerun
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "dir", Path(self.dir))
+
+    @property
+    def mesh_wanted(self) -> bool:
+        return self.save_mesh is not None or self.save_dense_cloud is not None
 
 
 @dataclass(frozen=True)
@@ -174,8 +180,8 @@ class JobSpec:
         if self.source.opener is not None:
             self.source.opener.check_job(self)
         if self.kind is JobKind.MASK:
-            extra = [n for n, v in (("save_map", o.save_map), ("save_cloud", o.save_cloud), ("load_map", self.load_map))
-                     if v]
+            extra = [n for n, v in (("save_map", o.save_map), ("save_cloud", o.save_cloud), ("save_mesh", o.save_mesh),
+                                    ("save_dense_cloud", o.save_dense_cloud), ("load_map", self.load_map)) if v]
             if extra:
                 raise ConfigError(f"a mask job tracks nothing: {', '.join(extra)} need a run")
         elif o.save_disparity or o.overlays:

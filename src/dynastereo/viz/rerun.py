@@ -172,6 +172,12 @@ class RerunObserver:
             rec.log("world/object_paths", rr.LineStrips3D([p for _, p, _ in paths],
                                                           colors=[verdict_rgb(v) for _, _, v in paths]))
 
+    def on_mesh(self, mesh) -> None:
+        """The static world's mesh (``--save-mesh``), once built after the run: ``world/static_mesh``."""
+        rr = self.rr
+        self.rec.log("world/static_mesh", rr.Mesh3D(vertex_positions=mesh.vertices, triangle_indices=mesh.faces,
+                                                    vertex_colors=mesh.colors), static=True)
+
     def close(self) -> None:
         self.rec.flush()
         self.rec.disconnect()
