@@ -142,3 +142,28 @@ def test_both_ros_nodes_run_the_one_runtime():
     for name in ("FrameLoop", "FrameProcessor"):
         where = set(_constructions(name))
         assert where and where <= {"runtime/job.py", "ros/core.py"}, (name, where)
+
+
+def long_functions(root: Path = SRC, limit: int = 80) -> list[str]:
+    """``file:function (lines)`` of every function outside a compiled kernel (``@jit``)
+    longer than ``limit`` lines."""
+    out = []
+    for path in sorted(root.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                if any("jit" in ast.unparse(d) for d in node.decorator_list):
+                    continue
+                n = node.end_lineno - node.lineno + 1
+                if n > limit:
+                    out.append(f"{path.relative_to(root).as_posix()}:{node.name} ({n})")
+    return out
+
+
+def test_no_function_is_over_80_lines():
+    assert long_functions() == []
+
+
+def test_the_length_check_sees_a_long_function(tmp_path):
+    body = "\n".join(f"    x{i} = {i}" for i in range(90))
+    (tmp_path / "m.py").write_text(f"def long():\n{body}\n\n@jit\ndef kernel():\n{body}\n")
+    assert long_functions(tmp_path) == ["m.py:long (91)"]

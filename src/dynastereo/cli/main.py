@@ -284,6 +284,13 @@ def run(
                 job.tick(done, total)
 
             result = run_job(spec, progress=on_frame)
+    _print_run(result, out, save_map=save_map, save_cloud=save_cloud, mesh_file=save_mesh or save_dense_cloud, rrd=rrd)
+
+
+def _print_run(result, out: Path, *, save_map: Optional[Path], save_cloud: Optional[Path],
+               mesh_file: Optional[Path], rrd: Optional[Path]) -> None:
+    """What ``run`` prints once the run is done: the timing table, the run's figures, the
+    files it wrote, its accuracy, the report; exit 1 when every frame was lost."""
     bag_report = result.bag
     out_console.print(timing_table(result.summary, "timing (ms per frame)"))
     if "masking" in result.summary and "total" in result.summary:
@@ -304,7 +311,7 @@ def run(
     if result.mesh and "vertices" in result.mesh:
         m = result.mesh
         out_console.print(f"static world: {m['vertices']} vertices, {m['triangles']} triangles from {m['keyframes']} "
-                          f"keyframes -> {save_mesh or save_dense_cloud}")
+                          f"keyframes -> {mesh_file}")
     if bag_report is not None:
         r = bag_report
         out_console.print(

@@ -168,15 +168,22 @@ class Ros1Node:
 
     def __init__(self) -> None:
         rospy = import_rospy()
-        import message_filters
-        from nav_msgs.msg import Odometry, Path as PathMsg
-        from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
-        from std_msgs.msg import Bool
-        from std_srvs.srv import Trigger, TriggerResponse
-        from stereo_msgs.msg import DisparityImage
-        from tf2_msgs.msg import TFMessage
-
         self.rospy = rospy
+        calibration = self._read_params()
+        self._make_publishers()
+        self._publish_config(calibration)
+        lt, rt = self._subscribe()
+        self._serve()
+        rospy.loginfo("dynastereo: listening on %s + %s%s; masker %s, detector %s, queue_size %d", lt, rt,
+                      f" with CameraInfo {self.info_topics[0]}, {self.info_topics[1]}" if self.use_info else "",
+                      self.cfg.masker.kind, self.cfg.detector.name, self.core.queue_size)
+
+    def _read_params(self) -> Any:
+        """The node's parameters, its configuration and its core; the calibration given by
+        ``~calib`` (or an ORB-SLAM2 ``~config`` without CameraInfo), else None."""
+        from std_srvs.srv import TriggerResponse
+
+        rospy = self.rospy
         self._TriggerResponse = TriggerResponse
         self.b = GenpyBuilder()
         p = rospy.get_param
@@ -208,8 +215,16 @@ class Ros1Node:
         self._info_warned = False
         self.counts = {"left": 0, "right": 0, "pairs": 0, "calibration_changes": 0}
         self._calib_lock = threading.Lock()
+        return calibration
 
-        # publishers
+    def _make_publishers(self) -> None:
+        from nav_msgs.msg import Odometry, Path as PathMsg
+        from sensor_msgs.msg import Image, PointCloud2
+        from std_msgs.msg import Bool
+        from stereo_msgs.msg import DisparityImage
+        from tf2_msgs.msg import TFMessage
+
+        rospy = self.rospy
         self.pub_odom = rospy.Publisher("~odometry", Odometry, queue_size=10)
         self.pub_tf = rospy.Publisher("/tf", TFMessage, queue_size=100) if self.publish_tf else None
         self.pub_img = {k: rospy.Publisher("~" + k, Image, queue_size=2)
@@ -233,7 +248,11 @@ class Ros1Node:
         self._Bool = Bool
         self.pub_ready.publish(Bool(False))
 
-        # the complete effective configuration on the parameter server
+
+    def _publish_config(self, calibration: Any) -> None:
+        """The complete effective configuration on the parameter server; the calibration set
+        and the node ready, when it was given; the kernels warmed up."""
+        rospy = self.rospy
         d = _nested(to_dict(self.cfg))
         for section in LIVE_SECTIONS + ("slam", "objects"):
             rospy.set_param("~" + section, d[section])
@@ -243,12 +262,17 @@ class Ros1Node:
         if calibration is not None:
             self.core.set_calibration(calibration)
             self.core.warm_up()
-            self.pub_ready.publish(Bool(True))
+            self.pub_ready.publish(self._Bool(True))
         else:  # before the first CameraInfo: what does not need the camera's size
             self.core.warm_up()
             warm_up_kernels()
 
-        # subscriptions
+    def _subscribe(self) -> tuple[str, str]:
+        """The image (and CameraInfo) subscriptions, synchronized; returns the image topics."""
+        import message_filters
+        from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+
+        p = self.rospy.get_param
         compressed = bool(p("~compressed", False))
         img_type = CompressedImage if compressed else Image
         suffix = "/compressed" if compressed else ""
@@ -276,8 +300,14 @@ class Ros1Node:
         else:
             self.sync = message_filters.ApproximateTimeSynchronizer(filters, qs, float(p("~sync_slop", 0.01)))
         self.sync.registerCallback(self._on_pair)
+        return lt, rt
 
-        # services and parameter polling
+    def _serve(self) -> None:
+        """The services, the parameter polling and the shutdown hook; the core started."""
+        from sensor_msgs.msg import PointCloud2
+        from std_srvs.srv import Trigger
+
+        rospy, p = self.rospy, self.rospy.get_param
         self.srv_save = rospy.Service("~save_trajectory", Trigger, self._srv_save)
         self.srv_status = rospy.Service("~status", Trigger, self._srv_status)
         self.pub_mesh = self.pub_dense = None
@@ -291,9 +321,6 @@ class Ros1Node:
         self._poll_timer = rospy.Timer(rospy.Duration(float(p("~param_poll_period", 0.5))), self._poll_params)
         rospy.on_shutdown(self._on_shutdown)
         self.core.start()
-        rospy.loginfo("dynastereo: listening on %s + %s%s; masker %s, detector %s, queue_size %d", lt, rt,
-                      f" with CameraInfo {self.info_topics[0]}, {self.info_topics[1]}" if self.use_info else "",
-                      self.cfg.masker.kind, self.cfg.detector.name, self.core.queue_size)
 
     # ------------------------------------------------------------------ input
     def _count(self, side: str) -> None:

@@ -242,47 +242,9 @@ class Ros2Node:
 
         self._object_paths = ObjectPaths()
 
-        # publishers
-        w = self.dom.writer
-        self.pub_odom = w(self._t("odometry"), "nav_msgs/Odometry", QosKind.RELIABLE)
-        self.pub_tf = w("/tf", "tf2_msgs/TFMessage", QosKind.TF) if self.publish_tf else None
-        self.pub_img = {k: w(self._t(k), "sensor_msgs/Image", QosKind.SENSOR)
-                        for k in ("left/masked", "right/masked", "left/mask", "right/mask", "left/objects")}
-        self.pub_disp = w(self._t("disparity"), "stereo_msgs/DisparityImage", QosKind.SENSOR)
-        self.pub_path = w(self._t("path"), "nav_msgs/Path", QosKind.LATCHED)
-        self.pub_map = w(self._t("map_points"), "sensor_msgs/PointCloud2", QosKind.LATCHED)
-        self.pub_objects = w(self._t("objects"), "visualization_msgs/MarkerArray", QosKind.RELIABLE)
-        self.pub_ready = w(self._t("ready"), "std_msgs/Bool", QosKind.LATCHED)
-        self._ready(False)
-
-        # subscriptions
-        in_qos = QosKind.RELIABLE if p["input_reliability"] == "reliable" else QosKind.SENSOR
-        self.compressed = bool(p["compressed"])
-        img_type = "sensor_msgs/CompressedImage" if self.compressed else "sensor_msgs/Image"
-        suffix = "/compressed" if self.compressed else ""
-        self.topics = {"left": str(p["left_topic"]) + suffix, "right": str(p["right_topic"]) + suffix}
-        self.info_topics = {"left": str(p["left_info_topic"]), "right": str(p["right_info_topic"])}
-        self.readers = {side: self.dom.reader(t, img_type, in_qos) for side, t in self.topics.items()}
-        self.expected = {topic_name(t): dds_type_name(img_type) for t in self.topics.values()}
-        self.info_readers: dict[str, Any] = {}
-        if self.use_info:
-            self._info_cls = idl_type("sensor_msgs/CameraInfo")
-            for side, t in self.info_topics.items():
-                self.info_readers[side] = self.dom.reader(t, "sensor_msgs/CameraInfo", in_qos)
-                self.expected[topic_name(t)] = dds_type_name("sensor_msgs/CameraInfo")
-
-        # services
-        req_t, self._rep_t = service_types()
-        self._req_t = req_t
-        self.services: dict[str, tuple[Any, Any, Any]] = {}
-        for name, fn in (("save_trajectory", self._srv_save), ("status", self._srv_status)):
-            rq, rr = service_topics(self._t(name))
-            self.services[name] = (self.dom.reader("", req_t, QosKind.SERVICE, dds_name=rq),
-                                   self.dom.writer("", self._rep_t, QosKind.SERVICE, dds_name=rr), fn)
-        self._publications = self._publication_reader()
-        self._waiter = Waiter(self.dom.participant, [*self.info_readers.values(), *self.readers.values(),
-                                                     *(req for req, _, _ in self.services.values())])
-        self.dom.announce()
+        self._make_publishers()
+        self._subscribe()
+        self._serve()
 
         if calibration is not None:
             self.core.set_calibration(calibration)
@@ -298,6 +260,55 @@ class Ros2Node:
                  self.dom.domain_id, self.topics["left"], self.topics["right"],
                  f" with CameraInfo {self.info_topics['left']}, {self.info_topics['right']}" if self.use_info else "",
                  self.cfg.masker.kind, self.cfg.detector.name, self.core.queue_size)
+
+    def _make_publishers(self) -> None:
+        """The writers, with ROS 2's QoS conventions (module doc)."""
+        w = self.dom.writer
+        self.pub_odom = w(self._t("odometry"), "nav_msgs/Odometry", QosKind.RELIABLE)
+        self.pub_tf = w("/tf", "tf2_msgs/TFMessage", QosKind.TF) if self.publish_tf else None
+        self.pub_img = {k: w(self._t(k), "sensor_msgs/Image", QosKind.SENSOR)
+                        for k in ("left/masked", "right/masked", "left/mask", "right/mask", "left/objects")}
+        self.pub_disp = w(self._t("disparity"), "stereo_msgs/DisparityImage", QosKind.SENSOR)
+        self.pub_path = w(self._t("path"), "nav_msgs/Path", QosKind.LATCHED)
+        self.pub_map = w(self._t("map_points"), "sensor_msgs/PointCloud2", QosKind.LATCHED)
+        self.pub_objects = w(self._t("objects"), "visualization_msgs/MarkerArray", QosKind.RELIABLE)
+        self.pub_ready = w(self._t("ready"), "std_msgs/Bool", QosKind.LATCHED)
+        self._ready(False)
+
+
+    def _subscribe(self) -> None:
+        """The image and CameraInfo readers, and the type each input topic must carry."""
+        p = self.params
+        in_qos = QosKind.RELIABLE if p["input_reliability"] == "reliable" else QosKind.SENSOR
+        self.compressed = bool(p["compressed"])
+        img_type = "sensor_msgs/CompressedImage" if self.compressed else "sensor_msgs/Image"
+        suffix = "/compressed" if self.compressed else ""
+        self.topics = {"left": str(p["left_topic"]) + suffix, "right": str(p["right_topic"]) + suffix}
+        self.info_topics = {"left": str(p["left_info_topic"]), "right": str(p["right_info_topic"])}
+        self.readers = {side: self.dom.reader(t, img_type, in_qos) for side, t in self.topics.items()}
+        self.expected = {topic_name(t): dds_type_name(img_type) for t in self.topics.values()}
+        self.info_readers: dict[str, Any] = {}
+        if self.use_info:
+            self._info_cls = idl_type("sensor_msgs/CameraInfo")
+            for side, t in self.info_topics.items():
+                self.info_readers[side] = self.dom.reader(t, "sensor_msgs/CameraInfo", in_qos)
+                self.expected[topic_name(t)] = dds_type_name("sensor_msgs/CameraInfo")
+
+
+    def _serve(self) -> None:
+        """The services (request / reply topics as rmw_cyclonedds_cpp lays them out), the
+        reader of other nodes' publications, the wait set, the discovery entry."""
+        req_t, self._rep_t = service_types()
+        self._req_t = req_t
+        self.services: dict[str, tuple[Any, Any, Any]] = {}
+        for name, fn in (("save_trajectory", self._srv_save), ("status", self._srv_status)):
+            rq, rr = service_topics(self._t(name))
+            self.services[name] = (self.dom.reader("", req_t, QosKind.SERVICE, dds_name=rq),
+                                   self.dom.writer("", self._rep_t, QosKind.SERVICE, dds_name=rr), fn)
+        self._publications = self._publication_reader()
+        self._waiter = Waiter(self.dom.participant, [*self.info_readers.values(), *self.readers.values(),
+                                                     *(req for req, _, _ in self.services.values())])
+        self.dom.announce()
 
     def _t(self, name: str) -> str:
         return f"{self.ns}/{name}"
