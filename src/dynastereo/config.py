@@ -717,6 +717,9 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "motion.confirm_frames": (1, 10_000), "motion.release_frames": (1, 10_000), "motion.suspect_fraction": (0, 1),
     "motion.duplicate_iou": (0, 1),
     "objects.block_size": (0, 255), "objects.stride": (1, 8),
+    "mesh.block_size": (1, 255), "mesh.scale": (1, 4), "mesh.voxel_size": (0, 10), "mesh.truncation": (0, 100),
+    "mesh.min_depth": (0, 1000), "mesh.max_depth": (0.1, 1000), "mesh.confidence": (0, 100), "mesh.max_step": (0, 1000),
+    "mesh.mask_margin": (0, 64), "mesh.min_weight": (1, 1000),
     "seed": (0, 2**32 - 1),
 }
 
