@@ -1,5 +1,5 @@
 """What the map file's load-time checks cost: ``load_map`` of a map the size of a long run
-(``bench_map_io.synthetic_map``: 100 keyframes x 2000 keypoints, 50 000 points) with the
+(``_shared_maps.synthetic_map``: 100 keyframes x 2000 keypoints, 50 000 points) with the
 code before and after (the observation lists' structure, finite points, every entry's
 inflated size against the header's counts), alternated, each in its own process; the
 median load time of each.
@@ -12,15 +12,16 @@ Writes benchmarks/results/map_load_checks.json.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from _common import ROOT, machine, median, results_path, write_json
+from _shared_maps import synthetic_map
+
+OUT = results_path("map_load_checks")
 CHILD = (
     "import sys, time\n"
     "from dynastereo.slam.map_io import load_map\n"
@@ -47,9 +48,6 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=9, help="loads per process")
     ap.add_argument("--rounds", type=int, default=3, help="processes per side, alternated")
     a = ap.parse_args()
-    sys.path.insert(0, str(Path(__file__).parent))
-    from bench_map_io import synthetic_map
-
     from dynastereo.slam.map_io import save_map
 
     ms: dict[str, list[float]] = {"before": [], "after": []}
@@ -60,14 +58,14 @@ def main() -> None:
             for name in (("before", "after") if k % 2 == 0 else ("after", "before")):
                 ms[name] += load_ms(a.before if name == "before" else a.after, path, a.repeats)
         size = path.stat().st_size
-    med = {k: statistics.median(v) for k, v in ms.items()}
+    med = {k: median(v) for k, v in ms.items()}
     print(f"load_map, synthetic-100kf ({size / 2**20:.1f} MiB), median of {len(ms['after'])} loads: "
           f"before {med['before']:.1f} ms, after {med['after']:.1f} ms ({100 * (med['after'] / med['before'] - 1):+.1f} %)")
     res = {"map": "synthetic-100kf", "file_bytes": size, "loads": {k: len(v) for k, v in ms.items()},
-           "ms": ms, "median_ms": med, "cpus": os.cpu_count(),
+           "ms": ms, "median_ms": med, "machine": machine(),
            "note": "a shared machine: medians of alternated processes"}
-    (ROOT / "benchmarks" / "results").mkdir(exist_ok=True)
-    (ROOT / "benchmarks" / "results" / "map_load_checks.json").write_text(json.dumps(res, indent=1) + "\n")
+    write_json(OUT, res)
+    print(f"wrote {OUT}")
 
 
 if __name__ == "__main__":

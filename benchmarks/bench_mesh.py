@@ -43,10 +43,8 @@ from __future__ import annotations
 
 import argparse
 import csv
-import hashlib
 import json
 import logging
-import os
 import shutil
 import tempfile
 import time
@@ -56,18 +54,15 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from _common import CLIPS, ROOT, data_dir, machine, models_dir, results_path, write_json
+from _shared_mesh import gt_points, sequence  # the synthetic sequence and its GT points
 from dynastereo.config import Config
 from dynastereo.mesh import KeyframeRecorder, fuse, read_ply, write_mesh_ply
 from dynastereo.mesh.render import render_camera, render_top, top_pixels
 from dynastereo.runtime import JobKind, JobSpec, OutputSpec, SourceSpec, run
-from dynastereo.synth import generate, read_gt_disparity, read_gt_masks, read_objects
 
-ROOT = Path(__file__).resolve().parent.parent
-OUT = ROOT / "benchmarks" / "results" / "mesh.json"
+OUT = results_path("mesh")
 DOCS = ROOT / "docs"
-RAW0001 = "kitti_raw/2011_09_26/2011_09_26_drive_0001_sync"
-MAX_RANGE = 20.0
-GRID = 0.05
 NEAR = 0.2  # completeness
 GHOST = 0.3
 GROW = 0.3
@@ -110,59 +105,6 @@ def run_with_mesh(seq: Path, work: Path, cfg: Config, models_dir: Path | None) -
 
 
 # ----------------------------------------------------------------------------- synthetic
-
-
-def generator_version() -> str:
-    import dynastereo.synth as synth
-
-    h = hashlib.sha1()
-    for p in sorted(Path(synth.__file__).parent.glob("*.py")):
-        h.update(p.read_bytes())
-    return h.hexdigest()[:10]
-
-
-SIZE = (1241, 376)  # KITTI's camera (fx 719 px, baseline 0.54 m): the mesh's defaults are for it
-
-
-def sequence(cache: Path, scenario: str, frames: int, seed: int) -> Path:
-    root = cache / f"{scenario}_n{frames}_s{seed}_{SIZE[0]}x{SIZE[1]}_{generator_version()}"
-    if not (root / "done").is_file():
-        shutil.rmtree(root, ignore_errors=True)
-        generate(root, scenario, frames=frames, seed=seed, size=SIZE)
-        (root / "done").write_text("ok\n")
-    return root / "sequences" / "00"
-
-
-def _grid(p: np.ndarray) -> np.ndarray:
-    if not len(p):
-        return p.reshape(0, 3)
-    _, first = np.unique(np.floor(p / GRID).astype(np.int64), axis=0, return_index=True)
-    return p[first]
-
-
-def gt_points(seq: Path) -> dict[str, np.ndarray]:
-    """The GT static surface, the parked objects' and the movers' points (module doc)."""
-    gt = read_objects(seq)
-    c = gt.calibration
-    bf = c["fx"] * c["baseline"]
-    poses = np.loadtxt(seq.parent.parent / "poses" / "00.txt").reshape(-1, 3, 4)
-    ever_moving = {int(i) for i, o in gt.objects.items() if o.get("moves")}
-    out: dict[str, list[np.ndarray]] = {"static": [], "parked": [], "movers": []}
-    for i in range(len(gt)):
-        d = read_gt_disparity(seq, i)
-        ids, _ = read_gt_masks(seq, i)
-        h, w = d.shape
-        v, u = np.mgrid[0:h, 0:w]
-        z = np.where(d > 0, bf / np.maximum(d, 1e-6), 0.0)
-        ok = (z > 0) & (z <= MAX_RANGE)
-        moving_now = [o.id for o in gt.frame(i) if o.moving]
-        sel = {"static": ok & (ids == 0), "parked": ok & (ids > 0) & ~np.isin(ids, list(ever_moving)),
-               "movers": ok & np.isin(ids, moving_now)}
-        for k, m in sel.items():
-            zz = z[m]
-            P = np.stack([(u[m] - c["cx"]) / c["fx"] * zz, (v[m] - c["cy"]) / c["fy"] * zz, zz], 1)
-            out[k].append(_grid(P @ poses[i][:, :3].T + poses[i][:, 3]))
-    return {k: _grid(np.concatenate(v)) if v else np.zeros((0, 3)) for k, v in out.items()}
 
 
 def score_synthetic(V: np.ndarray, pts: dict[str, np.ndarray], voxel: float) -> dict:
@@ -310,12 +252,13 @@ def pictures(masked, unmasked, boxes, K: np.ndarray, size: tuple[int, int]) -> d
 
 
 def kitti(args, work: Path) -> dict:
-    data = Path(os.environ.get("DYNASTEREO_DATA", ""))
-    seq = data / RAW0001
-    if not seq.is_dir():
-        print(f"KITTI raw 0001 missing ({seq}): skipped")
-        return {"skipped": f"missing {seq}"}
-    models = Path(os.environ["DYNASTEREO_MODELS"]) if os.environ.get("DYNASTEREO_MODELS") else None
+    data = data_dir(required=False)
+    seq = data / CLIPS["raw0001"] if data is not None else None
+    if seq is None or not seq.is_dir():
+        where = seq if seq is not None else f"{CLIPS['raw0001']}, no data folder"
+        print(f"KITTI raw 0001 missing ({where}): skipped")
+        return {"skipped": f"missing {where}"}
+    models = models_dir(required=False)
     cfg = Config()
     r = run_with_mesh(seq, work / "raw0001", cfg, models)
     write_mesh_ply(work / "raw0001" / "mesh_unmasked.ply", r["unmasked"])
@@ -374,7 +317,7 @@ def main() -> None:
     args = ap.parse_args()
     logging.getLogger("dynastereo").setLevel(logging.ERROR)
     args.cache.mkdir(parents=True, exist_ok=True)
-    res: dict = {"config": Config().mesh.__dict__, "machine": os.uname().nodename and "2-core shared machine"}
+    res: dict = {"config": Config().mesh.__dict__, "machine": machine()}
     with tempfile.TemporaryDirectory(prefix="bench_mesh_") as tmp:
         work = args.keep or Path(tmp)
         if not args.skip_synthetic:
@@ -396,8 +339,7 @@ def main() -> None:
             print("synthetic medians:", json.dumps(res["synthetic_medians"]))
         if not args.skip_kitti:
             res["kitti_raw_0001"] = kitti(args, work)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(res, indent=1, default=float))
+    write_json(args.out, res, default=float)
     print(f"-> {args.out}")
 
 

@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -32,16 +30,15 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bench_mesh as bm  # noqa: E402 -- the synthetic sequence and its GT points
+from _common import machine, results_path, write_json
+from _shared_mesh import gt_points, sequence  # the synthetic sequence and its GT points
+from dynastereo.api import load_sequence
+from dynastereo.config import Config
+from dynastereo.mesh import KeyframeView, TSDFVolume
+from dynastereo.mesh.fusion import downscale, keyframe_depth, mesh_matcher, scaled_K
+from dynastereo.synth import read_gt_masks, read_objects
 
-from dynastereo.api import load_sequence  # noqa: E402
-from dynastereo.config import Config  # noqa: E402
-from dynastereo.mesh import KeyframeView, TSDFVolume  # noqa: E402
-from dynastereo.mesh.fusion import downscale, keyframe_depth, mesh_matcher, scaled_K  # noqa: E402
-from dynastereo.synth import read_gt_masks, read_objects  # noqa: E402
-
-OUT = Path(__file__).resolve().parent / "results" / "mesh_tsdf.json"
+OUT = results_path("mesh_tsdf")
 
 
 def _dir_mb(paths: list[Path]) -> float:
@@ -152,7 +149,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
     args.cache.mkdir(parents=True, exist_ok=True)
-    seq = bm.sequence(args.cache, args.scenario, args.frames, 0)
+    seq = sequence(args.cache, args.scenario, args.frames, 0)
     S, gt, cfg = load_sequence(seq), read_objects(seq), Config()
     poses = np.loadtxt(seq.parent.parent / "poses" / "00.txt").reshape(-1, 3, 4)
     matcher, m = mesh_matcher(cfg), cfg.mesh
@@ -163,9 +160,9 @@ def main() -> None:
         mask = (np.isin(ids, [o.id for o in gt.frame(i) if o.moving]) * 255).astype(np.uint8)
         z = keyframe_depth(KeyframeView(i, f.left, f.right, mask), mask, S.calibration, matcher, m)
         frames.append((z, downscale(f.left, m.scale), scaled_K(S.calibration.K, m.scale), poses[i]))
-    pts = bm.gt_points(seq)  # the GT surface of every frame; completeness: the points inside the cube
+    pts = gt_points(seq)  # the GT surface of every frame; completeness: the points inside the cube
     res = {"scenario": args.scenario, "frames": args.frames, "keyframes": len(frames), "voxel_size": m.voxel_size,
-           "truncation": m.truncation, "machine": "2 shared cores (timings noisy: compare side by side)"}
+           "truncation": m.truncation, "machine": machine()}
     # the cube: centred on the cameras' mean x, from 2 m behind the first camera, y +-half
     cams = np.array([f[3][:, 3] for f in frames])
     origin = np.array([cams[:, 0].mean() - args.cube / 2, -args.cube / 2, cams[:, 2].min() - 2.0])
@@ -181,8 +178,7 @@ def main() -> None:
         res["open3d"] = {**t, **score(V, pts, box)}
     for k in ("dynastereo", "open3d"):
         print(k, json.dumps(res[k]))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(res, indent=1))
+    write_json(args.out, res)
     print(f"-> {args.out}")
 
 

@@ -226,9 +226,10 @@ def test_harness_modules_need_no_sys_path_and_no_dynastereo() -> None:
     """A script imports the harness from its own folder as it is, and the harness pulls in
     no ``dynastereo`` (scripts also run against older trees through PYTHONPATH)."""
     helpers = sorted(BENCH.glob("_*.py"))
-    assert {p.name for p in helpers} >= {"_common.py", "_shared_cpu.py", "_shared_peer.py", "_shared_runs.py"}
+    assert {p.name for p in helpers} >= {"_common.py", "_shared_cpu.py", "_shared_peer.py", "_shared_runs.py",
+                                         "_shared_maps.py", "_shared_mesh.py"}
     assert not [p.name for p in helpers if "sys.path" in p.read_text()]
-    code = ("import sys, _common, _shared_cpu, _shared_runs, _shared_peer; "
+    code = ("import sys, _common, _shared_cpu, _shared_runs, _shared_peer, _shared_maps, _shared_mesh; "
             "print(sorted(m for m in sys.modules if m.split('.')[0] == 'dynastereo'))")
     r = subprocess.run([sys.executable, "-c", code], cwd=BENCH, capture_output=True, text=True, timeout=120,
                        env={**os.environ, "PYTHONPATH": ""})
