@@ -132,10 +132,10 @@ def make_inputs(src: Path, tmp: Path, data: Path, cases: tuple[str, ...]) -> dic
                                     cv2.imread(str(k06 / "image_1" / p.name), cv2.IMREAD_GRAYSCALE)]))
         writer.release()
         P = [np.array(line.split()[1:], float).reshape(3, 4) for line in (k06 / "calib.txt").read_text().splitlines()[:2]]
-        fx = P[0][0, 0]
+        fx = float(P[0][0, 0])
         inputs["video_calib"] = tmp / "stereo06.yaml"
-        inputs["video_calib"].write_text(f"fx: {fx!r}\nfy: {P[0][1, 1]!r}\ncx: {P[0][0, 2]!r}\ncy: {P[0][1, 2]!r}\n"
-                                         f"baseline: {-P[1][0, 3] / fx!r}\n")
+        inputs["video_calib"].write_text(f"fx: {fx!r}\nfy: {float(P[0][1, 1])!r}\ncx: {float(P[0][0, 2])!r}\n"
+                                         f"cy: {float(P[0][1, 2])!r}\nbaseline: {float(-P[1][0, 3]) / fx!r}\n")
     return inputs
 
 
