@@ -167,6 +167,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=1, help="folder runs per tree for the FPS (alternated)")
     ap.add_argument("--quick", action="store_true", help="leave out the 576-frame loop")
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma list of {', '.join(CASES)}")
+    ap.add_argument("--out", type=Path, default=OUT_JSON, help="results file")
     args = ap.parse_args()
     cases = tuple(c for c in args.cases.split(",") if c and not (args.quick and c == "loop"))
     bad = [c for c in cases if c not in CASES]
@@ -191,12 +192,12 @@ def main() -> None:
            "differing": [r["file"] for r in differ], "max_abs_trajectory_difference": worst,
            "fps_run06": {k: {"runs": v, "median": median(v, digits=3)} for k, v in fps.items()},
            "cases": sorted({r["file"].split("/")[0] for r in rows})}
-    write_json(OUT_JSON, res)
+    write_json(args.out, res)
     print(f"{len(rows)} files compared over {', '.join(res['cases'])}: {len(differ)} differ; "
           f"largest trajectory difference {worst:g}")
     for k, v in res["fps_run06"].items():
         print(f"run06 FPS {k}: median {v['median']} of {v['runs']}")
-    print(f"-> {OUT_JSON}")
+    print(f"-> {args.out}")
 
 
 if __name__ == "__main__":
