@@ -167,3 +167,44 @@ def test_the_length_check_sees_a_long_function(tmp_path):
     body = "\n".join(f"    x{i} = {i}" for i in range(90))
     (tmp_path / "m.py").write_text(f"def long():\n{body}\n\n@jit\ndef kernel():\n{body}\n")
     assert long_functions(tmp_path) == ["m.py:long (91)"]
+
+
+def unresolved_imports(root: Path = SRC) -> list[str]:
+    """``file:line module`` of every ``dynastereo`` import (lazy ones inside functions too)
+    whose module does not exist: a moved module leaves no import behind that fails only when
+    its branch runs."""
+    files = [p for p in root.rglob("*.py") if "ros_package" not in p.parts]
+    modules = {_module(p, root)[0] for p in files}
+    out = []
+    for p in files:
+        name, is_pkg = _module(p, root)
+        for node in ast.walk(ast.parse(p.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = name.split(".") if is_pkg else name.split(".")[:-1]
+                    base = base[: len(base) - (node.level - 1)]
+                    target = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    target = node.module or ""
+                targets = [target]
+            elif isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            else:
+                continue
+            for t in targets:
+                if t.split(".")[0] == root.name and t not in modules:
+                    out.append(f"{p.relative_to(root).as_posix()}:{node.lineno} {t}")
+    return out
+
+
+def test_every_import_of_the_package_resolves():
+    assert unresolved_imports() == []
+
+
+def test_the_import_check_sees_a_moved_module(tmp_path):
+    pkg = tmp_path / "dynastereo"
+    for rel, text in {"__init__.py": "", "a/__init__.py": "", "a/b.py": "def f():\n    from ..a.gone import x\n",
+                      "a/c.py": "from .b import f\n"}.items():
+        (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
+        (pkg / rel).write_text(text)
+    assert unresolved_imports(pkg) == ["a/b.py:2 dynastereo.a.gone"]

@@ -502,6 +502,11 @@ class Ros2Node:
             self._once(f"srv:{name}", logging.ERROR, f"dynastereo: a malformed {name} request ({e})")
             return
         ok, message = fn()
+        # discovery is not symmetric: the caller's reply reader may be known to it before it is
+        # known here, and a volatile reply to an unmatched reader is lost -- wait briefly for it
+        end = time.monotonic() + 2.0
+        while rep.matched() == 0 and time.monotonic() < end:
+            time.sleep(0.01)
         rep.publish(self._rep_t(client_guid=req.client_guid, sequence_number=req.sequence_number, success=ok,
                                 message=message))
 
@@ -546,19 +551,26 @@ class TriggerClient:
         self.guid = int.from_bytes(bytes(self.w.writer.guid.bytes[8:16]), "little")
         self.seq = 0
 
-    def call(self, timeout: float = 10.0) -> tuple[bool, str]:
+    def call(self, timeout: float = 10.0, resend_s: float = 2.0) -> tuple[bool, str]:
+        """The reply to one request. The request goes again every ``resend_s`` until a reply comes
+        (a reply may be lost while discovery settles); a reply to any of the tries counts."""
         end = time.monotonic() + timeout
         while self.w.matched() == 0 or not self.r.reader.get_matched_publications():
             if time.monotonic() > end:
                 raise TimeoutError("the service is not available")
             time.sleep(0.05)
-        self.seq += 1
-        self.w.publish(self._req_t(client_guid=self.guid, sequence_number=self.seq,
-                                   structure_needs_at_least_one_member=0))
+        sent: set[int] = set()
+        next_send = 0.0
         while time.monotonic() < end:
+            if time.monotonic() >= next_send:
+                self.seq += 1
+                sent.add(self.seq)
+                self.w.publish(self._req_t(client_guid=self.guid, sequence_number=self.seq,
+                                           structure_needs_at_least_one_member=0))
+                next_send = time.monotonic() + resend_s
             for data, _ in self.r.take(8):
                 rep = decode(self._rep_t, data)
-                if rep.client_guid == self.guid and rep.sequence_number == self.seq:
+                if rep.client_guid == self.guid and rep.sequence_number in sent:
                     return bool(rep.success), str(rep.message)
             time.sleep(0.02)
         raise TimeoutError("no reply")

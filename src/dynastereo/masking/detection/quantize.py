@@ -88,7 +88,7 @@ def quantize_detector(model: str | Path, images: list[Path | str], out: str | Pa
             b = next(self.it, None)
             return None if b is None else {name: b}
 
-    from ..masking.detection.rewrite import rewrite
+    from .rewrite import rewrite
 
     with tempfile.TemporaryDirectory() as tmp:
         f32 = Path(tmp) / "f32.onnx"
