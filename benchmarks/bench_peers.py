@@ -1,6 +1,8 @@
 """dynastereo beside a peer: ORB-SLAM3 stereo (C++) through ``pyorbslam3``, side by side.
 
-Three systems (a fourth on request) on each clip (``--clips``: KITTI odometry 06 and 03, KITTI raw drive 0001),
+Three systems (a fourth on request) on each clip (``--clips``: KITTI odometry 06 and 03, KITTI raw drive 0001,
+and the fast-motion variants ``06x2``, ``03x2``, ``06x3``, ``03x3`` -- every 2nd / 3rd frame of 06 and 03, 2-3 m a
+frame as on a highway, made as clips of their own in a temporary folder by :func:`fast_variant`),
 one process at a time, alternated (repeat 1: every clip, every system; then repeat 2 ...),
 ``--repeats`` (default 3) times; medians reported:
 
@@ -67,6 +69,42 @@ RAW_NOTE = ("raw 0001: no ground truth from dynastereo's discovery (the drive's 
             "dynastereo.io.kitti_raw's reader, not on this branch yet); ATE null")
 
 
+#: the fast-motion variants: every ``step``-th frame of a KITTI odometry clip (2-3 m a frame, as on a highway)
+FAST_VARIANTS = {"06x2": ("06", 2), "03x2": ("03", 2), "06x3": ("06", 3), "03x3": ("03", 3)}
+DEFAULT_CLIPS = "06,03,raw0001,06x2,03x2,06x3,03x3"
+
+
+def fast_variant(seq: Path, step: int, name: str, tmp: Path) -> Path:
+    """Every ``step``-th frame of the KITTI odometry clip ``seq`` as a clip of its own under
+    ``tmp`` (nothing copied into the repository): ``sequences/NAME/image_0|1/NNNNNN.png``
+    linked to the originals and numbered 0, 1, ..., ``calib.txt`` linked, ``times.txt`` every
+    ``step``-th stamp (without one, 10 Hz stamps: the time between frames grows with the
+    step), ``poses/NAME.txt`` the ground truth's rows of the frames kept."""
+    root = tmp / "variants" / name
+    d = root / "sequences" / name
+    if d.is_dir():
+        return d
+    lefts = sorted((seq / "image_0").glob("*.png"))[::step]
+    rights = sorted((seq / "image_1").glob("*.png"))[::step]
+    if not lefts or len(lefts) != len(rights):
+        raise SystemExit(f"{seq}: no image_0/image_1 pairs to make the variant {name} from")
+    for cam, files in (("image_0", lefts), ("image_1", rights)):
+        (d / cam).mkdir(parents=True)
+        for i, f in enumerate(files):
+            (d / cam / f"{i:06d}.png").symlink_to(f.resolve())
+    (d / "calib.txt").symlink_to((seq / "calib.txt").resolve())
+    times = seq / "times.txt"
+    stamps = (times.read_text().split()[::step] if times.exists()
+              else [f"{0.1 * step * i:.6e}" for i in range(len(lefts))])
+    (d / "times.txt").write_text("\n".join(stamps[: len(lefts)]) + "\n")
+    poses = seq.parent.parent / "poses" / f"{seq.name}.txt"
+    if poses.exists():
+        rows = poses.read_text().splitlines()[::step][: len(lefts)]
+        (root / "poses").mkdir(parents=True)
+        (root / "poses" / f"{name}.txt").write_text("\n".join(rows) + "\n")
+    return d
+
+
 def ground_truth(seq: Path) -> Path | None:
     """What dynastereo finds as the clip's ground truth (None: nothing)."""
     from dynastereo.api import load_sequence, resolve_ground_truth
@@ -111,14 +149,29 @@ def _f(v: float | None, fmt: str) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--clips", default="06,03,raw0001")
+    ap.add_argument("--clips", default=DEFAULT_CLIPS,
+                    help="of 06, 03, raw0001 and the fast variants " + ", ".join(FAST_VARIANTS)
+                         + " (every 2nd / 3rd frame of 06 and 03)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--systems", default="none,default,orbslam3", help="of " + ", ".join(SYSTEMS))
     data = add_peer_args(ap)
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
 
-    clips = {k: v for k, v in clip_dirs(data).items() if k in args.clips.split(",")}
+    wanted = [c.strip() for c in args.clips.split(",") if c.strip()]
+    unknown = [c for c in wanted if c not in clip_dirs(data) and c not in FAST_VARIANTS]
+    if unknown:
+        raise SystemExit(f"unknown clips {unknown}: of 06, 03, raw0001, {', '.join(FAST_VARIANTS)}")
+    variants_tmp = tempfile.TemporaryDirectory(prefix="peers-variants-")
+    clips = {}
+    for c in wanted:
+        if c in FAST_VARIANTS:
+            base, step = FAST_VARIANTS[c]
+            if not clip_dirs(data)[base].exists():
+                raise SystemExit(f"clip {base} (for {c}) not found under $DYNASTEREO_DATA={data}")
+            clips[c] = fast_variant(clip_dirs(data)[base], step, c, Path(variants_tmp.name))
+        else:
+            clips[c] = clip_dirs(data)[c]
     systems = [s for s in args.systems.split(",") if s in SYSTEMS]
     notes = []
     peer = None
@@ -169,7 +222,9 @@ def main() -> None:
               "notes": notes, "summary": summary, "runs": runs}
     write_json(args.out, result)
 
-    names = {"06": "KITTI 06", "03": "KITTI 03", "raw0001": "raw 0001"}
+    variants_tmp.cleanup()
+    names = {"06": "KITTI 06", "03": "KITTI 03", "raw0001": "raw 0001", "06x2": "KITTI 06, every 2nd",
+             "03x2": "KITTI 03, every 2nd", "06x3": "KITTI 06, every 3rd", "03x3": "KITTI 03, every 3rd"}
     print(f"\nFPS / CPU ms a frame / ATE m, medians of {args.repeats}"
           + (" (ratio dynastereo / ORB-SLAM3: FPS, CPU)" if "orbslam3" in systems else ""))
     head = {"none": "`dynastereo run --masker none`", "default": "`dynastereo run`",
