@@ -40,7 +40,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import CLIPS, data_dir, machine, median, results_path, write_json
+from _common import CLIPS, FAST_VARIANTS, data_dir, fast_variant, machine, median, results_path, write_json
 from dynastereo.api import run_sequence
 from dynastereo.config import Config
 from dynastereo.eval import evaluate_files
@@ -115,8 +115,6 @@ def main() -> int:
     settings = [s for s in args.settings.split(",") if s]
     runs: dict[str, dict[str, list[dict]]] = {}
     # alternate the settings inside each (sequence, variant): their CPU times see the same load
-    from bench_peers import FAST_VARIANTS, fast_variant  # the fast-motion variants, as the peers' benchmark makes them
-
     for seq in [s for s in args.seqs.split(",") if s]:
         if seq in FAST_VARIANTS:
             base, step = FAST_VARIANTS[seq]

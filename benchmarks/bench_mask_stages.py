@@ -1,4 +1,4 @@
-"""Masking's CPU a stereo pair, stage by stage, the motion test's flow included (issue 40's yardstick).
+"""Masking's CPU a stereo pair, stage by stage, the motion test's flow included.
 
 What the masking thread of ``dynastereo run`` spends on a frame -- the detector
 (``contrast`` + ``detect``), the carried boxes (``carry``), the boxes' ``disparity``,
@@ -31,19 +31,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-import numpy as np
+from _common import (FAST_VARIANTS, ROOT, clip_dirs, data_dir, fast_variant, load, machine, median, models_dir,
+                     results_path, write_json)
 
-from bench_peers import FAST_VARIANTS, clip_dirs, fast_variant
-
-ROOT = Path(__file__).resolve().parent.parent
-OUT = ROOT / "benchmarks" / "results" / "mask_stages.json"
+OUT = results_path("mask_stages")
 STAGES = ("contrast", "detect", "carry", "disparity", "outline", "transfer", "motion_flow")
 SETTINGS = {
     "default": {},
@@ -75,7 +71,7 @@ class CpuTimer(StageTimer):
 
 seq = open_sequence(sys.argv[1])
 cfg = Config().with_overrides(json.loads(sys.argv[2]))
-masker = build_masker(cfg, seq.calibration, models_dir=os.environ.get("DYNASTEREO_MODELS"))
+masker = build_masker(cfg, seq.calibration, models_dir=sys.argv[3])
 motion = build_motion(cfg, seq.calibration, masker)
 frames = [seq.frame(i) for i in range(len(seq))]
 for f in frames:
@@ -113,10 +109,10 @@ def parse_setting(name: str) -> dict:
     return out
 
 
-def one(seq: Path, over: dict) -> dict:
+def one(seq: Path, over: dict, models: Path) -> dict:
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
-    r = subprocess.run([sys.executable, "-c", CHILD, str(seq), json.dumps(over)], env=env, capture_output=True,
-                       text=True)
+    r = subprocess.run([sys.executable, "-c", CHILD, str(seq), json.dumps(over), str(models)], env=env,
+                       capture_output=True, text=True)
     if r.returncode != 0:
         raise SystemExit(f"{seq} {over}: failed\n{r.stderr[-2000:]}")
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -129,7 +125,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
-    data = Path(os.environ.get("DYNASTEREO_DATA", ROOT.parent / "shared" / "data"))
+    data, models = data_dir(), models_dir()
     tmp = tempfile.TemporaryDirectory(prefix="mask-stages-")
     clips = {}
     for c in [c.strip() for c in args.clips.split(",") if c.strip()]:
@@ -142,21 +138,19 @@ def main() -> None:
             raise SystemExit(f"unknown clip {c!r}: of {', '.join([*clip_dirs(data), *FAST_VARIANTS])}")
     settings = {s: parse_setting(s) for s in [s.strip() for s in args.settings.split(",") if s.strip()]}
     runs: dict[str, dict[str, list[dict]]] = {c: {s: [] for s in settings} for c in clips}
-    load_before = os.getloadavg()[0]
+    load_before = load()
     for rep in range(args.repeats):
         for c, seq in clips.items():
             for s, over in settings.items():
-                r = one(seq, over)
+                r = one(seq, over, models)
                 runs[c][s].append(r)
                 print(f"[{rep + 1}/{args.repeats}] {c:8s} {s:24s} {r['total_ms']:6.1f} ms CPU a pair  "
                       + "  ".join(f"{k} {r['stages_ms'].get(k, 0.0):.1f}" for k in STAGES) + f"  [{r['hash']}]",
                       flush=True)
     tmp.cleanup()
-    summary = {c: {s: {"total_ms": round(float(np.median([r["total_ms"] for r in rs])), 2),
-                       "masking_ms": round(float(np.median([sum(r["stages_ms"].get(k, 0.0) for k in STAGES)
-                                                            for r in rs])), 2),
-                       "stages_ms": {k: round(float(np.median([r["stages_ms"].get(k, 0.0) for r in rs])), 2)
-                                     for k in STAGES},
+    summary = {c: {s: {"total_ms": median([r["total_ms"] for r in rs], 2),
+                       "masking_ms": median([sum(r["stages_ms"].get(k, 0.0) for k in STAGES) for r in rs], 2),
+                       "stages_ms": {k: median([r["stages_ms"].get(k, 0.0) for r in rs], 2) for k in STAGES},
                        "hash": rs[0]["hash"], "frames": rs[0]["frames"]}
                    for s, rs in by.items()} for c, by in runs.items()}
     print(f"\nCPU ms a stereo pair (process time, medians of {args.repeats}; masking = the stages below)")
@@ -166,12 +160,9 @@ def main() -> None:
         for s, m in by.items():
             print(f"| {c} | {s} | **{m['masking_ms']:.1f}** | " + " | ".join(f"{m['stages_ms'][k]:.1f}" for k in STAGES)
                   + " |")
-    doc = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "repeats": args.repeats,
-           "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "load_before": load_before,
-                       "load_after": os.getloadavg()[0]},
+    doc = {"repeats": args.repeats, "machine": machine(load_before=load_before),
            "settings": settings, "summary": summary, "runs": runs}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(doc, indent=1) + "\n")
+    write_json(args.out, doc)
     print(f"-> {args.out}")
 
 

@@ -57,7 +57,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import ROOT, clip_dirs, load, machine, median, now, results_path, write_json
+from _common import DEFAULT_CLIPS, FAST_VARIANTS, ROOT, clip_dirs, fast_variant, load, machine, median, now, results_path, write_json
 from _shared_cpu import children_cpu
 from _shared_peer import add_peer_args, find_peer, run_peer
 from _shared_runs import ate
@@ -67,42 +67,6 @@ SYSTEMS = ("none", "default", "fast", "orbslam3")  # fast: -c configs/fast.yaml 
 VOCAB_NAME = "ORBvoc_selftrained_k10L6 (self-trained, k = 10, L = 6, 456,067 words; ../shared/anchors/README.md)"
 RAW_NOTE = ("raw 0001: no ground truth from dynastereo's discovery (the drive's OXTS poses need "
             "dynastereo.io.kitti_raw's reader, not on this branch yet); ATE null")
-
-
-#: the fast-motion variants: every ``step``-th frame of a KITTI odometry clip (2-3 m a frame, as on a highway)
-FAST_VARIANTS = {"06x2": ("06", 2), "03x2": ("03", 2), "06x3": ("06", 3), "03x3": ("03", 3)}
-DEFAULT_CLIPS = "06,03,raw0001,06x2,03x2,06x3,03x3"
-
-
-def fast_variant(seq: Path, step: int, name: str, tmp: Path) -> Path:
-    """Every ``step``-th frame of the KITTI odometry clip ``seq`` as a clip of its own under
-    ``tmp`` (nothing copied into the repository): ``sequences/NAME/image_0|1/NNNNNN.png``
-    linked to the originals and numbered 0, 1, ..., ``calib.txt`` linked, ``times.txt`` every
-    ``step``-th stamp (without one, 10 Hz stamps: the time between frames grows with the
-    step), ``poses/NAME.txt`` the ground truth's rows of the frames kept."""
-    root = tmp / "variants" / name
-    d = root / "sequences" / name
-    if d.is_dir():
-        return d
-    lefts = sorted((seq / "image_0").glob("*.png"))[::step]
-    rights = sorted((seq / "image_1").glob("*.png"))[::step]
-    if not lefts or len(lefts) != len(rights):
-        raise SystemExit(f"{seq}: no image_0/image_1 pairs to make the variant {name} from")
-    for cam, files in (("image_0", lefts), ("image_1", rights)):
-        (d / cam).mkdir(parents=True)
-        for i, f in enumerate(files):
-            (d / cam / f"{i:06d}.png").symlink_to(f.resolve())
-    (d / "calib.txt").symlink_to((seq / "calib.txt").resolve())
-    times = seq / "times.txt"
-    stamps = (times.read_text().split()[::step] if times.exists()
-              else [f"{0.1 * step * i:.6e}" for i in range(len(lefts))])
-    (d / "times.txt").write_text("\n".join(stamps[: len(lefts)]) + "\n")
-    poses = seq.parent.parent / "poses" / f"{seq.name}.txt"
-    if poses.exists():
-        rows = poses.read_text().splitlines()[::step][: len(lefts)]
-        (root / "poses").mkdir(parents=True)
-        (root / "poses" / f"{name}.txt").write_text("\n".join(rows) + "\n")
-    return d
 
 
 def ground_truth(seq: Path) -> Path | None:
