@@ -149,8 +149,9 @@ class DetectorConfig:
     tile_overlap: float = 0.2  # share of a tile's width overlapping each neighbour
     # canvas frame/tiles: the top fraction of the frame left out (sky).  0 by default: 0.25
     # costs the network a quarter less, but a tall near object (raw 0001's tram) is then
-    # cut at the band and left half in the map: raw 0001's ATE x2.6 and 8 of its 10 movers
-    # masked in time instead of 10 (docs/guide/performance.md; configs/fast.yaml has it)
+    # cut at the band and left half in the map: with configs/fast.yaml's settings, raw
+    # 0001's ATE median x2.6 over eight n_features variants and 8 of its 10 movers masked
+    # in time instead of 10 (docs/guide/performance.md)
     band_top: float = 0.0
     contrast: DetectorContrast = "clahe"  # the detector's input only
     # When the network runs: "every" frame, every `interval`-th frame ("interval"), or
