@@ -23,7 +23,9 @@ search, explicit, and the cheap settings: ``stereo.scale: 2``, ``detector.carry_
 ``bench_peers.py`` (``06x2``, ``03x2``, ``06x3``, ``03x3``: every 2nd / 3rd frame).  Extra overrides for every run:
 ``--set key=value`` (repeatable).
 
-Prints a table of medians; writes ``benchmarks/results/fast_masking.json`` (``--out``).
+Prints a table of medians; writes ``benchmarks/results/fast_masking.json`` (``--out``).  The defaults against
+``stereo.scale 2`` over twelve variants, paired, merged from several invocations of ``--settings
+before_cheap,stereo2``: ``benchmarks/results/fast_masking_stereo2_paired.json``.
 Run outputs stay under ``--work`` (for comparing masks / verdicts afterwards).
 
     DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\

@@ -15,8 +15,9 @@ tells whether two settings give the same masks bit for bit.
 Settings: ``default`` (the configuration's defaults), ``previous`` (the masking before
 the cheap-masking search, explicit: ``stereo.scale 1``, ``detector.carry_downscale 1``),
 ``stereo2`` / ``carry2`` (one of them alone over ``previous``), ``band`` (``detector.band_top
-0.25`` over the defaults), ``fast`` (``configs/fast.yaml``: the band and ``detector.carry_downscale
-2``), or ``key=value[;key=value...]``.  Clips: ``06``, ``03``,
+0.25`` over the defaults), ``fast`` (``configs/fast.yaml``: ``stereo.scale 2`` and
+``detector.carry_downscale 2``), ``band_carry2`` (the band and the half-size carrying), or
+``key=value[;key=value...]``.  Clips: ``06``, ``03``,
 ``raw0001`` and the fast-motion variants of ``bench_peers.py`` (``06x2``, ``03x2``,
 ``06x3``, ``03x3``).
 
@@ -47,7 +48,8 @@ SETTINGS = {
     "stereo2": {"stereo.scale": 2, "detector.carry_downscale": 1},
     "carry2": {"stereo.scale": 1, "detector.carry_downscale": 2},
     "band": {"detector.band_top": 0.25},
-    "fast": {"detector.band_top": 0.25, "detector.carry_downscale": 2},  # configs/fast.yaml
+    "fast": {"stereo.scale": 2, "detector.carry_downscale": 2},  # configs/fast.yaml
+    "band_carry2": {"detector.band_top": 0.25, "detector.carry_downscale": 2},
 }
 
 # the child: one clip, one setting; prints one JSON line

@@ -41,7 +41,8 @@ missing (how to install: ``../shared/anchors/README.md``).  Where they are looke
     --vocabulary   $DYNASTEREO_PEER_VOCAB   (default ../.peers/ORBvoc.txt beside the repo:
                    the anchors' self-trained ORBvoc_selftrained_k10L6.txt.gz, gunzipped)
 
-Prints a markdown table (README "Results beside ORB-SLAM3"), writes benchmarks/results/peers.json.  Run:
+Prints a markdown table (README "Results beside ORB-SLAM3"), writes benchmarks/results/peers.json
+(``--systems default,fast,orbslam3``: benchmarks/results/peers_fast_profile.json).  Run:
 
     DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
         .venv/bin/python benchmarks/bench_peers.py [--repeats 3] [--clips 06,03,raw0001]

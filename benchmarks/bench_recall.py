@@ -27,7 +27,9 @@ references) still gets its CPU figures, with no recall.
 Every frame of each sequence is processed in order (the schedule and the carried boxes
 need the sequence), with the masker ``dynastereo mask`` builds (``build_masker``).
 
-Prints a table per sequence; writes benchmarks/results/recall.json.
+Prints a table per sequence; writes benchmarks/results/recall.json (the cheap-masking rows:
+benchmarks/results/recall_cheap_masking.json and
+benchmarks/results/recall_stereo_scale2.json).
 Run: DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
      .venv/bin/python benchmarks/bench_recall.py [--rows default,frame-every,...] [--ref03 DIR]
 """
