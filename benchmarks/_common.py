@@ -4,7 +4,8 @@
   ``$DYNASTEREO_MODELS``, else ``../shared/data`` / ``../shared/models`` beside the
   repository; missing, one line naming the variable and the script), :func:`data_path`
   (a file or folder under the data, one line naming it when it is not there) and
-  :func:`clip_dirs` (the KITTI clips the benchmarks share).
+  :func:`clip_dirs` (the KITTI clips the benchmarks share) and :func:`fast_variant`
+  (the fast-motion variants :data:`FAST_VARIANTS`: every 2nd / 3rd frame of 06 and 03).
 * **The machine record**: :func:`machine` (host, cores, platform, Python and library
   versions, load average, date), kept under each results file's ``machine`` key;
   :func:`load` (the one-minute load average) and :func:`now` (the date as the files hold it).
@@ -107,6 +108,42 @@ def clip_dirs(data: Path | None = None) -> dict[str, Path]:
     """The shared KITTI clips (:data:`CLIPS`) under ``data`` (default :func:`data_dir`)."""
     root = data if data is not None else data_dir()
     return {name: root / rel for name, rel in CLIPS.items()}
+
+
+#: the fast-motion variants: every ``step``-th frame of a KITTI odometry clip (2-3 m a frame, as on a highway)
+FAST_VARIANTS = {"06x2": ("06", 2), "03x2": ("03", 2), "06x3": ("06", 3), "03x3": ("03", 3)}
+DEFAULT_CLIPS = "06,03,raw0001,06x2,03x2,06x3,03x3"
+
+
+def fast_variant(seq: Path, step: int, name: str, tmp: Path) -> Path:
+    """Every ``step``-th frame of the KITTI odometry clip ``seq`` as a clip of its own under
+    ``tmp`` (nothing copied into the repository): ``sequences/NAME/image_0|1/NNNNNN.png``
+    linked to the originals and numbered 0, 1, ..., ``calib.txt`` linked, ``times.txt`` every
+    ``step``-th stamp (without one, 10 Hz stamps: the time between frames grows with the
+    step), ``poses/NAME.txt`` the ground truth's rows of the frames kept."""
+    root = tmp / "variants" / name
+    d = root / "sequences" / name
+    if d.is_dir():
+        return d
+    lefts = sorted((seq / "image_0").glob("*.png"))[::step]
+    rights = sorted((seq / "image_1").glob("*.png"))[::step]
+    if not lefts or len(lefts) != len(rights):
+        raise SystemExit(f"{seq}: no image_0/image_1 pairs to make the variant {name} from")
+    for cam, files in (("image_0", lefts), ("image_1", rights)):
+        (d / cam).mkdir(parents=True)
+        for i, f in enumerate(files):
+            (d / cam / f"{i:06d}.png").symlink_to(f.resolve())
+    (d / "calib.txt").symlink_to((seq / "calib.txt").resolve())
+    times = seq / "times.txt"
+    stamps = (times.read_text().split()[::step] if times.exists()
+              else [f"{0.1 * step * i:.6e}" for i in range(len(lefts))])
+    (d / "times.txt").write_text("\n".join(stamps[: len(lefts)]) + "\n")
+    poses = seq.parent.parent / "poses" / f"{seq.name}.txt"
+    if poses.exists():
+        rows = poses.read_text().splitlines()[::step][: len(lefts)]
+        (root / "poses").mkdir(parents=True)
+        (root / "poses" / f"{name}.txt").write_text("\n".join(rows) + "\n")
+    return d
 
 
 # --------------------------------------------------------------------------------------

@@ -17,10 +17,15 @@ Settings (``--settings``, comma-separated): ``default`` (the Config defaults),
 / ``fast_no_carry`` (the fast settings less one), ``three_channels`` (grey frames fed to
 the network as three equal channels, rather than the one-channel grey-input graph),
 ``stereo2`` (the masks' disparity on half-size images, ``stereo.scale: 2``),
-``fast_stereo2`` (both).  Extra overrides for every run:
+``fast_stereo2`` (both), ``before_cheap`` / ``cheap`` (the masking before the cheap-masking
+search, explicit, and the cheap settings: ``stereo.scale: 2``, ``detector.carry_downscale: 2``,
+``detector.band_top: 0.25``).  ``--seqs`` also takes the fast-motion variants of
+``bench_peers.py`` (``06x2``, ``03x2``, ``06x3``, ``03x3``: every 2nd / 3rd frame).  Extra overrides for every run:
 ``--set key=value`` (repeatable).
 
-Prints a table of medians; writes ``benchmarks/results/fast_masking.json`` (``--out``).
+Prints a table of medians; writes ``benchmarks/results/fast_masking.json`` (``--out``).  The defaults against
+``stereo.scale 2`` over twelve variants, paired, merged from several invocations of ``--settings
+before_cheap,stereo2``: ``benchmarks/results/fast_masking_stereo2_paired.json``.
 Run outputs stay under ``--work`` (for comparing masks / verdicts afterwards).
 
     DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
@@ -37,7 +42,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import CLIPS, data_dir, machine, median, results_path, write_json
+from _common import CLIPS, FAST_VARIANTS, data_dir, fast_variant, machine, median, results_path, write_json
 from dynastereo.api import run_sequence
 from dynastereo.config import Config
 from dynastereo.eval import evaluate_files
@@ -60,6 +65,12 @@ SETTINGS = {
     "three_channels": {"detector.grey_input": False},  # grey frames as three equal channels (not the one-channel graph)
     "stereo2": {"stereo.scale": 2},  # the masks' disparity on half-size images
     "fast_stereo2": {**FAST, "stereo.scale": 2},  # the fast settings and stereo2 (configs/fast.yaml's comments)
+    # the masking before the cheap-masking search, explicit, and the cheap settings (half-size disparity and
+    # carrying, the band canvas; onnxruntime)
+    "before_cheap": {**SLOW, "stereo.scale": 1},
+    "cheap": {"stereo.scale": 2, "detector.carry_downscale": 2, "detector.band_top": 0.25,
+              "detector.runtime": "onnxruntime"},
+    "stereo2_carry2": {"stereo.scale": 2, "detector.carry_downscale": 2},  # the cheap settings less the band
 }
 SEQS = CLIPS
 
@@ -107,10 +118,15 @@ def main() -> int:
     runs: dict[str, dict[str, list[dict]]] = {}
     # alternate the settings inside each (sequence, variant): their CPU times see the same load
     for seq in [s for s in args.seqs.split(",") if s]:
+        if seq in FAST_VARIANTS:
+            base, step = FAST_VARIANTS[seq]
+            seq_dir = fast_variant(data / SEQS[base], step, seq, work)
+        else:
+            seq_dir = data / SEQS[seq]
         for nf in variants:
             for name in settings:
                 over = {**SETTINGS[name], **extra, "slam.n_features": nf}
-                r = {"n_features": nf, **one_run(data / SEQS[seq], work / f"{seq}_{name}_nf{nf}", over)}
+                r = {"n_features": nf, **one_run(seq_dir, work / f"{seq}_{name}_nf{nf}", over)}
                 runs.setdefault(seq, {}).setdefault(name, []).append(r)
                 print(f"{seq:8s} {name:14s} nf {nf}: ATE {r['ate_m']:.4f} m  drift {r['drift_percent']:.3f} %  "
                       f"lost {r['lost']}  cpu {r['cpu_s']} s  wall {r['wall_s']} s", flush=True)

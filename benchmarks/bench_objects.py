@@ -343,20 +343,8 @@ def main() -> int:
                                     "at_packets": d["drift_percent_packets"],
                                     "met_at_packets": d["drift_percent_packets"] <= 0.25}
 
-    print(f"\nsynthetic, oracle boxes, seeds {args.seeds}: medians over the seeds")
-    print(f"{'scenario':10s} {'<15 m':>7s} {'15-30 m':>8s} {'30-50 m':>8s} {'<30 m':>7s} {'placed':>7s} "
-          f"{'<30 m*':>7s} {'speed':>7s} {'ms':>6s}   (* misses counted)")
-    for sc in dict.fromkeys(r["scenario"] for r in synth):
-        rs = [r for r in synth if r["scenario"] == sc]
-        cells = [_median([r[k] for r in rs]) for k in ("position_m_0_15", "position_m_15_30", "position_m_30_50",
-                                                          "position_m_near", "placed_fraction_near",
-                                                          "position_m_near_misses_counted", "speed_mps_movers",
-                                                          "objects_ms")]
-        print(f"{sc:10s} " + " ".join(f"{'-' if c is None else f'{c:.3f}':>7s}" for c in cells))
-    print(f"position within 30 m, misses counted: median of the runs' medians {pos:.3f} m; over all "
-          f"{pooled['object_frames_near']} object-frames {pooled['object_frames_median_misses_counted']:.3f} m; "
-          f"over {pooled['objects_near']} objects (each its median) {pooled['objects_median_misses_counted']:.3f} m; "
-          f"speed over all mover-frames {pooled['mover_frames_speed_median']:.3f} m/s")
+    if synth:  # (--scenarios "": the raw 0001 part alone)
+        print_synth(args.seeds, synth, pos, pooled)
     if raw:
         print_raw(raw)
     for k, t in targets.items():
@@ -379,6 +367,24 @@ def main() -> int:
     write_json(args.out, result, default=float)
     print(f"-> {args.out}")
     return 0
+
+
+def print_synth(seeds: str, synth: list[dict], pos: float | None, pooled: dict) -> None:
+    """The synthetic part's table of medians (main)."""
+    print(f"\nsynthetic, oracle boxes, seeds {seeds}: medians over the seeds")
+    print(f"{'scenario':10s} {'<15 m':>7s} {'15-30 m':>8s} {'30-50 m':>8s} {'<30 m':>7s} {'placed':>7s} "
+          f"{'<30 m*':>7s} {'speed':>7s} {'ms':>6s}   (* misses counted)")
+    for sc in dict.fromkeys(r["scenario"] for r in synth):
+        rs = [r for r in synth if r["scenario"] == sc]
+        cells = [_median([r[k] for r in rs]) for k in ("position_m_0_15", "position_m_15_30", "position_m_30_50",
+                                                          "position_m_near", "placed_fraction_near",
+                                                          "position_m_near_misses_counted", "speed_mps_movers",
+                                                          "objects_ms")]
+        print(f"{sc:10s} " + " ".join(f"{'-' if c is None else f'{c:.3f}':>7s}" for c in cells))
+    print(f"position within 30 m, misses counted: median of the runs' medians {pos:.3f} m; over all "
+          f"{pooled['object_frames_near']} object-frames {pooled['object_frames_median_misses_counted']:.3f} m; "
+          f"over {pooled['objects_near']} objects (each its median) {pooled['objects_median_misses_counted']:.3f} m; "
+          f"speed over all mover-frames {pooled['mover_frames_speed_median']:.3f} m/s")
 
 
 # ------------------------------------------------------------------ KITTI raw 0001

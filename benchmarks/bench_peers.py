@@ -1,6 +1,8 @@
 """dynastereo beside a peer: ORB-SLAM3 stereo (C++) through ``pyorbslam3``, side by side.
 
-Three systems (a fourth on request) on each clip (``--clips``: KITTI odometry 06 and 03, KITTI raw drive 0001),
+Three systems (a fourth on request) on each clip (``--clips``: KITTI odometry 06 and 03, KITTI raw drive 0001,
+and the fast-motion variants ``06x2``, ``03x2``, ``06x3``, ``03x3`` -- every 2nd / 3rd frame of 06 and 03, 2-3 m a
+frame as on a highway, made as clips of their own in a temporary folder by :func:`fast_variant`),
 one process at a time, alternated (repeat 1: every clip, every system; then repeat 2 ...),
 ``--repeats`` (default 3) times; medians reported:
 
@@ -39,7 +41,8 @@ missing (how to install: ``../shared/anchors/README.md``).  Where they are looke
     --vocabulary   $DYNASTEREO_PEER_VOCAB   (default ../.peers/ORBvoc.txt beside the repo:
                    the anchors' self-trained ORBvoc_selftrained_k10L6.txt.gz, gunzipped)
 
-Prints a markdown table (README "Results beside ORB-SLAM3"), writes benchmarks/results/peers.json.  Run:
+Prints a markdown table (README "Results beside ORB-SLAM3"), writes benchmarks/results/peers.json
+(``--systems default,fast,orbslam3``: benchmarks/results/peers_fast_profile.json).  Run:
 
     DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
         .venv/bin/python benchmarks/bench_peers.py [--repeats 3] [--clips 06,03,raw0001]
@@ -55,7 +58,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import ROOT, clip_dirs, load, machine, median, now, results_path, write_json
+from _common import DEFAULT_CLIPS, FAST_VARIANTS, ROOT, clip_dirs, fast_variant, load, machine, median, now, results_path, write_json
 from _shared_cpu import children_cpu
 from _shared_peer import add_peer_args, find_peer, run_peer
 from _shared_runs import ate
@@ -111,14 +114,29 @@ def _f(v: float | None, fmt: str) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--clips", default="06,03,raw0001")
+    ap.add_argument("--clips", default=DEFAULT_CLIPS,
+                    help="of 06, 03, raw0001 and the fast variants " + ", ".join(FAST_VARIANTS)
+                         + " (every 2nd / 3rd frame of 06 and 03)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--systems", default="none,default,orbslam3", help="of " + ", ".join(SYSTEMS))
     data = add_peer_args(ap)
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
 
-    clips = {k: v for k, v in clip_dirs(data).items() if k in args.clips.split(",")}
+    wanted = [c.strip() for c in args.clips.split(",") if c.strip()]
+    unknown = [c for c in wanted if c not in clip_dirs(data) and c not in FAST_VARIANTS]
+    if unknown:
+        raise SystemExit(f"unknown clips {unknown}: of 06, 03, raw0001, {', '.join(FAST_VARIANTS)}")
+    variants_tmp = tempfile.TemporaryDirectory(prefix="peers-variants-")
+    clips = {}
+    for c in wanted:
+        if c in FAST_VARIANTS:
+            base, step = FAST_VARIANTS[c]
+            if not clip_dirs(data)[base].exists():
+                raise SystemExit(f"clip {base} (for {c}) not found under $DYNASTEREO_DATA={data}")
+            clips[c] = fast_variant(clip_dirs(data)[base], step, c, Path(variants_tmp.name))
+        else:
+            clips[c] = clip_dirs(data)[c]
     systems = [s for s in args.systems.split(",") if s in SYSTEMS]
     notes = []
     peer = None
@@ -169,7 +187,9 @@ def main() -> None:
               "notes": notes, "summary": summary, "runs": runs}
     write_json(args.out, result)
 
-    names = {"06": "KITTI 06", "03": "KITTI 03", "raw0001": "raw 0001"}
+    variants_tmp.cleanup()
+    names = {"06": "KITTI 06", "03": "KITTI 03", "raw0001": "raw 0001", "06x2": "KITTI 06, every 2nd",
+             "03x2": "KITTI 03, every 2nd", "06x3": "KITTI 06, every 3rd", "03x3": "KITTI 03, every 3rd"}
     print(f"\nFPS / CPU ms a frame / ATE m, medians of {args.repeats}"
           + (" (ratio dynastereo / ORB-SLAM3: FPS, CPU)" if "orbslam3" in systems else ""))
     head = {"none": "`dynastereo run --masker none`", "default": "`dynastereo run`",

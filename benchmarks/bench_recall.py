@@ -27,7 +27,9 @@ references) still gets its CPU figures, with no recall.
 Every frame of each sequence is processed in order (the schedule and the carried boxes
 need the sequence), with the masker ``dynastereo mask`` builds (``build_masker``).
 
-Prints a table per sequence; writes benchmarks/results/recall.json.
+Prints a table per sequence; writes benchmarks/results/recall.json (the cheap-masking rows:
+benchmarks/results/recall_cheap_masking.json and
+benchmarks/results/recall_stereo_scale2.json).
 Run: DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
      .venv/bin/python benchmarks/bench_recall.py [--rows default,frame-every,...] [--ref03 DIR]
 """
@@ -107,6 +109,18 @@ ROWS: dict[str, dict] = {
     # grey frames as three equal channels (before) or into the one-channel graph (default)
     "default 3 channels": {"grey_input": False},
     "default stereo/2": {"stereo.scale": 2},  # the masks' disparity on half-size images
+    # the cheap-masking search (stereo.scale 2 is the default since): the masking before it, explicit
+    "previous": {"stereo.scale": 1, "carry_downscale": 1},
+    # the cheap-masking search: half-size disparity and carrying first, then the network's canvas and runtime
+    "stereo/2 carry/2": {"stereo.scale": 2, "carry_downscale": 2},
+    "stereo/2 carry/2 band .25": {"stereo.scale": 2, "carry_downscale": 2, "band_top": 0.25},
+    "stereo/2 carry/2 ov bf16": {"stereo.scale": 2, "carry_downscale": 2, "runtime": "openvino",
+                                 "precision": "bf16"},
+    "stereo/2 carry/2 band .25 ov bf16": {"stereo.scale": 2, "carry_downscale": 2, "band_top": 0.25,
+                                          "runtime": "openvino", "precision": "bf16"},
+    "stereo/2 carry/2 scale .8": {"stereo.scale": 2, "carry_downscale": 2, "scale": 0.8},
+    "stereo/2 carry/2 band .25 ov bf16 interval 3": {"stereo.scale": 2, "carry_downscale": 2, "band_top": 0.25,
+                                                     "runtime": "openvino", "precision": "bf16", "interval": 3},
     "ov bf16 1t band .25 carry/2 3 channels": {"runtime": "openvino", "precision": "bf16", "threads": 1,
                                                "band_top": 0.25, "carry_downscale": 2, "grey_input": False},
 }

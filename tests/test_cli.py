@@ -166,20 +166,21 @@ def test_config_file_documents_every_default(tmp_path: Path) -> None:
 
 
 def test_fast_profile_loads_and_differs_only_in_the_measured_key() -> None:
-    """configs/fast.yaml (docs/design/masking-cost.md, "Where the 20 ms goes"): a valid configuration that changes
-    the one measured setting (the masks' disparity at half size) and nothing else;
-    `dynastereo config` prints it back."""
+    """configs/fast.yaml (docs/guide/performance.md): a valid configuration that changes
+    the two measured settings (the masks' disparity and the carried boxes' flow at half
+    size) and nothing else; `dynastereo config` prints it back."""
     from dynastereo.config import Config, load_config
 
     fast = Path(__file__).resolve().parent.parent / "configs" / "fast.yaml"
     cfg, base = load_config(fast), Config()
-    assert cfg.stereo.scale == 2
-    changed = {f"stereo.{k}" for k in vars(base.stereo) if getattr(cfg.stereo, k) != getattr(base.stereo, k)}
-    assert changed == {"stereo.scale"}
-    for section in ("detector", "masker", "slam", "motion"):
+    assert cfg.stereo.scale == 2 and cfg.detector.carry_downscale == 2
+    changed = {f"{sec}.{k}" for sec in ("stereo", "detector") for k in vars(getattr(base, sec))
+               if getattr(getattr(cfg, sec), k) != getattr(getattr(base, sec), k)}
+    assert changed == {"stereo.scale", "detector.carry_downscale"}
+    for section in ("masker", "slam", "motion"):
         assert getattr(cfg, section) == getattr(base, section)
     r = runner.invoke(app, ["config", str(fast)])
-    assert r.exit_code == 0 and "scale: 2" in r.stdout
+    assert r.exit_code == 0 and "scale: 2" in r.stdout and "carry_downscale: 2" in r.stdout
 
 
 def test_synth_list_needs_no_out(tmp_path: Path) -> None:

@@ -58,7 +58,11 @@ class StereoConfig:
     # Where to compute disparity when only the masks need it:
     # "full" = whole frame; "boxes" = only the image band covering the detections.
     region: StereoRegion = "boxes"
-    # Downscale factor for the masking disparity (1 = full resolution, 2 = half).
+    # Downscale factor for the masking disparity (1 = full resolution, 2 = half).  1 by
+    # default: 2 (configs/fast.yaml) costs the masks' disparity a third to a quarter of the
+    # CPU (4-5 ms a stereo pair on KITTI) with recall and IoU held, but the motion test's
+    # verdicts on raw 0001's tram follow the disparity: ATE median x1.23 over twelve
+    # n_features variants there (docs/guide/performance.md).
     scale: int = 1
 
     def __post_init__(self) -> None:
@@ -144,9 +148,10 @@ class DetectorConfig:
     tiles: int = 3  # tiles across the frame (canvas tiles)
     tile_overlap: float = 0.2  # share of a tile's width overlapping each neighbour
     # canvas frame/tiles: the top fraction of the frame left out (sky).  0 by default: 0.25
-    # (and carry_downscale 2, runtime auto) cost masking CPU less but moved raw 0001's ATE
-    # from 0.056 to 0.070 m (medians over n_features variants; docs/design/finding-objects.md, "The
-    # runtime, canvas and carrying rows")
+    # costs the network a quarter less, but a tall near object (raw 0001's tram) is then
+    # cut at the band and left half in the map: with configs/fast.yaml's settings, raw
+    # 0001's ATE median x2.6 over eight n_features variants and 8 of its 10 movers masked
+    # in time instead of 10 (docs/guide/performance.md)
     band_top: float = 0.0
     contrast: DetectorContrast = "clahe"  # the detector's input only
     # When the network runs: "every" frame, every `interval`-th frame ("interval"), or
@@ -155,7 +160,11 @@ class DetectorConfig:
     interval: int = 2  # schedule interval: the network runs on every interval-th frame
     track: bool = True  # carry boxes between frames (optical flow), with track ids
     max_carry: int = 2  # detector runs a box is carried without a confirming detection
-    carry_downscale: int = 1  # the carrying's optical flow on the image shrunk 1x or 2x
+    # the carrying's optical flow on the image shrunk 1x or 2x: 1 by default -- 2 halves the
+    # carrying's CPU (about 3.5 ms a stereo pair on KITTI) with the masks' recall and IoU
+    # held, but one of raw 0001's 10 movers is then masked a frame late
+    # (docs/guide/performance.md)
+    carry_downscale: int = 1
     # The ONNX runtime (masking/detection/runtime.py): "auto" = OpenVINO in bf16 when it is
     # installed (the extra dynastereo[openvino]) and the CPU computes in bf16, else
     # onnxruntime f32; precision "auto" = bf16 where available (OpenVINO only), else f32.
