@@ -14,7 +14,9 @@ the prefetch thread, stereo SLAM with local BA):
   fraction, and the moving objects judged static (the costly error); beside them, KITTI
   raw 0001's verdicts against its reference labels (``bench_objects.score_verdicts``: right
   of the decided object-frames).  ``--verdicts-only`` runs just these two and writes
-  ``results/motion_verdicts.json``.
+  ``results/motion_verdicts.json``; with ``--old-commit C`` it also runs commit C's ``src``
+  (``git archive``, each run in its own process) on the same sequences, scored by this
+  checkout's scorer, and prints the pooled rates and each seed's side by side.
 * **ATE** (APE RMSE after SE(3) alignment, ``dynastereo.eval.evaluate_files``) with
   masking ``none`` / ``all`` (the thesis: every detection masked, ``motion.mode: all``) /
   ``moving`` (the default: moving and undecided objects masked) on KITTI 06 and 03 (the
@@ -52,6 +54,7 @@ import json
 import logging
 import os
 import platform
+import subprocess
 import sys
 import tempfile
 import time
@@ -63,6 +66,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_objects import LABELS as RAW_LABELS  # noqa: E402  (raw 0001's reference labels)
 from bench_objects import score_verdicts as raw_verdicts  # noqa: E402
 from bench_synth_slam import sequence  # noqa: E402  (the cached synthetic sequences)
+from bench_then_now import _head, old_tree  # noqa: E402  (an older commit's src, this checkout's commit)
 
 from dynastereo.api import run_sequence  # noqa: E402
 from dynastereo.config import Config  # noqa: E402
@@ -186,6 +190,9 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="one seed, 60 frames, mixed + convoy, KITTI 06")
     ap.add_argument("--verdicts-only", action="store_true",
                     help="only the verdict rates: the synthetic decisions and raw 0001's (results/motion_verdicts.json)")
+    ap.add_argument("--old-commit", default=None,
+                    help="with --verdicts-only: also run this commit's src (git archive, its own process) on the same "
+                         "sequences, scored by this checkout's scorer, paired per seed")
     ap.add_argument("--out", type=Path, default=None, help="the JSON written (default results/moving.json, "
                     "results/motion_verdicts.json with --verdicts-only)")
     args = ap.parse_args()
@@ -203,9 +210,16 @@ def main() -> int:
     ate_seeds = [int(s) for s in args.ate_seeds.split(",") if s]
 
     decisions = []
+    old_src = old_tree(args.old_commit, work / "old") if args.old_commit and args.verdicts_only else None
+    then = []
     for sc in [s for s in args.scenarios.split(",") if s]:
         for seed in seeds:
             seq, _ = sequence(args.cache, sc, args.frames, seed, size)
+            if old_src is not None:  # the old code first, then this checkout's, per sequence
+                out = work / f"{sc}_s{seed}_old"
+                then.append({"scenario": sc, "seed": seed, **run_old(old_src, seq, out),
+                             **decision_accuracy(out, seq)})
+                print(f"{sc:9s} seed {seed} ({args.old_commit}): decisions {then[-1]['accuracy']:.3f}", flush=True)
             out = work / f"{sc}_s{seed}_moving"
             row = {"scenario": sc, "seed": seed, **run(seq, out, "moving", "oracle"), **decision_accuracy(out, seq)}
             if seed == seeds[0] and sc in ("mixed", "static") and not args.verdicts_only:
@@ -220,7 +234,7 @@ def main() -> int:
     pooled = {sc: pooled_verdicts([r for r in decisions if r["scenario"] == sc])
               for sc in dict.fromkeys(r["scenario"] for r in decisions)}
     if args.verdicts_only:
-        return verdicts_only(args, work, seeds, decisions, pooled)
+        return verdicts_only(args, work, seeds, decisions, pooled, then)
 
     ate = []
     for sc in ("convoy", "crossing"):
@@ -332,6 +346,27 @@ def main() -> int:
     return 0
 
 
+# the child of --old-commit: one default run with oracle boxes of the tree on PYTHONPATH
+OLD_CHILD = (
+    "import sys, json, time\n"
+    "from dynastereo.api import run_sequence\n"
+    "from dynastereo.config import Config\n"
+    "cfg = Config().with_overrides({'detector.name': 'oracle'})\n"
+    "t = time.perf_counter()\n"
+    "res = run_sequence(sys.argv[1], sys.argv[2], cfg, stereo_check=False)\n"
+    "print(json.dumps({'wall_s': round(time.perf_counter() - t, 2), 'lost': len(res.lost)}))\n"
+)
+
+
+def run_old(src: Path, seq: Path, out: Path) -> dict:
+    """One run of the old tree ``src`` (its own process), like :func:`run`'s ``moving``."""
+    p = subprocess.run([sys.executable, "-c", OLD_CHILD, str(seq), str(out)],
+                       env=dict(os.environ, PYTHONPATH=str(src)), capture_output=True, text=True)
+    if p.returncode != 0:
+        raise RuntimeError(f"{src} on {seq}: exit {p.returncode}\n{p.stderr[-2000:]}")
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
 def write_json(path: Path, result: dict) -> None:
     atomic_write_text(path, json.dumps(result, indent=1, default=float))
 
@@ -352,9 +387,20 @@ def print_verdicts(pooled: dict, raw: dict | None) -> None:
               f"{v['right'] + v['wrong']} decided object-frames, {v['undecided']} undecided of {v['object_frames']}")
 
 
-def verdicts_only(args, work: Path, seeds: list[int], decisions: list[dict], pooled: dict) -> int:
-    """``--verdicts-only``: raw 0001's verdicts beside the synthetic ones; the JSON."""
+def verdicts_only(args, work: Path, seeds: list[int], decisions: list[dict], pooled: dict,
+                  then: list[dict]) -> int:
+    """``--verdicts-only``: raw 0001's verdicts beside the synthetic ones (and ``then``: an old
+    commit's decisions on the same sequences); the JSON."""
     raw = None
+    compare = None
+    if then:
+        compare = {"old_commit": args.old_commit, "new": _head(), "decisions_old": then,
+                   "pooled_old": {sc: pooled_verdicts([r for r in then if r["scenario"] == sc]) for sc in pooled}}
+        print(f"\n{'scenario':10s} {'rate ' + args.old_commit:>14s} {'rate now':>9s}  per seed (old -> now)")
+        for sc, p in pooled.items():
+            pairs = [(a["accuracy"], b["accuracy"]) for a, b in zip(then, decisions) if a["scenario"] == sc]
+            print(f"{sc:10s} {compare['pooled_old'][sc]['rate']:14.3f} {p['rate']:9.3f}  "
+                  + ", ".join(f"{a:.3f}->{b:.3f}" for a, b in pairs))
     data = os.environ.get("DYNASTEREO_DATA")
     if data and args.raw:
         drive = Path(data) / "kitti_raw" / "2011_09_26" / "2011_09_26_drive_0001_sync"
@@ -370,6 +416,7 @@ def verdicts_only(args, work: Path, seeds: list[int], decisions: list[dict], poo
         "decisions": decisions,
         "decisions_pooled": pooled,
         "kitti_raw_0001": raw,
+        "compared": compare,
         "targets": {"mixed_accuracy": {"value": mixed, "target": TARGET_ACCURACY,
                                        "met": mixed is not None and mixed >= TARGET_ACCURACY}},
     }
