@@ -190,6 +190,9 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="one seed, 60 frames, mixed + convoy, KITTI 06")
     ap.add_argument("--verdicts-only", action="store_true",
                     help="only the verdict rates: the synthetic decisions and raw 0001's (results/motion_verdicts.json)")
+    ap.add_argument("--gt-poses", action="store_true",
+                    help="with --verdicts-only: no SLAM; the masker and the motion test replayed with the sequences' "
+                         "ground-truth poses (the verdicts of the masking and motion code alone)")
     ap.add_argument("--old-commit", default=None,
                     help="with --verdicts-only: also run this commit's src (git archive, its own process) on the same "
                          "sequences, scored by this checkout's scorer, paired per seed")
@@ -217,11 +220,15 @@ def main() -> int:
             seq, _ = sequence(args.cache, sc, args.frames, seed, size)
             if old_src is not None:  # the old code first, then this checkout's, per sequence
                 out = work / f"{sc}_s{seed}_old"
-                then.append({"scenario": sc, "seed": seed, **run_old(old_src, seq, out),
+                then.append({"scenario": sc, "seed": seed, **run_old(old_src, seq, out, args.gt_poses),
                              **decision_accuracy(out, seq)})
                 print(f"{sc:9s} seed {seed} ({args.old_commit}): decisions {then[-1]['accuracy']:.3f}", flush=True)
             out = work / f"{sc}_s{seed}_moving"
-            row = {"scenario": sc, "seed": seed, **run(seq, out, "moving", "oracle"), **decision_accuracy(out, seq)}
+            if args.gt_poses and args.verdicts_only:
+                row = {"scenario": sc, "seed": seed, **run_old(THIS_SRC, seq, out, True), **decision_accuracy(out, seq),
+                       "ate_m": 0.0, "total_ms": None}
+            else:
+                row = {"scenario": sc, "seed": seed, **run(seq, out, "moving", "oracle"), **decision_accuracy(out, seq)}
             if seed == seeds[0] and sc in ("mixed", "static") and not args.verdicts_only:
                 row["replay"] = replay_cost(seq, out, "oracle")
             decisions.append(row)
@@ -358,9 +365,43 @@ OLD_CHILD = (
 )
 
 
-def run_old(src: Path, seq: Path, out: Path) -> dict:
-    """One run of the old tree ``src`` (its own process), like :func:`run`'s ``moving``."""
-    p = subprocess.run([sys.executable, "-c", OLD_CHILD, str(seq), str(out)],
+# the child of --gt-poses: the masker and the motion test of the tree on PYTHONPATH with the
+# ground-truth poses (no SLAM), objects.jsonl's box / track / moving written
+REPLAY_CHILD = (
+    "import sys, json, time\n"
+    "from pathlib import Path\n"
+    "from dynastereo.config import Config\n"
+    "from dynastereo.eval.trajectory import read_trajectory\n"
+    "from dynastereo.io import open_sequence\n"
+    "from dynastereo.masking import build_masker\n"
+    "from dynastereo.masking.motion import MotionJudge, SceneFlow\n"
+    "seq_dir, out = Path(sys.argv[1]), Path(sys.argv[2])\n"
+    "cfg = Config().with_overrides({'detector.name': 'oracle'})\n"
+    "seq = open_sequence(seq_dir)\n"
+    "masker = build_masker(cfg, seq.calibration, models_dir=None, ground_truth=seq_dir)\n"
+    "poses = read_trajectory(seq_dir.parent.parent / 'poses' / (seq_dir.name + '.txt')).poses\n"
+    "flow, judge = SceneFlow(cfg.motion), MotionJudge(cfg.motion, seq.calibration)\n"
+    "t = time.perf_counter()\n"
+    "lines = []\n"
+    "for i in range(min(len(seq), len(poses))):\n"
+    "    f = seq.frame(i)\n"
+    "    m = masker.mask(f)\n"
+    "    m.flow = flow.measure(f, m)\n"
+    "    judge.select(m)\n"
+    "    judge.update(m, poses[i][:3], ok=True)\n"
+    "    lines.append(json.dumps({'frame': i, 'objects': [{'box': [float(v) for v in o.box], 'track': int(o.track_id),\n"
+    "                                                      'moving': o.moving} for o in m.objects]}))\n"
+    "out.mkdir(parents=True, exist_ok=True)\n"
+    "(out / 'objects.jsonl').write_text('\\n'.join(lines) + '\\n')\n"
+    "print(json.dumps({'wall_s': round(time.perf_counter() - t, 2), 'lost': 0}))\n"
+)
+THIS_SRC = Path(__file__).resolve().parent.parent / "src"
+
+
+def run_old(src: Path, seq: Path, out: Path, gt_poses: bool = False) -> dict:
+    """One run of the tree ``src`` (its own process): the default pipeline with oracle boxes,
+    like :func:`run`'s ``moving``, or with ``gt_poses`` the replay without SLAM."""
+    p = subprocess.run([sys.executable, "-c", REPLAY_CHILD if gt_poses else OLD_CHILD, str(seq), str(out)],
                        env=dict(os.environ, PYTHONPATH=str(src)), capture_output=True, text=True)
     if p.returncode != 0:
         raise RuntimeError(f"{src} on {seq}: exit {p.returncode}\n{p.stderr[-2000:]}")
@@ -412,7 +453,7 @@ def verdicts_only(args, work: Path, seeds: list[int], decisions: list[dict], poo
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
                     "loadavg_at_end": list(os.getloadavg())},
         "config": {"motion": vars(Config().motion), "frames": args.frames, "size": args.size, "seeds": seeds,
-                   "tuned_on_seed": 0},
+                   "tuned_on_seed": 0, "poses": "ground truth (replayed, no SLAM)" if args.gt_poses else "SLAM"},
         "decisions": decisions,
         "decisions_pooled": pooled,
         "kitti_raw_0001": raw,
