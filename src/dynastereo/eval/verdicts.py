@@ -7,7 +7,8 @@ and counts, per ground-truth object-frame:
 * an object gets ``skip_frames`` (3) frames after it first shows in the left image to be
   judged, and object-frames under ``min_pixels`` (300) visible left pixels are left out;
 * each remaining object-frame must be matched by a reported box with IoU >= ``min_iou``
-  (0.5; one to one, the largest IoUs first) whose ``moving`` equals the ground truth's;
+  (0.5; one to one, the assignment of the largest total IoU) whose ``moving`` equals the
+  ground truth's;
 * unmatched and undecided object-frames count as wrong.
 
 The count is driven by the ground truth, so an object the run never reported, or
