@@ -220,13 +220,13 @@ def main() -> int:
             seq, _ = sequence(args.cache, sc, args.frames, seed, size)
             if old_src is not None:  # the old code first, then this checkout's, per sequence
                 out = work / f"{sc}_s{seed}_old"
-                then.append({"scenario": sc, "seed": seed, **run_old(old_src, seq, out, args.gt_poses),
+                then.append({"scenario": sc, "seed": seed, **run_tree(old_src, seq, out, args.gt_poses),
                              **decision_accuracy(out, seq)})
                 print(f"{sc:9s} seed {seed} ({args.old_commit}): decisions {then[-1]['accuracy']:.3f}", flush=True)
             out = work / f"{sc}_s{seed}_moving"
             if args.gt_poses and args.verdicts_only:
-                row = {"scenario": sc, "seed": seed, **run_old(THIS_SRC, seq, out, True), **decision_accuracy(out, seq),
-                       "ate_m": 0.0, "total_ms": None}
+                row = {"scenario": sc, "seed": seed, **run_tree(THIS_SRC, seq, out, True), **decision_accuracy(out, seq),
+                       "ate_m": None, "total_ms": None}
             else:
                 row = {"scenario": sc, "seed": seed, **run(seq, out, "moving", "oracle"), **decision_accuracy(out, seq)}
             if seed == seeds[0] and sc in ("mixed", "static") and not args.verdicts_only:
@@ -398,7 +398,7 @@ REPLAY_CHILD = (
 THIS_SRC = Path(__file__).resolve().parent.parent / "src"
 
 
-def run_old(src: Path, seq: Path, out: Path, gt_poses: bool = False) -> dict:
+def run_tree(src: Path, seq: Path, out: Path, gt_poses: bool = False) -> dict:
     """One run of the tree ``src`` (its own process): the default pipeline with oracle boxes,
     like :func:`run`'s ``moving``, or with ``gt_poses`` the replay without SLAM."""
     p = subprocess.run([sys.executable, "-c", REPLAY_CHILD if gt_poses else OLD_CHILD, str(seq), str(out)],
