@@ -1,5 +1,5 @@
 # The two commands of README.md (and `make install`).  All create or reuse .venv in the repository root.
-.PHONY: demo test venv bench install
+.PHONY: demo test venv bench install docs
 
 BINDIR ?= $(HOME)/.local/bin
 
@@ -14,6 +14,11 @@ test: venv
 
 bench: venv
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; .venv/bin/python $$b || exit 1; done
+
+# the documentation site into site/ (docs/development.md): the generated pages first
+docs: venv
+	.venv/bin/python scripts/gen_docs.py
+	.venv/bin/mkdocs build --strict
 
 # `dynastereo` on your PATH: a symlink $(BINDIR)/dynastereo -> .venv/bin/dynastereo
 install: venv

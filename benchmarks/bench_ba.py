@@ -19,7 +19,7 @@ Each problem is solved by
 Time: wall ms and CPU ms (``time.process_time``: all threads of the process) per problem,
 the fastest of ``--repeats`` (default 3) solves, the solvers alternated.  The kernel is
 compiled / loaded from cache before timing (its first-call times are reported apart).
-Target (issue 23): kernel CPU <= 1/4 of gtsam's, medians over the problems.
+Target: kernel CPU <= 1/4 of gtsam's, medians over the problems.
 
 Prints medians; writes benchmarks/results/ba.json.  Run:
 
@@ -41,7 +41,6 @@ import dataclasses
 import json
 import os
 import pickle
-import platform
 import sys
 import tempfile
 import time
@@ -49,7 +48,9 @@ from pathlib import Path
 
 import numpy as np
 
-OUT = Path(__file__).resolve().parent / "results" / "ba.json"
+from _common import ROOT, data_path, machine, median, results_path, write_json
+
+OUT = results_path("ba")
 TARGET_CPU_RATIO = 0.25
 
 
@@ -69,7 +70,7 @@ def capture(seq: Path) -> list:
     lm.run_ba = cap
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            run_sequence(seq, Path(tmp) / "run", Config(), stereo_check=False)
+            run_sequence(seq, Path(tmp) / "run", Config(), stereo_check=False, overwrite=True)
     finally:
         lm.run_ba = orig
     return probs
@@ -111,7 +112,7 @@ seq, masker, nf, out = Path(sys.argv[1]), sys.argv[2], int(sys.argv[3]), Path(sy
 over = {"slam.n_features": nf}
 if masker == "none":
     over["masker.kind"] = "none"
-res = run_sequence(seq, out, Config().with_overrides(over), stereo_check=False)
+res = run_sequence(seq, out, Config().with_overrides(over), stereo_check=False, overwrite=True)
 ev = evaluate_files(out / "trajectory.kitti.txt", seq.parent.parent / "poses" / f"{seq.name}.txt")
 st = json.loads((out / "run.json").read_text())["stats"]
 print(json.dumps({"ate_m": round(float(ev.ape["rmse"]), 4), "lost": len(res.lost), "local_ba_runs": st["local_ba_runs"],
@@ -123,8 +124,8 @@ VARIANTS = (2000, 1950, 2050, 2100)
 def ate(old_src: str, out_path: Path) -> int:
     import subprocess
 
-    data = Path(os.environ["DYNASTEREO_DATA"]) / "kitti_odometry" / "dataset" / "sequences"
-    new_src = str(Path(__file__).resolve().parent.parent / "src")
+    data = data_path("kitti_odometry", "dataset", "sequences")
+    new_src = str(ROOT / "src")
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         for nf in VARIANTS:
@@ -148,13 +149,13 @@ def ate(old_src: str, out_path: Path) -> int:
            "ratio_03": round(med["kernel_03"] / med["old_03"], 3), "target_ratio": 1.10}
     print(f"ATE medians over n_features {VARIANTS}: 06 old {med['old_06']:.4f} kernel {med['kernel_06']:.4f} "
           f"({res['ratio_06']}x); 03 old {med['old_03']:.4f} kernel {med['kernel_03']:.4f} ({res['ratio_03']}x)")
-    out_path.write_text(json.dumps(res, indent=1))
+    write_json(out_path, res)
     print(f"written {out_path}")
     return 0
 
 
 def _median(v):
-    return float(np.median(v)) if len(v) else None
+    return median(v)
 
 
 def main() -> int:
@@ -178,11 +179,7 @@ def main() -> int:
     if args.load:
         probs = pickle.loads(Path(args.load).read_bytes())
     else:
-        data = os.environ.get("DYNASTEREO_DATA")
-        if not data:
-            print("DYNASTEREO_DATA is not set: no KITTI 06 to capture problems from", file=sys.stderr)
-            return 2
-        probs = capture(Path(data) / "kitti_odometry" / "dataset" / "sequences" / "06")
+        probs = capture(data_path("kitti_odometry", "dataset", "sequences", "06"))
         if args.save:
             Path(args.save).write_bytes(pickle.dumps(probs))
     items = expand(probs, args.problems)
@@ -245,9 +242,8 @@ def main() -> int:
     print(f"final cost, kernel vs gtsam at the same settings: median relative difference "
           f"{summary['cost_rel_diff_same_settings_median']:+.2e}, largest {summary['cost_rel_diff_same_settings_max_abs']:.2e}")
     out = {"summary": summary, "rows": rows,
-           "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()}}
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(out, indent=1))
+           "machine": machine()}
+    write_json(args.out, out)
     print(f"written {args.out}")
     return 0
 

@@ -9,7 +9,7 @@ from ``$DYNASTEREO_DATA``), with blocks ``--blocks`` (halved drive) and ``--full
 ``--masker none``, and reports the ATE (APE RMSE, SE(3)-aligned) and end-point drift against
 the OXTS poses at the images' times: medians over the variants.  (The synthetic scenes'
 object positions and motion decisions per block: ``bench_objects.py``, ``bench_moving.py``
-and README.)
+and docs/design/objects-motion.md.)
 
 Writes ``benchmarks/results/block_size.json``.  Run:
 
@@ -20,22 +20,17 @@ Writes ``benchmarks/results/block_size.json``.  Run:
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import shutil
-import sys
 import tempfile
-import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-OUT = ROOT / "benchmarks" / "results" / "block_size.json"
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_gt_time import ate_drift, run_dynastereo  # noqa: E402
-from bench_peers import clip_dirs  # noqa: E402
+from _common import CLIPS, data_path, median, now, print_table, results_path, write_json
+from _shared_runs import ate_drift, run_dynastereo
+
+OUT = results_path("block_size")
 
 
 def halved_drive(drive: Path, work: Path) -> Path:
@@ -81,10 +76,7 @@ def main() -> int:
     from dynastereo.config import StereoConfig
     from dynastereo.eval.trajectory import read_trajectory
 
-    data = Path(os.environ.get("DYNASTEREO_DATA", ROOT.parent / "shared" / "data"))
-    drive = clip_dirs(data)["raw0001"]
-    if not drive.is_dir():
-        raise SystemExit(f"KITTI raw 0001 not found under $DYNASTEREO_DATA={data}")
+    drive = data_path(CLIPS["raw0001"])
     variants = [int(v) for v in args.variants.split(",")]
     sizes = {"full": [int(b) for b in args.full_blocks.split(",")], "half": [int(b) for b in args.blocks.split(",")]}
     table: dict[str, dict[str, list[dict]]] = {}
@@ -105,19 +97,18 @@ def main() -> int:
                     rows.append({"n_features": nf, **ate_drift(read_trajectory(out / "trajectory.kitti.txt"), gt)})
                     print(f"{size} ({width} px) block {b}: n_features {nf} ATE {rows[-1]['ate_m']:.4f} m drift "
                           f"{rows[-1]['drift_percent']:.3f} %", flush=True)
-                table[size][str(b)] = {"runs": rows, "ate_m": float(np.median([r["ate_m"] for r in rows])),
-                                       "drift_percent": float(np.median([r["drift_percent"] for r in rows]))}
-    result = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "variants": variants, "results": table}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
+                table[size][str(b)] = {"runs": rows, "ate_m": median(r["ate_m"] for r in rows),
+                                       "drift_percent": median(r["drift_percent"] for r in rows)}
+    result = {"date": now(), "variants": variants, "results": table}
+    write_json(args.out, result)
     print("\nKITTI raw 0001, default pipeline: ATE m / drift %, medians over the variants")
-    print("| size | block | ATE (m) | drift |")
-    print("|---|---|---|---|")
+    rows = []
     for size, t in table.items():
         for b, v in t.items():
             if isinstance(v, dict):
                 name = "`--masker none`" if b == "none" else b + (" (default)" if int(b) == t["default_block"] else "")
-                print(f"| {size}, {t['width']} px | {name} | {v['ate_m']:.4f} | {v['drift_percent']:.3f} % |")
+                rows.append((f"{size}, {t['width']} px", name, f"{v['ate_m']:.4f}", f"{v['drift_percent']:.3f} %"))
+    print_table(("size", "block", "ATE (m)", "drift"), rows)
     print(f"-> {args.out}")
     return 0
 

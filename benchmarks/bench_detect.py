@@ -6,7 +6,7 @@
 2. Post-processing of the SAME raw YOLOv3-tiny output: array-wise (thesis Algorithm 2)
    vs the per-row Python loop (thesis Algorithm 1; thesis 4.2: 4 ms vs 27.9 ms for YOLOv3).
 
-3. ``--runtimes`` (issue 24): yolox-nano as the masking runs it (the frame's canvas at
+3. ``--runtimes``: yolox-nano as the masking runs it (the frame's canvas at
    scale 1, 1248x384 on KITTI, and its band without the top quarter, 1248x288) on each
    runtime / precision / thread count (onnxruntime f32; OpenVINO f32 and bf16 where the
    CPU has it), the grey frame as three equal channels or into the one-channel graph
@@ -22,9 +22,7 @@ Run: DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -32,6 +30,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from _common import data_dir, machine, results_path, stats, write_json
 from dynastereo.config import DetectorConfig
 from dynastereo.errors import ModelError
 from dynastereo.masking.detection import create_detector
@@ -39,13 +38,7 @@ from dynastereo.models import resolve_models_dir, verify
 
 DETECTORS = ["yolov3-tiny", "yolox-nano", "fastestdet", "yolo11n-int8", "yolov3"]
 TARGETS_MS = {"yolov3-tiny": 40.0, "yolox-nano": 15.0}
-OUT = Path(__file__).resolve().parent / "results" / "detect.json"
-
-
-def stats(v: list[float]) -> dict[str, float]:
-    a = np.asarray(v, np.float64)
-    return {"median": round(float(np.median(a)), 3), "p90": round(float(np.percentile(a, 90)), 3),
-            "mean": round(float(a.mean()), 3), "n": int(a.size)}
+OUT = results_path("detect")
 
 
 def load_frames(data: Path, n: int) -> list[tuple[str, np.ndarray]]:
@@ -164,10 +157,8 @@ def bench_runtimes(frames, repeats: int, models_dir: Path, out: Path) -> None:
         rows.append(r)
         print(f"{rt:<13}{prec:>6}{th:>8}{f'{cw}x{ch}':>10}{'grey' if grey else '3 ch':>7}"
               f"{r['wall_ms']['median']:>9.1f}{r['cpu_ms']['median']:>8.1f}")
-    doc = {"frames": [f for f, _ in frames], "repeats": repeats, "cpus": os.cpu_count(),
-           "platform": platform.platform(), "rows": rows}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1))
+    doc = {"frames": [f for f, _ in frames], "repeats": repeats, "machine": machine(), "rows": rows}
+    write_json(out, doc)
     print(f"wrote {out}")
 
 
@@ -181,9 +172,7 @@ def main() -> None:
     ap.add_argument("--runtimes", action="store_true", help="only section 3: runtimes x precision x threads")
     args = ap.parse_args()
 
-    data = Path(os.environ.get("DYNASTEREO_DATA", ""))
-    if not os.environ.get("DYNASTEREO_DATA"):
-        sys.exit("set DYNASTEREO_DATA (and DYNASTEREO_MODELS)")
+    data = data_dir()
     models_dir = resolve_models_dir()
     frames = load_frames(data, args.frames)
     print(f"{len(frames)} KITTI frames ({frames[0][1].shape[1]}x{frames[0][1].shape[0]} gray), "
@@ -226,16 +215,12 @@ def main() -> None:
     out = {
         "unit": "ms",
         "frames": [f for f, _ in frames],
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "opencv": cv2.__version__, "onnxruntime": __import__("onnxruntime").__version__},
+        "machine": machine(onnxruntime=__import__("onnxruntime").__version__),
         "repeats": args.repeats,
         "detect": results,
         "postprocess": post,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(out, indent=1))
-    tmp.replace(args.out)
+    write_json(args.out, out)
     print(f"wrote {args.out}")
 
 

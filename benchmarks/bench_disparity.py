@@ -16,10 +16,7 @@ Run: DYNASTEREO_DATA=/work/shared/data .venv/bin/python benchmarks/bench_dispari
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -27,24 +24,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from _common import data_dir, machine, median, print_table, results_path, write_json
 from dynastereo.config import StereoConfig
 from dynastereo.io.images import read_pfm
 from dynastereo.masking.disparity import StereoMatcher
 
-OUT = Path(__file__).resolve().parent / "results" / "disparity.json"
+OUT = results_path("disparity")
 
 MATCHERS = [  # name, algorithm, block size
     ("BM", "bm", 15),
     ("SGBM", "sgbm", 5),
     ("SGBM-3way", "sgbm3way", 5),
 ]
-
-
-def data_dir() -> Path:
-    v = os.environ.get("DYNASTEREO_DATA")
-    if not v:
-        sys.exit("set DYNASTEREO_DATA (the shared data folder)")
-    return Path(v)
 
 
 def _read_gray(p: Path) -> np.ndarray:
@@ -103,7 +94,7 @@ def timed(fn, repeats: int) -> tuple[float, np.ndarray]:
         t0 = time.perf_counter()
         out = fn()
         ts.append((time.perf_counter() - t0) * 1000.0)
-    return float(np.median(ts)), out
+    return median(ts), out
 
 
 def main() -> None:
@@ -134,23 +125,17 @@ def main() -> None:
                           f"bad3_est {row['bad3_est']:.3f}  density {row['density']:.3f}  {ms:7.1f} ms",
                           flush=True)
     print()
-    print("| pair | matcher | scale | bad3 (missing = bad) | bad3 over estimates | density | median ms |")
-    print("|---|---|---|---|---|---|---|")
-    for r in rows:
-        print(f"| {r['pair']} | {r['matcher']} | 1/{r['scale']} | {r['bad3']:.3f} | {r['bad3_est']:.3f} | "
-              f"{r['density']:.3f} | {r['ms']:.1f} |")
-    OUT.parent.mkdir(parents=True, exist_ok=True)
+    print_table(("pair", "matcher", "scale", "bad3 (missing = bad)", "bad3 over estimates", "density", "median ms"),
+                [(r["pair"], r["matcher"], f"1/{r['scale']}", f"{r['bad3']:.3f}", f"{r['bad3_est']:.3f}",
+                  f"{r['density']:.3f}", f"{r['ms']:.1f}") for r in rows])
     result = {
         "benchmark": "disparity",
         "metric": "bad3 = |d - gt| > 3 px over GT-valid pixels (missing estimates count as bad); "
                   "bad3_est over estimated pixels only; density = estimated / GT-valid",
-        "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
-                    "opencv": cv2.__version__, "cv2_threads": cv2.getNumThreads()},
+        "machine": machine(cv2_threads=cv2.getNumThreads()),
         "rows": rows,
     }
-    tmp = OUT.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=1))
-    tmp.replace(OUT)
+    write_json(OUT, result)
     print(f"\nwrote {OUT}")
 
 

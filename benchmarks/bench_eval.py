@@ -7,29 +7,22 @@ Run: DYNASTEREO_DATA=/work/shared/data .venv/bin/python benchmarks/bench_eval.py
 
 from __future__ import annotations
 
-import json
+import argparse
 import math
-import os
-import statistics
-import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
+from _common import data_path, results_path, write_json
+from _common import median_ms as _median_ms
 from dynastereo.eval import Trajectory, evaluate, kitti_odometry_error, plot_trajectories, read_trajectory
 
 REPEATS = 7
 
 
 def median_ms(fn, repeats=REPEATS):
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(times)
+    return _median_ms(fn, repeats)
 
 
 def perturb(poses, rng):
@@ -59,11 +52,10 @@ def devkit_loop(gt, est, lengths=(100, 200, 300, 400, 500, 600, 700, 800), step=
 
 
 def main() -> int:
-    data = os.environ.get("DYNASTEREO_DATA")
-    if not data:
-        print("DYNASTEREO_DATA not set", file=sys.stderr)
-        return 1
-    poses_dir = Path(data) / "kitti_odometry/dataset/poses"
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", type=Path, default=results_path("eval"))
+    args = ap.parse_args()
+    poses_dir = data_path("kitti_odometry/dataset/poses")
     rng = np.random.default_rng(0)
     rows = []
     for seq in ("06", "00"):
@@ -94,9 +86,7 @@ def main() -> int:
     print(f"{'seq':>4} " + " ".join(f"{k:>20}" for k in keys))
     for r in rows:
         print(f"{r['sequence']:>4} " + " ".join(f"{r[k]:>20.1f}" for k in keys))
-    out = Path(__file__).parent / "results" / "eval.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"repeats": REPEATS, "rows": rows}, indent=2))
+    out = write_json(args.out, {"repeats": REPEATS, "rows": rows}, indent=2)
     print(f"wrote {out}")
     return 0
 

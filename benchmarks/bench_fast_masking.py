@@ -1,4 +1,4 @@
-"""The SLAM's accuracy with the fast masking settings against the defaults (issue 24).
+"""The SLAM's accuracy with the fast masking settings against the defaults.
 
 The fast masking settings (``detector: {runtime: auto, band_top: 0.25, carry_downscale:
 2}``: OpenVINO bf16, the band canvas, the carrying's flow at half size) cut masking CPU
@@ -6,7 +6,7 @@ by 20-30 % with recall / IoU held; this benchmark asks whether they keep the SLA
 trajectory.  Per sequence (KITTI raw drive 0001 against its OXTS ground truth, KITTI
 odometry 06 and 03 against their poses) and per setting, one ``run_sequence`` per
 ``slam.n_features`` variant (2000, 1950, 2050, 2100: a short clip's ATE moves by tens of
-per cent with a few more or fewer features, README "SLAM on KITTI"), then the medians of
+per cent with a few more or fewer features, docs/design/slam-accuracy.md), then the medians of
 ATE (APE RMSE, SE(3)-aligned) and drift (% of the path, start-anchored) over the
 variants.  The runs are deterministic, so the load of a shared machine moves only their
 times (reported: process time of the whole run, beside the wall time).
@@ -15,7 +15,7 @@ Settings (``--settings``, comma-separated): ``default`` (the Config defaults),
 ``fast`` (the three fast settings), ``none`` (masking off), ``ov`` / ``band`` /
 ``carry`` (one fast setting alone over the defaults), ``fast_no_ov`` / ``fast_no_band``
 / ``fast_no_carry`` (the fast settings less one), ``three_channels`` (grey frames fed to
-the network as three equal channels, as before the grey-input graph of session 13),
+the network as three equal channels, rather than the one-channel grey-input graph),
 ``stereo2`` (the masks' disparity on half-size images, ``stereo.scale: 2``),
 ``fast_stereo2`` (both).  Extra overrides for every run:
 ``--set key=value`` (repeatable).
@@ -32,26 +32,23 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
-import platform
 import resource
 import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
+from _common import CLIPS, data_dir, machine, median, results_path, write_json
 from dynastereo.api import run_sequence
 from dynastereo.config import Config
 from dynastereo.eval import evaluate_files
 from dynastereo.eval.trajectory import find_ground_truth
 
-OUT = Path(__file__).resolve().parent / "results" / "fast_masking.json"
+OUT = results_path("fast_masking")
 FAST = {"detector.runtime": "auto", "detector.band_top": 0.25, "detector.carry_downscale": 2}
 SLOW = {"detector.runtime": "onnxruntime", "detector.band_top": 0.0, "detector.carry_downscale": 1}
 SETTINGS = {
     "default": {},
-    "accurate": dict(SLOW),  # the pre-session-12 defaults, explicit
+    "accurate": dict(SLOW),  # the earlier, slower defaults, explicit
     "fast": dict(FAST),
     "none": {"masker.kind": "none"},
     "ov": {**SLOW, "detector.runtime": "auto"},
@@ -60,20 +57,15 @@ SETTINGS = {
     "fast_no_ov": {**FAST, "detector.runtime": "onnxruntime"},
     "fast_no_band": {**FAST, "detector.band_top": 0.0},
     "fast_no_carry": {**FAST, "detector.carry_downscale": 1},
-    "three_channels": {"detector.grey_input": False},  # grey frames as three equal channels (before session 13)
+    "three_channels": {"detector.grey_input": False},  # grey frames as three equal channels (not the one-channel graph)
     "stereo2": {"stereo.scale": 2},  # the masks' disparity on half-size images
     "fast_stereo2": {**FAST, "stereo.scale": 2},  # the fast settings and stereo2 (configs/fast.yaml's comments)
 }
-SEQS = {
-    "raw0001": Path("kitti_raw") / "2011_09_26" / "2011_09_26_drive_0001_sync",
-    "06": Path("kitti_odometry") / "dataset" / "sequences" / "06",
-    "03": Path("kitti_odometry") / "dataset" / "sequences" / "03",
-}
+SEQS = CLIPS
 
 
 def _median(v):
-    v = [x for x in v if x is not None]
-    return float(np.median(v)) if v else None
+    return median(v)
 
 
 def _parse(v: str):
@@ -86,7 +78,7 @@ def _parse(v: str):
 def one_run(seq_dir: Path, out: Path, over: dict) -> dict:
     cfg = Config().with_overrides(over)
     c0, t0 = time.process_time(), time.perf_counter()
-    res = run_sequence(seq_dir, out, cfg, stereo_check=False)
+    res = run_sequence(seq_dir, out, cfg, stereo_check=False, overwrite=True)
     cpu, wall = time.process_time() - c0, time.perf_counter() - t0
     ev = evaluate_files(out / "trajectory.kitti.txt", find_ground_truth(seq_dir))
     return {"frames": len(res.frames), "lost": len(res.lost), "ate_m": round(float(ev.ape["rmse"]), 4),
@@ -104,10 +96,10 @@ def main() -> int:
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
     logging.getLogger("dynastereo").setLevel(logging.ERROR)
-    if not os.environ.get("DYNASTEREO_DATA"):
+    data = data_dir(required=False)
+    if data is None:
         print("skipped: DYNASTEREO_DATA is not set (KITTI raw 0001 and odometry 06 / 03 are needed)")
         return 0
-    data = Path(os.environ["DYNASTEREO_DATA"])
     extra = {k: _parse(v) for k, v in (s.split("=", 1) for s in args.set)}
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_fast_masking_"))
     variants = [int(v) for v in args.variants.split(",") if v]
@@ -135,13 +127,10 @@ def main() -> int:
             print(f"  {seq:8s} {name:14s} ATE {m['ate_m']:.4f} m ({m['ate_range'][0]:.4f}-{m['ate_range'][1]:.4f})"
                   f"  drift {m['drift_percent']:.3f} %  cpu {m['cpu_s']} s{ratio}")
     result = {"benchmark": "fast_masking",
-              "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                          "python": platform.python_version(), "loadavg_at_end": list(os.getloadavg()),
-                          "maxrss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)},
+              "machine": machine(maxrss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)),
               "settings": {s: SETTINGS[s] for s in settings}, "extra": extra, "variants": variants,
               "work": str(work), "runs": runs, "medians": med}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_json(args.out, result)
     print(f"-> {args.out}")
     return 0
 

@@ -12,13 +12,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from _common import CLIPS, ROOT, data_path, median, results_path, write_json
 
 
 def run_once(src: str, seq: Path, out: Path) -> float:
@@ -37,7 +36,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--sequence", default=None, help="default: $DYNASTEREO_DATA/kitti_odometry/dataset/sequences/06")
     a = ap.parse_args()
-    seq = Path(a.sequence or Path(os.environ["DYNASTEREO_DATA"]) / "kitti_odometry/dataset/sequences/06")
+    seq = Path(a.sequence) if a.sequence else data_path(CLIPS["06"])
     fps: dict[str, list[float]] = {"before": [], "after": []}
     with tempfile.TemporaryDirectory() as tmp:
         run_once(a.after, seq, Path(tmp) / "warm")  # kernels compiled and cached once
@@ -47,12 +46,11 @@ def main() -> None:
                 f = run_once(a.before if name == "before" else a.after, seq, Path(tmp) / name)
                 fps[name].append(f)
                 print(f"run {k + 1} {name:6s} {f:.2f} FPS", flush=True)
-    med = {k: statistics.median(v) for k, v in fps.items()}
+    med = {k: median(v) for k, v in fps.items()}
     print(f"median FPS: before {med['before']:.2f}, after {med['after']:.2f} "
           f"({100 * (med['after'] / med['before'] - 1):+.1f} %)")
     res = {"sequence": str(seq), "frames": "all (51)", "repeats": a.repeats, "fps": fps, "median_fps": med}
-    (ROOT / "benchmarks" / "results").mkdir(exist_ok=True)
-    (ROOT / "benchmarks" / "results" / "faults.json").write_text(json.dumps(res, indent=1) + "\n")
+    write_json(results_path("faults"), res)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,11 @@
 """Golden trajectories (``tests/data/golden/``) and the spread that sets their tolerance.
 
-Three cases, each a ``dynastereo run`` of today's code (the CLI, its own process):
+Four cases, each a ``dynastereo run`` of today's code (the CLI, its own process):
 
 * ``kitti06``: KITTI 06, all 51 frames, the default pipeline (outline masks of what moves,
   yolox-nano from ``$DYNASTEREO_MODELS``);
+* ``raw0001``: KITTI raw drive 0001, all 108 frames, the default pipeline (real moving
+  traffic; ground truth: its ``oxts/``);
 * ``kitti03``: KITTI 03, all 99 frames, ``--masker none`` (the SLAM alone);
 * ``convoy``: the synthetic ``convoy`` scenario (``dynastereo.synth.generate``, seed 0,
   640x192, ``CONVOY_FRAMES`` frames), the default pipeline with the ground-truth
@@ -14,7 +16,7 @@ change that should not matter, as ``bench_moving.py`` takes it) and each variant
 trajectory is compared with the default's (2000): the RMSE and the largest of the
 per-frame camera-position differences, *not aligned* (both start at the identity), and
 the ATE of the variant against the default after SE(3) alignment.  The golden test's
-tolerance is derived from these figures (see tests/test_golden.py and README).
+tolerance is derived from these figures (see tests/test_golden.py and docs/design/slam-accuracy.md).
 
 ``--write`` also (re)writes the golden files from the default run: ``CASE.kitti.txt``
 (the run's ``trajectory.kitti.txt``, byte for byte) and ``CASE.json`` (frames lost,
@@ -29,8 +31,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -38,8 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-OUT = ROOT / "benchmarks" / "results" / "golden_spread.json"
+from _common import ROOT, data_dir, machine, print_table, results_path, write_json
+
+OUT = results_path("golden_spread")
 GOLDEN = ROOT / "tests" / "data" / "golden"
 VARIANTS = (2000, 1950, 2050, 2100)
 CONVOY_FRAMES = 40
@@ -53,6 +54,9 @@ def case_args(case: str, data: Path, synth_root: Path) -> tuple[Path, list[str],
         return kitti / "sequences" / "06", [], kitti / "poses" / "06.txt"
     if case == "kitti03":
         return kitti / "sequences" / "03", ["--masker", "none"], kitti / "poses" / "03.txt"
+    if case == "raw0001":
+        drive = data / "kitti_raw" / "2011_09_26" / "2011_09_26_drive_0001_sync"
+        return drive, [], drive  # the ground truth: the drive's oxts/
     if case == "convoy":
         from dynastereo.synth import generate
 
@@ -60,7 +64,7 @@ def case_args(case: str, data: Path, synth_root: Path) -> tuple[Path, list[str],
         if not (seq / "calib.txt").exists():
             seq = generate(synth_root / "convoy", "convoy", frames=CONVOY_FRAMES, seed=0, size=CONVOY_SIZE)
         return seq, ["--detector", "oracle"], seq.parent.parent / "poses" / "00.txt"
-    raise SystemExit(f"unknown case {case!r}: kitti06, kitti03 or convoy")
+    raise SystemExit(f"unknown case {case!r}: kitti06, raw0001, kitti03 or convoy")
 
 
 def cli_run(seq: Path, out: Path, extra: list[str], n_features: int | None = None) -> dict:
@@ -99,7 +103,7 @@ def main() -> None:
     args = ap.parse_args()
     from dynastereo.eval import evaluate_files
 
-    data = Path(os.environ.get("DYNASTEREO_DATA", ROOT.parent / "shared" / "data"))
+    data = data_dir()
     results = json.loads(OUT.read_text()) if OUT.exists() else {}
     results.setdefault("cases", {})
     with tempfile.TemporaryDirectory(prefix="golden-") as tmp:
@@ -122,27 +126,25 @@ def main() -> None:
                 if nf == 2000 and args.write:
                     GOLDEN.mkdir(parents=True, exist_ok=True)
                     (GOLDEN / f"{case}.kitti.txt").write_bytes((out / "trajectory.kitti.txt").read_bytes())
-                    (GOLDEN / f"{case}.json").write_text(json.dumps(
-                        {"case": case, "options": extra, "frames": run["frames_done"],
-                         "frames_lost": run["frames_lost"], "lost_positions": [x["position"] for x in run["lost"]],
-                         "keyframes": run["keyframes"], "ate_gt_m": ate}, indent=1) + "\n")
+                    write_json(GOLDEN / f"{case}.json",
+                               {"case": case, "options": extra, "frames": run["frames_done"],
+                                "frames_lost": run["frames_lost"], "lost_positions": [x["position"] for x in run["lost"]],
+                                "keyframes": run["keyframes"], "ate_gt_m": ate})
             var = [runs[nf] for nf in VARIANTS[1:]]
             results["cases"][case] = {
                 "options": extra, "runs": {str(k): v for k, v in runs.items()},
                 "spread": {k: max(v[k] for v in var) for k in ("rmse_m", "max_m", "rot_max_deg", "ate_aligned_m")},
             }
     results["variants"] = list(VARIANTS)
-    results["machine"] = {"cpus": os.cpu_count(), "python": platform.python_version()}
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(results, indent=1) + "\n")
-    print("\n| case | ATE vs GT (2000) | largest variant vs default: position RMSE / max / aligned ATE (m) "
-          "| rotation max (deg) | lost |")
-    print("|---|---|---|---|---|")
-    for case, r in results["cases"].items():
-        s = r["spread"]
-        lost = [r["runs"][str(v)]["frames_lost"] for v in VARIANTS]
-        print(f"| {case} | {r['runs']['2000']['ate_gt_m']:.4f} | {s['rmse_m']:.4f} / {s['max_m']:.4f} / "
-              f"{s['ate_aligned_m']:.4f} | {s['rot_max_deg']:.3f} | {lost} |")
+    results["machine"] = machine()
+    write_json(OUT, results)
+    print()
+    print_table(("case", "ATE vs GT (2000)", "largest variant vs default: position RMSE / max / aligned ATE (m)",
+                 "rotation max (deg)", "lost"),
+                [(case, f"{r['runs']['2000']['ate_gt_m']:.4f}",
+                  f"{r['spread']['rmse_m']:.4f} / {r['spread']['max_m']:.4f} / {r['spread']['ate_aligned_m']:.4f}",
+                  f"{r['spread']['rot_max_deg']:.3f}", [r["runs"][str(v)]["frames_lost"] for v in VARIANTS])
+                 for case, r in results["cases"].items()])
     print(f"-> {OUT}")
 
 

@@ -25,21 +25,16 @@ Prints the medians, writes ``benchmarks/results/gt_time.json``.  Run:
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-OUT = ROOT / "benchmarks" / "results" / "gt_time.json"
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_peers import add_peer_args, clip_dirs, find_peer, run_peer  # noqa: E402
+from _common import CLIPS, data_dir, data_path, machine, median, now, print_table, results_path, write_json
+from _shared_peer import add_peer_args, find_peer, run_peer
+from _shared_runs import ate_drift, run_dynastereo
+
+OUT = results_path("gt_time")
 
 
 def end_split(est: np.ndarray, gt: np.ndarray) -> dict:
@@ -61,15 +56,6 @@ def end_split(est: np.ndarray, gt: np.ndarray) -> dict:
             "sawtooth_m": float(np.median(np.abs(np.diff(a))))}
 
 
-def ate_drift(est, gt) -> dict:
-    """ATE (APE RMSE, SE(3)-aligned, m) and end-point drift (%) of trajectory ``est``
-    against ``gt``, rounded as the benchmarks' JSON holds them."""
-    from dynastereo.eval import evaluate
-
-    ev = evaluate(est, gt)
-    return {"ate_m": round(float(ev.ape["rmse"]), 4), "drift_percent": round(float(ev.drift_percent), 3)}
-
-
 def evaluate_both(traj: Path, gts: dict) -> dict:
     from dynastereo.eval.trajectory import read_trajectory
 
@@ -78,37 +64,22 @@ def evaluate_both(traj: Path, gts: dict) -> dict:
             for at, g in gts.items()}
 
 
-def run_dynastereo(seq: Path, out: Path, n_features: int, block_size: int | None = None,
-                   extra: tuple[str, ...] = ()) -> None:
-    """``dynastereo run`` (default pipeline, or as ``extra`` options say) in its own process
-    with ``slam.n_features`` (and ``stereo.block_size``) set."""
-    cfg = out.parent / f"{out.name}.yaml"
-    cfg.write_text(f"slam:\n  n_features: {n_features}\n"
-                   + (f"stereo:\n  block_size: {block_size}\n" if block_size is not None else ""))
-    cmd = [sys.executable, "-m", "dynastereo.cli.main", "run", str(seq), "-o", str(out), "--overwrite", "-c", str(cfg),
-           *extra]
-    r = subprocess.run(cmd, capture_output=True, text=True)
-    if r.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}):\n{r.stderr[-2000:]}")
-
-
 def _median(rows: list[dict], at: str, key: str) -> float:
-    return float(np.median([r[at][key] for r in rows]))
+    return median(r[at][key] for r in rows)
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--variants", default="2000,1950,2050,2100", help="slam.n_features per dynastereo run")
     ap.add_argument("--peer-repeats", type=int, default=3, help="ORB-SLAM3 runs (0: none)")
-    data = add_peer_args(ap)
+    add_peer_args(ap)
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
+    data = data_dir()
 
     from dynastereo.api import ground_truth
 
-    seq = clip_dirs(data)["raw0001"]
-    if not seq.is_dir():
-        raise SystemExit(f"KITTI raw 0001 not found under $DYNASTEREO_DATA={data}")
+    seq = data_path(CLIPS["raw0001"], data=data)
     gts = {at: ground_truth(seq, at=at) for at in ("images", "packets")}
     runs: dict[str, list[dict]] = {"dynastereo": [], "orbslam3": []}
     notes = []
@@ -134,20 +105,16 @@ def main() -> int:
             print(f"ORB-SLAM3 run {rep + 1}: " + _line(r), flush=True)
     keys = ("ate_m", "drift_percent", "along_m", "left_m", "up_m", "sawtooth_m")
     summary = {s: {at: {k: _median(rs, at, k) for k in keys} for at in gts} for s, rs in runs.items() if rs}
-    result = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-              "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+    result = {"date": now(),
+              "machine": machine(),
               "ground_truth": {"images": "OXTS poses moved to the images' stamps (dynastereo default)",
                                "packets": "the devkit's poses, at the packets' stamps"},
               "notes": notes, "summary": summary, "runs": runs}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    write_json(args.out, result)
     print("\nKITTI raw 0001, medians: ATE m / drift % / end-point error along, left, up (m) / along-track saw-tooth (m)")
-    print("| system | ground truth | ATE (m) | drift | end along | end left | end up | saw-tooth |")
-    print("|---|---|---|---|---|---|---|---|")
-    for s, per in summary.items():
-        for at, m in per.items():
-            print(f"| {s} | {at} | {m['ate_m']:.4f} | {m['drift_percent']:.3f} % | {m['along_m']:+.3f} | "
-                  f"{m['left_m']:+.3f} | {m['up_m']:+.3f} | {m['sawtooth_m']:.3f} |")
+    print_table(("system", "ground truth", "ATE (m)", "drift", "end along", "end left", "end up", "saw-tooth"),
+                [(s, at, f"{m['ate_m']:.4f}", f"{m['drift_percent']:.3f} %", f"{m['along_m']:+.3f}", f"{m['left_m']:+.3f}",
+                  f"{m['up_m']:+.3f}", f"{m['sawtooth_m']:.3f}") for s, per in summary.items() for at, m in per.items()])
     print(f"-> {args.out}")
     return 0
 

@@ -7,42 +7,30 @@ Prints medians (ms per stereo pair) and writes ``benchmarks/results/io.json``.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import time
 from pathlib import Path
 
 import cv2
-import numpy as np
 
+from _common import data_dir, machine, median_ms, results_path, write_json
 from dynastereo.io import EurocSequence, Rectifier, open_sequence, read_image
 
 
 def _median_ms(fn, items, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        for it in items:
-            t0 = time.perf_counter()
-            fn(it)
-            times.append((time.perf_counter() - t0) * 1e3)
-    return float(np.median(times))
+    return median_ms(fn, repeats, items)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "io.json")
+    ap.add_argument("--out", type=Path, default=results_path("io"))
     args = ap.parse_args()
-    data = os.environ.get("DYNASTEREO_DATA")
-    if not data:
-        raise SystemExit("set DYNASTEREO_DATA (e.g. ../shared/data)")
-    data_dir = Path(data)
+    data = data_dir()
     rows: list[dict] = []
 
     # --- EuRoC: raw 752x480 gray, rectified on read
     t0 = time.perf_counter()
-    seq = open_sequence(data_dir / "euroc/V1_01_easy_first40")
+    seq = open_sequence(data / "euroc/V1_01_easy_first40")
     open_ms = (time.perf_counter() - t0) * 1e3
     assert isinstance(seq, EurocSequence)
     pairs = [(read_image(l), read_image(r)) for l, r in zip(seq.left_paths, seq.right_paths)]
@@ -67,7 +55,7 @@ def main() -> None:
 
     # --- KITTI: already rectified
     for sid in ("03", "06"):
-        kseq = open_sequence(data_dir / f"kitti_odometry/dataset/sequences/{sid}")
+        kseq = open_sequence(data / f"kitti_odometry/dataset/sequences/{sid}")
         c = kseq.calibration
         rows.append({"dataset": f"kitti {sid} {c.width}x{c.height}", "what": "seq.frame(i) total (read only)",
                      "ms": _median_ms(kseq.frame, list(range(0, len(kseq), 3)), args.repeats), "per": "pair"})
@@ -75,14 +63,12 @@ def main() -> None:
     print(f"{'dataset':<22} {'what':<52} {'median ms':>10}  per")
     for r in rows:
         print(f"{r['dataset']:<22} {r['what']:<52} {r['ms']:>10.2f}  {r['per']}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({
+    write_json(args.out, {
         "benchmark": "io",
         "repeats": args.repeats,
-        "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "opencv": cv2.__version__,
-                    "opencv_threads": cv2.getNumThreads()},
+        "machine": machine(opencv_threads=cv2.getNumThreads()),
         "rows": [{**r, "ms": round(r["ms"], 3)} for r in rows],
-    }, indent=2) + "\n")
+    }, indent=2)
     print(f"wrote {args.out}")
 
 

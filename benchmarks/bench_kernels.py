@@ -21,8 +21,8 @@ calls a frame (counted on frames 1-10 in an extra, untimed call; median per call
 
 Part 2, the whole ``dynastereo run --masker none`` (``api.run_sequence``, its own process
 each time) with the old code (``--old SRC``: a source tree from before the kernels, e.g.
-``git archive 45948c1 src | tar -x -C /tmp/base`` and ``--old /tmp/base/src``; the README's
-figures were measured so) and this checkout's, alternated, ``--repeats`` times: the frame loop's FPS and the process
+``git archive 45948c1 src | tar -x -C /tmp/base`` and ``--old /tmp/base/src``; the design
+notes' figures were measured so) and this checkout's, alternated, ``--repeats`` times: the frame loop's FPS and the process
 tree's CPU a frame over the frame loop (start-up left out), medians; and the trajectories'
 largest difference between old and new.
 
@@ -50,9 +50,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-RESULTS = Path(__file__).resolve().parent / "results" / "kernels.json"
-SEQS = {"06": "kitti_odometry/dataset/sequences/06", "03": "kitti_odometry/dataset/sequences/03"}
+from _common import BENCH, CLIPS, ROOT, data_dir, results_path, write_json
+
+RESULTS = results_path("kernels")
 
 
 def epipolar_old(d1, uv1, m1, d2, uv2, m2, th2, near2, F21, epipole, max_dist, k_nn=4):
@@ -222,7 +222,7 @@ def side_by_side(seq: Path) -> dict:
     sbs = SideBySide()
     sbs.install()
     with tempfile.TemporaryDirectory() as tmp:
-        res = run_sequence(seq, Path(tmp) / "run", cfg)
+        res = run_sequence(seq, Path(tmp) / "run", cfg, overwrite=True)
     n = sbs.frame + 1
     return {"frames": n, "lost": len(res.lost), "stages": sbs.summary(n)}
 
@@ -230,8 +230,7 @@ def side_by_side(seq: Path) -> dict:
 DRIVER = r"""
 import json, sys, tempfile
 from pathlib import Path
-sys.path.insert(0, sys.argv[3])
-from bench_profile import LoopCpu
+from _shared_cpu import LoopCpu
 from dynastereo.api import run_sequence
 from dynastereo.config import Config
 cfg = Config().with_overrides({"masker.kind": "none"})
@@ -244,8 +243,8 @@ print(json.dumps({"fps": t["summary"]["fps"], "cpu_ms": loop.ms_per_frame}))
 
 
 def whole_run(seq: Path, src: Path, out: Path) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(src))
-    r = subprocess.run([sys.executable, "-c", DRIVER, str(seq), str(out), str(ROOT / "benchmarks")],
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join((str(src), str(BENCH))))  # _shared_cpu from benchmarks/
+    r = subprocess.run([sys.executable, "-c", DRIVER, str(seq), str(out)],
                        env=env, capture_output=True, text=True, check=True)
     d = json.loads(r.stdout.strip().splitlines()[-1])
     d["traj"] = np.loadtxt(out / "trajectory.kitti.txt").reshape(-1, 3, 4)
@@ -264,8 +263,9 @@ def compile_times(old_src: Path) -> dict:
     beside it), then the first call of every kernel with an empty cache (compile) and with
     the cache filled (load)."""
     code = ("import sys, time; t0=time.perf_counter(); import dynastereo.slam.tracking, dynastereo.slam.local_mapping; "
-            "t1=time.perf_counter(); sys.path.insert(0, 'benchmarks'); from bench_kernels import warm_all; "
-            "t2=time.perf_counter(); c2=time.process_time(); warm_all(); "
+            "t1=time.perf_counter(); "
+            "t2=time.perf_counter(); c2=time.process_time(); "
+            "from dynastereo.slam.warmup import warm_up_kernels; warm_up_kernels(ba=False); "  # as warm_all()
             "print(t1-t0, time.perf_counter()-t2, time.process_time()-c2)")
 
     def once(env):
@@ -292,7 +292,7 @@ def main() -> None:
     ap.add_argument("--skip-runs", action="store_true", help="only the side-by-side stages")
     ap.add_argument("--skip-compile", action="store_true")
     args = ap.parse_args()
-    data = Path(os.environ.get("DYNASTEREO_DATA", ROOT.parent / "shared" / "data"))
+    data = data_dir()
     # parts skipped this time keep their figures from the last full run
     old = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
     res: dict = {"sequences": {}}
@@ -303,7 +303,7 @@ def main() -> None:
         print(f"numba: the kernels' first calls {c['first_call_compile_s']} s ({c['first_call_compile_cpu_s']} s CPU) with an "
               f"empty cache (compile), {c['first_call_cached_s']} s ({c['first_call_cached_cpu_s']} s CPU) from the cache; the SLAM's import {c['import_s']} s (old code {c['import_old_s']} s)")
     for name in filter(None, args.sequences.split(",")):
-        seq = data / SEQS[name]
+        seq = data / CLIPS[name]
         r = {"side_by_side": side_by_side(seq)}
         print(f"KITTI {name}: {r['side_by_side']['frames']} frames, CPU ms a frame (median / mean), new vs old, same run")
         for st, row in r["side_by_side"]["stages"].items():
@@ -336,8 +336,7 @@ def main() -> None:
         elif "whole_run" in old.get("sequences", {}).get(name, {}):
             r["whole_run"] = old["sequences"][name]["whole_run"]
         res["sequences"][name] = r
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(res, indent=1))
+    write_json(RESULTS, res)
     print(f"-> {RESULTS}")
 
 

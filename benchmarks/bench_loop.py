@@ -25,18 +25,18 @@ import argparse
 import json
 import logging
 import os
-import platform
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from _common import data_dir, machine, results_path, write_json
 from dynastereo.api import run_sequence
 from dynastereo.config import Config
 from dynastereo.eval import evaluate_files
 
-RESULTS = Path(__file__).resolve().parent / "results" / "loop.json"
+RESULTS = results_path("loop")
 
 
 def _ate(run_dir: Path, gt: Path) -> float:
@@ -60,7 +60,7 @@ def synthetic_loop(seeds: list[int], size: str, cache: Path, work: Path, masker:
             )
             out = work / f"loop-s{seed}-{'lc' if lc else 'nolc'}"
             t0 = time.perf_counter()
-            res = run_sequence(seq, out, cfg)
+            res = run_sequence(seq, out, cfg, overwrite=True)
             wall = time.perf_counter() - t0
             run = json.loads((out / "run.json").read_text())
             key = "lc" if lc else "nolc"
@@ -107,7 +107,7 @@ def kitti_parts(seq: Path, gt: Path, work: Path) -> dict:
     out: dict = {}
     # kidnapped: 0-98 then 40-60
     d = work / "kidnapped"
-    run_sequence(seq, d, cfg, frames="0-98,40-60")
+    run_sequence(seq, d, cfg, frames="0-98,40-60", overwrite=True)
     run = json.loads((d / "run.json").read_text())
     P = _poses(d)
     first, again = P[40:61], P[99:120]
@@ -130,9 +130,9 @@ def kitti_parts(seq: Path, gt: Path, work: Path) -> dict:
     # map, then localize only
     m = work / "map03"
     map_file = work / "kitti03.dsmap"
-    run_sequence(seq, m, cfg, frames="0-98", save_map=map_file)
+    run_sequence(seq, m, cfg, frames="0-98", save_map=map_file, overwrite=True)
     loc = work / "loc03"
-    run_sequence(seq, loc, cfg, frames="0-98", load_map=map_file, localize_only=True)
+    run_sequence(seq, loc, cfg, frames="0-98", load_map=map_file, localize_only=True, overwrite=True)
     run = json.loads((loc / "run.json").read_text())
     out["localize_only"] = {
         "ate_mapping_run": _ate(m, gt),
@@ -168,7 +168,7 @@ def black_frames(seq: Path, work: Path) -> dict:
                 os.symlink(src, d / cam / f"{i:06d}.png")
     cfg = Config().with_overrides({"masker.kind": "outline", "detector.name": "yolox-nano"})
     r = d / "run"
-    run_sequence(d, r, cfg, frames="0-98")
+    run_sequence(d, r, cfg, frames="0-98", overwrite=True)
     run = json.loads((r / "run.json").read_text())
     res = {
         "rows": int(len(_poses(r))),
@@ -223,7 +223,7 @@ def main() -> None:
     logging.basicConfig(level=logging.ERROR)
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
-    result: dict = {"machine": platform.machine(), "cpus": os.cpu_count()}
+    result: dict = {"machine": machine()}
     result["pose_graph"] = pose_graph_scaling()
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
@@ -231,7 +231,7 @@ def main() -> None:
             result["synthetic_loop"] = synthetic_loop(
                 [int(s) for s in args.seeds.split(",")], args.size, cache, work, args.masker
             )
-        data = os.environ.get("DYNASTEREO_DATA")
+        data = data_dir(required=False)
         seq = Path(data or "") / "kitti_odometry" / "dataset" / "sequences" / "03"
         if not args.no_kitti and data and seq.is_dir():
             gt = Path(data) / "kitti_odometry" / "dataset" / "poses" / "03.txt"
@@ -247,8 +247,7 @@ def main() -> None:
             f"loops detected in {s['loops_detected']}/{len(s['runs'])}; query {s['loop_query_ms_median']:.1f} ms, "
             f"pose graph {s['pose_graph_ms_median']} ms, full BA {s['full_ba_ms_median']} ms"
         )
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(result, indent=1, default=float))
+    write_json(args.out, result, default=float)
     print(f"wrote {args.out}")
 
 

@@ -17,23 +17,21 @@ Run: [DYNASTEREO_DATA=/work/shared/data] .venv/bin/python benchmarks/bench_map_i
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import os
-import platform
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from _common import CLIPS, data_dir, machine, results_path, write_json
 from dynastereo.slam import map_io
 from dynastereo.slam.keyframe import KeyFrame
 from dynastereo.slam.map import Map
 from dynastereo.slam.map_io import MapFile, load_map, save_map
 from dynastereo.datatypes import StereoCalibration
 
-OUT = Path(__file__).resolve().parent / "results" / "map_io.json"
+OUT = results_path("map_io")
 
 
 def synthetic_map(n_kf: int = 100, n_kp: int = 2000, new_per_kf: int = 500, seed: int = 0) -> MapFile:
@@ -76,10 +74,10 @@ def synthetic_map(n_kf: int = 100, n_kp: int = 2000, new_per_kf: int = 500, seed
 
 
 def kitti06_map() -> MapFile | None:
-    data = os.environ.get("DYNASTEREO_DATA")
-    seq_dir = Path(data or "") / "kitti_odometry/dataset/sequences/06"
-    if not data or not seq_dir.exists():
+    data = data_dir(required=False)
+    if data is None or not (data / CLIPS["06"]).exists():
         return None
+    seq_dir = data / CLIPS["06"]
     from dynastereo.config import Config
     from dynastereo.io import open_sequence
     from dynastereo.slam import System
@@ -150,8 +148,7 @@ def main() -> None:
     print(" | ".join(f"{c:>12}" for c in cols))
     for r in rows:
         print(" | ".join(f"{r[c]!s:>12}" for c in cols))
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps({"platform": platform.platform(), "cpus": os.cpu_count(), "results": rows}, indent=1))
+    write_json(OUT, {"machine": machine(), "results": rows})
     print(f"wrote {OUT}")
 
 

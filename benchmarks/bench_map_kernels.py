@@ -26,14 +26,13 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-import numpy as np
+from _common import BENCH, ROOT, load, median, now, print_table, results_path, write_json
 
-HERE = Path(__file__).resolve().parent
-NEW_SRC = HERE.parent / "src"
-OUT = HERE / "results" / "map_kernels.json"
+HERE = BENCH
+NEW_SRC = ROOT / "src"
+OUT = results_path("map_kernels")
 MAP_STAGES = ("map: normals, distances, descriptors (update_points)", "map: add / erase / fuse observations",
               "map: covisibility (update_connections)", "map: observation rows (rows_of)")
 
@@ -46,7 +45,8 @@ def _run(script: str, src: Path, args: list[str], out: Path) -> dict:
 
 
 def _med(xs: list[float]) -> float:
-    return round(float(np.median(xs)), 2) if xs else float("nan")
+    m = median(xs, digits=2)
+    return float("nan") if m is None else m
 
 
 def main() -> None:
@@ -61,7 +61,7 @@ def main() -> None:
     seqs = args.sequences.split(",")
     trees = {"before": args.old_src.resolve(), "after": NEW_SRC}
     runs: dict[str, list] = {t: [] for t in trees}
-    load = [os.getloadavg()[0]]
+    loads = [load()]
     with tempfile.TemporaryDirectory(prefix="bench_map_kernels_") as tmp:
         for rep in range(args.repeats):
             for tree, src in trees.items():
@@ -71,8 +71,8 @@ def main() -> None:
                              Path(tmp) / f"peers_{tree}_{rep}.json")
                 runs[tree].append({"stages": prof["slam_stages"]["sequences"],
                                    "run": {c: peers["runs"][c]["none"][0] for c in seqs}})
-                load.append(os.getloadavg()[0])
-                print(f"repeat {rep + 1} {tree} done (load {load[-1]:.1f})", flush=True)
+                loads.append(load())
+                print(f"repeat {rep + 1} {tree} done (load {loads[-1]:.1f})", flush=True)
     table: dict[str, dict] = {}
     for s in seqs:
         stages = [r["stage"] for r in runs["after"][0]["stages"][s]["rows"]]
@@ -98,19 +98,18 @@ def main() -> None:
                 "fps": _med([r["run"][s]["fps"] for r in runs[tree]])}
         table[s] = rows
         print(f"\nKITTI {s} (medians of {args.repeats}, before -> after)")
-        print("| stage | CPU ms / frame | Python-level calls / frame |")
-        print("|---|---:|---:|")
+        cells = []
         for st, d in rows.items():
             b, a = d["before"], d["after"]
             if "fps" in b:
-                print(f"| {st} | {b['fps']:.2f} -> **{a['fps']:.2f}** FPS | |")
+                cells.append((st, f"{b['fps']:.2f} -> **{a['fps']:.2f}** FPS", ""))
                 continue
             calls = "" if b["calls"] is None else f"{b['calls']:.0f} -> {a['calls']:.0f}"
-            print(f"| {st} | {b['cpu_ms']:.1f} -> **{a['cpu_ms']:.1f}** | {calls} |")
-    res = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "old_src": str(args.old_src),
-           "repeats": args.repeats, "load_average": load, "medians": table, "runs": runs}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(res, indent=1) + "\n")
+            cells.append((st, f"{b['cpu_ms']:.1f} -> **{a['cpu_ms']:.1f}**", calls))
+        print_table(("stage", "CPU ms / frame", "Python-level calls / frame"), cells, align="lrr")
+    res = {"date": now(), "old_src": str(args.old_src),
+           "repeats": args.repeats, "load_average": loads, "medians": table, "runs": runs}
+    write_json(args.out, res)
     print(f"-> {args.out}")
 
 

@@ -35,16 +35,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 
+from _common import data_dir, machine, models_dir, results_path, stats, write_json
 from dynastereo.config import DetectorConfig, OutlineConfig, StereoConfig
 from dynastereo.errors import ModelError
 from dynastereo.io import open_sequence
@@ -54,16 +51,9 @@ from dynastereo.masking.boxes import box_iou
 from dynastereo.timing import StageTimer
 from dynastereo.datatypes import Detections
 
-OUT = Path(__file__).resolve().parent / "results" / "mask.json"
+OUT = results_path("mask")
 MASK_STAGES = ("disparity", "outline", "transfer", "segment", "boxes")
 TARGET_MS = 15.0
-
-
-def env_dir(var: str) -> Path:
-    v = os.environ.get(var)
-    if not v:
-        sys.exit(f"set {var}")
-    return Path(v)
 
 
 class Fixed:
@@ -74,14 +64,6 @@ class Fixed:
 
     def detect(self, image):  # pragma: no cover - not used (mask_labels gets detections)
         raise RuntimeError
-
-
-def stats(v) -> dict[str, float]:
-    a = np.asarray(list(v), np.float64)
-    if a.size == 0:
-        return {"median": float("nan"), "p90": float("nan"), "mean": float("nan"), "n": 0}
-    return {"median": round(float(np.median(a)), 3), "p90": round(float(np.percentile(a, 90)), 3),
-            "mean": round(float(a.mean()), 3), "n": int(a.size)}
 
 
 def run_timed(fn, repeats: int) -> tuple[dict[str, float], object]:
@@ -133,7 +115,7 @@ def main() -> None:
         old = json.loads(OUT.read_text()) if OUT.exists() else {"benchmark": "mask"}
         _write({**old, "synth": synth_res})
         return
-    data, models = env_dir("DYNASTEREO_DATA"), env_dir("DYNASTEREO_MODELS")
+    data, models = data_dir(), models_dir()
 
     det_name = "yolox-nano"
     try:
@@ -267,11 +249,8 @@ def main() -> None:
 
 
 def _write(result: dict) -> None:
-    result["machine"] = {"cpu_count": os.cpu_count(), "platform": platform.platform(), "opencv": cv2.__version__}
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    tmp = OUT.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=1))
-    tmp.replace(OUT)
+    result["machine"] = machine()
+    write_json(OUT, result)
     print(f"\nwrote {OUT}")
 
 

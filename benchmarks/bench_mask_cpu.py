@@ -8,7 +8,7 @@ the **process time a pair** (all threads: the masker's own CPU, the detector's r
 included), mean and median over the frames, medians over the repeats, and a hash of the
 outputs (left / right masks, label images, each object's box, method and disparity): equal
 hashes mean the same masks bit for bit; and a hash of the mask and label images alone
-("pixels": the same masks, boxes that may differ by float rounding).  Session 12 measured its masking kernels with it.
+("pixels": the same masks, boxes that may differ by float rounding).  The masking kernels were measured with it.
 
 Prints a table; writes ``benchmarks/results/mask_cpu.json`` (``--out``).  Run:
 
@@ -21,20 +21,16 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-OUT = ROOT / "benchmarks" / "results" / "mask_cpu.json"
-SEQS = {
-    "raw0001": Path("kitti_raw") / "2011_09_26" / "2011_09_26_drive_0001_sync",
-    "06": Path("kitti_odometry") / "dataset" / "sequences" / "06",
-    "03": Path("kitti_odometry") / "dataset" / "sequences" / "03",
-}
+from _common import CLIPS, ROOT, data_dir, machine, models_dir, results_path, write_json
+
+OUT = results_path("mask_cpu")
+SEQS = CLIPS
 
 # the child: one tree, one sequence; prints one JSON line
 CHILD = r"""
@@ -44,7 +40,7 @@ from dynastereo.config import Config
 from dynastereo.io import open_sequence
 from dynastereo.masking import build_masker
 seq = open_sequence(sys.argv[1]); n = min(int(sys.argv[2]), len(seq))
-m = build_masker(Config(), seq.calibration, models_dir=os.environ.get("DYNASTEREO_MODELS"))
+m = build_masker(Config(), seq.calibration, models_dir=sys.argv[3] or None)
 frames = [seq.frame(i) for i in range(n)]
 m.warm_up(*frames[0].left.shape[:2])
 m.mask(frames[0])
@@ -63,7 +59,8 @@ print(json.dumps({"mean_ms": 1e3 * float(np.mean(cpu)), "median_ms": 1e3 * float
 
 def one(src: Path, seq: Path, frames: int) -> dict:
     env = {**os.environ, "PYTHONPATH": str(src)}
-    out = subprocess.run([sys.executable, "-c", CHILD, str(seq), str(frames)], env=env, capture_output=True,
+    models = models_dir(required=False)
+    out = subprocess.run([sys.executable, "-c", CHILD, str(seq), str(frames), str(models or "")], env=env, capture_output=True,
                          text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -77,7 +74,7 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
-    data = os.environ.get("DYNASTEREO_DATA")
+    data = data_dir(required=False)
     if not data:
         print("skipped: DYNASTEREO_DATA is not set (the KITTI sequences are needed)")
         return 0
@@ -115,11 +112,9 @@ def main() -> int:
             summary[name]["same_pixels"] = same_px
     result = {"benchmark": "mask_cpu", "frames": args.frames, "repeats": args.repeats,
               "trees": {k: str(v) for k, v in trees.items()},
-              "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                          "loadavg_at_end": list(os.getloadavg())},
+              "machine": machine(),
               "runs": runs, "summary": summary}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_json(args.out, result)
     print(f"-> {args.out}")
     return 0
 

@@ -20,18 +20,18 @@ import argparse
 import gc
 import json
 import os
-import platform
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from _common import machine, results_path, write_json
 from dynastereo.api import run_sequence
 from dynastereo.config import Config
 from dynastereo.observers import FrameEvent
 
-RESULTS = Path(__file__).resolve().parent / "results" / "memory.json"
+RESULTS = results_path("memory")
 
 
 def _rss_mb(pid: int) -> float:
@@ -110,7 +110,7 @@ def main() -> None:
     cfg = Config().with_overrides({"masker.kind": args.masker, "detector.name": "oracle"})
     probe = LapProbe(n)
     with tempfile.TemporaryDirectory() as tmp:
-        res = run_sequence(seq, Path(tmp) / "run", cfg, frames=spec, observers=(probe,))
+        res = run_sequence(seq, Path(tmp) / "run", cfg, frames=spec, observers=(probe,), overwrite=True)
     rows = probe.rows
     first = rows[0]["main_mb"] + rows[0]["workers_mb"] - probe.start["main_mb"]
     later = [(b["main_mb"] + b["workers_mb"]) - (a["main_mb"] + a["workers_mb"]) for a, b in zip(rows, rows[1:])]
@@ -128,9 +128,8 @@ def main() -> None:
         "fps": round(res.fps, 2),
     }
     print(json.dumps(summary, indent=1))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"summary": summary, "laps": rows, "masker": args.masker, "size": args.size,
-                                    "seed": args.seed, "host": platform.node(), "cpus": os.cpu_count()}, indent=1))
+    write_json(args.out, {"summary": summary, "laps": rows, "masker": args.masker, "size": args.size,
+                          "seed": args.seed, "machine": machine()})
     print(f"-> {args.out}")
 
 

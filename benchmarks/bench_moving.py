@@ -1,4 +1,4 @@
-"""Benchmark the per-object motion test ("mask only what moves", ``masking/motion.py``).
+"""Benchmark the per-object motion test ("mask only what moves", ``objects/motion``).
 
 Four parts, each a ``dynastereo.api.run_sequence`` of the whole pipeline (masking on
 the prefetch thread, stereo SLAM with local BA):
@@ -35,7 +35,7 @@ the prefetch thread, stereo SLAM with local BA):
   on shared cores) are reported beside.
 * **KITTI raw drive 0001** (an oncoming tram, cyclists, a passing car, parked cars; no
   ground-truth poses): the decisions per label, and overlays of frames 30, 60, 90 written
-  to ``docs/motion_raw0001_NNN.jpg`` (README) to check by eye.
+  to ``docs/motion_raw0001_NNN.jpg`` (docs/guide/masking.md) to check by eye.
 
 Targets: decisions >= 90 % on mixed (pooled over the seeds); KITTI ATE(moving) <= 1.10 x ATE(none);
 convoy / crossing ATE(moving) <= ATE(none) / 3; motion_flow + motion <= 3 ms per frame.
@@ -53,7 +53,6 @@ import argparse
 import json
 import logging
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -62,20 +61,15 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_objects import LABELS as RAW_LABELS  # noqa: E402  (raw 0001's reference labels)
-from bench_objects import score_verdicts as raw_verdicts  # noqa: E402
-from bench_synth_slam import sequence  # noqa: E402  (the cached synthetic sequences)
-from bench_then_now import _head, old_tree  # noqa: E402  (an older commit's src, this checkout's commit)
+from _common import ROOT, data_dir, machine, median, models_dir, results_path, write_json
+from _shared_runs import RAW_LABELS, head_commit, old_tree, score_raw_labels, sequence
+from dynastereo.api import run_sequence
+from dynastereo.config import Config
+from dynastereo.eval import evaluate_files
+from dynastereo.eval.verdicts import VerdictScore, score_verdicts
 
-from dynastereo.api import run_sequence  # noqa: E402
-from dynastereo.config import Config  # noqa: E402
-from dynastereo.eval import evaluate_files  # noqa: E402
-from dynastereo.eval.verdicts import VerdictScore, score_verdicts  # noqa: E402
-from dynastereo.io.outputs import atomic_write_text  # noqa: E402
-
-OUT = Path(__file__).resolve().parent / "results" / "moving.json"
-OUT_VERDICTS = Path(__file__).resolve().parent / "results" / "motion_verdicts.json"
+OUT = results_path("moving")
+OUT_VERDICTS = results_path("motion_verdicts")
 MODES = ("none", "all", "moving")
 TARGET_ACCURACY = 0.90
 TARGET_KITTI_RATIO = 1.10
@@ -116,7 +110,7 @@ def run(seq_dir: Path, out: Path, mode: str, detector: str | None, **settings) -
     over.update(settings)
     cfg = Config().with_overrides(over)
     t0 = time.perf_counter()
-    res = run_sequence(seq_dir, out, cfg, stereo_check=False)
+    res = run_sequence(seq_dir, out, cfg, stereo_check=False, overwrite=True)
     wall = time.perf_counter() - t0
     gt = seq_dir.parent.parent / "poses" / f"{seq_dir.name}.txt"
     ev = evaluate_files(out / "trajectory.kitti.txt", gt)
@@ -138,11 +132,11 @@ def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int 
     from dynastereo.eval.trajectory import read_trajectory
     from dynastereo.io import open_sequence
     from dynastereo.masking import build_masker
-    from dynastereo.masking.motion import MotionJudge, SceneFlow
+    from dynastereo.objects.motion import MotionJudge, SceneFlow
 
     cfg = Config().with_overrides({"detector.name": detector} if detector else {})
     seq = open_sequence(seq_dir)
-    masker = build_masker(cfg, seq.calibration, models_dir=os.environ.get("DYNASTEREO_MODELS"),
+    masker = build_masker(cfg, seq.calibration, models_dir=models_dir(required=False),
                           ground_truth=seq_dir)
     poses = read_trajectory(run_dir / "trajectory.kitti.txt").poses
     n = min(frames, len(seq), len(poses))
@@ -170,8 +164,7 @@ def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int 
 
 
 def _median(v):
-    v = [x for x in v if x is not None]
-    return float(np.median(v)) if v else None
+    return median(v)
 
 
 def main() -> int:
@@ -252,7 +245,7 @@ def main() -> int:
                 row = {"sequence": f"synth {sc} seed {seed}", **run(seq, out, mode, "oracle")}
                 ate.append(row)
                 print(f"{row['sequence']:22s} {mode:7s} ATE {row['ate_m']:.4f} m  lost {row['lost']}", flush=True)
-    data = os.environ.get("DYNASTEREO_DATA")
+    data = data_dir(required=False)
     if data and args.kitti:
         kitti = Path(data) / "kitti_odometry" / "dataset" / "sequences"
         variants = [int(v) for v in args.kitti_variants.split(",") if v]
@@ -334,8 +327,7 @@ def main() -> int:
         print(f"target {k}: {'met' if t['met'] else 'NOT met'} ({t})")
     result = {
         "benchmark": "moving",
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "loadavg_at_end": list(os.getloadavg())},
+        "machine": machine(),
         "config": {"motion": vars(Config().motion), "frames": args.frames, "size": args.size, "seeds": seeds,
                    "ate_seeds": ate_seeds, "tuned_on_seed": 0, "kitti_n_features": args.kitti_variants},
         "decisions": decisions,
@@ -348,7 +340,7 @@ def main() -> int:
                "replay_total_worst_sequence": ms_worst, "in_pipeline_total": pipe_ms},
         "targets": targets,
     }
-    write_json(args.out, result)
+    write_json(args.out, result, default=float)
     print(f"-> {args.out}")
     return 0
 
@@ -374,7 +366,10 @@ REPLAY_CHILD = (
     "from dynastereo.eval.trajectory import read_trajectory\n"
     "from dynastereo.io import open_sequence\n"
     "from dynastereo.masking import build_masker\n"
-    "from dynastereo.masking.motion import MotionJudge, SceneFlow\n"
+    "try:\n"
+    "    from dynastereo.objects.motion import MotionJudge, SceneFlow\n"
+    "except ImportError:  # a tree from before the objects package\n"
+    "    from dynastereo.masking.motion import MotionJudge, SceneFlow\n"
     "seq_dir, out = Path(sys.argv[1]), Path(sys.argv[2])\n"
     "cfg = Config().with_overrides({'detector.name': 'oracle'})\n"
     "seq = open_sequence(seq_dir)\n"
@@ -395,7 +390,7 @@ REPLAY_CHILD = (
     "(out / 'objects.jsonl').write_text('\\n'.join(lines) + '\\n')\n"
     "print(json.dumps({'wall_s': round(time.perf_counter() - t, 2), 'lost': 0}))\n"
 )
-THIS_SRC = Path(__file__).resolve().parent.parent / "src"
+THIS_SRC = ROOT / "src"
 
 
 def run_tree(src: Path, seq: Path, out: Path, gt_poses: bool = False) -> dict:
@@ -406,10 +401,6 @@ def run_tree(src: Path, seq: Path, out: Path, gt_poses: bool = False) -> dict:
     if p.returncode != 0:
         raise RuntimeError(f"{src} on {seq}: exit {p.returncode}\n{p.stderr[-2000:]}")
     return json.loads(p.stdout.strip().splitlines()[-1])
-
-
-def write_json(path: Path, result: dict) -> None:
-    atomic_write_text(path, json.dumps(result, indent=1, default=float))
 
 
 def print_verdicts(pooled: dict, raw: dict | None) -> None:
@@ -435,14 +426,14 @@ def verdicts_only(args, work: Path, seeds: list[int], decisions: list[dict], poo
     raw = None
     compare = None
     if then:
-        compare = {"old_commit": args.old_commit, "new": _head(), "decisions_old": then,
+        compare = {"old_commit": args.old_commit, "new": head_commit(), "decisions_old": then,
                    "pooled_old": {sc: pooled_verdicts([r for r in then if r["scenario"] == sc]) for sc in pooled}}
         print(f"\n{'scenario':10s} {'rate ' + args.old_commit:>14s} {'rate now':>9s}  per seed (old -> now)")
         for sc, p in pooled.items():
             pairs = [(a["accuracy"], b["accuracy"]) for a, b in zip(then, decisions) if a["scenario"] == sc]
             print(f"{sc:10s} {compare['pooled_old'][sc]['rate']:14.3f} {p['rate']:9.3f}  "
                   + ", ".join(f"{a:.3f}->{b:.3f}" for a, b in pairs))
-    data = os.environ.get("DYNASTEREO_DATA")
+    data = data_dir(required=False)
     if data and args.raw:
         drive = Path(data) / "kitti_raw" / "2011_09_26" / "2011_09_26_drive_0001_sync"
         raw = raw_drive(drive, work, None)
@@ -450,8 +441,7 @@ def verdicts_only(args, work: Path, seeds: list[int], decisions: list[dict], poo
     mixed = pooled.get("mixed", {}).get("rate")
     result = {
         "benchmark": "motion_verdicts",
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "loadavg_at_end": list(os.getloadavg())},
+        "machine": machine(),
         "config": {"motion": vars(Config().motion), "frames": args.frames, "size": args.size, "seeds": seeds,
                    "tuned_on_seed": 0, "poses": "ground truth (replayed, no SLAM)" if args.gt_poses else "SLAM"},
         "decisions": decisions,
@@ -461,7 +451,7 @@ def verdicts_only(args, work: Path, seeds: list[int], decisions: list[dict], poo
         "targets": {"mixed_accuracy": {"value": mixed, "target": TARGET_ACCURACY,
                                        "met": mixed is not None and mixed >= TARGET_ACCURACY}},
     }
-    write_json(args.out, result)
+    write_json(args.out, result, default=float)
     print(f"-> {args.out}")
     return 0
 
@@ -490,9 +480,9 @@ def raw_drive(drive: Path, work: Path, overlays: Path | None) -> dict:
         overlays.mkdir(parents=True, exist_ok=True)
         obs = (_Overlays(overlays, RAW_OVERLAY_FRAMES),)
     out = work / "raw0001_moving"
-    res = run_sequence(drive, out, Config(), stereo_check=False, observers=obs)
+    res = run_sequence(drive, out, Config(), stereo_check=False, observers=obs, overwrite=True)
     return {"frames": len(res.frames), "lost": len(res.lost), "decisions": _kitti_decisions(out),
-            "verdicts": raw_verdicts(out, RAW_LABELS) if RAW_LABELS.is_file() else None,
+            "verdicts": score_raw_labels(out) if RAW_LABELS.is_file() else None,
             "overlays": sorted(str(p) for p in overlays.glob("motion_raw0001_*.jpg")) if overlays else [],
             **motion_ms(out)}
 

@@ -1,4 +1,4 @@
-"""Benchmark every object's track in the world (``slam/objects.py``) and the motion test on real movers.
+"""Benchmark every object's track in the world (``objects/world.py``) and the motion test on real movers.
 
 Two parts, each from ``dynastereo.api.run_sequence`` runs of the whole pipeline:
 
@@ -27,7 +27,7 @@ Two parts, each from ``dynastereo.api.run_sequence`` runs of the whole pipeline:
   run once per ``slam.n_features`` variant (2000, 1950, 2050, 2100; see
   ``bench_moving.py``: a short clip's ATE moves with such small changes), medians.
 
-Targets (issue 26): position error median <= 0.3 m (objects within 30 m, misses counted); speed error
+Targets: position error median <= 0.3 m (objects within 30 m, misses counted); speed error
 median <= 0.3 m/s (movers); raw 0001 verdicts right >= 90 % of the decided object-frames;
 default ATE median <= none's and <= 0.058 m; drift <= 0.25 %; the objects stage <= 1 ms
 per frame.
@@ -44,7 +44,6 @@ import argparse
 import json
 import logging
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -53,17 +52,16 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_synth_slam import sequence  # noqa: E402  (the cached synthetic sequences)
+from _common import data_dir, machine, median, models_dir, results_path, write_json
+from _shared_runs import RAW_LABELS as LABELS  # raw 0001's reference labels
+from _shared_runs import score_raw_labels as score_verdicts  # their scoring (tests use it from here)
+from _shared_runs import sequence  # the cached synthetic sequences
+from dynastereo.api import run_sequence
+from dynastereo.config import Config
+from dynastereo.eval import evaluate_files
+from dynastereo.synth import read_objects
 
-from dynastereo.api import run_sequence  # noqa: E402
-from dynastereo.config import Config  # noqa: E402
-from dynastereo.eval import evaluate_files  # noqa: E402
-from dynastereo.synth import read_objects  # noqa: E402
-
-ROOT = Path(__file__).resolve().parent.parent
-OUT = ROOT / "benchmarks" / "results" / "objects.json"
-LABELS = ROOT / "tests" / "data" / "raw0001_motion_labels.json"
+OUT = results_path("objects")
 DRIVE = Path("kitti_raw") / "2011_09_26" / "2011_09_26_drive_0001_sync"
 BANDS = ((0.0, 15.0), (15.0, 30.0), (30.0, 50.0))
 NEAR = 30.0
@@ -74,8 +72,7 @@ MODES = {"default": {}, "none": {"masker.kind": "none"}, "mask_all": {"motion.mo
 
 
 def _median(v):
-    v = [x for x in v if x is not None and np.isfinite(x)]
-    return float(np.median(v)) if v else None
+    return median(v, finite=True)
 
 
 def _objects_lines(run_dir: Path):
@@ -176,11 +173,11 @@ def replay_cost(seq_dir: Path, run_dir: Path, detector: str | None, frames: int 
     from dynastereo.eval.trajectory import read_trajectory
     from dynastereo.io import open_sequence
     from dynastereo.masking import build_masker
-    from dynastereo.slam.objects import WorldObjects
+    from dynastereo.objects.world import WorldObjects
 
     cfg = Config().with_overrides({**(settings or {}), **({"detector.name": detector} if detector else {})})
     seq = open_sequence(seq_dir)
-    masker = build_masker(cfg, seq.calibration, models_dir=os.environ.get("DYNASTEREO_MODELS"), ground_truth=seq_dir)
+    masker = build_masker(cfg, seq.calibration, models_dir=models_dir(required=False), ground_truth=seq_dir)
     poses = read_trajectory(run_dir / "trajectory.kitti.txt").poses
     recs = {r["frame"]: r["objects"] for r in _objects_lines(run_dir)}
     n = min(frames, len(seq), len(poses))
@@ -227,7 +224,7 @@ def run(seq_dir: Path, out: Path, detector: str | None = None, **settings) -> di
         over["detector.name"] = detector
     cfg = Config().with_overrides(over)
     t0 = time.perf_counter()
-    res = run_sequence(seq_dir, out, cfg, stereo_check=False)
+    res = run_sequence(seq_dir, out, cfg, stereo_check=False, overwrite=True)
     return {"frames": len(res.frames), "lost": len(res.lost), "wall_s": round(time.perf_counter() - t0, 2)}
 
 
@@ -294,7 +291,7 @@ def main() -> int:
                   f"({row['speed_frames']} mover-frames); objects stage {row['objects_ms']} ms/frame", flush=True)
 
     raw = None
-    data = os.environ.get("DYNASTEREO_DATA")
+    data = data_dir(required=False)
     if data and args.raw:
         raw = raw_part(Path(data) / DRIVE, work, [int(v) for v in args.variants.split(",") if v], settings)
     # the objects stage alone, replayed (the in-pipeline stage times include a busy masking thread's waits)
@@ -367,8 +364,7 @@ def main() -> int:
         print(f"target {k}: {'met' if t['met'] else 'NOT met'} ({t})")
     result = {
         "benchmark": "objects",
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "loadavg_at_end": list(os.getloadavg())},
+        "machine": machine(),
         "config": {"frames": args.frames, "size": args.size, "seeds": seeds, "developed_on_seeds": [10, 11, 12],
                    "n_features": args.variants, "settings": settings},
         "synthetic": synth,
@@ -381,8 +377,7 @@ def main() -> int:
         "kitti_raw_0001": raw,
         "targets": targets,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1, default=float))
+    write_json(args.out, result, default=float)
     print(f"-> {args.out}")
     return 0
 
@@ -441,55 +436,6 @@ def print_raw(raw: dict) -> None:
               f"{a['drift_percent_packets']:.3f} %")
 
 
-def score_verdicts(run_dir: Path, labels_path: Path) -> dict:
-    """The motion test's verdicts in ``run_dir/objects.jsonl`` against the reference labels
-    (``labels_path``): per reference object-frame (>= 300 px, labelled moving or static),
-    the run's object matched by box IoU >= 0.5 (the best); right / undecided / wrong
-    (an unmatched reference object is not counted); movers masked within 3 frames of
-    their first appearance; static object-frames left unmasked."""
-    from dynastereo.masking.boxes import box_iou
-
-    lab = json.loads(labels_path.read_text())
-    by_frame: dict[int, list] = {}
-    for o in lab["objects"]:
-        for f, box, px in zip(o["frames"], o["boxes"], o["pixels"]):
-            by_frame.setdefault(int(f), []).append((o["id"], o["label"], o["moving"], box, px))
-    counts = {"right": 0, "undecided": 0, "wrong": 0}
-    per_label: dict[str, dict[str, int]] = {}
-    masked_at: dict[int, list[int]] = {}
-    static_frames = static_unmasked = 0
-    for rec in _objects_lines(run_dir):
-        f = int(rec["frame"])
-        refs = by_frame.get(f, [])
-        objs = rec["objects"]
-        if not refs or not objs:
-            continue
-        iou = box_iou([r[3] for r in refs], [o["box"] for o in objs])
-        for i, (rid, label, moving, box, px) in enumerate(refs):
-            j = int(np.argmax(iou[i]))
-            if iou[i, j] < 0.5:
-                continue
-            o = objs[j]
-            if moving and o.get("masked", True):
-                masked_at.setdefault(rid, []).append(f)
-            if px < 300 or moving is None:
-                continue
-            v = o.get("moving")
-            k = "undecided" if v is None else ("right" if bool(v) == bool(moving) else "wrong")
-            counts[k] += 1
-            per_label.setdefault(label, {"right": 0, "undecided": 0, "wrong": 0})[k] += 1
-            if not moving:
-                static_frames += 1
-                static_unmasked += not o.get("masked", True)
-    movers = [o for o in lab["objects"] if o["moving"] and max(o["pixels"]) >= 300]
-    within = sum(1 for o in movers if any(f - o["frames"][0] <= 3 for f in masked_at.get(o["id"], [])))
-    decided = counts["right"] + counts["wrong"]
-    return {"object_frames": sum(counts.values()), **counts,
-            "right_of_decided": counts["right"] / decided if decided else None,
-            "movers": len(movers), "movers_masked_within_3": within,
-            "static_frames": static_frames, "static_unmasked": static_unmasked, "by_label": per_label}
-
-
 # ------------------------------------------------------------------ the reference labels
 
 
@@ -520,7 +466,7 @@ def make_labels(drive: Path, ref_dir: Path, out: Path, overlays: Path | None = N
 
     from dynastereo.io import open_sequence
     from dynastereo.masking.boxes import box_iou
-    from dynastereo.masking.motion.verdicts import _group
+    from dynastereo.objects.motion.verdicts import _group
 
     seq = open_sequence(drive)
     c = seq.calibration
@@ -603,8 +549,7 @@ def make_labels(drive: Path, ref_dir: Path, out: Path, overlays: Path | None = N
               "method": make_labels.__doc__.split("\n\n")[0] if make_labels.__doc__ else "",
               "thresholds": {"moving_mps": MOVING_MPS, "sigma_disparity_px": SIGMA_D},
               "classes": sorted(LABEL_CLASSES), "objects": objects}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(labels, indent=None, separators=(",", ":")) + "\n")
+    write_json(out, labels, indent=None, separators=(",", ":"))
     if overlays is not None:
         draw_label_overlays(seq, labels, overlays)
     return labels
@@ -638,7 +583,7 @@ def draw_label_overlays(seq, labels: dict, folder: Path, frames=(10, 30, 45, 60,
 
 if __name__ == "__main__":
     if "--make-labels" in sys.argv:
-        data = Path(os.environ["DYNASTEREO_DATA"])
+        data = data_dir()
         ref = data.parent / "reference" / "refmasks" / "raw_0001"
         i = sys.argv.index("--make-labels") + 1
         ov = Path(sys.argv[i]) if len(sys.argv) > i else None

@@ -39,7 +39,7 @@ missing (how to install: ``../shared/anchors/README.md``).  Where they are looke
     --vocabulary   $DYNASTEREO_PEER_VOCAB   (default ../.peers/ORBvoc.txt beside the repo:
                    the anchors' self-trained ORBvoc_selftrained_k10L6.txt.gz, gunzipped)
 
-Prints a markdown table (README "Peers"), writes benchmarks/results/peers.json.  Run:
+Prints a markdown table (README "Results beside ORB-SLAM3"), writes benchmarks/results/peers.json.  Run:
 
     DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
         .venv/bin/python benchmarks/bench_peers.py [--repeats 3] [--clips 06,03,raw0001]
@@ -49,36 +49,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
-import resource
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+from _common import ROOT, clip_dirs, load, machine, median, now, results_path, write_json
+from _shared_cpu import children_cpu
+from _shared_peer import add_peer_args, find_peer, run_peer
+from _shared_runs import ate
 
-ROOT = Path(__file__).resolve().parent.parent
-OUT = ROOT / "benchmarks" / "results" / "peers.json"
+OUT = results_path("peers")
 SYSTEMS = ("none", "default", "fast", "orbslam3")  # fast: -c configs/fast.yaml (not run unless asked)
 VOCAB_NAME = "ORBvoc_selftrained_k10L6 (self-trained, k = 10, L = 6, 456,067 words; ../shared/anchors/README.md)"
 RAW_NOTE = ("raw 0001: no ground truth from dynastereo's discovery (the drive's OXTS poses need "
             "dynastereo.io.kitti_raw's reader, not on this branch yet); ATE null")
-
-
-def clip_dirs(data: Path) -> dict[str, Path]:
-    return {
-        "06": data / "kitti_odometry" / "dataset" / "sequences" / "06",
-        "03": data / "kitti_odometry" / "dataset" / "sequences" / "03",
-        "raw0001": data / "kitti_raw" / "2011_09_26" / "2011_09_26_drive_0001_sync",
-    }
-
-
-def children_cpu() -> float:
-    r = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return r.ru_utime + r.ru_stime
 
 
 def ground_truth(seq: Path) -> Path | None:
@@ -89,17 +75,6 @@ def ground_truth(seq: Path) -> Path | None:
         return resolve_ground_truth(None, load_sequence(seq))
     except Exception:  # noqa: BLE001 -- reported as no ground truth
         return None
-
-
-def ate(est: Path, gt: Path | None) -> tuple[float | None, str | None]:
-    if gt is None:
-        return None, "no ground truth"
-    from dynastereo.eval import evaluate_files
-
-    try:
-        return float(evaluate_files(est, gt).ape["rmse"]), None
-    except Exception as e:  # noqa: BLE001
-        return None, f"{type(e).__name__}: {e}"
 
 
 def _cli(seq: Path, out: Path, extra: list[str]) -> float:
@@ -126,67 +101,8 @@ def run_dynastereo(seq: Path, system: str, tmp: Path, gt: Path | None) -> dict:
             "ate_m": a, "ate_note": why, "lost": int(run["frames_lost"])}
 
 
-def kitti_layout(seq: Path, tmp: Path) -> Path:
-    """The clip in KITTI odometry layout for the peer script: a raw drive's
-    ``image_00/data`` / ``image_01/data`` linked, ``P0`` / ``P1`` from ``P_rect_00/01``."""
-    if (seq / "calib.txt").exists():
-        return seq
-    calib = {}
-    for line in (seq.parent / "calib_cam_to_cam.txt").read_text().splitlines():
-        k, _, v = line.partition(":")
-        calib[k.strip()] = v.split()
-    d = tmp / "layout"
-    d.mkdir(parents=True, exist_ok=True)
-    for cam, raw in (("image_0", "image_00"), ("image_1", "image_01")):
-        if not (d / cam).exists():
-            (d / cam).symlink_to((seq / raw / "data").resolve())
-    (d / "calib.txt").write_text(f"P0: {' '.join(calib['P_rect_00'])}\nP1: {' '.join(calib['P_rect_01'])}\n")
-    return d
-
-
-def run_peer(seq: Path, tmp: Path, gt: Path | None, peer: dict) -> dict:
-    traj = tmp / "orbslam3.kitti.txt"
-    cmd = [peer["python"], peer["script"], str(kitti_layout(seq, tmp)), peer["vocabulary"], str(traj)]
-    r = subprocess.run(cmd, capture_output=True, text=True)
-    lines = [s for s in r.stdout.splitlines() if s.startswith("{")]
-    if r.returncode != 0 or not lines:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}):\n{r.stderr[-2000:]}")
-    res = json.loads(lines[-1])
-    a, why = ate(traj, gt) if res["rows"] == res["frames"] else (None, f"{res['rows']} rows for {res['frames']} frames")
-    return {"frames": res["frames"], "fps": res["fps"], "cpu_ms": res["cpu_ms"], "ate_m": a, "ate_note": why,
-            "lost": res["not_ok"]}
-
-
-def add_peer_args(ap: argparse.ArgumentParser) -> Path:
-    """The peer's options (``--peer-python``, ``--peer-script``, ``--vocabulary``; module
-    doc); returns the data folder (``$DYNASTEREO_DATA``, else ``../shared/data``)."""
-    up = ROOT.parent
-    data = Path(os.environ.get("DYNASTEREO_DATA", up / "shared" / "data"))
-    ap.add_argument("--peer-python", type=Path,
-                    default=Path(os.environ.get("DYNASTEREO_PEER_PYTHON", up / ".venv-peers" / "bin" / "python")))
-    ap.add_argument("--peer-script", type=Path, default=Path(
-        os.environ.get("DYNASTEREO_PEER_SCRIPT", data.parent / "anchors" / "pyorbslam3_run.py")))
-    ap.add_argument("--vocabulary", type=Path,
-                    default=Path(os.environ.get("DYNASTEREO_PEER_VOCAB", up / ".peers" / "ORBvoc.txt")))
-    return data
-
-
-def find_peer(args) -> tuple[dict | None, str]:
-    peer = {"python": str(args.peer_python), "script": str(args.peer_script), "vocabulary": str(args.vocabulary)}
-    for what, p in (("peer venv python", args.peer_python), ("peer script", args.peer_script),
-                    ("ORB vocabulary", args.vocabulary)):
-        if not Path(p).exists():
-            return None, (f"ORB-SLAM3 (pyorbslam3) skipped: {what} not found at {p} -- install it as "
-                          "../shared/anchors/README.md says (its own venv; gunzip the vocabulary)")
-    r = subprocess.run([peer["python"], "-c", "import pyorbslam3"], capture_output=True, text=True)
-    if r.returncode != 0:
-        return None, f"ORB-SLAM3 skipped: {args.peer_python} cannot import pyorbslam3: {r.stderr.strip()[-300:]}"
-    return peer, ""
-
-
 def med(rows: list[dict], key: str) -> float | None:
-    v = [r[key] for r in rows if r.get(key) is not None]
-    return float(np.median(v)) if v else None
+    return median(r.get(key) for r in rows)
 
 
 def _f(v: float | None, fmt: str) -> str:
@@ -221,7 +137,7 @@ def main() -> None:
     if "raw0001" in clips and gts["raw0001"] is None:
         notes.append(RAW_NOTE)
     runs: dict[str, dict[str, list[dict]]] = {c: {s: [] for s in systems} for c in clips}
-    load_before = os.getloadavg()[0]
+    load_before = load()
     with tempfile.TemporaryDirectory(prefix="peers-") as tmp:
         for rep in range(args.repeats):
             for c, seq in clips.items():
@@ -245,15 +161,13 @@ def main() -> None:
                     m = summary[c][s]
                     m["fps_ratio"] = m["fps"] / p["fps"] if p["fps"] else None
                     m["cpu_ratio"] = m["cpu_ms"] / p["cpu_ms"] if p["cpu_ms"] else None
-    result = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "repeats": args.repeats,
-              "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
-                          "load_before": load_before, "load_after": os.getloadavg()[0]},
+    result = {"date": now(), "repeats": args.repeats,
+              "machine": machine(load_before=load_before, load_after=load()),
               "peer": {"name": "ORB-SLAM3 stereo via pyorbslam3 (GPL-3, own venv)", "script": str(args.peer_script),
                        "vocabulary": VOCAB_NAME} if peer else None,
               "ground_truth": {c: (str(g) if g else None) for c, g in gts.items()},
               "notes": notes, "summary": summary, "runs": runs}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    write_json(args.out, result)
 
     names = {"06": "KITTI 06", "03": "KITTI 03", "raw0001": "raw 0001"}
     print(f"\nFPS / CPU ms a frame / ATE m, medians of {args.repeats}"

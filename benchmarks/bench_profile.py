@@ -30,7 +30,7 @@ with ``--masker none``: ``summary.fps``, medians over the repeats.
 Prints a table per sequence (medians over the repeats) and writes
 benchmarks/results/profile.json.
 
-**The SLAM's stages** (``--part stages``, issue 23's "profile first"): the SLAM alone
+**The SLAM's stages** (``--part stages``, "profile first"): the SLAM alone
 (``masker none``) driven frame by frame from this process, with ``slam.threads 1`` (the
 right image's ORB not on a second thread), ``slam.local_ba inline`` (the BA solve in
 this thread) and ``slam.local_mapping inline`` (local mapping in this thread), so that every
@@ -58,8 +58,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import resource
 import subprocess
 import sys
 import tempfile
@@ -70,10 +68,12 @@ from pathlib import Path
 
 import numpy as np
 
+from _common import data_dir, load, machine, models_dir, now, results_path, write_json
+from _shared_cpu import LoopCpu, children_cpu
 from dynastereo.api import mask_sequence, run_sequence
 from dynastereo.config import Config
 
-RESULTS = Path(__file__).resolve().parent / "results" / "profile.json"
+RESULTS = results_path("profile")
 TICK = os.sysconf("SC_CLK_TCK")
 
 
@@ -95,51 +95,6 @@ def _thread_cpu() -> dict[str, float]:
     return out
 
 
-def _children_cpu() -> float:
-    r = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return r.ru_utime + r.ru_stime
-
-
-def _descendants(pid: int) -> list[int]:
-    out = []
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        try:
-            kids = [int(k) for k in (task / "children").read_text().split()]
-        except OSError:
-            continue
-        for k in kids:
-            out += [k, *_descendants(k)]
-    return out
-
-
-def _tree_cpu() -> float:
-    """CPU seconds of this process and its live descendants (the BA workers)."""
-    total = 0.0
-    for pid in [os.getpid(), *_descendants(os.getpid())]:
-        try:
-            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        total += (int(fields[11]) + int(fields[12])) / TICK
-    return total
-
-
-class LoopCpu:
-    """Observer: CPU of the process tree per frame over the frame loop only (first frame
-    to last: start-up, model and vocabulary loading, and the final BA left out)."""
-
-    def __init__(self) -> None:
-        self.samples: list[float] = []
-
-    def on_frame(self, event) -> None:
-        self.samples.append(_tree_cpu())
-
-    @property
-    def ms_per_frame(self) -> float:
-        s = self.samples
-        return (s[-1] - s[0]) / (len(s) - 1) * 1e3 if len(s) > 1 else float("nan")
-
-
 class ThreadSampler:
     """Observer: the threads' CPU times after every frame (the prefetch thread ends with the
     run, so it is read while the run goes on; the largest value of each thread is kept)."""
@@ -153,12 +108,12 @@ class ThreadSampler:
 
 
 def profile_once(seq: Path, cfg: Config, models: Path | None) -> dict:
-    before_t, before_c = _thread_cpu(), _children_cpu()
+    before_t, before_c = _thread_cpu(), children_cpu()
     sampler, loop = ThreadSampler(), LoopCpu()
     with tempfile.TemporaryDirectory() as tmp:
-        res = run_sequence(seq, Path(tmp) / "run", cfg, models_dir=models, observers=(sampler, loop))
+        res = run_sequence(seq, Path(tmp) / "run", cfg, models_dir=models, observers=(sampler, loop), overwrite=True)
         timing = json.loads((Path(tmp) / "run" / "timing.json").read_text())
-    after_t, after_c = {**sampler.cpu, **_thread_cpu()}, _children_cpu()
+    after_t, after_c = {**sampler.cpu, **_thread_cpu()}, children_cpu()
     threads = {k: round(v - before_t.get(k, 0.0), 2) for k, v in after_t.items() if v - before_t.get(k, 0.0) > 0.005}
     workers = round(after_c - before_c, 2)
     total = sum(threads.values()) + workers
@@ -182,11 +137,11 @@ def alone_once(seq: Path, cfg: Config, models: Path | None) -> dict:
     alone and of the SLAM job alone (``masker none``), on the same frames."""
     lm, ls = LoopCpu(), LoopCpu()
     with tempfile.TemporaryDirectory() as tmp:
-        m = mask_sequence(seq, Path(tmp) / "mask", cfg, models_dir=models, observers=(lm,))
-        w1 = _children_cpu()
+        m = mask_sequence(seq, Path(tmp) / "mask", cfg, models_dir=models, observers=(lm,), overwrite=True)
+        w1 = children_cpu()
         s = run_sequence(seq, Path(tmp) / "slam", cfg.with_overrides({"masker.kind": "none"}), models_dir=models,
-                         observers=(ls,))
-        w2 = _children_cpu()
+                         observers=(ls,), overwrite=True)
+        w2 = children_cpu()
         mask_t = json.loads((Path(tmp) / "mask" / "timing.json").read_text())["summary"]
         slam_t = json.loads((Path(tmp) / "slam" / "timing.json").read_text())["summary"]
     n_m, n_s = len(m.frames_done), len(s.frames)
@@ -400,29 +355,28 @@ def main() -> None:
     ap.add_argument("--part", choices=("all", "budget", "stages"), default="all",
                     help="budget: the threads and parts of a run; stages: the SLAM's stage table; all: both")
     args = ap.parse_args()
-    data = Path(os.environ["DYNASTEREO_DATA"])
+    data = data_dir()
     kept = json.loads(args.out.read_text()) if args.out.exists() else {}
     if args.part in ("all", "stages"):
         stages = {"method": "exclusive process CPU per SLAM entry point (bench_profile.py doc), masker none, "
                             "slam.threads 1, slam.local_ba inline, slam.local_mapping inline; calls: sys.setprofile call + c_call events",
-                  "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_before": os.getloadavg()[0],
+                  "date": now(), "load_before": load(),
                   "sequences": {}}
         for name in args.sequences.split(","):
             seq = data / "kitti_odometry" / "dataset" / "sequences" / name
             r = slam_stages(seq, args.repeats)
             stages["sequences"][name] = r
             print_stages(name, r)
-        stages["load_after"] = os.getloadavg()[0]
+        stages["load_after"] = load()
         kept["slam_stages"] = stages
         if args.part == "stages":
-            args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(json.dumps(kept, indent=1))
+            write_json(args.out, kept)
             print(f"-> {args.out}")
             return
-    models = Path(os.environ["DYNASTEREO_MODELS"]) if os.environ.get("DYNASTEREO_MODELS") else None
+    models = models_dir(required=False)
     cfg = Config().with_overrides({"masker.kind": args.masker})
-    out = {"masker": args.masker, "repeats": args.repeats, "host": platform.node(), "cpus": os.cpu_count(),
-           "load_before": os.getloadavg()[0], "sequences": {}}
+    out = {"masker": args.masker, "repeats": args.repeats, "machine": machine(),
+           "load_before": load(), "sequences": {}}
     if "slam_stages" in kept:
         out["slam_stages"] = kept["slam_stages"]
     for name in args.sequences.split(","):
@@ -467,9 +421,8 @@ def main() -> None:
         print(f"  dynastereo run (CLI): {bound['cli_fps'][args.masker]} FPS, --masker none "
               f"{bound['cli_fps']['none']} FPS")
         print("  alone stage medians (ms): " + ", ".join(f"{k} {v}" for k, v in a["stage_median_ms"].items()))
-    out["load_after"] = os.getloadavg()[0]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=1))
+    out["load_after"] = load()
+    write_json(args.out, out)
     print(f"-> {args.out}")
 
 

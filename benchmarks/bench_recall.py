@@ -1,4 +1,4 @@
-"""Recall of the masks on real frames: every detector x canvas/tiling x schedule (issue 11).
+"""Recall of the masks on real frames: every detector x canvas/tiling x schedule.
 
 Against reference instance masks (``shared/reference/refmasks``: KITTI odometry 06 and
 KITTI raw drive 0001; KITTI 03 with references made by ``shared/tools/refmasks.py``),
@@ -7,12 +7,12 @@ scored exactly as ``shared/tools/score_masks.py`` does (``dynastereo.eval.refmas
 * near-vehicle recall (reference car/truck/bus boxes >= 2000 px matched by an output box
   at IoU >= 0.5), person/bike recall, false boxes per frame (output boxes overlapping no
   reference object: an upper bound, the references miss far cars);
-* mask IoU of the ``outline`` and the ``box`` masker on the README's yardstick (inside
+* mask IoU of the ``outline`` and the ``box`` masker on the yardstick of docs/design/finding-objects.md (inside
   the reference box grown by 10 %, a missed vehicle scoring 0); both maskers mask the SAME
   detections of each frame;
 * detection ms (``detect`` + the stage's ``contrast`` and ``carry``) and masking ms
   (disparity, outline, transfer) per stereo pair (CPU), mean over the sequence and median;
-* **CPU ms a stereo pair** (issue 24's yardstick): the process time (all threads) of the
+* **CPU ms a stereo pair** (the masking cost's yardstick): the process time (all threads) of the
   detection stage plus the outline masker, mean over ALL frames (the detector's runs
   included; the network is made at its canvas -- graph rewrite, compilation -- before
   the first frame, as a long-running process would have it), and the detector's own process time on the frames it runs; the CPU ms of
@@ -35,9 +35,6 @@ Run: DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import subprocess
 import sys
 import time
@@ -47,6 +44,7 @@ from typing import Iterator
 
 import numpy as np
 
+from _common import data_dir, data_path, machine, models_dir, results_path, write_json
 from dynastereo.config import Config
 from dynastereo.errors import ModelError
 from dynastereo.eval.refmasks import load_references, score_frame
@@ -54,7 +52,7 @@ from dynastereo.io import open_sequence
 from dynastereo.masking import BoxMasker, build_masker
 from dynastereo.timing import StageTimer
 
-OUT = Path(__file__).resolve().parent / "results" / "recall.json"
+OUT = results_path("recall")
 DETECT_STAGES = ("detect", "contrast", "carry")
 MASK_STAGES = ("disparity", "outline", "transfer")
 
@@ -88,7 +86,7 @@ ROWS: dict[str, dict] = {
     "default .1": {"score_threshold": 0.1},
     "default every": {"schedule": "every"},
     "default": {},
-    # issue 24: the runtime and precision of the network (the default schedule otherwise)
+    # the runtime and precision of the network (the default schedule otherwise)
     "ort f32 2t": {"runtime": "onnxruntime", "threads": 2},
     "ort f32 1t": {"runtime": "onnxruntime", "threads": 1},
     "ov f32 1t": {"runtime": "openvino", "precision": "f32", "threads": 1},
@@ -106,7 +104,7 @@ ROWS: dict[str, dict] = {
     "default band .15": {"band_top": 0.15},
     "default no band": {"band_top": 0.0},
     "ov bf16 1t carry/2": {"runtime": "openvino", "precision": "bf16", "threads": 1, "carry_downscale": 2},
-    # session 13: grey frames as three equal channels (before) or into the one-channel graph (default)
+    # grey frames as three equal channels (before) or into the one-channel graph (default)
     "default 3 channels": {"grey_input": False},
     "default stereo/2": {"stereo.scale": 2},  # the masks' disparity on half-size images
     "ov bf16 1t band .25 carry/2 3 channels": {"runtime": "openvino", "precision": "bf16", "threads": 1,
@@ -227,10 +225,8 @@ def main() -> None:
     ap.add_argument("--seqs", default="", help="comma-separated subset of 06,raw0001,03")
     ap.add_argument("--out", type=Path, default=OUT)
     a = ap.parse_args()
-    data = Path(os.environ.get("DYNASTEREO_DATA", "")).expanduser()
-    models = Path(os.environ.get("DYNASTEREO_MODELS", "")).expanduser()
-    if not (data / "kitti_odometry").is_dir() or not models.is_dir():
-        sys.exit("set DYNASTEREO_DATA and DYNASTEREO_MODELS (see the docstring)")
+    data, models = data_dir(), models_dir()
+    data_path("kitti_odometry", data=data)
     ref03 = None
     if not a.no_03 and not a.cpu_03:
         ref03 = a.ref03 or Path.home() / ".cache/dynastereo/refmasks/seq03"
@@ -268,10 +264,8 @@ def main() -> None:
                   f"{r['detect_ms']['mean']:.1f} / mask {r['mask_ms']['mean']:.1f}  [{r['runtime']}]", flush=True)
             print("    stages (CPU ms, mean over all frames): "
                   + "  ".join(f"{k} {v:.1f}" for k, v in r["stage_ms"].items()), flush=True)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    doc = {"machine": platform.platform(), "cpus": os.cpu_count(), "rows": results,
-           "default": Config().detector.__dict__}
-    a.out.write_text(json.dumps(doc, indent=1, default=str))
+    doc = {"machine": machine(), "rows": results, "default": Config().detector.__dict__}
+    write_json(a.out, doc, default=str)
     print(f"wrote {a.out}")
 
 

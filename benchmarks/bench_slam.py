@@ -34,14 +34,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
-import platform
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from _common import data_dir, machine, models_dir, results_path, write_json
 from dynastereo.config import Config, to_dict
 from dynastereo.errors import ModelError
 from dynastereo.eval import Trajectory, evaluate, read_trajectory
@@ -52,18 +51,11 @@ from dynastereo.slam import System
 from dynastereo.timing import StageTimer
 from dynastereo.datatypes import StereoFrame
 
-OUT = Path(__file__).resolve().parent / "results" / "slam.json"
+OUT = results_path("slam")
 SLAM_STAGES = ("features", "stereo", "track", "local_mapping")
 TARGET_ATE_M = 0.25
 TARGET_DRIFT_PERCENT = 1.0
 TARGET_FPS = 10.0
-
-
-def env_dir(var: str) -> Path:
-    v = os.environ.get(var)
-    if not v:
-        sys.exit(f"set {var}")
-    return Path(v)
 
 
 def bench_pose_optimizer(repeats: int = 10) -> dict:
@@ -157,7 +149,7 @@ def run_job_fps(seq_path: Path, kind: str, models: Path, repeats: int) -> dict:
         with tempfile.TemporaryDirectory() as d:
             cfg = Config()
             cfg.masker.kind = kind
-            res = run_sequence(seq_path, d, cfg, models_dir=models)
+            res = run_sequence(seq_path, d, cfg, models_dir=models, overwrite=True)
             summary = json.loads((Path(d) / "timing.json").read_text())["summary"]
             fps.append(float(summary["fps"]))
     return {"fps_median": round(float(np.median(fps)), 2), "fps_runs": [round(f, 2) for f in fps], "frames": len(res.frames)}
@@ -235,8 +227,8 @@ def main() -> int:
         f"motion-only BA, {pose_opt['observations']} observations: numpy {pose_opt['numpy_gauss_newton_ms']} ms, "
         f"gtsam {pose_opt['gtsam_lm_ms']} ms"
     )
-    data = env_dir("DYNASTEREO_DATA")
-    models = env_dir("DYNASTEREO_MODELS")
+    data = data_dir()
+    models = models_dir()
     kitti = data / "kitti_odometry" / "dataset"
     results = []
     for seq_name in args.sequences.split(","):
@@ -393,12 +385,7 @@ def main() -> int:
 
     out = {
         "benchmark": "slam",
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-            "loadavg_at_end": list(os.getloadavg()),
-        },
+        "machine": machine(),
         "targets": {"ate_rmse_m": TARGET_ATE_M, "drift_percent": TARGET_DRIFT_PERCENT, "fps_outline": TARGET_FPS},
         "repeats": args.repeats,
         "config": {**to_dict(Config().slam), **({"n_features": args.features} if args.features else {}),
@@ -407,8 +394,7 @@ def main() -> int:
         "results": results,
         "revisits": revisits,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=1))
+    write_json(args.out, out)
     print(f"wrote {args.out}")
     return 0
 

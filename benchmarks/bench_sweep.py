@@ -34,7 +34,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -44,7 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
+from _common import machine, results_path, write_json
+
 CLI = [sys.executable, "-m", "dynastereo.cli.main"]
 IGNORED_KEYS = {"plot", "estimate"}  # eval --json's plot path; bench's name of the file evaluated
 
@@ -122,7 +122,7 @@ def main() -> None:
     ap.add_argument("--engines", default="ray")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "dynastereo-bench-sweep")
-    ap.add_argument("--out", type=Path, default=HERE / "results" / "sweep.json")
+    ap.add_argument("--out", type=Path, default=results_path("sweep"))
     a = ap.parse_args()
     scenarios, maskers, engines = a.scenarios.split(","), a.maskers.split(","), a.engines.split(",")
     root = make_root(a.cache, scenarios, a.frames)
@@ -190,17 +190,13 @@ def main() -> None:
         print(f"  targets: ratio <= 0.75 {'met' if targets['ray_ratio_met'] else 'NOT met'}; overhead <= 2 s "
               f"{'met' if targets['overhead_met'] else 'NOT met'}; "
               f"identical {'yes' if targets['identical_met'] else 'NO'}")
-    import dynastereo
-
     result = {
         "benchmark": "sweep", "scenarios": scenarios, "maskers": maskers, "frames": a.frames, "jobs": n_jobs,
         "workers": a.workers, "engines": engines, "rounds": rounds, "medians": med, "targets": targets,
-        "load_before": load_before, "load_after": load_after, "cpu_count": os.cpu_count(),
-        "python": platform.python_version(), "dynastereo": getattr(dynastereo, "__version__", "?"),
+        "load_before": load_before, "load_after": load_after, "machine": machine(),
         "command": "python benchmarks/bench_sweep.py " + " ".join(sys.argv[1:]),
     }
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(json.dumps(result, indent=1))
+    write_json(a.out, result)
     print(f"wrote {a.out}")
 
 

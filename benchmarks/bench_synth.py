@@ -20,9 +20,6 @@ Run: .venv/bin/python benchmarks/bench_synth.py [--frames 60] [--repeats 3] [--t
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import shutil
 import tempfile
 import time
@@ -30,9 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
+from _common import machine, results_path, write_json
 from dynastereo.synth import SCENARIOS, generate
 
-OUT = Path(__file__).resolve().parent / "results" / "synth.json"
+OUT = results_path("synth")
 TARGET_FPS = 20.0
 
 
@@ -98,11 +96,10 @@ def main() -> None:
         "repeats": args.repeats,
         "threads": args.threads,
         "target_fps": TARGET_FPS,
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version(), "load_avg": list(os.getloadavg())},
+        "machine": machine(),
         "results": rows,
     }
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(OUT, result, indent=2)
     print(f"wrote {OUT}")
 
 

@@ -43,11 +43,7 @@ targets).  Run:
 from __future__ import annotations
 
 import argparse
-import hashlib
-import json
 import logging
-import os
-import platform
 import shutil
 import tempfile
 import time
@@ -56,15 +52,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from _common import machine, median, models_dir, results_path, write_json
+from _shared_runs import generator_version, sequence
 from dynastereo.api import run_sequence
 from dynastereo.config import Config, DetectorConfig
 from dynastereo.errors import ModelError
 from dynastereo.eval import evaluate_files
 from dynastereo.eval.masks import score_mask_dir
-from dynastereo.synth import OracleDetector, generate, read_gt_masks, read_objects
+from dynastereo.synth import OracleDetector, read_gt_masks, read_objects
 from dynastereo.datatypes import StereoMasks
 
-OUT = Path(__file__).resolve().parent / "results" / "synth_slam.json"
+OUT = results_path("synth_slam")
 SCENARIOS = ("static", "crossing", "convoy", "oncoming", "mixed")
 REAL_DETECTORS = ("yolox-nano", "yolov3-tiny", "fastestdet")
 MAX_DISTANCE = 30.0
@@ -75,30 +73,6 @@ TARGET_IOU_GAIN = 0.10
 
 
 # ------------------------------------------------------------------------------ sequences
-
-
-def generator_version() -> str:
-    """Hash of the generator's sources: a cached sequence is regenerated when they change."""
-    import dynastereo.synth as synth
-
-    h = hashlib.sha1()
-    for p in sorted(Path(synth.__file__).parent.glob("*.py")):
-        h.update(p.read_bytes())
-    return h.hexdigest()[:10]
-
-
-def sequence(cache: Path, scenario: str, frames: int, seed: int, size: tuple[int, int]) -> tuple[Path, float | None]:
-    """(sequence folder, generation FPS or None when cached)."""
-    root = cache / f"{scenario}_n{frames}_s{seed}_{size[0]}x{size[1]}_{generator_version()}"
-    done = root / "done"
-    if done.is_file():
-        return root / "sequences" / "00", None
-    shutil.rmtree(root, ignore_errors=True)
-    t0 = time.perf_counter()
-    seq = generate(root, scenario, frames=frames, seed=seed, size=size)
-    fps = frames / (time.perf_counter() - t0)
-    done.write_text("ok\n")
-    return seq, fps
 
 
 # ------------------------------------------------------------------------------ recall
@@ -192,7 +166,7 @@ def slam_run(seq: Path, work: Path, detector: str, masker: str, seed: int, model
         res = run(JobSpec(JobKind.RUN, SourceSpec(path=seq), OutputSpec(run_dir), cfg), masker=GTMasker(seq))
     else:
         cfg = Config().with_overrides({"detector.name": detector, "masker.kind": masker, "seed": seed})
-        res = run_sequence(seq, run_dir, cfg, models_dir=models_dir, save_masks=masker != "none")
+        res = run_sequence(seq, run_dir, cfg, models_dir=models_dir, save_masks=masker != "none", overwrite=True)
     ev = evaluate_files(run_dir / "trajectory.kitti.txt", seq.parent.parent / "poses" / "00.txt")
     rec = {
         "ate_rmse": round(float(ev.ape["rmse"]), 4),
@@ -214,8 +188,7 @@ def slam_run(seq: Path, work: Path, detector: str, masker: str, seed: int, model
 
 
 def _med(v: list) -> float | None:
-    v = [x for x in v if x is not None and np.isfinite(x)]
-    return round(float(np.median(v)), 4) if v else None
+    return median(v, digits=4, finite=True)
 
 
 def summarize(runs: list[dict]) -> dict:
@@ -349,17 +322,17 @@ def main() -> None:
     cache.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="bench_synth_slam_"))
 
-    models_dir = Path(os.environ["DYNASTEREO_MODELS"]) if os.environ.get("DYNASTEREO_MODELS") else None
+    models = models_dir(required=False)
     detectors: dict[str, object] = {}
     notes = []
     for name in [d for d in args.detectors.split(",") if d and d != "none"]:
-        if models_dir is None:
+        if models is None:
             notes.append(f"{name}: skipped, DYNASTEREO_MODELS is not set")
             continue
         try:
             from dynastereo.masking.detection import create_detector
 
-            detectors[name] = create_detector(DetectorConfig(name=name), models_dir)
+            detectors[name] = create_detector(DetectorConfig(name=name), models)
         except ModelError as e:
             notes.append(f"{name}: skipped, {e}")
     for n in notes:
@@ -393,7 +366,7 @@ def main() -> None:
                             jobs += [(name, m) for m in maskers if m not in ("none", "gt")]
                 for det, m in jobs:
                     t0 = time.perf_counter()
-                    rec = slam_run(seq, work, det, m, seed, models_dir)
+                    rec = slam_run(seq, work, det, m, seed, models)
                     rec.update(scenario=sc, seed=seed, detector=det, masker=m, frames=args.frames)
                     if det in ("oracle", "gt"):
                         rec["recall"] = 1.0
@@ -425,16 +398,14 @@ def main() -> None:
             "iou_gain_min": TARGET_IOU_GAIN,
             "iou_objects": f"nearer than {MAX_DISTANCE} m, >= {MIN_PIXELS} px",
         },
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version(),
-                    "load_avg": list(os.getloadavg())},
+        "machine": machine(),
         "wall_s": round(time.perf_counter() - t_start, 1),
         "summary": summary,
         "targets": tgt,
         "detector_recall": recalls,
         "runs": runs,
     }
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(out, indent=1))
+    write_json(args.out, out)
     print(f"\nwrote {args.out}")
 
 

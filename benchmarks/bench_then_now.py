@@ -1,6 +1,6 @@
 """As accurate as before? This checkout's SLAM against an older source tree's, paired.
 
-Issue 23 rewrote the SLAM's hot loops as compiled kernels and asks for a SLAM "as accurate
+The SLAM's hot loops were rewritten as compiled kernels; the aim was a SLAM "as accurate
 as today" (the code before them, commit 45948c1).  A 51-108-frame clip's ATE moves by a
 fifth with changes that should not matter (``slam.n_features`` 2000 vs 2050), so four
 variants' medians -- what ``bench_objects.py`` and ``bench_moving.py`` take -- differ by
@@ -29,22 +29,19 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
+import shutil
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-OUT = ROOT / "benchmarks" / "results" / "then_now.json"
-CLIPS = {
-    "06": "kitti_odometry/dataset/sequences/06",
-    "03": "kitti_odometry/dataset/sequences/03",
-    "raw0001": "kitti_raw/2011_09_26/2011_09_26_drive_0001_sync",
-}
+from _common import CLIPS, ROOT, data_dir, machine, now, results_path, write_json
+from _shared_runs import head_commit as _head
+from _shared_runs import old_tree
+
+OUT = results_path("then_now")
 VARIANTS = tuple(range(1900, 2176, 25))
 # the child: one run of the tree on PYTHONPATH (its own process: nothing shared between codes)
 CHILD = (
@@ -62,29 +59,14 @@ CHILD = (
 )
 
 
-def old_tree(commit: str, dest: Path) -> Path:
-    """``src`` of ``commit`` unpacked under ``dest`` (``git archive``)."""
-    dest.mkdir(parents=True, exist_ok=True)
-    arc = subprocess.run(["git", "-C", str(ROOT), "archive", commit, "src"], capture_output=True, check=True)
-    subprocess.run(["tar", "-x", "-C", str(dest)], input=arc.stdout, check=True)
-    return dest / "src"
-
-
 def run_one(src: Path, seq: Path, out: Path, nf: int, masker: str, mode: str) -> dict:
     env = dict(os.environ, PYTHONPATH=str(src))
+    shutil.rmtree(out, ignore_errors=True)  # this benchmark's own folder: the API refuses to overwrite by default
     p = subprocess.run([sys.executable, "-c", CHILD, str(seq), str(out), str(nf), masker, mode], env=env,
                        capture_output=True, text=True)
     if p.returncode != 0:
         raise RuntimeError(f"{src} on {seq.name}, n_features {nf}: exit {p.returncode}\n{p.stderr[-2000:]}")
     return json.loads(p.stdout.strip().splitlines()[-1])
-
-
-def _head() -> str:
-    """This checkout's commit, ``+changes`` when its ``src`` differs from it."""
-    git = ["git", "-C", str(ROOT)]
-    head = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    dirty = subprocess.run([*git, "status", "--porcelain", "src"], capture_output=True, text=True).stdout.strip()
-    return head + ("+changes" if dirty else "")
 
 
 def accuracy(run_dir: Path, gt: Path) -> dict:
@@ -126,10 +108,7 @@ def main() -> int:
     ap.add_argument("--work", type=Path, default=None, help="run folders (default: a new temporary folder)")
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
-    data = os.environ.get("DYNASTEREO_DATA")
-    if not data:
-        print("DYNASTEREO_DATA is not set: nothing to measure", file=sys.stderr)
-        return 2
+    data = data_dir()
     from dynastereo.eval.trajectory import find_ground_truth
 
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_then_now_"))
@@ -137,13 +116,13 @@ def main() -> int:
     new_src = ROOT / "src"
     variants = [int(v) for v in args.variants.split(",") if v]
     mode = "all" if args.mask_all else "moving"
-    result = {"benchmark": "then_now", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+    result = {"benchmark": "then_now", "date": now(),
               "old": args.old_commit if args.old_src is None else str(args.old_src),
               "new": _head(),
-              "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+              "machine": machine(),
               "masker": args.masker, "motion_mode": mode, "variants": variants, "clips": {}}
     for clip in [c for c in args.clips.split(",") if c]:
-        seq = Path(data) / CLIPS[clip]
+        seq = data / CLIPS[clip]
         gt = find_ground_truth(seq)
         if gt is None:
             print(f"{clip}: no ground truth next to {seq}: skipped", flush=True)
@@ -169,8 +148,7 @@ def main() -> int:
               f"{s['ate_mean_new']:7.4f} {s['paired_difference_median_m']:+15.4f} "
               f"{s['new_more_accurate']:>5d} of {s['variants']:<3d} {s['drift_median_old']:9.3f}% "
               f"{s['drift_median_new']:5.3f}% {s['lost_old']:>3d}/{s['lost_new']}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    write_json(args.out, result)
     print(f"-> {args.out}")
     return 0
 

@@ -19,8 +19,6 @@ Run: .venv/bin/python benchmarks/bench_viz.py [--frames 40] [--repeats 3]
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import shutil
 import tempfile
 import time
@@ -28,11 +26,12 @@ from pathlib import Path
 
 import numpy as np
 
+from _common import machine, results_path, write_json
 from dynastereo.api import make_report, run_sequence
 from dynastereo.config import Config
 from dynastereo.synth import generate
 
-OUT = Path(__file__).resolve().parent / "results" / "viz.json"
+OUT = results_path("viz")
 
 
 def main() -> None:
@@ -47,7 +46,7 @@ def main() -> None:
         rows: dict[str, list[float]] = {k: [] for k in ("report_s", "report_kib", "run_ms", "rrd_ms", "rrd_kib_per_frame")}
         for r in range(a.repeats):
             t0 = time.perf_counter()
-            run_sequence(seq, tmp / "run", cfg, save_masks=True)
+            run_sequence(seq, tmp / "run", cfg, save_masks=True, overwrite=True)
             rows["run_ms"].append((time.perf_counter() - t0) * 1000 / a.frames)
             t0 = time.perf_counter()
             page = make_report(tmp / "run")
@@ -55,17 +54,15 @@ def main() -> None:
             rows["report_kib"].append(page.stat().st_size / 1024)
             rrd = tmp / f"run{r}.rrd"
             t0 = time.perf_counter()
-            run_sequence(seq, tmp / "run_rrd", cfg, save_masks=True, rrd=rrd)
+            run_sequence(seq, tmp / "run_rrd", cfg, save_masks=True, rrd=rrd, overwrite=True)
             rows["rrd_ms"].append((time.perf_counter() - t0) * 1000 / a.frames)
             rows["rrd_kib_per_frame"].append(rrd.stat().st_size / 1024 / a.frames)
         med = {k: round(float(np.median(v)), 3) for k, v in rows.items()}
         med["rrd_extra_ms"] = round(med["rrd_ms"] - med["run_ms"], 3)
         for k, v in med.items():
             print(f"{k:20s} {v:10.3f}")
-        OUT.parent.mkdir(parents=True, exist_ok=True)
-        OUT.write_text(json.dumps({"frames": a.frames, "repeats": a.repeats, "size": [640, 192], "median": med,
-                                   "runs": rows, "machine": platform.platform(), "python": platform.python_version()},
-                                  indent=1))
+        write_json(OUT, {"frames": a.frames, "repeats": a.repeats, "size": [640, 192], "median": med,
+                         "runs": rows, "machine": machine()})
         print(f"wrote {OUT}")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -55,9 +55,6 @@ Writes benchmarks/results/vocab.json.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import sys
 import tempfile
 import time
@@ -66,14 +63,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from _common import ROOT, data_dir, machine, median_ms, results_path, write_json
 from dynastereo.config import SlamConfig
 from dynastereo.io.images import read_image
 from dynastereo.slam.keyframe_database import KeyFrameDatabase
 from dynastereo.slam.orb import ORBExtractor
 from dynastereo.slam.vocabulary import BowVector, Vocabulary
 
-ROOT = Path(__file__).resolve().parent.parent
-OUT = ROOT / "benchmarks" / "results" / "vocab.json"
+OUT = results_path("vocab")
 DEFAULT_FILE = ROOT / "src" / "dynastereo" / "slam" / "data" / "orb_vocab_synth.npz"
 TRAIN_SCENARIOS = ("static", "mixed", "crossing", "oncoming", "convoy", "loop")
 DEFAULT_K, DEFAULT_LEVELS = 12, 4
@@ -310,12 +307,7 @@ def retrieval(sets: list[Dataset], radius: float, bruteforce: bool, extra: dict[
 
 # ---------------------------------------------------------------------- speed
 def med_ms(f, repeats: int) -> float:
-    ts = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        f()
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts) * 1000)
+    return median_ms(f, repeats)
 
 
 def speed(vocab: Vocabulary, pool: list[np.ndarray], repeats: int, sizes=(100, 500, 2000)) -> list[dict]:
@@ -425,7 +417,7 @@ def main() -> None:
     ap.add_argument("--synth-shapes", default="", help="also compare synthetic vocabularies of these shapes, e.g. 10x4,16x4")
     ap.add_argument("--out", type=Path, default=OUT)
     a = ap.parse_args()
-    data = Path(os.environ["DYNASTEREO_DATA"]) if os.environ.get("DYNASTEREO_DATA") else None
+    data = data_dir(required=False)
     tmp = None
     if a.cache is None:
         tmp = tempfile.TemporaryDirectory(prefix="bench_vocab_")
@@ -433,7 +425,7 @@ def main() -> None:
     else:
         work, cache = a.cache, a.cache / "desc"
     result: dict = {"benchmark": "vocab", "repeats": a.repeats, "radius_m": a.radius,
-                    "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform()}}
+                    "machine": machine()}
     if a.train_default:
         result["default_training"] = train_default(work, cache)
     default = Vocabulary.default()
@@ -468,8 +460,7 @@ def main() -> None:
     for r in srows:
         unit = r.get("unit", "ms")
         print(f"  {r['what']:40s} {('n=' + str(r['n_keyframes'])) if r['n_keyframes'] else '':8s} {r['ms']:10.3f} {unit}")
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(json.dumps(result, indent=1))
+    write_json(a.out, result)
     print(f"\nwrote {a.out}")
     if tmp is not None:
         tmp.cleanup()

@@ -18,6 +18,6 @@ want=$(sha256sum pyproject.toml | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] || ! .venv/bin/python -c 'import dynastereo' 2>/dev/null; then
     echo "[venv] installing dynastereo and its dependencies into .venv ..." >&2
     .venv/bin/python -m pip install --quiet --upgrade pip >/dev/null 2>&1 || true
-    .venv/bin/python -m pip install --quiet -e ".[test,viz,bench,openvino]"
+    .venv/bin/python -m pip install --quiet -e ".[test,viz,bench,openvino,docs,ros2]"
     echo "$want" > "$stamp"
 fi

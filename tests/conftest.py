@@ -1,8 +1,10 @@
 """Shared fixtures: where the real data and models are, and how to skip without them.
 
-``DYNASTEREO_DATA`` / ``DYNASTEREO_MODELS`` point at the shared data and models.  When a
-test's files are absent it is skipped with the reason -- unless
-``DYNASTEREO_REQUIRE_DATA=1`` (CI), where it fails instead.
+``DYNASTEREO_DATA`` / ``DYNASTEREO_MODELS`` point at the shared data and models; unset,
+they default to ``../shared/data`` and ``../shared/models`` beside the repository when
+those exist (as ``.ci/run`` sets them).  When a test's files are absent it is skipped with
+the reason -- unless ``DYNASTEREO_REQUIRE_DATA=1`` (CI), where it fails instead; so does
+every other skip for something CI provides (:func:`skip_or_fail`: OpenVINO, a tmpfs).
 """
 
 from __future__ import annotations
@@ -15,6 +17,26 @@ from pathlib import Path
 import pytest
 
 REQUIRE = os.environ.get("DYNASTEREO_REQUIRE_DATA", "") not in ("", "0", "false", "no")
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+
+
+def _default_shared() -> None:
+    """``DYNASTEREO_DATA`` / ``DYNASTEREO_MODELS`` unset: ``../shared``'s, when it is there
+    (set in the environment, so the CLI subprocesses of the tests see them too)."""
+    for var, sub in (("DYNASTEREO_DATA", "data"), ("DYNASTEREO_MODELS", "models")):
+        if not os.environ.get(var) and (SHARED / sub).is_dir():
+            os.environ[var] = str(SHARED / sub)
+
+
+_default_shared()
+
+
+def skip_or_fail(reason: str) -> None:
+    """Skip the test for ``reason`` -- or, under ``DYNASTEREO_REQUIRE_DATA=1`` (CI, which
+    provides everything a test needs), fail it."""
+    if REQUIRE:
+        pytest.fail(reason + " [DYNASTEREO_REQUIRE_DATA=1]")
+    pytest.skip(reason)
 
 
 def require(path: Path | str | None, what: str = "") -> Path:
@@ -76,7 +98,8 @@ def track_offline(sequence: Path, models_dir: Path, n_frames: int):
     from dynastereo.masking import build_masker
     from dynastereo.slam import System
 
-    from dynastereo.masking.motion import build_motion
+    from dynastereo.objects.motion import build_motion
+    from dynastereo.runtime.processor import apply_map_edits
 
     seq = KittiSequence(sequence)
     cfg = Config()
@@ -89,7 +112,7 @@ def track_offline(sequence: Path, models_dir: Path, n_frames: int):
         masks = masker.mask(f)
         motion.measure(f, masks)
         res = system.track(f, motion.select(masks))
-        motion.update(masks, res, system)
+        motion.forgot(apply_map_edits(system, motion.update(masks, res).edits))
         poses.append(res.pose)
     system.shutdown()
     return np.array(poses), system

@@ -154,7 +154,7 @@ def test_mask_cli_on_raw_euroc(euroc_dir: Path, models_dir: Path, tmp_path: Path
 
 
 def test_config_file_documents_every_default(tmp_path: Path) -> None:
-    """configs/default.yaml (linked from README) is exactly what `dynastereo config` prints."""
+    """configs/default.yaml (docs/guide/configuration.md) is exactly what `dynastereo config` prints."""
     shipped = Path(__file__).resolve().parent.parent / "configs" / "default.yaml"
     r = runner.invoke(app, ["config"])
     assert r.exit_code == 0
@@ -166,7 +166,7 @@ def test_config_file_documents_every_default(tmp_path: Path) -> None:
 
 
 def test_fast_profile_loads_and_differs_only_in_the_measured_key() -> None:
-    """configs/fast.yaml (README "Where the 20 ms goes"): a valid configuration that changes
+    """configs/fast.yaml (docs/design/masking-cost.md, "Where the 20 ms goes"): a valid configuration that changes
     the one measured setting (the masks' disparity at half size) and nothing else;
     `dynastereo config` prints it back."""
     from dynastereo.config import Config, load_config

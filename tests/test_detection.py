@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import require
+from conftest import require, skip_or_fail
 from dynastereo.config import DetectorConfig
 from dynastereo.errors import ConfigError, InputError, ModelError
 from dynastereo.masking.base import Detector
@@ -437,7 +437,7 @@ def test_class_names_file_mismatch(models_dir, tmp_path):
         create_detector(DetectorConfig(name=str(tmp_path / "FastestDet.onnx")))
 
 
-# ---------------------------------------------------------------- runtime (issue 24)
+# ---------------------------------------------------------------- runtime
 
 
 def test_runtime_resolution_and_fallback_line(caplog, monkeypatch):
@@ -487,13 +487,13 @@ def _near_boxes(d, min_area: float = 2000.0) -> np.ndarray:
 @pytest.mark.parametrize("grey_input", [False, True])
 def test_openvino_matches_onnxruntime_on_kitti_frames(models_dir, kitti06, grey_input):
     """OpenVINO f32 and bf16 find the same near vehicles as onnxruntime on real frames
-    (the sequences' recall and IoU move by <= 0.01: README "Detectors and models"), with
+    (the sequences' recall and IoU move by <= 0.01: docs/guide/masking.md, "Detectors and models"), with
     the grey frames as three equal channels and into the one-channel graph."""
     from dynastereo.masking.detection import ScaledDetector, openvino_available
     from dynastereo.masking.boxes import box_iou
 
     if not openvino_available():
-        pytest.skip("OpenVINO is not installed (pip install 'dynastereo[openvino]')")
+        skip_or_fail("OpenVINO is not installed (pip install 'dynastereo[openvino]')")
     require(models_dir / "yolox-nano", "model yolox-nano")
     runs = {}
     for label, kw in {"ort": {"runtime": "onnxruntime"}, "f32": {"runtime": "openvino", "precision": "f32"},
@@ -667,7 +667,7 @@ def test_openvino_session_threads_and_streams(models_dir):
     from dynastereo.masking.detection import OpenVinoSession, openvino_available
 
     if not openvino_available():
-        pytest.skip("OpenVINO is not installed (pip install 'dynastereo[openvino]')")
+        skip_or_fail("OpenVINO is not installed (pip install 'dynastereo[openvino]')")
     model = require(models_dir / "yolox-nano" / "yolox_nano.onnx", "YOLOX-nano model")
     s = OpenVinoSession(model, 1, "f32")
     assert int(s.compiled.get_property("INFERENCE_NUM_THREADS")) == 1
@@ -678,12 +678,12 @@ def test_openvino_session_threads_and_streams(models_dir):
 
 @pytest.mark.realdata
 def test_quantize_writes_a_qdq_graph_with_an_f32_head(models_dir, kitti03, tmp_path):
-    """models/quantize.py (the INT8 measurement, README "Runtime and precision"): a QDQ
+    """masking/detection/quantize.py (the INT8 measurement, docs/guide/masking.md, "Runtime and precision"): a QDQ
     copy calibrated on unscored frames, its head left in f32, readable by onnxruntime."""
     import onnx
     import onnxruntime as ort
 
-    from dynastereo.models.quantize import quantize_detector
+    from dynastereo.masking.detection.quantize import quantize_detector
 
     require(models_dir / "yolox-nano", "model yolox-nano")
     images = sorted((kitti03 / "image_0").glob("*.png"))[:2]

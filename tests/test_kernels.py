@@ -11,14 +11,9 @@ from dynastereo.slam.geometry import desc_u64, se3_exp
 from dynastereo import compiled as _numba
 from dynastereo.slam.kernels.epipolar import epipolar_best
 from dynastereo.slam.kernels.hamming import knn_hamming
-from dynastereo.slam.matcher import (
-    KeypointGrid,
-    _search_by_projection_numpy,
-    _stereo_match_numpy,
-    search_by_projection,
-    stereo_match,
-)
-from dynastereo.slam.optimizer import _optimize_pose_numpy, optimize_pose
+from dynastereo.slam.matcher import KeypointGrid, search_by_projection, stereo_match
+from dynastereo.slam.optimizer import optimize_pose
+from reference.slam_numpy import optimize_pose_numpy, search_by_projection_numpy, stereo_match_numpy
 from dynastereo.slam.orb import ORBExtractor
 
 K = np.array([[718.856, 0.0, 607.19], [0.0, 718.856, 185.22], [0.0, 0.0, 1.0]])
@@ -58,7 +53,7 @@ def test_pose_rejects_outliers_and_agrees_with_numpy():
         uv[bad] += rng.normal(0, 40, (bad.sum(), 2))
         out0 = rng.random(len(X)) < 0.05 if trial % 2 else None
         Tk, ik = optimize_pose(np.eye(4), X, uv, ur, isg, K, BF, outlier=out0)
-        Tn, inn = _optimize_pose_numpy(np.eye(4), X, uv, ur, isg, K, BF, outlier=out0)
+        Tn, inn = optimize_pose_numpy(np.eye(4), X, uv, ur, isg, K, BF, outlier=out0)
         assert np.abs(Tk - Tn).max() < 1e-9
         assert np.array_equal(ik, inn)
         assert (~ik[bad]).mean() > 0.9  # the gross outliers found
@@ -204,7 +199,7 @@ def test_stereo_known_disparity(kind):
     assert np.median(err) < 0.1
     assert np.mean(err < 0.25) > 0.9
     np.testing.assert_allclose(st.depth[ok], BF / (fl.uv[ok, 0] - st.u_right[ok]))
-    ref = _stereo_match_numpy(fl.uv, fl.octave, fl.desc, fr.uv, fr.octave, fr.desc, left, right, orb.scales, K[0, 0], BF)
+    ref = stereo_match_numpy(fl.uv, fl.octave, fl.desc, fr.uv, fr.octave, fr.desc, left, right, orb.scales, K[0, 0], BF)
     assert np.array_equal(st.u_right, ref.u_right) and np.array_equal(st.depth, ref.depth)
 
 
@@ -226,7 +221,7 @@ def test_stereo_agrees_with_numpy_on_random_keypoints():
         d_r[:200] = d_l[:200] ^ (rng.random((200, 32)) < 0.05 * trial).astype(np.uint8) * 8
         d_r[200:220] = d_r[0]  # ties
         a = stereo_match(uv_l, oct_l, d_l, uv_r, oct_r, d_r, left, right, scales, K[0, 0], BF)
-        b = _stereo_match_numpy(uv_l, oct_l, d_l, uv_r, oct_r, d_r, left, right, scales, K[0, 0], BF)
+        b = stereo_match_numpy(uv_l, oct_l, d_l, uv_r, oct_r, d_r, left, right, scales, K[0, 0], BF)
         assert (a.depth > 0).sum() > 20
         assert np.array_equal(a.u_right, b.u_right) and np.array_equal(a.depth, b.depth)
 
@@ -267,7 +262,7 @@ def test_search_by_projection_agrees_with_numpy(variant):
             kw.pop("u_right")
         args = (grid, koct, desc_u64(kdesc), kuR, avail, u, v, radius, desc_u64(qdesc))
         a = search_by_projection(*args, **kw)
-        b = _search_by_projection_numpy(*args, **kw)
+        b = search_by_projection_numpy(*args, **kw)
         assert len(a.query) > 30
         for f in ("query", "kp", "dist"):
             assert np.array_equal(getattr(a, f), getattr(b, f)), f
@@ -353,7 +348,7 @@ def test_numba_cache_falls_back_when_nothing_is_writable(monkeypatch, tmp_path):
 
 
 def _kernel_signatures() -> dict[str, set[str]]:
-    """Every compiled kernel of the SLAM (``slam.kernels.*``, ``slam.objects``) and of the
+    """Every compiled kernel of the SLAM (``slam.kernels.*``, ``objects.world``) and of the
     masking (the outlines', the box tracker's) and its loaded overloads."""
     import importlib
     import pkgutil
@@ -364,9 +359,9 @@ def _kernel_signatures() -> dict[str, set[str]]:
 
     names = [f"dynastereo.slam.kernels.{m.name}" for m in pkgutil.iter_modules(kernels.__path__)]
     out: dict[str, set[str]] = {}
-    others = ["dynastereo.slam.objects", "dynastereo.masking.outline", "dynastereo.masking.maskers",
+    others = ["dynastereo.objects.world", "dynastereo.masking.outline", "dynastereo.masking.maskers",
               "dynastereo.masking.transfer", "dynastereo.masking.detection.box_tracker",
-              "dynastereo.masking.object_disparity"]
+              "dynastereo.objects.disparity"]
     for mod in map(importlib.import_module, names + others):
         for name, f in vars(mod).items():
             if isinstance(f, CPUDispatcher) and f.__module__ == mod.__name__:
@@ -384,7 +379,7 @@ def test_the_warm_up_loads_every_kernel_a_run_calls(kitti06, models_dir, tmp_pat
     from dynastereo.config import Config
     from dynastereo.io import KittiSequence
     from dynastereo.masking import build_masker
-    from dynastereo.slam.objects import WorldObjects
+    from dynastereo.objects.world import WorldObjects
     from dynastereo.slam.warmup import warm_up_kernels
 
     warm_up_kernels()
@@ -397,8 +392,8 @@ def test_the_warm_up_loads_every_kernel_a_run_calls(kitti06, models_dir, tmp_pat
     run_sequence(kitti06, tmp_path / "m", own, stereo_check=False, frames="0-12", models_dir=models_dir)
     after = _kernel_signatures()
     called = {k: v for k, v in after.items() if v}
-    assert len(called) >= 22 and any("objects._track_frame" in k for k in called)  # the runs went through them
+    assert len(called) >= 22 and any("objects.world._track_frame" in k for k in called)  # the runs went through them
     assert all(any(name in k for k in called)
                for name in ("outline._fill_rows", "outline._peak_bins", "_median_flow", "_greedy_regions",
-                            "transfer._affine_paint", "object_disparity.object_disparity"))
+                            "transfer._affine_paint", "objects.disparity.object_disparity"))
     assert {k: sorted(v - before.get(k, set())) for k, v in after.items() if v - before.get(k, set())} == {}

@@ -119,7 +119,7 @@ def test_kitti03_map_reuse_localise_only(kitti03: Path, models_dir: Path, tmp_pa
     0.132 / 0.112 / 0.121 / 0.092 m, the same run without it 0.100 / 0.101 / 0.101 /
     0.090 m: the final whole-map (self-calibrating) BA that --save-map runs before
     writing the map moves the frames' poses by +0.002-0.032 m, and localizing follows
-    the saved map.  0.14 = the largest variant + 0.01 (README, "KITTI 03")."""
+    the saved map.  0.14 = the largest variant + 0.01 (docs/design/loops.md, "KITTI 03")."""
     gt = data_dir / "kitti_odometry/dataset/poses/03.txt"
     map_file = tmp_path / "03.dsmap"
     r = runner.invoke(

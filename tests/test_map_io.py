@@ -43,7 +43,7 @@ from dynastereo.slam.map_io import (
 )
 from dynastereo.slam.keyframe_database import KeyFrameDatabase
 from dynastereo.slam.matcher import stereo_match
-from dynastereo.slam.relocalization import database_candidates, relocalize
+from dynastereo.slam.relocalization import database_candidates
 from dynastereo.slam.selfcal import shift_disparity
 from dynastereo.slam.tracking import Tracker
 from dynastereo.synth import generate
@@ -106,12 +106,12 @@ def _frame(sysm: System, sf, index: int = 0) -> Frame:
 
 
 def _relocalize(tr: Tracker, mp: Map, f: Frame) -> tuple[bool, int]:
-    """``relocalization.relocalize`` on the bag-of-words candidates, from a keyframe
+    """``Tracker.relocalize_against`` the bag-of-words candidates, from a keyframe
     database of ``mp`` made as ``System.load_map`` makes it."""
     db = KeyFrameDatabase(tr.vocab)
     for k, kf in mp.keyframes.items():
         db.add(k, tr.vocab.transform(kf.desc)[0])
-    return relocalize(tr, mp, f, database_candidates(tr.vocab, db, mp, f, 3))
+    return tr.relocalize_against(mp, f, database_candidates(tr.vocab, db, mp, f, 3))
 
 
 def _assert_same_map(a: Map, b: Map) -> None:

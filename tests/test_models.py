@@ -199,6 +199,9 @@ def test_check_file_without_sha_checks_size_and_structure(tmp_path):
 
 
 def test_resolve_models_dir_precedence(tmp_path, monkeypatch):
+    from dynastereo.models import registry
+
+    monkeypatch.setattr(registry, "checkout_shared_models", lambda: None)
     monkeypatch.setenv("DYNASTEREO_MODELS", str(tmp_path / "env"))
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     assert resolve_models_dir(tmp_path / "explicit") == tmp_path / "explicit"
@@ -208,6 +211,31 @@ def test_resolve_models_dir_precedence(tmp_path, monkeypatch):
     monkeypatch.delenv("XDG_CACHE_HOME")
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     assert resolve_models_dir() == tmp_path / "home/.cache/dynastereo/models"
+
+
+def test_models_dir_found_beside_a_checkout_when_nothing_else_is_set(tmp_path, monkeypatch):
+    """Neither --models-dir nor $DYNASTEREO_MODELS, an empty cache: ../shared/models beside the
+    checkout (where .ci/run finds it); a cache that holds models still wins."""
+    from dynastereo.models import registry
+
+    shared = tmp_path / "shared" / "models"
+    shared.mkdir(parents=True)
+    monkeypatch.setattr(registry, "checkout_shared_models", lambda: shared)
+    monkeypatch.delenv("DYNASTEREO_MODELS", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert resolve_models_dir() == shared
+    (tmp_path / "xdg/dynastereo/models/yolox-nano").mkdir(parents=True)
+    assert resolve_models_dir() == tmp_path / "xdg/dynastereo/models"
+
+
+def test_download_failure_is_one_short_line() -> None:
+    from dynastereo.models.registry import download_reason
+
+    e = ConnectionError("HTTPSConnectionPool(host='github.com', port=443): Max retries exceeded with url: /x "
+                        "(Caused by NameResolutionError(\"<urllib3.connection.HTTPSConnection object at 0x7f>: "
+                        "Failed to resolve 'github.com' ([Errno -3] Temporary failure in name resolution)\"))")
+    assert download_reason(e) == "the host name cannot be resolved (no network or no DNS)"
+    assert len(download_reason(ValueError("x" * 500))) <= 160
 
 
 def test_model_path_layout_and_unknown_name(tmp_path):

@@ -1,4 +1,4 @@
-"""The per-object motion test (``masking/motion.py``): known answers.
+"""The per-object motion test (``objects/motion``): known answers.
 
 * geometry alone (no images): a parked object, one crossing at 1 m/s 15 m ahead and
   one driving 6 m ahead at the camera's 10 m/s, seen by a camera driving forward; their
@@ -22,7 +22,7 @@ import pytest
 from dynastereo.api import mask_sequence, run_sequence
 from dynastereo.config import Config, MotionConfig
 from dynastereo.errors import ConfigError
-from dynastereo.masking.motion import FrameFlow, MotionJudge, ObjectFlow
+from dynastereo.objects.motion import FrameFlow, MotionJudge, ObjectFlow
 from dynastereo.synth import generate, read_objects
 from dynastereo.datatypes import MaskMethod, ObjectMask, StereoCalibration, StereoMasks
 

@@ -1,4 +1,4 @@
-"""The objects' own block matching (masking/object_disparity.py, ``objects.block_size``):
+"""The objects' own block matching (objects/disparity.py, ``objects.block_size``):
 StereoBM's matching with its checks inside each outline, in a window around the masker's
 disparities; what it gives the objects' positions; where it is configured."""
 
@@ -12,8 +12,8 @@ from dynastereo.config import Config, ObjectsConfig, StereoConfig
 from dynastereo.datatypes import MaskMethod, ObjectMask, StereoCalibration, StereoFrame, StereoMasks
 from dynastereo.errors import ConfigError
 from dynastereo.masking.disparity import StereoMatcher, params_at_scale
-from dynastereo.masking.object_disparity import ObjectStereo
-from dynastereo.slam.objects import WorldObjects
+from dynastereo.objects.disparity import ObjectStereo
+from dynastereo.objects.world import WorldObjects
 
 H, W = 192, 480
 BOX = (200, 70, 270, 130)  # x0, y0, x1, y1 of the object (a plane facing the camera; 4,200 px)

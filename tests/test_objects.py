@@ -1,4 +1,4 @@
-"""Every object's track in the world (slam/objects.py), its outputs (objects.jsonl,
+"""Every object's track in the world (objects/world.py), its outputs (objects.jsonl,
 objects_tracks.csv, rerun, HTML report, ROS MarkerArray), the static map export
 (--save-cloud) and the raw 0001 reference labels of the motion test."""
 
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from dynastereo.slam.objects import TRACKS_NAME, ObjectPaths, WorldObjects, read_tracks
+from dynastereo.objects.world import TRACKS_NAME, ObjectPaths, WorldObjects, read_tracks
 from dynastereo.datatypes import MaskMethod, ObjectMask, StereoCalibration, StereoMasks
 
 W, H = 640, 240
@@ -302,7 +302,7 @@ def test_verdict_scoring(tmp_path):
     assert (s["static_frames"], s["static_unmasked"]) == (3, 1)
 
 
-def test_bag_run_writes_object_markers(convoy_run, tmp_path):
+def test_bag_run_writes_object_markers(convoy_run, models_dir, tmp_path):
     """``run --bag``: ``/dynastereo/objects`` (MarkerArray) once a frame, boxes in ``odom``."""
     from dynastereo.api import run_bag
     from dynastereo.config import Config
@@ -312,7 +312,7 @@ def test_bag_run_writes_object_markers(convoy_run, tmp_path):
 
     seq, _ = convoy_run
     src = export_bag(KittiSequence(seq), tmp_path / "s.mcap", "mcap", frames=list(range(8)))
-    res = run_bag(src.path, tmp_path / "out", Config(), outputs="odometry,objects")
+    res = run_bag(src.path, tmp_path / "out", Config(), outputs="odometry,objects", models_dir=models_dir)
     topics = bag_topics(res.output_bag)
     assert topics["/dynastereo/objects"] == ("visualization_msgs/msg/MarkerArray", 8)
     arrays = [m for _, _, m in read_messages(res.output_bag, ["/dynastereo/objects"])]

@@ -1,4 +1,4 @@
-"""Where slam/objects.py puts an object's centre (issue 26): the top view for static
+"""Where objects/world.py puts an object's centre: the top view for static
 vehicles, the far end of a vehicle cut by the image's side, the top row of a box cut by
 the image's bottom, no measurement from an outline mostly without disparity, and the
 measurement (not the filter's position) as the position of an object in full view."""
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from dynastereo.datatypes import MaskMethod, ObjectMask, StereoCalibration, StereoMasks
-from dynastereo.slam.objects import CLASS_SIZE, WorldObjects
+from dynastereo.objects.world import CLASS_SIZE, WorldObjects
 
 W, H = 640, 240
 FX = 400.0
@@ -156,7 +156,7 @@ def test_an_object_without_a_measurement_coasts_on_its_filter():
     """A car driving away at 5 m/s, measured for 12 frames; then its outline has almost
     no disparity: its filter's prediction (flagged ``predicted``), still moving on at its
     speed; once more than ``COAST_S`` has passed since its last measurement: no position."""
-    from dynastereo.slam.objects import COAST_S
+    from dynastereo.objects.world import COAST_S
 
     car = dict(label="car", track=3, moving=True, w=1.8, h=1.5)
     wo = WorldObjects(CALIB)

@@ -1,4 +1,4 @@
-"""The real-time settings (README "Real time: who runs where"): library threads that do not
+"""The real-time settings (docs/architecture.md, "Real time: who runs where"): library threads that do not
 steal the tracking's core, and the hot kernels rewritten for speed giving the same numbers."""
 
 from __future__ import annotations

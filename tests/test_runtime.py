@@ -1,4 +1,4 @@
-"""The one runtime (issue 25): every entry point through :func:`dynastereo.runtime.run` /
+"""The one runtime: every entry point through :func:`dynastereo.runtime.run` /
 the one :class:`~dynastereo.runtime.loop.FrameLoop`, the job spec's validation, the stage
 pipeline's hand-over, and the modes that must give the same results bit for bit --
 prefetch on vs off, the live node pipelined vs serial -- with the default configuration
@@ -16,7 +16,8 @@ import pytest
 
 from dynastereo.config import Config
 from dynastereo.errors import ConfigError
-from dynastereo.runtime import BagSpec, JobKind, JobSpec, OutputSpec, SourceSpec
+from dynastereo.ros.bagrun import BagSource
+from dynastereo.runtime import JobKind, JobSpec, OutputSpec, SourceSpec
 from dynastereo.runtime.pipelining import StageFailed, StagePipeline
 
 RUNTIME = Path(__file__).parents[1] / "src" / "dynastereo" / "runtime"
@@ -26,12 +27,13 @@ RUNTIME = Path(__file__).parents[1] / "src" / "dynastereo" / "runtime"
 
 
 @pytest.mark.parametrize("kw, match", [
-    (lambda: dict(kind="run", source=SourceSpec(path="a", bag=BagSpec("b.bag"))), "either a SEQUENCE"),
+    (lambda: dict(kind="run", source=SourceSpec(path="a", opener=BagSource("b.bag"))), "either a SEQUENCE"),
     (lambda: dict(kind="run", source=SourceSpec()), "either a SEQUENCE"),
-    (lambda: dict(kind="run", source=SourceSpec(bag=BagSpec("b.bag")), outputs=OutputSpec("o", save_map=Path("m"))),
+    (lambda: dict(kind="run", source=SourceSpec(opener=BagSource("b.bag")), outputs=OutputSpec("o", save_map=Path("m"))),
      "--save-map / --load-map"),
     (lambda: dict(kind="run", source=SourceSpec(path="a"), localize_only=True), "--localize-only needs --load-map"),
     (lambda: dict(kind="mask", source=SourceSpec(path="a"), load_map=Path("m")), "a mask job tracks nothing: load_map"),
+    (lambda: dict(kind="mask", source=SourceSpec(opener=BagSource("b.bag"))), "a mask job tracks nothing: bag"),
     (lambda: dict(kind="run", source=SourceSpec(path="a"), outputs=OutputSpec("o", overlays=True)), "dynastereo mask"),
     (lambda: dict(kind="nope", source=SourceSpec(path="a")), "nope"),
 ])
@@ -40,16 +42,18 @@ def test_job_spec_refuses_bad_combinations(kw, match) -> None:
         JobSpec(**{"outputs": OutputSpec("o"), **kw()})
 
 
-def test_source_and_bag_specs_check_their_options() -> None:
+def test_source_and_bag_sources_check_their_options() -> None:
     with pytest.raises(ConfigError, match="--rate is for sequence folders"):
-        SourceSpec(bag=BagSpec("b.bag"), rate=10.0)
-    with pytest.raises(ConfigError, match="--rate must be a frame rate > 0 Hz"):
+        SourceSpec(opener=BagSource("b.bag"), rate=10.0)
+    with pytest.raises(ConfigError, match="--rate must be a frame rate in Hz"):
         SourceSpec(path="a", rate=0.0)
+    with pytest.raises(ConfigError, match="--rate must be a frame rate in Hz"):
+        SourceSpec(path="a", rate=1e-300)
     with pytest.raises(ConfigError, match="--sync-tolerance must be a time >= 0 ms"):
-        BagSpec("b.bag", tolerance_s=-0.001)
+        BagSource("b.bag", tolerance_s=-0.001)
     with pytest.raises(ConfigError, match="--rectify"):
-        BagSpec("b.bag", rectify="maybe")
-    assert BagSpec("b.bag", outputs="odometry,tf").outputs == ("odometry", "tf")
+        BagSource("b.bag", rectify="maybe")
+    assert BagSource("b.bag", outputs="odometry,tf").outputs == ("odometry", "tf")
 
 
 def test_saving_the_disparity_makes_the_disparity_full_frame() -> None:
@@ -158,7 +162,7 @@ def test_every_entry_point_runs_the_one_runtime(kitti06: Path, tmp_path: Path, m
     seen: list[str] = []
 
     def assemble(spec, seq, observers, masker=None):
-        seen.append(f"{spec.kind}:{'bag' if spec.source.bag else 'seq'}")
+        seen.append(f"{spec.kind}:{spec.source.opener.kind if spec.source.opener else 'seq'}")
         raise _Assembled
 
     monkeypatch.setattr(job_mod, "assemble", assemble)

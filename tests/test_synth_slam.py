@@ -31,7 +31,7 @@ pytestmark = pytest.mark.usefixtures("quiet_slam")
 
 
 def _slam(seq: Path, out: Path, masker: str, frames: str | None = None):
-    """(evaluation against the GT poses, SlamJobResult) of one run with oracle boxes."""
+    """(evaluation against the GT poses, JobResult) of one run with oracle boxes."""
     cfg = Config().with_overrides({"detector.name": "oracle", "masker.kind": masker})
     res = run_sequence(seq, out, cfg, frames=frames, save_masks=masker != "none")
     ev = evaluate_files(out / "trajectory.kitti.txt", seq.parent.parent / "poses" / "00.txt")

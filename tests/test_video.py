@@ -195,7 +195,7 @@ def test_run_on_camera_writes_drops(kitti06: Path, videos: dict[str, Path], tmp_
 
 
 def test_readme_video_and_camera_as_written(tmp_path: Path, monkeypatch, models_dir: Path) -> None:
-    """README's "A stereo video file, or the camera itself", run as written (the camera is the
+    """README's "A stereo video, or the camera itself", run as written (the camera is the
     generated recording: ``cam:0`` -> ``cam:mycam.mkv``)."""
     from test_readme import T0_NS, make_own_camera, readme_block, run_block
 

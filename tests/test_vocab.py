@@ -229,7 +229,7 @@ def test_load_errors_name_file_and_problem(tmp_path, vocab):
     (tmp_path / "trunc.npz").write_bytes(raw[: len(raw) // 2])
     cases["truncated"] = (tmp_path / "trunc.npz", "corrupt or truncated")
     (tmp_path / "text.npz").write_bytes(b"this is not a vocabulary\n" * 10)
-    cases["text"] = (tmp_path / "text.npz", "corrupt or truncated")
+    cases["text"] = (tmp_path / "text.npz", "a text file, not the .npz archive")
     # a flipped byte in a compressed member: zip CRC / inflate error
     flipped = bytearray(raw)
     flipped[len(raw) // 3] ^= 0xFF

@@ -1,8 +1,10 @@
 """High-level Python API: the same jobs the CLI runs.
 
->>> from dynastereo.api import mask_sequence
->>> result = mask_sequence("KITTI/sequences/06", "out/", frames="0-9")
->>> result.summary["mask"]["median"]
+```python
+from dynastereo.api import mask_sequence
+result = mask_sequence("KITTI/sequences/06", "out/", frames="0-9")
+result.summary["mask"]["median"]
+```
 
 Each function builds a :class:`~dynastereo.runtime.JobSpec` and runs it with
 :func:`dynastereo.runtime.run`, the one place a job is assembled (the CLI does the same).
@@ -19,10 +21,10 @@ from .io.base import Sequence
 from .io.frames import select_frames
 from .io.outputs import check_output_file
 from .observers import FrameObserver
-from .runtime import BagRunResult, BagSpec, JobKind, JobSpec, MaskJobResult, OutputSpec, SlamJobResult, SourceSpec
+from .runtime import JobKind, JobResult, JobSpec, OutputSpec, SourceSpec
 from .runtime import run as run_job
 from .runtime.finish import resolve_ground_truth  # noqa: F401 -- part of the API (re-exported)
-from .runtime.spec import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC, settings_calibration
+from .runtime.spec import settings_calibration
 from .viz.viewers import viewers  # noqa: F401 -- part of the API
 
 
@@ -106,17 +108,17 @@ def mask_sequence(
     save_disparity: bool = False,
     overlays: bool = False,
     progress: Callable[[int, int, dict], None] | None = None,
-    overwrite: bool = True,
+    overwrite: bool = False,
     stereo_check: bool = True,
     observers: tuple[FrameObserver, ...] = (),
     viewer: bool = False,
     rrd: str | Path | None = None,
-) -> MaskJobResult:
+) -> JobResult:
     """Mask the dynamic objects of ``sequence`` in both images (a :class:`~dynastereo.runtime.JobSpec` of kind ``mask``, run by
     :func:`dynastereo.runtime.run`).
 
-    ``overwrite``: the outputs of an earlier run in ``out`` are deleted first (False: an
-    :class:`~dynastereo.errors.OutputError`, as the CLI without ``--overwrite``);
+    ``overwrite``: the outputs of an earlier run in ``out`` are deleted first (default False:
+    an :class:`~dynastereo.errors.OutputError`, as the CLI without ``--overwrite``);
     ``stereo_check``: refuse pairs that are identical, swapped or not rectified
     (:class:`~dynastereo.errors.StereoCheckError`; ``io.stereo_check``).  ``viewer`` /
     ``rrd``: show the frames in the rerun viewer / record them (see :func:`viewers`).
@@ -142,7 +144,7 @@ def run_sequence(
     save_map: str | Path | None = None,
     load_map: str | Path | None = None,
     localize_only: bool = False,
-    overwrite: bool = True,
+    overwrite: bool = False,
     stereo_check: bool = True,
     report: bool = False,
     gt: str | Path | None = None,
@@ -150,7 +152,7 @@ def run_sequence(
     viewer: bool = False,
     rrd: str | Path | None = None,
     save_cloud: str | Path | None = None,
-) -> SlamJobResult:
+) -> JobResult:
     """Mask and track ``sequence`` with the stereo SLAM (a :class:`~dynastereo.runtime.JobSpec` of kind ``run``;
     the outputs are listed in :mod:`dynastereo.runtime.sinks` and :mod:`dynastereo.runtime.finish`).
 
@@ -183,7 +185,7 @@ def bench(
     *,
     sequences: str | None = None,
     maskers: str | list[str] = "none,box,outline,seg",
-    repeats: int = 3,
+    repeats: int = 1,
     config: str | Path | None = None,
     overrides: dict | None = None,
     frames: str | None = None,
@@ -228,7 +230,7 @@ def run_bag(
     save_masks: bool = False,
     outputs: str | None = None,
     progress: Callable[[int, int, dict], None] | None = None,
-    overwrite: bool = True,
+    overwrite: bool = False,
     stereo_check: bool = True,
     report: bool = False,
     gt: str | Path | None = None,
@@ -236,15 +238,18 @@ def run_bag(
     viewer: bool = False,
     rrd: str | Path | None = None,
     save_cloud: str | Path | None = None,
-) -> BagRunResult:
+) -> JobResult:
     """Mask and track a stereo bag (ROS 1 .bag, ROS 2 .db3, .mcap); results as for
     :func:`run_sequence` plus ``out/output.<fmt>`` and ``out/bag.json``.  Calibration:
     ``calib`` (YAML) > the bag's CameraInfo > ``config_path`` when it is an ORB-SLAM2
     settings file.  ``overwrite`` / ``stereo_check`` / ``report`` / ``viewer`` / ``rrd`` /
     ``gt`` as for :func:`run_sequence`.  The output bag's content: :class:`dynastereo.ros.bagrun.BagOutput`."""
-    bag_spec = BagSpec(Path(bag), left_topic or DEFAULT_LEFT_TOPIC, right_topic or DEFAULT_RIGHT_TOPIC, left_info,
+    from .ros.bagrun import BagSource
+    from .ros.messages import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC
+
+    source = BagSource(Path(bag), left_topic or DEFAULT_LEFT_TOPIC, right_topic or DEFAULT_RIGHT_TOPIC, left_info,
                        right_info, tolerance_s, rectify, settings_calibration(config_path), outputs)
-    spec = JobSpec(JobKind.RUN, SourceSpec(bag=bag_spec, calib=Path(calib) if calib else None),
+    spec = JobSpec(JobKind.RUN, SourceSpec(opener=source, calib=Path(calib) if calib else None),
                    OutputSpec(Path(out), overwrite=overwrite, save_masks=save_masks, save_cloud=save_cloud,
                               report=report, viewer=viewer, rrd=rrd),
                    cfg or Config(), frames=frames, models_dir=models_dir, stereo_check=stereo_check, gt=gt)

@@ -19,6 +19,7 @@ import cattrs.gen
 import yaml
 
 from .dotted import nest_dotted
+from .yamlcheck import duplicate_key
 from .errors import ConfigError
 from .datatypes import DEFAULT_DYNAMIC_CLASSES
 
@@ -39,21 +40,21 @@ def _bad(key: str, want: str, got: Any) -> ConfigError:
 class StereoConfig:
     """Disparity estimation (thesis 3.3.1/3.3.2): OpenCV StereoBM / StereoSGBM + WLS."""
 
-    algorithm: StereoAlgorithm = "bm"
-    min_disparity: int = 0
+    algorithm: StereoAlgorithm = "bm"  # bm: OpenCV StereoBM; sgbm, sgbm3way, hh, hh4: StereoSGBM in that mode
+    min_disparity: int = 0  # smallest disparity searched, px
     num_disparities: int = 96  # multiple of 16
     block_size: int = 15  # odd; BM: 5..255, SGBM: 1..
     p1: int | None = None  # SGBM smoothness; None -> 8*cn*block_size^2
     p2: int | None = None  # None -> 32*cn*block_size^2
-    disp12_max_diff: int = 1
-    pre_filter_cap: int = 31
-    uniqueness_ratio: int = 10
-    speckle_window_size: int = 100
-    speckle_range: int = 2
+    disp12_max_diff: int = 1  # left-right consistency check, px (-1: off)
+    pre_filter_cap: int = 31  # clip of the prefiltered image (BM: 1..63)
+    uniqueness_ratio: int = 10  # % by which the best match must beat the second best
+    speckle_window_size: int = 100  # largest speckle region removed, px (0: off)
+    speckle_range: int = 2  # disparity variation within a connected region
     texture_threshold: int = 10  # BM only
-    wls: bool = False
-    wls_lambda: float = 8000.0
-    wls_sigma: float = 1.5
+    wls: bool = False  # smooth the disparity with the WLS filter (opencv-contrib)
+    wls_lambda: float = 8000.0  # WLS smoothness weight
+    wls_sigma: float = 1.5  # WLS edge sensitivity to the image
     # Where to compute disparity when only the masks need it:
     # "full" = whole frame; "boxes" = only the image band covering the detections.
     region: StereoRegion = "boxes"
@@ -122,16 +123,15 @@ DETECTOR_PRECISIONS: tuple[str, ...] = typing.get_args(DetectorPrecision)
 class DetectorConfig:
     """The detector and how it meets the frame (``masking/detection/stage.py``).
 
-    The defaults are the row that wins ``benchmarks/bench_recall.py`` (README: "Finding
-    the objects"): the frame at its own scale in a rectangular canvas, CLAHE contrast,
+    The defaults are the row that wins ``benchmarks/bench_recall.py`` (docs/design/finding-objects.md): the frame at its own scale in a rectangular canvas, CLAHE contrast,
     the network on every other frame and the boxes carried by optical flow between runs.
     """
 
     name: str = "yolox-nano"  # registry name or a path to a .cfg / .onnx file
-    score_threshold: float = 0.15
-    nms_threshold: float = 0.45
+    score_threshold: float = 0.15  # detections scoring less are dropped
+    nms_threshold: float = 0.45  # IoU above which non-maximum suppression merges boxes
     input_size: int | None = None  # canvas "model" only; None: the model's native size
-    dynamic_classes: list[str] = field(default_factory=lambda: list(DEFAULT_DYNAMIC_CLASSES))
+    dynamic_classes: list[str] = field(default_factory=lambda: list(DEFAULT_DYNAMIC_CLASSES))  # COCO classes masked
     threads: int = 1  # 1: the least CPU a run (bench_detect.py --runtimes); 2: less wall time
     min_box_size: float = 4.0  # boxes thinner than this (pixels) are dropped
     # How the frame meets the network: "frame" = one canvas of the frame's aspect at
@@ -140,19 +140,19 @@ class DetectorConfig:
     # the seams; "model" = letterboxed into the model's own square canvas (shrinks a wide
     # frame: a KITTI frame to a third)
     canvas: DetectorCanvas = "frame"
-    scale: float = 1.0
-    tiles: int = 3
+    scale: float = 1.0  # the canvas's size relative to the frame (canvas frame / tiles)
+    tiles: int = 3  # tiles across the frame (canvas tiles)
     tile_overlap: float = 0.2  # share of a tile's width overlapping each neighbour
     # canvas frame/tiles: the top fraction of the frame left out (sky).  0 by default: 0.25
     # (and carry_downscale 2, runtime auto) cost masking CPU less but moved raw 0001's ATE
-    # from 0.056 to 0.070 m (medians over n_features variants, session 12; README, "The
+    # from 0.056 to 0.070 m (medians over n_features variants; docs/design/finding-objects.md, "The
     # runtime, canvas and carrying rows")
     band_top: float = 0.0
     contrast: DetectorContrast = "clahe"  # the detector's input only
     # When the network runs: "every" frame, every `interval`-th frame ("interval"), or
     # one tile per frame in turn ("rotate", canvas "tiles"); boxes are carried between
     schedule: DetectorSchedule = "interval"
-    interval: int = 2
+    interval: int = 2  # schedule interval: the network runs on every interval-th frame
     track: bool = True  # carry boxes between frames (optical flow), with track ids
     max_carry: int = 2  # detector runs a box is carried without a confirming detection
     carry_downscale: int = 1  # the carrying's optical flow on the image shrunk 1x or 2x
@@ -161,10 +161,10 @@ class DetectorConfig:
     # onnxruntime f32; precision "auto" = bf16 where available (OpenVINO only), else f32.
     # Default onnxruntime: with auto, raw 0001's ATE rose (see band_top)
     runtime: DetectorRuntime = "onnxruntime"
-    precision: DetectorPrecision = "auto"
+    precision: DetectorPrecision = "auto"  # f32, bf16 (OpenVINO only) or auto (bf16 where available)
     # A grey frame runs a one-channel copy of the network (YOLOX: its first convolution's
     # weights summed over the three equal colour channels; rewrite.py "Grey input"): about
-    # 10 % less network CPU; false = three equal channels, as before session 13
+    # 10 % less network CPU; false = three equal channels
     grey_input: bool = True
 
     def __post_init__(self) -> None:
@@ -234,9 +234,9 @@ class OutlineConfig:
     min_valid_fraction: float = 0.05  # fewer valid pixels than this -> box fallback
     min_box_pixels: int = 64  # smaller boxes are masked whole
     min_box_side: int = 8  # boxes narrower or lower than this (px) are masked whole
-    fill_holes: bool = True
+    fill_holes: bool = True  # fill holes inside each outline
     dilate: int = 3  # dilation radius in pixels applied to each object mask
-    keep_largest_component: bool = True
+    keep_largest_component: bool = True  # keep only the largest connected part of an outline
     # Among histogram peaks at least this fraction of the highest, take the nearest
     # (largest disparity): the detected object stands in front of its background. 1 = off.
     near_peak_ratio: float = 0.5
@@ -256,8 +256,8 @@ class OutlineConfig:
     # peak's (within the peak tolerance), gets its previous outline moved by the box's flow
     # (scale + shift) instead of a new one; the right mask follows by its disparity.
     carry_outline: bool = False
-    carry_max_scale: float = 0.05
-    carry_max_shift: float = 0.25
+    carry_max_scale: float = 0.05  # carry_outline: largest change of a carried box's scale
+    carry_max_shift: float = 0.25  # carry_outline: largest move of its centre, in box sizes
     # An object partly hidden behind a nearer one in the left image also gets, in the right
     # image, the band the right camera sees past the nearer object's right edge.
     transfer_occluded: bool = True
@@ -272,13 +272,13 @@ class OutlineConfig:
     # row, d = a v + c, fitted per frame (v-disparity Hough + least squares) to a coarse
     # disparity of the image's lower part; pixels less than ground_tolerance px above
     # it (measured, or filled along the row) are road and leave every object's mask.
-    # README ("Maskers") has when it helps and when it costs.
+    # docs/guide/masking.md ("Maskers") has when it helps and when it costs.
     ground_removal: bool = False
     ground_tolerance: float = 1.0  # px above the road line still counted as road
     # Plausible camera heights over the road (m): road slopes a = baseline / height
     # outside baseline/max .. baseline/min are rejected (a truck filling the view).
     ground_min_height: float = 0.8
-    ground_max_height: float = 3.0
+    ground_max_height: float = 3.0  # m, see ground_min_height
     ground_baseline: float = 0.0  # m; 0 = the rig's (its calibration), else 0.54 (KITTI)
     ground_fit_tolerance: float = 1.0  # px: Hough bin width / inlier distance of the fit
     ground_min_inliers: int = 150  # fewer sampled road points -> unreliable, no removal
@@ -331,10 +331,10 @@ class OutlineConfig:
 
 @dataclass
 class MaskerConfig:
-    kind: MaskerKind = "outline"
+    kind: MaskerKind = "outline"  # outline (default), box, seg (a segmentation baseline) or none
     outline: OutlineConfig = field(default_factory=OutlineConfig)
-    seg_model: str = "yolov8n-seg-int8"
-    box_margin: int = 0
+    seg_model: str = "yolov8n-seg-int8"  # the segmentation model of masker seg
+    box_margin: int = 0  # px added around each box (masker box)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -353,7 +353,7 @@ MOTION_MODES: tuple[str, ...] = typing.get_args(MotionMode)
 
 @dataclass
 class MotionConfig:
-    """Which detected objects are masked (``masking/motion.py``, README "Mask only what
+    """Which detected objects are masked (``objects/motion``, docs/guide/masking.md "Mask only what
     moves"): ``mode: moving`` (default) masks an object only while the stereo motion test
     judges it moving or has not judged it yet -- static (parked) objects take part in
     tracking and mapping; ``mode: all`` masks every detection (the thesis' behavior, for
@@ -386,7 +386,7 @@ class MotionConfig:
     object of its class group by IoU >= ``duplicate_iou`` is a second detection of it (a
     detector names one car ``car`` and ``truck``): it takes that object's verdict."""
 
-    mode: MotionMode = "moving"
+    mode: MotionMode = "moving"  # moving: mask objects judged moving or not yet judged; all: every detection
     sigma_px: float = 0.5
     sigma_disparity: float = 0.5
     sigma_pose_deg: float = 0.05
@@ -484,7 +484,7 @@ class SlamConfig:
     # estimate the disparity offset when the map has selfcal_keyframes keyframes: BA over
     # the whole map solved at a few offsets (needs local_ba thread / inline), slam/selfcal.py
     self_calibrate: bool = True
-    selfcal_keyframes: int = 8
+    selfcal_keyframes: int = 8  # see self_calibrate
     # the estimate is refined over the whole map at 1.5x, 2.25x... selfcal_keyframes
     # keyframes: this many estimates in all
     selfcal_rounds: int = 4
@@ -500,10 +500,10 @@ class SlamConfig:
     # (bag-of-words database -> best reloc_candidates keyframes -> PnP-RANSAC -> local map);
     # its best hypothesis needs reloc_min_inliers, else the frame is lost.  0 = no search
     reloc_candidates: int = 3
-    reloc_min_inliers: int = 50
+    reloc_min_inliers: int = 50  # see reloc_candidates
     min_init_points: int = 100  # stereo points needed to (re)initialize a map
     max_frames: int = 10  # keyframe at least every max_frames (ORB-SLAM2: camera fps)
-    min_frames: int = 0
+    min_frames: int = 0  # no keyframe before min_frames frames since the last one
     # local mapping
     local_ba: LocalBAMode = "thread"  # in a thread beside tracking, inline, or none
     # a new keyframe's local mapping and loop closing: in their own thread beside the next
@@ -521,7 +521,7 @@ class SlamConfig:
     ba_lag_frames: int = 2  # a local BA submitted at frame k is applied after tracking frame k+lag
     triangulation_neighbours: int = 6  # covisible keyframes searched for new points
     fuse_neighbours: int = 6  # covisible keyframes searched for duplicate points
-    keyframe_culling: bool = True
+    keyframe_culling: bool = True  # remove keyframes whose points others see (ORB-SLAM2's culling)
     # loop closing and place recognition (bag of words)
     loop_closing: bool = True  # detect and close loops (off: --no-loop-closing)
     vocabulary: str = ""  # ORB vocabulary file (dynastereo vocab); "" = the built-in one
@@ -535,7 +535,7 @@ class SlamConfig:
     loop_max_verify: int = 2  # consistent candidates verified per keyframe, best first
     loop_covis_edge_weight: int = 100  # essential-graph covisibility edges (ORB-SLAM2: 100)
     loop_full_ba: bool = True  # full bundle adjustment (BA thread) after each loop
-    loop_full_ba_iterations: int = 20
+    loop_full_ba_iterations: int = 20  # iterations of the full BA after a loop
     loop_ba_lag_frames: int = 20  # the full BA is applied this many frames after the loop
     loop_ba_wait_s: float = 60.0  # bound on the wait for the full BA when due (then skipped)
     threads: int = 2  # threads for feature extraction (left/right in parallel)
@@ -644,14 +644,14 @@ def orbslam2_slam_values(settings: dict[str, Any], path: str | Path | None = Non
 
 @dataclass
 class ObjectsConfig:
-    """The objects' world positions (``slam/objects.py``, README "Objects in the world").
+    """The objects' world positions (``objects/world.py``, docs/guide/objects.md).
 
     ``block_size`` (odd, 5-255; default 11): every outline's pixels are matched again with
     that block, compiled, in a window around the masker's disparities there, with StereoBM's
-    checks as ``stereo.*`` sets them (``masking/object_disparity.py``) -- positions from a
+    checks as ``stereo.*`` sets them (``objects/disparity.py``) -- positions from a
     smaller block than the masks want, without the masks and the motion test paying for it
-    (synthetic held-out positions 0.310 -> 0.288 m against the masker's 15-px disparity;
-    README).  ``0``: from the masker's disparity inside each outline (its
+    (synthetic held-out positions 0.288 m against 0.310 m with the masker's 15-px disparity;
+    docs/design/objects-motion.md).  ``0``: from the masker's disparity inside each outline (its
     ``stereo.block_size``, 15), a few tenths of a millisecond a frame cheaper.  ``stride``:
     every stride-th row and column matched at least (2: a quarter of the work)."""
 
@@ -668,6 +668,85 @@ class ObjectsConfig:
             raise _bad("objects.stride", "in [1, 8]", self.stride)
 
 
+
+# Every numeric key's bounds (inclusive), checked with finiteness whenever a Config is made
+# or loaded: a value past them (``masker.outline.dilate: 100000`` would allocate tens of
+# GB; ``motion.chi2: .inf`` turns the motion test off unseen) is a one-line ConfigError
+# naming the key.  tests/test_config.py checks that every numeric key has its bounds here.
+BOUNDS: dict[str, tuple[float, float]] = {
+    "stereo.min_disparity": (-256, 256), "stereo.num_disparities": (16, 1024), "stereo.block_size": (1, 255),
+    "stereo.p1": (0, 10_000_000), "stereo.p2": (0, 10_000_000), "stereo.disp12_max_diff": (-1, 1024),
+    "stereo.pre_filter_cap": (1, 255), "stereo.uniqueness_ratio": (0, 100), "stereo.speckle_window_size": (0, 10_000),
+    "stereo.speckle_range": (0, 1024), "stereo.texture_threshold": (0, 100_000), "stereo.wls_lambda": (0, 1e6),
+    "stereo.wls_sigma": (0, 100), "stereo.scale": (1, 4),
+    "detector.score_threshold": (0, 1), "detector.nms_threshold": (0, 1), "detector.input_size": (32, 4096),
+    "detector.threads": (0, 256), "detector.min_box_size": (0, 10_000), "detector.scale": (0.05, 8),
+    "detector.tiles": (1, 16), "detector.tile_overlap": (0, 1), "detector.band_top": (0, 1),
+    "detector.interval": (1, 1000), "detector.max_carry": (0, 1000), "detector.carry_downscale": (1, 16),
+    "masker.outline.bin_width": (0, 64), "masker.outline.peak_tolerance": (0, 256),
+    "masker.outline.peak_tolerance_rel": (0, 1), "masker.outline.min_valid_fraction": (0, 1),
+    "masker.outline.min_box_pixels": (0, 10_000_000), "masker.outline.min_box_side": (0, 10_000),
+    "masker.outline.dilate": (0, 64), "masker.outline.near_peak_ratio": (0, 1),
+    "masker.outline.peak_extend_ratio": (0, 1), "masker.outline.min_outline_fraction": (0, 1),
+    "masker.outline.carry_max_scale": (0, 1), "masker.outline.carry_max_shift": (0, 10),
+    "masker.outline.overlap_weight": (0, 1), "masker.outline.claim_fraction": (0, 1),
+    "masker.outline.ground_tolerance": (0, 64), "masker.outline.ground_min_height": (0, 100),
+    "masker.outline.ground_max_height": (0, 100), "masker.outline.ground_baseline": (0, 10),
+    "masker.outline.ground_fit_tolerance": (0, 64), "masker.outline.ground_min_inliers": (0, 10_000_000),
+    "masker.outline.ground_rows_from": (0, 1), "masker.outline.ground_max_fraction": (0, 1),
+    "masker.box_margin": (0, 512),
+    "slam.n_features": (50, 100_000), "slam.scale_factor": (1, 4), "slam.n_levels": (1, 32),
+    "slam.ini_th_fast": (1, 255), "slam.min_th_fast": (1, 255), "slam.oversample": (1, 64), "slam.mask_margin": (0, 512),
+    "slam.th_depth": (0, 10_000), "slam.disparity_offset": (-5, 5), "slam.selfcal_keyframes": (3, 10_000),
+    "slam.selfcal_rounds": (1, 100), "slam.selfcal_min_sigmas": (0, 100), "slam.min_inliers": (0, 100_000),
+    "slam.min_inlier_fraction": (0, 1), "slam.reloc_candidates": (0, 1000), "slam.reloc_min_inliers": (0, 100_000),
+    "slam.min_init_points": (0, 100_000), "slam.max_frames": (1, 100_000), "slam.min_frames": (0, 100_000),
+    "slam.ba_iterations": (1, 1000), "slam.ba_refine_iterations": (0, 1000), "slam.ba_wait_s": (0, 86_400),
+    "slam.ba_max_keyframes": (1, 1000), "slam.ba_max_fixed": (0, 1000), "slam.ba_lag_frames": (0, 1000),
+    "slam.triangulation_neighbours": (0, 1000), "slam.fuse_neighbours": (0, 1000),
+    "slam.loop_min_kf_gap": (0, 1_000_000), "slam.loop_consistency": (0, 1000), "slam.loop_min_matches": (0, 100_000),
+    "slam.loop_min_inliers": (10, 100_000), "slam.loop_min_close_inliers": (0, 100_000),
+    "slam.loop_max_verify": (1, 1000), "slam.loop_covis_edge_weight": (0, 100_000),
+    "slam.loop_full_ba_iterations": (1, 1000), "slam.loop_ba_lag_frames": (0, 100_000),
+    "slam.loop_ba_wait_s": (0, 86_400), "slam.threads": (1, 256),
+    "motion.sigma_px": (0, 100), "motion.sigma_disparity": (0, 100), "motion.sigma_pose_deg": (0, 90),
+    "motion.sigma_pose_m": (0, 100), "motion.chi2": (0, 1e6), "motion.moving_fraction": (0, 1),
+    "motion.static_fraction": (0, 1), "motion.min_points": (3, 10_000), "motion.max_points": (3, 10_000),
+    "motion.object_chi2": (0, 1e6), "motion.object_chi2_static": (0, 1e6), "motion.rest_resolution": (0, 1000),
+    "motion.rest_resolution_vehicle": (0, 1000), "motion.object_points": (1, 10_000), "motion.window_frames": (1, 10_000),
+    "motion.confirm_frames": (1, 10_000), "motion.release_frames": (1, 10_000), "motion.suspect_fraction": (0, 1),
+    "motion.duplicate_iou": (0, 1),
+    "objects.block_size": (0, 255), "objects.stride": (1, 8),
+    "seed": (0, 2**32 - 1),
+}
+
+
+def numeric_keys(obj: Any, prefix: str = "") -> typing.Iterator[tuple[str, Any]]:
+    """``(dotted key, value)`` of every int / float key of a configuration (bools and
+    strings left out; an optional number's None too)."""
+    hints = typing.get_type_hints(type(obj))
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(v):
+            yield from numeric_keys(v, f"{prefix}{f.name}.")
+            continue
+        args = set(typing.get_args(hints[f.name])) - {type(None)} or {hints[f.name]}
+        if args & {int, float} and not args & {bool, str}:
+            yield f"{prefix}{f.name}", v
+
+
+def check_bounds(cfg: Any) -> None:
+    """Every numeric key finite and within :data:`BOUNDS` (ConfigError naming the key)."""
+    import math
+
+    for key, v in numeric_keys(cfg):
+        if v is None or isinstance(v, bool):
+            continue
+        lo, hi = BOUNDS[key]
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
+            raise _bad(key, f"a finite number in [{lo:g}, {hi:g}]", v)
+
+
 @dataclass
 class Config:
     stereo: StereoConfig = field(default_factory=StereoConfig)
@@ -676,11 +755,12 @@ class Config:
     slam: SlamConfig = field(default_factory=SlamConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
     objects: ObjectsConfig = field(default_factory=ObjectsConfig)
-    seed: int = 0
+    seed: int = 0  # seed of the SLAM's random choices (RANSAC): the same seed, the same run
 
     def __post_init__(self) -> None:
         if self.seed < 0:
             raise _bad("seed", ">= 0", self.seed)
+        check_bounds(self)
 
     def validate(self) -> None:
         """Every section's checks again (a configuration changed after it was made)."""
@@ -840,6 +920,9 @@ def load_config(path: str | Path | None = None) -> Config:
         data = yaml.safe_load(text) or {}
     except (OSError, yaml.YAMLError) as e:
         raise ConfigError(f"cannot parse YAML: {e}", p) from None
+    dup = duplicate_key(text)
+    if dup is not None:
+        raise ConfigError(f"line {dup[1]}: key '{dup[0]}' is given twice (which one is meant?)", p)
     if not isinstance(data, dict):
         raise ConfigError("top level must be a mapping", p)
     # ORB-SLAM2 settings files have flat dotted keys ("Camera.fx"); they carry no

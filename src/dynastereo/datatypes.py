@@ -236,13 +236,13 @@ class ObjectMask:
     pixels_right: int
     track_id: int = -1  # the box tracker's id (-1: boxes not tracked)
     source: DetectionSource = DetectionSource.DETECTED
-    # the motion test's verdict (masking.motion): True moving, False static, None not
+    # the motion test's verdict (objects.motion): True moving, False static, None not
     # (yet) decided; whether the object was masked in the images SLAM got; its speed
     moving: bool | None = None
     masked: bool = True
     speed_mps: float | None = None
     speed_sigma_mps: float | None = None  # its standard deviation (stereo and pose noise, along the velocity)
-    # where it is in the world and how fast it goes (slam.objects.ObjectState), once tracked
+    # where it is in the world and how fast it goes (objects.world.ObjectState), once tracked
     world: Any = None
 
     def __post_init__(self) -> None:
@@ -286,7 +286,7 @@ class StereoMasks:
     # the disparity the masker computed (full frame, 0 where not computed: the boxes'
     # regions with stereo.region "boxes"), for the motion test
     box_disparity: np.ndarray | None = None
-    flow: Any = None  # masking.motion.FrameFlow: the objects' points k-1 -> k, when measured
+    flow: Any = None  # objects.motion.FrameFlow: the objects' points k-1 -> k, when measured
 
     @classmethod
     def empty(cls, shape: tuple[int, int]) -> "StereoMasks":
@@ -296,3 +296,8 @@ class StereoMasks:
     @property
     def fraction_left(self) -> float:
         return float(np.count_nonzero(self.left)) / self.left.size
+
+
+#: Overlay colours (BGR) of the motion test's verdicts (``ObjectMask.moving``): moving
+#: objects red, not yet judged orange (both masked), static ones green (left to SLAM).
+VERDICT_COLOURS = {True: (0, 0, 255), None: (0, 165, 255), False: (0, 200, 0)}

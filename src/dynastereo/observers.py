@@ -9,6 +9,7 @@ pipeline itself knows nothing about them, and with no observer nothing is import
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Iterable, Protocol, runtime_checkable
 
 import numpy as np
@@ -33,6 +34,21 @@ class FrameEvent:
 @runtime_checkable
 class FrameObserver(Protocol):
     def on_frame(self, event: FrameEvent) -> None: ...
+
+
+@runtime_checkable
+class OutputObserver(FrameObserver, Protocol):
+    """An observer that writes files of its own into a run's output folder (a bag run's
+    output bag, :class:`dynastereo.ros.bagrun.BagOutput`).  The runtime calls ``open``
+    once the folder is ready and the run's own files are open, ``on_frame`` per frame, and
+    ``close`` after the run's last files (the SLAM's final bundle adjustment done): what
+    ``close`` returns is the run's result's ``outputs[name]``."""
+
+    name: str
+
+    def open(self, out_dir: Path, n_frames: int) -> None: ...
+
+    def close(self) -> dict: ...
 
 
 def notify(observers: Iterable[FrameObserver], event: FrameEvent) -> None:

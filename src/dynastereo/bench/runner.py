@@ -172,7 +172,7 @@ def run_bench(
     *,
     sequences: str | None = None,
     maskers: str | list[str] = "none,box,outline,seg",
-    repeats: int = 3,
+    repeats: int = 1,
     config: str | Path | None = None,
     overrides: dict[str, Any] | None = None,
     frames: str | None = None,

@@ -25,6 +25,20 @@ app = typer.Typer(
 console = Console(stderr=True, width=None if sys.stderr.isatty() else 160, soft_wrap=True)
 out_console = Console(width=None if sys.stdout.isatty() else 160, soft_wrap=True)
 
+def _print_version(value: bool) -> None:
+    if value:
+        from .. import __version__
+
+        out_console.print(f"dynastereo {__version__}", highlight=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                       help="Print the version and exit.")) -> None:
+    pass
+
+
 models_app = typer.Typer(help="List, download and verify detector models.", invoke_without_command=True)
 app.add_typer(models_app, name="models")
 
@@ -176,6 +190,8 @@ def mask(
             result = run_job(spec, progress=on_frame)
     out_console.print(timing_table(result.summary))
     out_console.print(f"{len(result.frames_done)} frames -> {out}  ({result.wall_s:.1f} s)")
+    for line in [ln for ln in _run_summary_lines(out, None) if ln.startswith("calibration:")]:  # a mask job: no GT
+        out_console.print(line, highlight=False)
 
 
 def _run_source(sequence, bag, calib, rate, config, left_topic, right_topic, left_info, right_info,
@@ -183,16 +199,20 @@ def _run_source(sequence, bag, calib, rate, config, left_topic, right_topic, lef
     """The run's :class:`~dynastereo.runtime.SourceSpec`: a folder / video / camera, or a bag
     (its CameraInfo topics ``auto`` / ``none`` / a topic; an ORB-SLAM2 settings file given as
     ``--config`` is its calibration when it has no CameraInfo)."""
-    from ..runtime import BagSpec, SourceSpec
+    from ..runtime import SourceSpec
     from ..runtime.spec import settings_calibration
 
-    if bag is None or sequence is not None:
-        return SourceSpec(path=sequence, bag=None if bag is None else BagSpec(bag), calib=calib, rate=rate)
+    if bag is None:
+        return SourceSpec(path=sequence, calib=calib, rate=rate)
+    from ..ros.bagrun import BagSource
+
+    if sequence is not None:
+        return SourceSpec(path=sequence, opener=BagSource(bag), calib=calib, rate=rate)  # refused: both given
     info = {"auto": "auto", "none": None}
-    spec = BagSpec(bag, left_topic, right_topic, info.get(left_info.lower(), left_info),
-                   info.get(right_info.lower(), right_info), sync_tolerance / 1000.0, rectify,
-                   settings_calibration(config), bag_outputs)
-    return SourceSpec(bag=spec, calib=calib, rate=rate)
+    source = BagSource(bag, left_topic, right_topic, info.get(left_info.lower(), left_info),
+                       info.get(right_info.lower(), right_info), sync_tolerance / 1000.0, rectify,
+                       settings_calibration(config), bag_outputs)
+    return SourceSpec(opener=source, calib=calib, rate=rate)
 
 
 @app.command()
@@ -220,7 +240,7 @@ def run(
     sync_tolerance: float = typer.Option(5.0, "--sync-tolerance", help="[--bag] Largest left/right stamp difference of a pair, ms."),
     rectify: str = typer.Option("auto", "--rectify", help="[--bag] Rectify with CameraInfo: auto (unless already rectified) | yes | no."),
     bag_outputs: str = typer.Option("all", "--bag-outputs", help="[--bag] Output bag content: all, or a comma list of odometry,tf,masked,masks,disparity,path,map_points,objects."),
-    save_map: Optional[Path] = typer.Option(None, "--save-map", help="Write the final map to FILE (docs/map_format.md)."),
+    save_map: Optional[Path] = typer.Option(None, "--save-map", help="Write the final map to FILE (docs/reference/map-format.md)."),
     load_map: Optional[Path] = typer.Option(None, "--load-map", help="Start from the map in FILE (from --save-map)."),
     save_cloud: Optional[Path] = typer.Option(None, "--save-cloud", help="Write the final map's points as a PLY point cloud (none on a moving object)."),
     localize_only: bool = typer.Option(False, "--localize-only", help="With --load-map: localize in the map, add no keyframes."),
@@ -236,6 +256,8 @@ def run(
     """Mask and track a stereo sequence (a folder or a ROS bag): trajectory, timing and run summary out."""
     from ..runtime import JobKind, JobSpec, OutputSpec, run as run_job
 
+    _check_option("--sync-tolerance", sync_tolerance, 0 <= sync_tolerance <= 10_000,
+                  "a time in 0..10000 ms (milliseconds)")
     kept = _kept_files(out, ("run.json", "timing.json", "trajectory.kitti.txt", "trajectory.tum.txt"),
                        "with the signal; the frames done", (save_map,) if save_map else ())
     with _job(kept) as job:
@@ -249,7 +271,7 @@ def run(
                        OutputSpec(out, overwrite=overwrite, save_masks=save_masks, save_map=save_map,
                                   save_cloud=save_cloud, report=report, viewer=viewer, rrd=rrd),
                        _build_config(config, overrides), frames=frames, models_dir=models_dir, load_map=load_map,
-                       localize_only=localize_only, stereo_check=not no_stereo_check, gt=gt)
+                       localize_only=localize_only, stereo_check=not no_stereo_check, gt=gt, settings=config)
         with _progress() as prog:
             task = prog.add_task("tracking", total=None, info="")
 
@@ -259,10 +281,11 @@ def run(
                 job.tick(done, total)
 
             result = run_job(spec, progress=on_frame)
-            if bag is not None:
-                result = result.slam
     bag_report = result.bag
     out_console.print(timing_table(result.summary, "timing (ms per frame)"))
+    if "masking" in result.summary and "total" in result.summary:
+        out_console.print("note: masking runs on its own thread beside tracking (the next frame's, while this one "
+                          "is tracked): its time overlaps the others' and can exceed the total", highlight=False)
     st = result.stats
     out_console.print(
         f"{len(result.frames)} frames, {result.fps:.1f} FPS end to end; lost {len(result.lost)}, "
@@ -283,10 +306,47 @@ def run(
             f"tolerance {r['tolerance_s'] * 1000:g} ms); calibration: {r['calibration_source']}"
             f"{', rectified on read' if r['rectified_on_read'] else ''}; output bag {r['output_bag']}",
             highlight=False)
+    for line in _run_summary_lines(out, result.report):
+        out_console.print(line, highlight=False)
     if result.report is not None:
         out_console.print(f"report: {result.report}", highlight=False)
     if rrd is not None:
         out_console.print(f"recording: {rrd} (open it with `rerun {rrd}`)", highlight=False)
+    if result.frames and len(result.lost) == len(result.frames):  # done, but nothing to show for it
+        console.print(f"[bold red]error:[/] every one of the {len(result.frames)} frames was lost: no pose was tracked "
+                      f"({out / 'run.json'}); check the calibration, the images and --load-map", highlight=False)
+        raise typer.Exit(1)
+
+
+def _run_summary_lines(out: Path, report: Optional[Path]) -> list[str]:
+    """What a finished run used and how well it did: the calibration and ground truth it
+    recorded in run.json, and -- with a ground truth -- one line of accuracy (ATE, drift,
+    path length) and where the report is (or how to make one)."""
+    import json
+
+    try:
+        run = json.loads((out / ("run.json" if (out / "run.json").is_file() else "timing.json")).read_text())
+    except (OSError, ValueError):
+        return []
+    if not isinstance(run, dict):
+        return []
+    lines = []
+    if run.get("calibration"):
+        lines.append(f"calibration: {run['calibration']}")
+    gt = run.get("ground_truth")
+    if not gt:
+        return lines + ["ground truth: none found (eval/report take one: `dynastereo eval TRAJ GT`)"]
+    try:
+        from ..eval import evaluate_files
+
+        r = evaluate_files(out / "trajectory.kitti.txt", Path(gt))
+    except DynastereoError as e:
+        return lines + [f"ground truth: {gt} (not evaluated: {e})"]
+    where = f"report: {report}" if report is not None else f"`dynastereo report {out}` makes the report"
+    drift = f"{r.drift_percent:.2f} %" if r.drift_percent is not None else "n/a"
+    lines.append(f"accuracy: ATE {r.ape['rmse']:.3f} m (RMSE), drift {drift}, path {r.path_length_m:.1f} m, "
+                 f"against {gt}; {where}")
+    return lines
 
 
 @app.command("report")
@@ -300,8 +360,14 @@ def report_cmd(
     """One self-contained HTML page of a run: summary, trajectory vs ground truth, APE/RPE/drift, timing, masks, objects."""
     from ..api import make_report
 
-    _check_option("--overlays", overlays, overlays >= 0, "a count of images >= 0")
+    from ..io.outputs import RUN_OUTPUTS, check_output_file, refuse_input_as_output
+
+    _check_option("--overlays", overlays, 0 <= overlays <= 1000, "a count of images in 0..1000")
     try:
+        if out is not None:
+            refuse_input_as_output(out, [gt, run_dir, *(run_dir / n for n in RUN_OUTPUTS)], what="report file",
+                                   flag="--out")
+            check_output_file(out, what="report file")
         path = make_report(run_dir, gt, out, overlays=overlays, auto_gt=not no_auto_gt)
     except DynastereoError as e:
         _fail(e)
@@ -320,8 +386,12 @@ def gt_cmd(
 ) -> None:
     """Write a sequence's ground truth as camera-0 (rectified) poses in the first frame, KITTI and TUM."""
     from ..api import ground_truth, write_ground_truth
+    from ..eval.trajectory import find_ground_truth
+    from ..io.outputs import refuse_input_as_output
 
     try:
+        refuse_input_as_output(out, [sequence, find_ground_truth(sequence) if sequence.is_dir() else None],
+                               what="poses file", flag="--out")
         paths = write_ground_truth(sequence, out, fmt, at=at)
         traj = ground_truth(sequence, at=at)
     except DynastereoError as e:
@@ -351,7 +421,10 @@ def export_bag_cmd(
     from ..io.times import UNIX_DATE_MIN_S
     from ..ros.bags import BAG_SUFFIX, check_format
 
-    with _job(f"{out} holds the frames written so far (closed, readable)") as job:
+    _check_option("--time-offset", time_offset, abs(time_offset) <= 1e10, "a time in seconds within +-1e10")
+    kept = (f"{out} is the earlier bag, unchanged" if out.exists() and force
+            else f"{out} holds the frames written so far (closed, readable)")
+    with _job(kept) as job:
         if fmt is None:
             suffix = out.suffix.lower()
             fmt = next((k for k, v in BAG_SUFFIX.items() if v == suffix), None)
@@ -389,8 +462,20 @@ def node(
     ctx: typer.Context,
     launch: bool = typer.Option(False, "--launch", help="Run `roslaunch dynastereo dynastereo.launch ARGS` (arg:=value ...)."),
     package_path: bool = typer.Option(False, "--package-path", help="Print the ROS package folder (for ROS_PACKAGE_PATH) and exit."),
+    ros2: bool = typer.Option(False, "--ros2", help="The live ROS 2 node over DDS (no rclpy; needs the ros2 extra: pip install 'dynastereo[ros2]')."),
+    params: Optional[Path] = typer.Option(None, "--params", help="ROS 2 parameters file (with --ros2): '/**: ros__parameters:' or 'dynastereo: ros__parameters:'."),
 ) -> None:
-    """The live ROS 1 node (needs Debian's python3-rospy etc.; extra arguments go to ROS: remaps, _param:=value)."""
+    """The live ROS 1 node (needs Debian's python3-rospy etc.; extra arguments go to ROS: remaps, _param:=value), or with --ros2 the ROS 2 node."""
+    if ros2:
+        from ..ros.ros2 import main as ros2_main
+
+        if ctx.args:
+            _fail(DynastereoError(f"unexpected arguments for the ROS 2 node: {' '.join(ctx.args)} "
+                                  "(its parameters come from --params FILE)"))
+        STOP.uninstall()  # the node handles SIGINT / SIGTERM itself (final BA, save)
+        raise typer.Exit(ros2_main(str(params) if params is not None else None))
+    if params is not None:
+        _fail(DynastereoError("--params is for the ROS 2 node (--ros2); the ROS 1 node reads _param:=value"))
     from importlib.resources import files
 
     pkg = str(files("dynastereo.ros") / "ros_package")
@@ -411,6 +496,43 @@ def node(
 
     STOP.uninstall()  # the node handles its signals itself (rospy)
     raise typer.Exit(node_main(["dynastereo_node", *ctx.args]))
+
+
+@app.command("play")
+def play_cmd(
+    source: str = typer.Argument(..., help="A ROS 2 bag (.db3, .mcap) or a sequence folder."),
+    ros2: bool = typer.Option(False, "--ros2", help="Publish over ROS 2 (DDS, no rclpy; the ros2 extra)."),
+    rate: Optional[float] = typer.Option(None, "--rate", help="Frames per second (default: the stamps' own pace)."),
+    lockstep: bool = typer.Option(False, "--lockstep", help="Each frame once the node's odometry of the previous one came back."),
+    frames: Optional[str] = typer.Option(None, "--frames", help="Frames to play, e.g. 0-49."),
+    stamp: str = typer.Option("sequence", "--stamp", help="Header stamps: 'sequence' (the source's) or 'now' (wall clock, for latency)."),
+    wait: float = typer.Option(20.0, "--wait", help="Seconds to wait for the node's subscriptions."),
+) -> None:
+    """Publish a bag or a sequence folder as live camera topics (images + CameraInfo)."""
+    if not ros2:
+        _fail(DynastereoError("play needs --ros2 (the ROS 1 player: python -m dynastereo.ros.player SEQUENCE)"))
+    _check_option("--rate", rate, rate is None or rate > 0, "a frame rate > 0 Hz")
+    _check_option("--stamp", stamp, stamp in ("sequence", "now"), "sequence or now")
+    from ..ros.dds import import_cyclonedds
+    from ..ros.ros2_player import Ros2Player, open_source
+
+    try:
+        import_cyclonedds()
+        seq, idx = open_source(source, frames)
+        player = Ros2Player(seq, idx)
+    except DynastereoError as e:
+        _fail(e)
+    if not player.wait_for_subscribers(wait):
+        console.print(f"no subscriber after {wait:g} s; publishing anyway", highlight=False)
+    log = player.play(rate, stamp=stamp, lockstep=lockstep)
+    s = log.summary()
+    out_console.print(f"published {s['published']} frames"
+                      + (f", {s['answered']} answered, {s['timeouts']} timed out" if lockstep else
+                         f" (late median {s['late_ms_median']:.1f} ms)"), highlight=False)
+    import time
+
+    time.sleep(0.5)  # reliable samples still in flight
+    player.close()
 
 
 @models_app.callback()
@@ -485,8 +607,9 @@ def synth(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a sequence generated earlier in OUT."),
 ) -> None:
     """Generate a synthetic dynamic stereo street sequence with exact ground truth."""
-    from ..io.outputs import SYNTH_OUTPUTS, prepare_output_dir
+    from ..io.outputs import SYNTH_OUTPUTS, OutputLock, prepare_output_dir
     from ..synth import SCENARIOS, generate
+    from ..synth.writer import check_options
 
     if list_ or scenario == "list":
         for name, sc in SCENARIOS.items():
@@ -494,11 +617,10 @@ def synth(
         return
     if out is None:
         _fail(DynastereoError("synth needs an output folder OUT (or --list)"))
-    try:
-        w, h = (int(v) for v in size.lower().split("x"))
-    except ValueError:
-        _fail(DynastereoError(f"--size must be WxH, got {size!r}"))
     with _job(f"{out} holds the frames rendered so far (an incomplete sequence)") as job:
+        w, h = check_options(scenario, frames, size)  # before an earlier sequence is cleared
+        job_lock = OutputLock(out)
+        job_lock.acquire()
         prepare_output_dir(out, overwrite=overwrite, names=SYNTH_OUTPUTS)
         with _progress() as prog:
             task = prog.add_task(f"synth {scenario}", total=None, info="")
@@ -550,11 +672,16 @@ def _run_ground_truth(estimate: Path) -> Path:
     import json
 
     from ..errors import InputError
-    from ..eval.trajectory import find_ground_truth
+    from ..eval.trajectory import recorded_ground_truth
 
     run = estimate.parent / "run.json"
-    seq = json.loads(run.read_text()).get("sequence") if run.is_file() else None
-    gt = find_ground_truth(seq) if seq else None
+    try:
+        record = json.loads(run.read_text()) if run.is_file() else {}
+    except (OSError, ValueError) as e:
+        raise InputError(f"cannot read it ({e})", run) from None
+    if not isinstance(record, dict):
+        raise InputError("not a JSON object", run)
+    gt = recorded_ground_truth(record, run)
     if gt is None:
         raise InputError("no ground truth given, and none found for the run's sequence (run.json beside the "
                          "estimate: KITTI poses/NN.txt, a KITTI raw drive's oxts/)", estimate)
@@ -569,21 +696,24 @@ def eval_cmd(
     plot: Optional[Path] = typer.Option(None, "--plot", help="Trajectory plot PNG (default: beside the estimate)."),
     no_align: bool = typer.Option(False, "--no-align", help="Do not SE(3)-align before APE."),
     rpe_delta: int = typer.Option(1, "--rpe-delta", help="RPE step in frames."),
+    match: str = typer.Option("auto", "--match", help="How rows are paired: auto (stamps when both have them, else frame index) | index (frame index whatever the stamps say: a video's run against KITTI poses)."),
 ) -> None:
     """APE (thesis table), RPE, drift and the KITTI odometry metric, with evo; writes a top-view plot."""
     import json
 
     from ..eval import evaluate_files, format_table, plot_trajectories, to_json_dict
-    from ..io.outputs import check_output_file
+    from ..io.outputs import check_output_file, refuse_input_as_output
 
-    _check_option("--rpe-delta", rpe_delta, rpe_delta >= 1, "a step of >= 1 frames")
+    _check_option("--rpe-delta", rpe_delta, 1 <= rpe_delta <= 100_000, "a step of 1..100000 frames")
+    implicit = ground_truth is None
     try:
         if ground_truth is None:
             ground_truth = _run_ground_truth(estimate)
         png = plot or estimate.with_name(estimate.name.split(".")[0] + "_vs_gt.png")
+        refuse_input_as_output(png, [estimate, ground_truth], what="plot file", flag="--plot")
         if plot is not None or estimate.is_file():
             check_output_file(png, what="plot file")
-        r = evaluate_files(estimate, ground_truth, align=not no_align, rpe_delta=rpe_delta)
+        r = evaluate_files(estimate, ground_truth, align=not no_align, rpe_delta=rpe_delta, match=match)
         try:
             plot_trajectories(r.estimate, r.ground_truth, png, title=f"{estimate.name} vs {ground_truth.name}")
         except OSError as e:  # disk full, no permission: the plot is named
@@ -596,6 +726,8 @@ def eval_cmd(
         print(json.dumps(d, indent=1))
     else:
         print(format_table(r))
+        if implicit:
+            print(f"ground truth: {ground_truth} (the run's sequence's, from run.json)")
         print(f"plot: {png}")
 
 
@@ -605,7 +737,7 @@ def bench_cmd(
     out: Path = typer.Option(..., "--out", "-o", help="Output folder: results.json, tables.md, plots/, runs/<sequence>/<masker>/r<k>/."),
     sequences: Optional[str] = typer.Option(None, "--sequences", help="Which sequences: ranges and names, e.g. 00-10 or 03,07 or 'convoy/*' (default: all found)."),
     maskers: str = typer.Option("none,box,outline,seg", "--maskers", help="Comma list of none, box, outline, seg."),
-    repeats: int = typer.Option(3, "--repeats", help="Runs per sequence and masker (seed = config seed + repeat)."),
+    repeats: int = typer.Option(1, "--repeats", help="Runs per sequence and masker (seed = config seed + repeat); runs are deterministic: more than 1 only to measure timing."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML configuration (or ORB-SLAM2 settings) for every job."),
     detector: Optional[str] = typer.Option(None, "--detector", help="Detector for every job (overrides the configuration), e.g. oracle for synthetic sequences."),
     frames: Optional[str] = typer.Option(None, "--frames", help="Frames of every sequence: a count N or ranges a-b (default: all)."),
@@ -619,9 +751,9 @@ def bench_cmd(
     """Benchmark a whole dataset: every (sequence, masker, repeat) as a job, in parallel, resumable, with the thesis' tables."""
     from ..api import bench
 
-    _check_option("--repeats", repeats, repeats >= 1, "a number of runs >= 1")
-    _check_option("--workers", workers, workers is None or workers >= 1, "a number of jobs at a time >= 1")
-    _check_option("--threads", threads, threads >= 0, "a number of threads >= 0 (0: the library's default)")
+    _check_option("--repeats", repeats, 1 <= repeats <= 100, "a number of runs in 1..100")
+    _check_option("--workers", workers, workers is None or 1 <= workers <= 1024, "a number of jobs at a time in 1..1024")
+    _check_option("--threads", threads, 0 <= threads <= 256, "a number of threads in 0..256 (0: the library's default)")
     bar = _progress()
     task = bar.add_task("bench frames", total=None, info="")
 
@@ -669,9 +801,10 @@ def vocab_cmd(
 
     from ..slam.vocabulary import collect_images, train_from_images
 
-    _check_option("--k", k, k >= 2, "a branching factor >= 2")
-    _check_option("--levels", levels, levels >= 1, "a tree depth >= 1")
-    _check_option("--features", features, features >= 1, "a number of ORB features per image >= 1")
+    _check_option("--k", k, 2 <= k <= 64, "a branching factor in 2..64")
+    _check_option("--levels", levels, 1 <= levels <= 8, "a tree depth in 1..8")
+    _check_option("--k / --levels", k**levels, k**levels <= 10_000_000, "at most 10^7 words (k**levels)")
+    _check_option("--features", features, 1 <= features <= 100_000, "a number of ORB features per image in 1..100000")
 
     from ..io.outputs import check_output_file
 
@@ -715,10 +848,36 @@ def main() -> None:
         sys.exit(2)
     except OSError as e:
         where = f"{e.filename}: " if e.filename else ""
-        console.print(f"[bold red]error:[/] {where}{e.strerror or e}", soft_wrap=True, highlight=False)
+        text = str(e.strerror or e).strip().splitlines()[0] if str(e.strerror or e).strip() else type(e).__name__
+        if "shared object" in text or "shared library" in text:  # a library that could not be mapped
+            text = text.split(". ")[0] + " (a memory limit (`ulimit -v`) too tight to load it, or a broken install?)"
+        console.print(f"[bold red]error:[/] {where}{text}", soft_wrap=True, highlight=False)
+        sys.exit(2)
+    except MemoryError as e:
+        console.print(f"[bold red]error:[/] {memory_error_line(e)}", soft_wrap=True, highlight=False, markup=True)
+        sys.exit(2)
+    except ImportError as e:
+        console.print(f"[bold red]error:[/] {import_error_line(e)}", soft_wrap=True, highlight=False, markup=True)
         sys.exit(2)
     finally:
         STOP.uninstall()
+
+
+def memory_error_line(e: MemoryError) -> str:
+    """One line for a failed allocation: what could not be allocated, and the way out."""
+    what = str(e).strip().splitlines()[0] if str(e).strip() else "an allocation failed"
+    return (f"out of memory: {what} (the input needs more memory than this process may use: free memory, "
+            "`ulimit -v`; try fewer frames or smaller images)")
+
+
+def import_error_line(e: ImportError) -> str:
+    """One line for a package that failed to load (missing, or no memory to map it)."""
+    name = e.name or (str(e).split("'")[1] if "'" in str(e) else "a package")
+    why = str(e).strip().splitlines()[0] if str(e).strip() else "import failed"
+    low = why.lower()
+    hint = ("a memory limit (`ulimit -v`) too tight to load it?" if any(w in low for w in ("memory", "map", "shared object"))
+            else "is it installed in this environment? (`make install`, or `pip install dynastereo`)")
+    return f"cannot load {name}: {why} ({hint})"
 
 
 if __name__ == "__main__":

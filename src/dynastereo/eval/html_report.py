@@ -21,6 +21,7 @@ import base64
 import html
 import io
 import json
+import logging
 import math
 from collections import Counter
 from dataclasses import dataclass
@@ -37,11 +38,12 @@ from ..errors import InputError
 from .metrics import STAT_KEYS, EvalResult, evaluate_files
 from .plot import _new_figure, plot_ape_over_time, plot_trajectories
 from .report import format_table
-from .trajectory import FRAMES_NAME, KITTI_NAME, find_ground_truth, read_frame_indices, read_trajectory
+from .trajectory import FRAMES_NAME, KITTI_NAME, read_frame_indices, read_trajectory, recorded_ground_truth
 
 REPORT_NAME = "report.html"
 SUMMARY_KEYS = ("frames_requested", "frames_done", "frames_tracked", "frames_lost", "keyframes", "map_points",
                 "fps", "wall_s")
+log = logging.getLogger(__name__)
 LEGACY_DERIVED = {"mask", "masking"}  # timing.json written before it listed its derived stages
 OVERLAY_WIDTH = 960  # px, the overlays are scaled down to this width
 OVERLAY_JPEG_QUALITY = 85  # camera images: JPEG is ~10x smaller than PNG; the plots stay PNG
@@ -63,9 +65,14 @@ def _read_json(path: Path) -> dict[str, Any] | None:
     if not path.is_file():
         return None
     try:
-        return json.loads(path.read_text())
+        data = json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise InputError(f"not valid JSON ({e.msg}, line {e.lineno})", path) from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"cannot read it ({e})", path) from None
+    if not isinstance(data, dict):
+        raise InputError(f"not a JSON object (a {type(data).__name__}): not written by dynastereo", path)
+    return data
 
 
 def read_run(run_dir: str | Path) -> RunFiles:
@@ -88,15 +95,26 @@ def read_run(run_dir: str | Path) -> RunFiles:
         partial = ("the run was interrupted before it finished (killed?: run.json still says \"running\"): this "
                    f"report is made from the {rows or 0} trajectory rows written")
         run = dict(run, status="interrupted", frames_done=rows or 0)
+    if partial is None and run is not None and "frames_done" in run:
+        # a finished run's files: name those that are gone rather than show an empty page
+        wanted = ["timing.json", KITTI_NAME, "trajectory.tum.txt", FRAMES_NAME] if run.get("frames_done") else []
+        missing = [n for n in wanted if not (root / n).is_file()]
+        if missing:
+            partial = (f"{', '.join(missing)} {'is' if len(missing) == 1 else 'are'} missing from the run folder "
+                       "(deleted or moved?): this report shows only what is left")
     objects = []
     obj_path = root / "objects.jsonl"
     if obj_path.is_file():
         for n, line in enumerate(obj_path.read_text().splitlines(), 1):
             if line.strip():
                 try:
-                    objects.append(json.loads(line))
+                    rec = json.loads(line)
                 except json.JSONDecodeError as e:
                     raise InputError(f"line {n}: not valid JSON ({e.msg})", obj_path) from None
+                if not isinstance(rec, dict) or not isinstance(rec.get("objects", []), list):
+                    raise InputError(f"line {n}: not a frame's record (a JSON object with a list of objects)",
+                                     obj_path)
+                objects.append(rec)
     frames = read_frame_indices(root / FRAMES_NAME) if (root / FRAMES_NAME).is_file() else None
     if partial is not None and frames is not None and rows is not None:
         frames = frames[:rows]  # a row cut by the kill: the files agree on the rows they all hold
@@ -355,7 +373,7 @@ def _overlay_section(rf: RunFiles, ev: EvalResult | None, n: int) -> str:
                 for f in available}
         worst, why_worst = max(frac, key=frac.get), "largest masked area"
     seq = None
-    if rf.run.get("sequence"):
+    if rf.run.get("sequence") and Path(str(rf.run["sequence"])).is_absolute():  # a relative one: not known where
         try:
             from ..io import open_sequence
 
@@ -426,7 +444,7 @@ def _object_paths_section(rf: RunFiles) -> str:
     """Top view of the camera path with every object's path (``objects_tracks.csv``,
     coloured by the track's verdict: moving when the motion test said so in most of its
     frames), and speed over time per moving object."""
-    from ..slam.objects import TRACKS_NAME, read_tracks, verdict_rgb
+    from ..objects.world import MOVING_MIN_FRAMES, TRACKS_NAME, moving_tracks, read_tracks, track_verdict, verdict_rgb
 
     path = rf.root / TRACKS_NAME
     if not path.is_file():
@@ -436,12 +454,8 @@ def _object_paths_section(rf: RunFiles) -> str:
         return ""
     cam = read_trajectory(rf.root / KITTI_NAME).positions if (rf.root / KITTI_NAME).is_file() else None
 
-    def verdict(t):
-        m = t["moving"]
-        dec = m[m >= 0]
-        return None if not len(dec) else bool((dec == 1).mean() > 0.5)
-
-    movers = {k: t for k, t in tracks.items() if verdict(t) is True and len(t["frame"]) >= 3}
+    verdict = track_verdict
+    movers = moving_tracks(tracks)
     fig = _figure((9.0, 6.0))
     ax = fig.subplots()
     for k, t in tracks.items():
@@ -469,7 +483,10 @@ def _object_paths_section(rf: RunFiles) -> str:
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best", fontsize=8)
     html = ["<h2>Objects in the world</h2>",
-            f"<p>{len(tracks)} tracked objects, {len(movers)} judged moving; positions and velocities from "
+            f"<p>{len(tracks)} tracked objects, {len(movers)} judged moving (moving in most of the frames the "
+            f"motion test decided, seen in at least {MOVING_MIN_FRAMES} frames: "
+            "<code>dynastereo.objects.world.moving_tracks</code>, <code>result.moving_objects</code>); "
+            "positions and velocities from "
             f"<code>{TRACKS_NAME}</code> (<code>objects.jsonl</code>: <code>world</code>, <code>velocity</code>, "
             "<code>speed</code>)</p>", _img(_png_of(fig), "objects' paths, top view")]
     if movers:
@@ -519,9 +536,21 @@ def build_report(
     Returns the path written.
     """
     rf = read_run(run_dir)
+    try:
+        return _build_report(rf, gt, out, overlays, auto_gt)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as e:
+        # a run file edited or from elsewhere (fields of the wrong type): one line, not a traceback
+        raise InputError(f"a run file is malformed ({type(e).__name__}: {e}); was it written by dynastereo?",
+                         rf.root) from None
+
+
+def _build_report(rf: RunFiles, gt: str | Path | None, out: str | Path | None, overlays: int, auto_gt: bool) -> Path:
     gt_path = Path(gt) if gt is not None else None
-    if gt_path is None and auto_gt and rf.run.get("sequence"):
-        gt_path = find_ground_truth(rf.run["sequence"])
+    if gt_path is None and auto_gt and rf.run:
+        try:
+            gt_path = recorded_ground_truth(rf.run, rf.root / "run.json")
+        except InputError as e:
+            log.warning("no ground truth for the report: %s", e)
     if gt_path is not None and not gt_path.exists():
         raise InputError("ground truth file not found", gt_path)
     ev = None
@@ -545,6 +574,7 @@ def build_report(
             f'<meta name="viewport" content="width=device-width,initial-scale=1"><link rel="icon" href="data:,"><style>{STYLE}</style></head>'
             f'<body>{"".join(b for b in body if b)}</body></html>\n')
     path = Path(out) if out is not None else rf.root / REPORT_NAME
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(page, encoding="utf-8")
+    from ..io.outputs import atomic_write_text
+
+    atomic_write_text(path, page, fsync=False)  # an earlier report stays whole until the new one is
     return path

@@ -136,7 +136,8 @@ def match_trajectories(
                 "the stamps do not align: "
                 + ("no estimated pose has" if not idx_est else f"only {len(idx_est)} of {n_est} estimated poses have")
                 + f" a ground-truth pose within {max_time_diff} s (estimate {estimate.timestamps[0]:.3f}..{estimate.timestamps[-1]:.3f} s, "
-                f"{gt_label} {ground_truth.timestamps[0]:.3f}..{ground_truth.timestamps[-1]:.3f} s)",
+                f"{gt_label} {ground_truth.timestamps[0]:.3f}..{ground_truth.timestamps[-1]:.3f} s); "
+                "`dynastereo eval --match index` pairs the rows by frame index instead",
                 estimate.path or estimate.name,
             )
         if len(idx_est) < n_est:
@@ -426,16 +427,26 @@ def evaluate_files(
     frame_indices: np.ndarray | list[int] | None = None,
     use_frames_file: bool = True,
     max_time_diff: float = 0.01,
+    match: str = "auto",
 ) -> EvalResult:
     """Read both files and :func:`evaluate`.
 
     With ``use_frames_file`` (default) and no explicit ``frame_indices``, a
     ``<stem>.frames.txt`` beside the estimate (written by :class:`TrajectoryWriter`) maps
     its rows to ground-truth frames -- unless both files carry timestamps, which then
-    decide.
+    decide.  ``match="index"``: the rows are paired by frame index whatever the stamps say
+    (that frames file, else row i with ground-truth row i): a video's container stamps
+    against KITTI's poses.
     """
+    if match not in ("auto", "index"):
+        raise InputError(f"--match must be auto or index, got {match!r}")
     est = read_trajectory(estimate_path)
     gt = read_trajectory(ground_truth_path, name="ground truth")
+    if match == "index" and frame_indices is None:
+        side = frame_indices_beside(estimate_path) if use_frames_file else None
+        frame_indices = read_frame_indices(side) if side is not None else np.arange(len(est))
+        if len(frame_indices) != len(est):
+            raise InputError(f"{len(frame_indices)} frame indices but the estimate has {len(est)} poses", side)
     how_extra = ""
     if frame_indices is None and gt.timestamps is None:  # KITTI poses: the sequence's times.txt ...
         stamped = _with_kitti_times(gt, Path(ground_truth_path))

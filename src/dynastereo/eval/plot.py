@@ -42,9 +42,11 @@ def _save(fig: Figure, path_png: str | Path | BinaryIO) -> Path | BinaryIO:
     if hasattr(path_png, "write"):
         fig.savefig(path_png, format="png")
         return path_png
+    from ..io.outputs import atomic_open
+
     path = Path(path_png)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, format="png")
+    with atomic_open(path, "wb", fsync=False) as fh:  # an earlier plot stays whole until the new one is
+        fig.savefig(fh, format="png")
     return path
 
 

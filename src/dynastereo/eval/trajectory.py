@@ -28,7 +28,7 @@ sequence frame index of each row, so that frames lost by tracking or revisited f
 still match the ground truth) and flushes after every row, so a crash mid-sequence
 keeps every row already written.
 
-Why not ``evo.tools.file_interface`` (checked for issue 25): its writers use
+Why not ``evo.tools.file_interface`` (checked): its writers use
 ``np.savetxt``'s ``%.18e`` (ours: ``%.9e`` KITTI, ``%.9f`` TUM, so the files would change)
 and write whole files only; its readers split on single spaces only (tabs, commas,
 repeated or trailing spaces, blank and indented-comment lines are refused), give one
@@ -154,6 +154,26 @@ def find_ground_truth(sequence: str | Path) -> Path | None:
     if seq.name and gt.is_file():
         return gt
     return oxts_dir(seq) if seq.is_dir() else None
+
+
+def recorded_ground_truth(run: dict, run_json: Path) -> Path | None:
+    """The ground truth of the run whose ``run.json`` (at ``run_json``) holds ``run``: the
+    one it recorded (``ground_truth``), else the one beside its ``sequence`` -- which must
+    be an absolute path: a relative one (an older run.json) was relative to a folder that
+    is not known, and resolving it here could score against another sequence's poses
+    (:class:`InputError` naming run.json)."""
+    gt = run.get("ground_truth")
+    if isinstance(gt, str) and gt:
+        if not Path(gt).is_absolute():
+            raise InputError(f"its ground_truth {gt!r} is a relative path; give the ground truth explicitly", run_json)
+        return Path(gt)
+    seq = run.get("sequence")
+    if not isinstance(seq, str) or not seq:
+        return None
+    if not Path(seq).is_absolute():
+        raise InputError(f"its sequence {seq!r} is a relative path (relative to where the run was started, not "
+                         "known here); give the ground truth explicitly", run_json)
+    return find_ground_truth(seq)
 
 
 def read_trajectory(path: str | Path, name: str | None = None, at: str = "images") -> Trajectory:

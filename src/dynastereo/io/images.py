@@ -33,18 +33,36 @@ def _check_file(path: Path) -> None:
         raise ImageReadError("not a file", path)
 
 
-def read_image(path: str | Path, color: bool = False) -> np.ndarray:
-    """Read an 8-bit image: gray ``(H, W)`` if ``color`` is false, else BGR ``(H, W, 3)``.
+def read_image(path: str | Path, color: bool = False, bits: int | None = None) -> np.ndarray:
+    """Read an image as 8 bits: gray ``(H, W)`` if ``color`` is false, else BGR ``(H, W, 3)``.
 
     A gray file read with ``color=True`` gives three equal channels; a colour file read
-    with ``color=False`` is converted to gray by the decoder.
+    with ``color=False`` is converted to gray by the decoder.  A 16-bit file is scaled from
+    ``bits`` significant bits (default: 16; 12-bit camera data in 16-bit PNGs wants 12,
+    :func:`significant_bits` finds it) to 8.
     """
     path = Path(path)
     _check_file(path)
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR if color else cv2.IMREAD_GRAYSCALE)
+    img = cv2.imread(str(path), (cv2.IMREAD_COLOR if color else cv2.IMREAD_GRAYSCALE) | cv2.IMREAD_ANYDEPTH)
     if img is None or img.size == 0:
         raise ImageReadError("cannot decode image (corrupt or unsupported format)", path)
+    if img.dtype == np.uint16:
+        shift = max(0, int(bits or 16) - 8)
+        img = np.minimum(img >> shift, 255).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        img = cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
     return img
+
+
+def significant_bits(path: str | Path) -> int | None:
+    """The bits a 16-bit image's values use (its largest value's bit length, at least 8);
+    None for an 8-bit image."""
+    path = Path(path)
+    _check_file(path)
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None or img.dtype != np.uint16:
+        return None
+    return max(8, int(img.max()).bit_length())
 
 
 def image_size(path: str | Path) -> tuple[int, int]:

@@ -220,6 +220,21 @@ def _frame_numbers(paths: list[Path]) -> np.ndarray:
     return np.arange(len(paths), dtype=np.int64)
 
 
+def _check_pair_stamps(left: np.ndarray, right: np.ndarray, lpath: Path, rpath: Path) -> None:
+    """The pairs are matched by image number: the two cameras' stamps of a pair must agree
+    (within a third of the median frame interval; KITTI's differ by well under a
+    millisecond), else SequenceError naming the first pair that does not."""
+    if len(left) < 2:
+        return
+    period = float(np.median(np.diff(left))) * 1e-9
+    off = np.abs(left.astype(np.int64) - right.astype(np.int64)) * 1e-9
+    bad = np.flatnonzero(off > max(period / 3.0, 1e-3))
+    if bad.size:
+        k = int(bad[0])
+        raise SequenceError(f"the left and right stamps of pair {k} differ by {off[k]:.3f} s ({lpath} vs {rpath}; "
+                            f"frames {period:.3f} s apart): the images would be paired across time", rpath)
+
+
 def _stamps_for(stamps_path: Path, numbers: np.ndarray) -> np.ndarray:
     ns = read_kitti_raw_timestamps(stamps_path)
     top = int(numbers.max())
@@ -281,8 +296,9 @@ class KittiRawSequence(ImagePairSequence):
         numbers = _frame_numbers(left)
         self.times_path = lcam / TIMESTAMPS
         ns = _stamps_for(self.times_path, numbers)
-        if (rcam / TIMESTAMPS).is_file():
-            _stamps_for(rcam / TIMESTAMPS, numbers)  # checked like the left one; the frames use the left stamps
+        if (rcam / TIMESTAMPS).is_file():  # checked like the left one; the frames use the left stamps
+            rns = _stamps_for(rcam / TIMESTAMPS, numbers)
+            _check_pair_stamps(ns[numbers], rns[numbers], self.times_path, rcam / TIMESTAMPS)
         self.start_time_ns = int(ns[0])
         self.timestamps_ns = (ns - ns[0])[numbers]
         super().__init__(

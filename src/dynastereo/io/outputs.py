@@ -5,14 +5,20 @@ holding an earlier run unless asked to replace it.
 writable by writing a probe file; a folder that holds an earlier run's outputs (any of
 ``RUN_OUTPUTS``: masks, trajectories, timing.json, ...) is refused with an
 :class:`OutputError` naming ``--overwrite``, or -- with ``overwrite`` -- those outputs
-(and only those) are deleted first, so that no stale mask or plot of the earlier run is
-left beside the new ones.  ``check_output_file(path)`` does the same for a single file
-(a plot, a map, a bag): not a folder, its folder creatable and writable.
+(and only those: in ``masks/``, ``disparity/`` and ``overlays/`` only the frame images
+the program names ``NNNNNN.png``, a user's own files there are kept) are deleted, so that
+no stale mask or plot of the earlier run is left beside the new ones.  Every input and
+option is checked before that (``runtime.job``): a bad input never costs the earlier run.
+``check_output_file(path)`` does the same for a single file (a plot, a map, a bag): not a
+folder, its folder creatable and writable.  ``refuse_input_as_output`` refuses an output
+path that is one of the command's inputs; :class:`OutputLock` keeps a second job from
+writing into the same folder at the same time.
 """
 
 from __future__ import annotations
 
 import errno
+import fnmatch
 import os
 import secrets
 import shutil
@@ -33,6 +39,15 @@ RUN_OUTPUTS = (
 )
 # What `dynastereo synth` writes under its output root.
 SYNTH_OUTPUTS = ("sequences/00", "poses/00.txt")
+# The files the program writes inside its output folders (relative to the folder): with
+# --overwrite only these are deleted, anything else a user put there stays.
+OWN_FILES: dict[str, tuple[str, ...]] = {
+    "masks": ("left/[0-9][0-9][0-9][0-9][0-9][0-9].png", "right/[0-9][0-9][0-9][0-9][0-9][0-9].png"),
+    "disparity": ("[0-9][0-9][0-9][0-9][0-9][0-9].png",),
+    "overlays": ("[0-9][0-9][0-9][0-9][0-9][0-9].png",),
+}
+#: The lock file that marks an output folder in use (``OutputLock``).
+LOCK_NAME = ".dynastereo.lock"
 
 
 @contextmanager
@@ -109,16 +124,116 @@ def earlier_outputs(out: str | Path, names: Iterable[str] = RUN_OUTPUTS) -> list
     return [out / n for n in names if (out / n).exists() or (out / n).is_symlink()]
 
 
+def _own_files(folder: Path, patterns: tuple[str, ...]) -> list[Path]:
+    """The files under ``folder`` whose relative path matches one of ``patterns``."""
+    found = []
+    for root, _dirs, files in os.walk(folder):
+        for f in files:
+            rel = (Path(root) / f).relative_to(folder).as_posix()
+            if any(fnmatch.fnmatchcase(rel, pat) for pat in patterns):
+                found.append(Path(root) / f)
+    return found
+
+
+def _remove_empty_dirs(folder: Path) -> None:
+    """``folder`` and the folders below it that are empty (bottom up); others stay."""
+    for root, _dirs, _files in sorted(os.walk(folder), key=lambda t: -len(t[0])):
+        with suppress(OSError):
+            os.rmdir(root)
+
+
 def clear_outputs(paths: Iterable[Path]) -> None:
-    """Delete ``paths`` (files, or folders with everything in them)."""
+    """Delete ``paths``: files; folders of ``OWN_FILES`` only as far as the program wrote
+    them (its frame images; a user's own files there stay); other folders whole."""
     for p in paths:
         try:
-            if p.is_dir() and not p.is_symlink():
+            own = OWN_FILES.get(p.name)
+            if p.is_dir() and not p.is_symlink() and own is not None:
+                for f in _own_files(p, own):
+                    f.unlink()
+                _remove_empty_dirs(p)
+            elif p.is_dir() and not p.is_symlink():
                 shutil.rmtree(p)
             else:
                 p.unlink()
         except OSError as e:
             raise OutputError(f"cannot remove the earlier run's output ({_reason(e)})", p) from None
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+    except OSError:
+        pass
+    return a.resolve() == b.resolve()
+
+
+def refuse_input_as_output(out: str | Path, inputs: Iterable[str | Path | None], *, what: str = "output file",
+                           flag: str = "") -> None:
+    """An :class:`OutputError` when ``out`` is one of ``inputs`` (the same file, by any
+    path or link), or -- for a folder among the inputs -- a file inside it that the
+    command reads: writing it would destroy the input."""
+    out = Path(out)
+    for i in inputs:
+        if i is None or str(i) == "":
+            continue
+        if _same_file(out, Path(i)):
+            name = f"{flag} " if flag else ""
+            raise OutputError(f"{name}{what} is also an input of this command; writing it would destroy the input "
+                              "-- choose another path", out)
+
+
+class OutputLock:
+    """An exclusive lock on an output folder (``fcntl.flock`` on ``DIR/.dynastereo.lock``)
+    for a job's whole life: a second job into the same folder at the same time is refused
+    with an :class:`OutputError` (no mixed files, no torn rows).  The lock goes with the
+    process (a killed job leaves no stale lock); the lock file itself stays."""
+
+    def __init__(self, folder: str | Path) -> None:
+        self.folder = Path(folder)
+        self._fd: int | None = None
+
+    def acquire(self) -> None:
+        if self._fd is not None:
+            return
+        _make_dir(self.folder, self.folder)
+        path = self.folder / LOCK_NAME
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as e:
+            raise OutputError(f"output folder is not writable ({_reason(e)})", self.folder) from None
+        try:
+            import fcntl
+
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except ImportError:  # not POSIX: no lock
+            pass
+        except OSError:
+            other = ""
+            with suppress(OSError, ValueError):
+                other = os.pread(fd, 64, 0).decode().strip()
+            os.close(fd)
+            by = f" (pid {other})" if other.isdigit() else ""
+            raise OutputError(f"output folder is in use by another dynastereo job{by}; wait for it to end, "
+                              "or choose another folder", self.folder) from None
+        with suppress(OSError):
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._fd = fd
+
+    def release(self) -> None:
+        if self._fd is not None:
+            with suppress(OSError):
+                os.close(self._fd)  # closing the descriptor drops the lock
+            self._fd = None
+
+    def __enter__(self) -> "OutputLock":
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
 
 
 def prepare_output_dir(out: str | Path, *, overwrite: bool = False, names: Iterable[str] = RUN_OUTPUTS,
@@ -147,7 +262,10 @@ def check_output_file(path: str | Path, *, what: str = "output file", overwrite:
     if path.exists() and not overwrite:
         raise OutputError(f"{what} exists already; {flag} replaces it", path)
     folder = path.parent if str(path.parent) else Path(".")
-    _make_dir(folder, path)
+    try:
+        _make_dir(folder, path)
+    except OutputError as e:  # the folder is the file's: say which output it is for
+        raise OutputError(f"{what}: {str(e).split(': ', 1)[-1]}", path) from None
     _probe_writable(folder, path, f"the {what}'s folder {folder}")
     if path.exists() and not os.access(path, os.W_OK):
         raise OutputError(f"{what} is not writable ({os.strerror(errno.EACCES)})", path)

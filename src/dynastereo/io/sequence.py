@@ -3,6 +3,7 @@ image pairs on disk (KITTI, EuRoC and generic folders all reduce to this)."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Iterable, Iterator
 
@@ -11,8 +12,10 @@ import numpy as np
 from ..errors import CalibrationError, SequenceError
 from ..datatypes import StereoCalibration, StereoFrame
 from .calib import RawStereoCalibration, check_intrinsics
-from .images import image_size, list_images, read_image
+from .images import image_size, list_images, read_image, significant_bits
 from .rectify import Rectifier
+
+log = logging.getLogger(__name__)
 
 
 def is_colour_image(path: str | Path) -> bool:
@@ -30,6 +33,36 @@ def is_colour_image(path: str | Path) -> bool:
     return not (np.array_equal(img[:, :, 0], img[:, :, 1]) and np.array_equal(img[:, :, 0], img[:, :, 2]))
 
 
+#: The smallest images dynastereo takes (width, height): the stereo matcher's block and
+#: the ORB pyramid need room.
+MIN_IMAGE_SIZE = (32, 16)
+#: Baselines (m) outside this range get a warning; beyond ``BASELINE_REFUSED`` they are
+#: refused (a baseline given in millimetres: 537.2 for KITTI's 0.537 m).
+BASELINE_PLAUSIBLE = (0.01, 2.0)
+BASELINE_REFUSED = (0.001, 10.0)
+
+
+def check_plausible(calibration: object, raw_size: tuple[int, int], images: object, calib_path: object) -> None:
+    """Refuse images too small to match and baselines that cannot be metres; warn (one
+    line) about a baseline outside the usual 1 cm - 2 m."""
+    w, h = raw_size
+    if w < MIN_IMAGE_SIZE[0] or h < MIN_IMAGE_SIZE[1]:
+        raise SequenceError(f"images are {w}x{h}; dynastereo needs at least {MIN_IMAGE_SIZE[0]}x{MIN_IMAGE_SIZE[1]}",
+                            images if isinstance(images, (str, Path)) else None)
+    b = getattr(calibration, "baseline", None)
+    if b is None:
+        return
+    b = abs(float(b))
+    where = f"{calib_path}: " if calib_path else ""
+    if not BASELINE_REFUSED[0] <= b <= BASELINE_REFUSED[1]:
+        hint = " (millimetres? the calibration wants metres)" if b > BASELINE_REFUSED[1] else ""
+        raise CalibrationError(f"baseline {b:g} m is implausible{hint}; expected {BASELINE_PLAUSIBLE[0]:g}-"
+                               f"{BASELINE_PLAUSIBLE[1]:g} m", calib_path if calib_path else None)
+    if not BASELINE_PLAUSIBLE[0] <= b <= BASELINE_PLAUSIBLE[1]:
+        log.warning("%sbaseline %.4g m is outside the usual %g-%g m: check the calibration's units", where, b,
+                    *BASELINE_PLAUSIBLE)
+
+
 def rectified_calibration(calibration: StereoCalibration | RawStereoCalibration, raw_size: tuple[int, int],
                           images: object, calib_path: Path | None = None
                           ) -> tuple[StereoCalibration, Rectifier | None]:
@@ -38,6 +71,7 @@ def rectified_calibration(calibration: StereoCalibration | RawStereoCalibration,
     rectified), after checking the intrinsics and the size (a CalibrationError naming
     ``calib_path`` and the ``images`` the size came from)."""
     check_intrinsics(calibration, raw_size, calib_path or getattr(calibration, "source", None))
+    check_plausible(calibration, raw_size, images, calib_path or getattr(calibration, "source", None))
     if calibration.size != raw_size:
         raise CalibrationError(
             f"calibration is for {calibration.width}x{calibration.height} images, "
@@ -116,8 +150,16 @@ class ImagePairSequence:
                 self._timestamps = np.interp(full, nums, self._timestamps)  # missing numbers: never read
                 self._timestamps[nums] = np.asarray(timestamps, dtype=np.float64).reshape(-1)
         self.raw_size = self._check_sizes(ldir, rdir)  # (width, height) of the files
+        self.bits = significant_bits(self.left_paths[0])  # None: 8-bit files
+        if self.bits is not None:
+            self.bits = max(self.bits, significant_bits(self.right_paths[0]) or 8)
+            self.bits = min(16, self.bits + self.bits % 2)  # camera depths are even: 10, 12, 14 bits
+            if self.bits < 16:
+                log.warning("%s: 16-bit images holding %d-bit values (largest %d): read as %d-bit data scaled "
+                            "to 8 bits", self.left_paths[0], self.bits, 2 ** self.bits - 1, self.bits)
         self.calibration, self.rectifier = rectified_calibration(calibration, self.raw_size, self.left_paths[0],
                                                                  calib_path)
+        self.calibration_file = calib_path  # recorded in run.json, printed by `run`
 
     # -- checks ---------------------------------------------------------------------------
 
@@ -161,7 +203,7 @@ class ImagePairSequence:
         return self._timestamps.copy()
 
     def _read(self, path: Path) -> np.ndarray:
-        img = read_image(path, self.color)
+        img = read_image(path, self.color, getattr(self, "bits", None))
         h, w = img.shape[:2]
         if (w, h) != self.raw_size:
             raise SequenceError(

@@ -85,12 +85,18 @@ def _is_float(s: str) -> bool:
     return True
 
 
+#: Frame rates (Hz) ``--rate`` takes: one frame in 1000 s up to 100 kHz.
+RATE_BOUNDS = (1e-3, 1e5)
+
+
 def check_rate(rate: float | None) -> float | None:
-    """``rate`` (Hz) if it is a positive finite number (or None); InputError naming ``--rate`` else."""
+    """``rate`` (Hz) if it is a finite frame rate within :data:`RATE_BOUNDS` (or None);
+    InputError naming ``--rate`` else."""
     if rate is None:
         return None
-    if not (np.isfinite(rate) and rate > 0):
-        raise InputError(f"--rate must be a positive frame rate in Hz, got {rate!r}")
+    if not (np.isfinite(rate) and RATE_BOUNDS[0] <= rate <= RATE_BOUNDS[1]):
+        raise InputError(f"--rate must be a frame rate in Hz within {RATE_BOUNDS[0]:g}..{RATE_BOUNDS[1]:g}, "
+                         f"got {rate:g}")
     return float(rate)
 
 

@@ -12,8 +12,9 @@ else ``calib.yaml`` (or the only ``*.yaml``) beside the video.  Its size is one 
 
 When opened, the file's packets are scanned once without decoding (``CAP_PROP_FORMAT = -1``,
 well under a millisecond a frame): the frames are counted and checked against the container's
-``CAP_PROP_FRAME_COUNT`` (an estimate for some containers: fewer frames by more than 1 % is a
-truncated file, a SequenceError; a smaller difference is logged) and the stamps are the
+``CAP_PROP_FRAME_COUNT`` (an estimate for some containers: fewer frames by more than 1 %
+whose stamps stop short of the container's duration is a truncated file, a SequenceError;
+frames that run to its end are a complete file whose count was guessed high, logged) and the stamps are the
 container's (``CAP_PROP_POS_MSEC`` of each packet, in presentation order), or ``i / rate``
 with ``rate`` given; the first frame is decoded.  A file OpenCV cannot open, that holds no
 frame or whose first frame cannot be decoded is a SequenceError naming it; two files of
@@ -50,7 +51,7 @@ import numpy as np
 from ..errors import InputError, SequenceError
 from ..datatypes import StereoCalibration, StereoFrame
 from .calib import RawStereoCalibration, load_stereo_yaml
-from .folder import find_calib_yaml
+from .folder import CALIB_NAMES
 from .queues import DropOldestQueue
 from .sequence import rectified_calibration
 from .times import check_rate
@@ -96,12 +97,37 @@ def _is_colour(img: np.ndarray) -> bool:
 
 
 def _calibration_path(calib: str | Path | None, video: Path) -> Path:
+    """``calib``, else ``calib.yaml`` (or ``calibration.yaml``) beside the video -- by that
+    name only: any other YAML file there (a stray one) is not taken as the calibration."""
     if calib is not None:
         return Path(calib)
-    found = find_calib_yaml(video.parent if video.parent != Path("") else Path("."))
+    folder = video.parent if video.parent != Path("") else Path(".")
+    found = next((folder / n for n in CALIB_NAMES if (folder / n).is_file()), None)
     if found is None:
-        raise SequenceError("no calibration: pass --calib calib.yaml (or put calib.yaml beside the video)", video)
+        others = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in (".yaml", ".yml") and p.is_file())
+        also = (f" ({', '.join(others)} beside it {'is' if len(others) == 1 else 'are'} not taken without --calib)"
+                if others else "")
+        raise SequenceError(f"no calibration: pass --calib FILE.yaml (or put calib.yaml beside the video){also}",
+                            video)
     return found
+
+
+def check_pair_stamps(left: np.ndarray, right: np.ndarray, lpath: Path, rpath: Path) -> None:
+    """Two videos' frames are paired by index: their container stamps must agree (within a
+    third of a frame interval), else the pairs would join images taken at other times (a
+    10 fps and a 5 fps file).  SequenceError naming both files and the first frame that
+    disagrees."""
+    if len(left) < 2:
+        return
+    period = float(np.median(np.diff(left)))
+    off = np.abs(left - right)
+    bad = np.flatnonzero(off > max(period / 3.0, 1e-3))
+    if bad.size:
+        k = int(bad[0])
+        rp = float(np.median(np.diff(right))) if len(right) > 1 else float("nan")
+        raise SequenceError(f"left and right videos' stamps disagree: frame {k} is at {left[k]:.3f} s in {lpath}, "
+                            f"{right[k]:.3f} s in {rpath} ({1 / period:.3g} vs {1 / rp:.3g} fps); the frames "
+                            "would be paired across time", rpath)
 
 
 class _Reader:
@@ -137,13 +163,26 @@ class _Reader:
             raw.release()
         if not stamps:
             raise SequenceError("the video holds no frame (empty or truncated file)", self.path)
-        if estimate - len(stamps) > max(1, estimate // 100):  # an estimate (duration x rate): a margin
+        if estimate - len(stamps) > max(1, estimate // 100) and not self._covers(stamps, estimate):
             raise SequenceError(f"truncated video: the container says {estimate} frames, the file holds "
                                 f"{len(stamps)}", self.path)
         if estimate > 0 and estimate != len(stamps):
             log.warning("%s: the container says %d frames, it holds %d; using %d",
                         self.path, estimate, len(stamps), len(stamps))
         return np.sort(np.asarray(stamps, dtype=np.float64)), (w, h)  # packets come in decoding order
+
+    def _covers(self, stamps: list[float], estimate: int) -> bool:
+        """Whether the frames found run to the container's end (its duration: the estimate
+        is duration x nominal rate, too large for a variable or wrongly declared rate): a
+        complete file whose count was guessed high, not a truncated one (whose frames stop
+        well before its duration)."""
+        fps = float(self.cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        if not fps > 0 or len(stamps) < 2:
+            return False
+        s = np.sort(np.asarray(stamps, dtype=np.float64))
+        period = float(np.median(np.diff(s)))
+        duration = estimate / fps
+        return bool(s[-1] + period >= duration - max(2.0 * period, 0.01 * duration))
 
     def read(self, index: int) -> np.ndarray:
         """Frame ``index``: one ``read`` when it is the next one, else reopen / ``grab`` up to it."""
@@ -190,6 +229,7 @@ class VideoSequence:
                                     f"{len(rs)} in {rpath}", rpath)
             if rsize != size:
                 raise SequenceError(f"right video is {rsize[0]}x{rsize[1]}, the left one {size[0]}x{size[1]}", rpath)
+            check_pair_stamps(stamps, rs, self.path, rpath)
         elif size[0] % 2:
             raise SequenceError(f"a side-by-side video must have an even width, got {size[0]}", self.path)
         self.raw_size = (size[0] // 2, size[1]) if self.side_by_side else size
@@ -205,6 +245,7 @@ class VideoSequence:
         calib_path = _calibration_path(calib, self.path)
         calibration: StereoCalibration | RawStereoCalibration = load_stereo_yaml(calib_path, self.raw_size)
         self.calibration, self.rectifier = rectified_calibration(calibration, self.raw_size, self.path, calib_path)
+        self.calibration_file = calib_path
         self.color = False
         first = self._pair(0, True)
         self.color = (_is_colour(first[0]) or _is_colour(first[1])) if color is None else bool(color)

@@ -224,14 +224,27 @@ def user_cache_dir() -> Path:
     return Path(cache).expanduser() / "dynastereo"
 
 
+def checkout_shared_models() -> Path | None:
+    """``../shared/models`` beside a source checkout of dynastereo (the project's data and
+    models folder, as ``.ci/run`` uses it), when this package runs from one and it is there."""
+    root = Path(__file__).resolve().parents[3]
+    d = root.parent / "shared" / "models"
+    return d if (root / "pyproject.toml").is_file() and d.is_dir() else None
+
+
 def resolve_models_dir(explicit: str | Path | None = None) -> Path:
-    """``explicit`` > ``$DYNASTEREO_MODELS`` > ``($XDG_CACHE_HOME or ~/.cache)/dynastereo/models``."""
+    """``explicit`` > ``$DYNASTEREO_MODELS`` > ``($XDG_CACHE_HOME or ~/.cache)/dynastereo/models``
+    when it holds models > ``../shared/models`` beside a source checkout
+    (:func:`checkout_shared_models`) > the cache folder."""
     if explicit is not None and str(explicit) != "":
         return Path(explicit).expanduser()
     env = os.environ.get(ENV_MODELS)
     if env:
         return Path(env).expanduser()
-    return user_cache_dir() / "models"
+    cache = user_cache_dir() / "models"
+    if cache.is_dir() and any(cache.iterdir()):
+        return cache
+    return checkout_shared_models() or cache
 
 
 def model_path(name: str, models_dir: str | Path | None = None) -> Path:
@@ -367,7 +380,9 @@ class _CheckedDownload:
         try:
             self.http(url, output_file, pooch_)
         except (requests.RequestException, OSError, ValueError) as e:
-            raise ModelError(f"download of {url} failed: {e}", self.dest) from None
+            raise ModelError(f"download of {url} failed: {download_reason(e)} -- offline? put the files in "
+                             f"{self.dest.parent}, or point --models-dir DIR / ${ENV_MODELS} at a folder that has "
+                             "them", self.dest) from None
         finally:
             if self.bar is not None:
                 self.bar.close()
@@ -382,6 +397,20 @@ class _CheckedDownload:
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # a temporary file is made 0600
+
+
+def download_reason(e: BaseException) -> str:
+    """A failed download's cause in a few words (requests' messages nest the whole pool
+    state in one long line)."""
+    text = str(e)
+    if "NameResolution" in text or "Failed to resolve" in text or "Name or service not known" in text:
+        return "the host name cannot be resolved (no network or no DNS)"
+    if "timed out" in text.lower() or "Timeout" in type(e).__name__:
+        return "the connection timed out"
+    if "Connection refused" in text or "ConnectionError" in type(e).__name__:
+        return "cannot connect to the server"
+    first = text.strip().splitlines()[0] if text.strip() else type(e).__name__
+    return first if len(first) <= 160 else first[:157] + "..."
 
 
 def _fetch(url: str, dest: Path, f: ModelFile, progress: bool) -> None:

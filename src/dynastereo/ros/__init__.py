@@ -8,14 +8,17 @@
 * :mod:`.core` -- :class:`StereoNodeCore`, the node's transport-agnostic logic.
 * :mod:`.ros1` -- the ``rospy`` adapter (``dynastereo_node``), :mod:`.player` -- a sequence
   published as live topics.  Both need ROS 1 (Debian: ``python3-rospy`` ...).
+* :mod:`.ros2` -- the ROS 2 node over DDS without rclpy (``dynastereo node --ros2``),
+  :mod:`.ros2_player` -- ``dynastereo play --ros2``, :mod:`.dds` -- ROS 2's wire types,
+  codecs and QoS over Cyclone DDS (the ``ros2`` extra).
 
-Nothing here imports ``rospy`` at import time; only :mod:`.ros1` and :mod:`.player` need it.
+Nothing here imports ``rospy`` or ``cyclonedds`` at import time; only :mod:`.ros1` and
+:mod:`.player` need the first, :mod:`.ros2` / :mod:`.ros2_player` the second.
 """
 
 from __future__ import annotations
 
-from ..runtime.spec import BAG_OUTPUTS
-from .bagrun import BagOutput
+from .bagrun import BAG_OUTPUTS, BagOutput, BagSource, parse_bag_outputs
 from .bags import BAG_FORMATS, BagStereoSequence, BagWriter, ExportResult, bag_format, bag_topics, export_bag, \
     read_messages, read_odometry
 from .convert import ImageDecoder, calibration_from_camera_info, camera_info_fields, image_fields
@@ -33,6 +36,7 @@ from .messages import (
 __all__ = [
     "BAG_OUTPUTS",
     "BagOutput",
+    "BagSource",
     "BAG_FORMATS",
     "BagStereoSequence",
     "BagWriter",
@@ -56,6 +60,7 @@ __all__ = [
     "camera_info_fields",
     "export_bag",
     "image_fields",
+    "parse_bag_outputs",
     "read_messages",
     "read_odometry",
 ]

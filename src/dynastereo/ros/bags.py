@@ -22,6 +22,7 @@ ROS 2 ``.db3`` (sqlite3) and ``.mcap``.
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 import tempfile
 from dataclasses import dataclass, field
@@ -34,6 +35,7 @@ from ..errors import CalibrationError, InputError, SequenceError
 from ..io.calib import RawStereoCalibration, check_intrinsics, load_stereo_yaml
 from ..io.euroc import pair_by_timestamp
 from ..io.rectify import Rectifier
+from ..io.sequence import check_plausible
 from ..datatypes import StereoCalibration, StereoFrame
 from .convert import ImageDecoder, calibration_from_camera_info, CameraInfoData, camera_info_fields
 from .messages import (
@@ -227,28 +229,35 @@ class BagWriter:
 
     ``overwrite``: replace an existing file (else InputError).  Use as a context manager;
     ``add(topic, type)`` before ``write(topic, stamp_ns, msg)``; ``builder`` builds messages.
+    The bag is written under a temporary name beside ``path`` and renamed into place when
+    it is closed: an earlier bag at ``path`` is replaced only by a complete one.  A write
+    that fails (or a signal) leaves an earlier bag as it was; without one, the frames
+    written so far are kept at ``path`` (a closed, readable bag).
     """
 
     def __init__(self, path: str | Path, fmt: str, overwrite: bool = False) -> None:
+        import secrets
+
         self.fmt = check_format(fmt)
         self.path = Path(path)
-        if self.path.exists():
+        self._earlier = self.path.exists() or self.path.is_symlink()
+        if self._earlier:
             if not overwrite:
                 raise InputError("output bag exists already (--overwrite replaces it, or choose another name)",
                                  self.path)
             if self.path.is_dir():
-                shutil.rmtree(self.path)
-            else:
-                self.path.unlink()
+                raise InputError("output bag is a folder, not a file", self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.builder = RosbagsBuilder(ros1=self.fmt == "ros1")
         self.counts: dict[str, int] = {}
         self._conns: dict[str, Any] = {}
         self._tmp: Path | None = None
+        self._part: Path | None = None
         if self.fmt == "ros1":
             from rosbags.rosbag1 import Writer
 
-            self._writer = Writer(self.path)
+            self._part = self.path.with_name(f".{self.path.stem}.{secrets.token_hex(4)}.part{self.path.suffix}")
+            self._writer = Writer(self._part)
             _ros1_lz4(self._writer)
         else:
             from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
@@ -259,7 +268,11 @@ class BagWriter:
             self._writer = Writer(self._tmp / self.path.stem, version=9, storage_plugin=plugin)
             if self.fmt == "mcap":  # zstd-compressed chunks inside the file (standard MCAP)
                 self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        self._writer.open()
+        try:
+            self._writer.open()
+        except BaseException:
+            self._discard()
+            raise
 
     def add(self, topic: str, msgtype: str) -> None:
         if topic in self._conns:
@@ -274,21 +287,37 @@ class BagWriter:
         self._writer.write(self._conns[topic], int(stamp_ns), self.builder.serialize(msg))
         self.counts[topic] += 1
 
-    def close(self) -> None:
+    def _produced(self) -> Path:
+        if self._part is not None:
+            return self._part
+        assert self._tmp is not None
+        return self._tmp / self.path.stem / (self.path.stem + BAG_SUFFIX[self.fmt])
+
+    def _discard(self) -> None:
+        """Remove the temporary bag (an earlier bag at ``path`` stays)."""
+        if self._part is not None:
+            self._part.unlink(missing_ok=True)
+        if self._tmp is not None:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+
+    def close(self, keep: bool = True) -> None:
+        """Close the bag and rename it into place (``keep=False``: discard it)."""
         if self._writer is None:
             return
         w, self._writer = self._writer, None
-        w.close()
-        if self._tmp is not None:
-            produced = self._tmp / self.path.stem / (self.path.stem + BAG_SUFFIX[self.fmt])
-            shutil.move(str(produced), str(self.path))
-            shutil.rmtree(self._tmp, ignore_errors=True)
+        try:
+            w.close()
+            if keep:
+                os.replace(self._produced(), self.path)
+        finally:
+            self._discard()
 
     def __enter__(self) -> "BagWriter":
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: Any, *exc: object) -> None:
+        # a failed or interrupted export: an earlier bag stays whole; else the frames so far are kept
+        self.close(keep=exc_type is None or not self._earlier)
 
 
 # --------------------------------------------------------------------------- reading stereo
@@ -298,6 +327,18 @@ class BagWriter:
 class _Msg:
     stamp_ns: int  # header stamp (bag time when the header is unset)
     bag_ns: int  # bag (receive) time: where to find the message again
+
+
+def _jumps_back(msgs: list[_Msg], topic: str) -> str | None:
+    """Where the header stamps of ``msgs`` (in bag order) first go back in time, or None."""
+    if len(msgs) < 2:
+        return None
+    h = np.array([m.stamp_ns for m in msgs], np.int64)[np.argsort([m.bag_ns for m in msgs], kind="stable")]
+    back = np.flatnonzero(np.diff(h) < 0)
+    if not back.size:
+        return None
+    k = int(back[0])
+    return f"{topic} message {k + 1}: {h[k] * 1e-9:.3f} s -> {h[k + 1] * 1e-9:.3f} s"
 
 
 def _sibling_info(topic: str) -> str:
@@ -398,6 +439,26 @@ class BagStereoSequence:
         return out, zero
 
     def _setup(self, left_topic, right_topic, left_info, right_info, calib, tol, rectify) -> None:
+        n_left, n_right, n_pairs, stamps, notes = self._pair(left_topic, right_topic, tol)
+        calibration, raw_size, source, li, ri = self._calibrate(left_info, right_info, calib, rectify)
+        self.rectifier: Rectifier | None = None
+        if isinstance(calibration, RawStereoCalibration):
+            self.rectifier = Rectifier(calibration)
+            self.calibration: StereoCalibration = self.rectifier.calibration
+        else:
+            self.calibration = calibration
+        self.raw_size = raw_size
+        self.frame_id = self._frame_id(self._lconns, self._left[0]) or DEFAULT_LEFT_FRAME
+        self.report = PairingReport(
+            left_topic=self.left_topic, right_topic=self.right_topic, left_messages=n_left,
+            right_messages=n_right, pairs=n_pairs, unpaired_left=self.unpaired_left,
+            unpaired_right=self.unpaired_right, tolerance_s=tol, left_info=li, right_info=ri,
+            calibration_source=source, rectified_on_read=self.rectifier is not None, stamps=stamps, notes=notes)
+
+    def _pair(self, left_topic: str, right_topic: str, tol: float) -> tuple[int, int, int, str, list[str]]:
+        """The left and right image messages paired by stamp (within ``tol`` seconds):
+        ``self._left`` / ``self._right`` / ``self.stamps_ns``.  Returns ``(left messages,
+        right messages, pairs, which stamps paired them, notes)``."""
         self._lconns = self._conn(left_topic, IMAGE_TYPES, "left image")
         self._rconns = self._conn(right_topic, IMAGE_TYPES, "right image")
         self.left_topic, self.right_topic = self._lconns[0].topic, self._rconns[0].topic
@@ -410,6 +471,16 @@ class BagStereoSequence:
             stamps = "bag time"
             self._bag_time_stamps = True
             notes.append("image headers carry no stamps: paired by bag (receive) time")
+            for m in lmsgs + rmsgs:
+                m.stamp_ns = m.bag_ns
+        back = _jumps_back(lmsgs, self.left_topic) or _jumps_back(rmsgs, self.right_topic)
+        if back is not None and not self._bag_time_stamps:
+            # sorted by them, frames recorded later would be fed between earlier ones (0, 5, 1, 6, ...)
+            stamps = "bag time"
+            self._bag_time_stamps = True
+            notes.append(f"image header stamps jump back ({back}): ordered and paired by bag (receive) time")
+            log.warning("%s: image header stamps jump back (%s): the frames are ordered and paired by bag "
+                        "(receive) time instead", self.path, back)
             for m in lmsgs + rmsgs:
                 m.stamp_ns = m.bag_ns
         lmsgs.sort(key=lambda m: (m.stamp_ns, m.bag_ns))
@@ -429,8 +500,12 @@ class BagStereoSequence:
         if self.unpaired_left or self.unpaired_right:
             log.warning("%s: %d left and %d right images have no partner within %g ms and are skipped",
                         self.path, self.unpaired_left, self.unpaired_right, tol * 1e3)
+        return len(lmsgs), len(rmsgs), len(il), stamps, notes
 
-        # calibration
+    def _calibrate(self, left_info, right_info, calib, rectify):
+        """The rig's calibration: ``calib`` (a file or a calibration), else the bag's
+        CameraInfo, else the fallback file; checked against the images' size.  Returns
+        ``(calibration, raw image size, its source, left and right CameraInfo topics)``."""
         topics = {c.topic for c in self._reader.connections}
         li = _sibling_info(self.left_topic) if left_info == "auto" else left_info
         ri = _sibling_info(self.right_topic) if right_info == "auto" else right_info
@@ -463,25 +538,11 @@ class BagStereoSequence:
                 "given (--left-info/--right-info, --calib YAML, or an ORB-SLAM2 settings file as --config)",
                 self.path)
         check_intrinsics(calibration, raw_size, source)
-        self.rectifier: Rectifier | None = None
-        if isinstance(calibration, RawStereoCalibration):
-            if calibration.size != raw_size:
-                raise CalibrationError(f"calibration is for {calibration.width}x{calibration.height} images, "
-                                       f"{self.left_topic} carries {raw_size[0]}x{raw_size[1]}", source)
-            self.rectifier = Rectifier(calibration)
-            self.calibration: StereoCalibration = self.rectifier.calibration
-        else:
-            if calibration.size != raw_size:
-                raise CalibrationError(f"calibration is for {calibration.width}x{calibration.height} images, "
-                                       f"{self.left_topic} carries {raw_size[0]}x{raw_size[1]}", source)
-            self.calibration = calibration
-        self.raw_size = raw_size
-        self.frame_id = self._frame_id(self._lconns, self._left[0]) or DEFAULT_LEFT_FRAME
-        self.report = PairingReport(
-            left_topic=self.left_topic, right_topic=self.right_topic, left_messages=len(lmsgs),
-            right_messages=len(rmsgs), pairs=len(il), unpaired_left=self.unpaired_left,
-            unpaired_right=self.unpaired_right, tolerance_s=tol, left_info=li, right_info=ri,
-            calibration_source=source, rectified_on_read=self.rectifier is not None, stamps=stamps, notes=notes)
+        check_plausible(calibration, raw_size, self.path, source)
+        if calibration.size != raw_size:
+            raise CalibrationError(f"calibration is for {calibration.width}x{calibration.height} images, "
+                                   f"{self.left_topic} carries {raw_size[0]}x{raw_size[1]}", source)
+        return calibration, raw_size, source, li, ri
 
     def _camera_info(self, topic: str) -> CameraInfoData:
         conns = self._conn(topic, (CAMERA_INFO_TYPE,), "CameraInfo")

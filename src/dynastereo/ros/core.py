@@ -1,7 +1,7 @@
 """The node's logic, transport-agnostic: :class:`StereoNodeCore`.
 
-A ROS adapter (ROS 1: :mod:`dynastereo.ros.ros1`; a ROS 2 ``rclpy`` one would be the same
-size) only converts messages to :class:`StereoInput` (numpy images + stamp), calls
+A ROS adapter (ROS 1: :mod:`dynastereo.ros.ros1`; ROS 2 over DDS: :mod:`dynastereo.ros.ros2`)
+only converts messages to :class:`StereoInput` (numpy images + stamp), calls
 :meth:`StereoNodeCore.submit`, and implements :class:`NodeSink` to publish what the core
 hands back.  Everything else is here: rectification, masking, tracking, odometry and
 disparity, live parameter changes, the bounded queue and the statistics.
@@ -60,6 +60,7 @@ from ..io.calib import RawStereoCalibration
 from ..io.queues import DropOldestQueue  # noqa: F401 -- re-exported (tests, adapters)
 from ..io.rectify import Rectifier
 from ..io.stereo_check import StereoWatch
+from ..runtime.assembly import assemble_stages
 from ..runtime.loop import FrameLoop
 from ..runtime.pipelining import block_sigint
 from ..runtime.processor import FrameItem, FrameProcessor, Processed
@@ -239,25 +240,21 @@ class StereoNodeCore:
         return self.processor.system
 
     def _build_masker(self, cfg: Config) -> Any:
-        from ..masking import build_masker
-
         detector, self._detector_cfg = node_detector(cfg, self.models_dir, self._detector, self._detector_cfg)
         if detector is not None:
             self._detector = detector
-        return build_masker(cfg, self.calibration, models_dir=self.models_dir, detector=detector)
+        return assemble_stages(cfg, self.calibration, slam=False, models_dir=self.models_dir,
+                               detector=detector).masker
 
     def set_calibration(self, calibration: StereoCalibration | RawStereoCalibration) -> bool:
         """Set the camera once (creates the SLAM system); True if it was new.  A different
-        calibration later raises ConfigError (the map is in the first camera's units)."""
+        calibration later raises ConfigError (the map is in the first camera's units).  The
+        stages come from :func:`~dynastereo.runtime.assembly.assemble_stages`, as every job's."""
         with self._slam_lock:
             if self._calib_in is not None:
                 if _same_calibration(self._calib_in, calibration):
                     return False
                 raise ConfigError("the stereo calibration changed while running; restart the node to use it")
-            from ..masking.motion import build_motion
-            from ..slam import System
-            from ..slam.objects import WorldObjects
-
             if isinstance(calibration, RawStereoCalibration):
                 self.rectifier = Rectifier(calibration)
                 self.calibration = self.rectifier.calibration
@@ -265,13 +262,13 @@ class StereoNodeCore:
                 self.rectifier = None
                 self.calibration = calibration
             p = self.processor
+            masker = p.masker
             if self._own_masker:  # the road line's slopes follow the rig's baseline
                 with self._param_lock:
-                    p.masker = self._build_masker(self._masker_cfg)
+                    masker = p.masker = self._build_masker(self._masker_cfg)
             with _sigint_blocked():  # threads started meanwhile (the BA's) inherit it: Ctrl-C is the main thread's
-                p.system = System(self.cfg, self.calibration)
-            p.motion = build_motion(self.cfg, self.calibration, p.masker)
-            p.world = WorldObjects.from_config(self.calibration, self.cfg)
+                st = assemble_stages(self.cfg, self.calibration, masker=masker)
+            p.system, p.motion, p.world = st.system, st.motion, st.world
             self.source.calibration = self.calibration
             self._calib_in = calibration
             return True

@@ -1,10 +1,10 @@
 """What dynastereo publishes, built once for every message library.
 
 The output of one frame is plain data (:class:`OdometryData`, :class:`DisparityData`,
-numpy images); :class:`MessageBuilder` turns it into ROS messages.  Two builders exist:
+numpy images); :class:`MessageBuilder` turns it into ROS messages.  Three builders exist:
 :class:`RosbagsBuilder` (the ``rosbags`` dataclasses, for ROS 1 ``.bag`` and ROS 2
-``.db3``/``.mcap`` files) here, and ``GenpyBuilder`` (``rospy``'s classes) in
-:mod:`dynastereo.ros.ros1`; a ROS 2 ``rclpy`` adapter needs one more small builder.  The
+``.db3``/``.mcap`` files) here, ``GenpyBuilder`` (``rospy``'s classes) in
+:mod:`dynastereo.ros.ros1` and ``DdsBuilder`` (the ROS 2 node's DDS types) in :mod:`dynastereo.ros.dds`.  The
 builders differ only in how a time, a float array and a byte blob are represented and in
 field spellings (``K``/``k``, ``T``/``t``, ``seq``), which :meth:`MessageBuilder.make`
 smooths over.
@@ -51,7 +51,9 @@ import numpy as np
 
 from .convert import camera_info_fields, encode_compressed, image_fields, pose_quaternion, stamp_split
 
-from ..runtime.spec import DEFAULT_LEFT_TOPIC, DEFAULT_RIGHT_TOPIC  # noqa: F401 -- the input topics, re-exported
+#: The input topics' defaults (``~left_topic`` / ``--left-topic`` ...).
+DEFAULT_LEFT_TOPIC = "/camera/left/image_raw"
+DEFAULT_RIGHT_TOPIC = "/camera/right/image_raw"
 DEFAULT_LEFT_INFO = "/camera/left/camera_info"
 DEFAULT_RIGHT_INFO = "/camera/right/camera_info"
 DEFAULT_LEFT_FRAME = "camera_left"
@@ -255,11 +257,11 @@ class MessageBuilder:
     def object_markers(self, objects: list, stamp_ns: int, frame_id: str, seq: int = 0,
                        paths: list | None = None) -> Any:
         """``visualization_msgs/MarkerArray`` of the objects with a world state
-        (``ObjectMask.world``, :mod:`dynastereo.slam.objects`): first a DELETEALL (objects
+        (``ObjectMask.world``, :mod:`dynastereo.objects.world`): first a DELETEALL (objects
         gone from view vanish), then per object a CUBE (ns ``objects``, id = track id), a
         TEXT_VIEW_FACING label (``labels``: class, id, speed) and, from ``paths`` (``[(track,
-        (n, 3), moving)]``, :class:`~dynastereo.slam.objects.ObjectPaths`), a LINE_STRIP (``paths``)."""
-        from ..slam.objects import verdict_rgb
+        (n, 3), moving)]``, :class:`~dynastereo.objects.world.ObjectPaths`), a LINE_STRIP (``paths``)."""
+        from ..objects.world import verdict_rgb
 
         CUBE, LINE_STRIP, TEXT, DELETEALL = 1, 4, 9, 3
         rgba = lambda moving: (*(v / 255.0 for v in verdict_rgb(moving)), 0.8)  # noqa: E731

@@ -21,7 +21,7 @@ Publishes
     (stereo_msgs/DisparityImage), ``~path`` (nav_msgs/Path, the trajectory so far, latched),
     ``~map_points`` (sensor_msgs/PointCloud2, the map every ``MAP_EVERY``-th frame, latched),
     ``~objects`` (visualization_msgs/MarkerArray: each object's box, label with its speed
-    and path in ``odom``, in the verdict's colour; ``slam.objects``),
+    and path in ``odom``, in the verdict's colour; ``objects.world``),
     ``~ready`` (std_msgs/Bool, latched: true once the SLAM has its calibration).  Images,
     disparity, path and map are computed and sent only while someone subscribes.
 
@@ -212,7 +212,7 @@ class Ros1Node:
         self.pub_disp = rospy.Publisher("~disparity", DisparityImage, queue_size=2)
         self.pub_path = rospy.Publisher("~path", PathMsg, queue_size=1, latch=True)
         self.pub_map = rospy.Publisher("~map_points", PointCloud2, queue_size=1, latch=True)
-        from ..slam.objects import ObjectPaths
+        from ..objects.world import ObjectPaths
 
         try:
             from visualization_msgs.msg import MarkerArray

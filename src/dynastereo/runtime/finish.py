@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import DynastereoError, OutputError
 from ..io.outputs import atomic_write_text, reserve_json, write_failed, write_json_reserved, write_ply
-from .results import MaskJobResult, SlamJobResult
+from .results import JobResult
 from .spec import JobSpec
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -37,6 +37,25 @@ def resolve_ground_truth(gt: str | Path | None, sequence: Any) -> Path | None:
         return Path(gt)
     path = getattr(sequence, "path", sequence)
     return find_ground_truth(path) if isinstance(path, (str, Path)) else None
+
+
+def checked_ground_truth(gt: Path, *, explicit: bool) -> Path | None:
+    """``gt`` made absolute once it reads as a trajectory: a bad ``--gt`` (``explicit``) is
+    an :class:`~dynastereo.errors.InputError` before anything is written; a bad one found
+    beside the sequence is left out with a warning."""
+    import logging
+
+    from ..errors import InputError
+    from ..eval.trajectory import read_trajectory
+
+    try:
+        read_trajectory(gt)
+    except InputError as e:
+        if explicit:
+            raise InputError(f"--gt: {e}") from None
+        logging.getLogger(__name__).warning("the ground truth found beside the sequence is not used: %s", e)
+        return None
+    return Path(gt).absolute()
 
 
 def versions() -> dict[str, str]:
@@ -64,20 +83,38 @@ def reserve_run_json(out: Path, spec: JobSpec, n_frames: int) -> None:
     """run.json first, with room for the final record: a run killed outright (SIGKILL) is
     known as one (``"status": "running"``, no end)."""
     reserve_json(out / "run.json", json.dumps({"status": "running", "frames_requested": n_frames,
-                                               "sequence": spec.source.name or ""}))
+                                               "sequence": absolute(spec.source.name) or ""}))
+
+
+def absolute(path: Any) -> str | None:
+    """``path`` as an absolute path string (a camera ``cam:N`` and two videos ``a,b`` as
+    they are given, each video made absolute); None for None / ""."""
+    if path is None or str(path) == "":
+        return None
+    text = str(path)
+    if text.startswith("cam:"):
+        return text
+    return ",".join(str(Path(p).absolute()) for p in text.split(","))
+
+
+def calibration_file(seq: Any) -> str | None:
+    """The calibration file a sequence was read with (absolute), when it says."""
+    return absolute(getattr(seq, "calibration_file", None))
 
 
 # --------------------------------------------------------------------------- mask job
 
 
-def finish_mask(job: "Job", loop: "FrameLoop", error: str | None) -> MaskJobResult:
+def finish_mask(job: "Job", loop: "FrameLoop", error: str | None) -> JobResult:
     """``timing.json`` of a mask job (with ``error`` when it failed)."""
     st, timer = loop.state, loop.timer
     loop.close()
     out = job.spec.outputs.dir
     wall = time.perf_counter() - st.t0
     masker = job.processor.masker
-    extra = {"masker": getattr(masker, "name", type(masker).__name__), "sequence": str(job.sequence.path),
+    extra = {"masker": getattr(masker, "name", type(masker).__name__),
+             "sequence": absolute(getattr(job.sequence, "path", None)) or "",
+             "calibration": calibration_file(job.sequence),
              "frames_done": st.n_done, "frames_requested": len(job.frames), "wall_s": round(wall, 3)}
     if error:
         extra["error"] = error
@@ -86,7 +123,7 @@ def finish_mask(job: "Job", loop: "FrameLoop", error: str | None) -> MaskJobResu
     except OSError as e:
         if error is None:  # else the first error is the one to report
             raise write_failed(e, out / "timing.json") from None
-    return MaskJobResult(out, list(job.frames[:st.n_done]), timer, error, wall)
+    return JobResult(out, list(job.frames[:st.n_done]), timer, wall, error=error)
 
 
 # --------------------------------------------------------------------------- SLAM run
@@ -133,7 +170,9 @@ def run_record(job: "Job", n_done: int, stats: dict, map_out: dict, fps: float, 
     states = system.results() if n_done else []
     lost = [k for k, s in enumerate(states) if s.status == "lost"]
     return {
-        "sequence": str(getattr(seq, "path", "")),
+        "sequence": absolute(getattr(seq, "path", None)) or "",
+        "calibration": calibration_file(seq),
+        "ground_truth": absolute(job.ground_truth),
         "timestamps": getattr(seq, "timestamp_source", None),
         "masker": getattr(masker, "name", "none") if masker is not None else "none",
         "motion": ({"mode": "moving", "map_points_forgotten": motion.forgotten} if motion is not None
@@ -158,7 +197,7 @@ def run_record(job: "Job", n_done: int, stats: dict, map_out: dict, fps: float, 
     }
 
 
-def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> SlamJobResult:
+def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> JobResult:
     """The run's last files (module doc); raises the first late error when the run itself went well."""
     st, timer, system, out = loop.state, loop.timer, job.processor.system, job.spec.outputs.dir
     n_done, first_error, late = st.n_done, error, None
@@ -169,8 +208,8 @@ def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> SlamJobResul
     except BaseException as e:  # noqa: BLE001 -- a signal breaking a wait: the files below are still written
         late, error = e, error or f"{type(e).__name__}: {e}"
     loop.close()
-    if job.bag_output is not None:
-        job.bag_output.close()  # its final map: after the last BA
+    outputs, late = _close_output_observers(job, late)  # a bag's final map: after the last BA
+    error = error or (f"{type(late).__name__}: {late}" if late is not None else None)
     wall = time.perf_counter() - st.t0
     fps = n_done / wall if wall > 0 else 0.0
     poses = system.trajectory() if n_done else np.zeros((0, 3, 4))
@@ -194,7 +233,23 @@ def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> SlamJobResul
     if "save_error" in map_out and first_error is None:  # else the run's own error is the one raised
         raise DynastereoError(f"{job.spec.outputs.save_map}: saving the map failed ({map_out['save_error']})")
     lost = system.lost_frames() if n_done else []
-    return SlamJobResult(out, poses, list(job.frames[:n_done]), stats, timer, wall, fps, lost)
+    return JobResult(out, list(job.frames[:n_done]), timer, wall, fps=fps, poses=poses, stats=stats, lost=lost,
+                     outputs=outputs)
+
+
+def _close_output_observers(job: "Job", late: BaseException | None) -> tuple[dict, BaseException | None]:
+    """Every :class:`~dynastereo.observers.OutputObserver` of the job closed (each even when
+    one before it failed): ``({name: what it wrote}, the first failure)``."""
+    from ..observers import OutputObserver
+
+    outputs: dict = {}
+    for ob in job.observers:
+        if isinstance(ob, OutputObserver):
+            try:
+                outputs[ob.name] = ob.close()
+            except BaseException as e:  # noqa: BLE001 -- the run's own files are still written
+                late = late or e
+    return outputs, late
 
 
 def _write_run_json(job: "Job", loop: "FrameLoop", error: str | None, stats: dict, map_out: dict, fps: float,
@@ -210,14 +265,3 @@ def _write_run_json(job: "Job", loop: "FrameLoop", error: str | None, stats: dic
     except OutputError as e:
         return e
     return None
-
-
-def write_bag_json(spec: JobSpec, job: "Job") -> dict:
-    """``DIR/bag.json``: the pairing (pairs, unpaired messages, tolerance), the calibration
-    source and what went into the output bag."""
-    seq, b = job.sequence, spec.source.bag
-    report = {"bag": str(b.path), "format": seq.format, **seq.report.to_dict(),
-              "frames_requested": len(job.frames), "output_bag": str(job.bag_output.path),
-              "output_topics": job.bag_output.writer.counts}
-    atomic_write_text(spec.outputs.dir / "bag.json", json.dumps(report, indent=1))
-    return report

@@ -82,8 +82,8 @@ class Processed:
 
 class FrameProcessor:
     """The stages of one job (module doc).  ``masker`` None: unmasked; ``system`` None: no
-    SLAM (``dynastereo mask``); ``motion`` (:class:`~dynastereo.masking.motion.ObjectMotion`)
-    None: every detection masked; ``world`` (:class:`~dynastereo.slam.objects.WorldObjects`):
+    SLAM (``dynastereo mask``); ``motion`` (:class:`~dynastereo.objects.motion.ObjectMotion`)
+    None: every detection masked; ``world`` (:class:`~dynastereo.objects.world.WorldObjects`):
     the objects' places in the world.  ``lock`` is held while the SLAM tracks (the live node
     reads the map from other threads)."""
 
@@ -129,9 +129,15 @@ class FrameProcessor:
             tracked = self.system.track(frame, slam_masks, timer, features=m.features)
             if motion is not None:
                 with timer.stage("motion"):
-                    motion.update(masks, tracked, self.system)
+                    motion.forgot(apply_map_edits(self.system, motion.update(masks, tracked).edits))
             if self.world is not None and masks is not None:
                 with timer.stage("objects"):
                     self.world.update(masks, tracked.pose, str(tracked.status) in ("tracked", "init"), stamp, frame)
         return Processed(position, item.index, stamp, frame, masks, slam_masks, tracked.pose, str(tracked.status),
                          payload=item.payload)
+
+
+def apply_map_edits(system, edits) -> int:
+    """Remove from the SLAM's map the points of the motion test's map edits (objects that
+    turned moving), through its public API; returns how many went."""
+    return sum(system.forget_region(e.region, e.z_min, e.z_max) for e in edits)

@@ -9,7 +9,7 @@ File sinks (the names are a contract that later tools read)::
 
     DIR/trajectory.{kitti,tum,frames}.txt  one row per frame, appended live (TrajectorySink)
     DIR/objects.jsonl                     one JSON line per frame: what was masked and how
-    DIR/objects_tracks.csv                the objects' world tracks (runs; slam.objects)
+    DIR/objects_tracks.csv                the objects' world tracks (runs; objects.world)
     DIR/masks/{left,right}/NNNNNN.png     uint8, 255 = masked (MaskSink)
     DIR/disparity/NNNNNN.png              uint16, disparity*256 (KITTI) (DisparitySink)
     DIR/overlays/NNNNNN.png               left|right with masks and verdicts (OverlaySink)
@@ -161,10 +161,10 @@ class ObjectsLogSink(RowSink):
 
 
 class TracksSink:
-    """``objects_tracks.csv`` (:class:`~dynastereo.slam.objects.TrackWriter`)."""
+    """``objects_tracks.csv`` (:class:`~dynastereo.objects.world.TrackWriter`)."""
 
     def __init__(self, out: Path) -> None:
-        from ..slam.objects import TRACKS_NAME, TrackWriter
+        from ..objects.world import TRACKS_NAME, TrackWriter
 
         self.tracks = TrackWriter(out / TRACKS_NAME)
 

@@ -28,15 +28,11 @@ from .spec import SourceSpec
 
 def open_sequence_source(spec: SourceSpec) -> Sequence:
     """The sequence ``spec`` names: a folder, video or camera (:func:`dynastereo.io.open_sequence`),
-    a ROS bag (:class:`dynastereo.ros.bags.BagStereoSequence`), or the Sequence object given."""
+    a source that opens itself (``spec.opener``: a ROS bag), or the Sequence object given."""
     if spec.sequence is not None:
         return spec.sequence
-    if spec.bag is not None:
-        from ..ros.bags import BagStereoSequence
-
-        b = spec.bag
-        return BagStereoSequence(b.path, b.left_topic, b.right_topic, b.left_info, b.right_info, spec.calib,
-                                 b.tolerance_s, b.rectify, fallback_calib=b.fallback_calib)
+    if spec.opener is not None:
+        return spec.opener.open(spec.calib)
     from ..io import open_sequence
 
     return open_sequence(Path(spec.path), calib=Path(spec.calib) if spec.calib else None, color=spec.color,

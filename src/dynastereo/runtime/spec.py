@@ -13,36 +13,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 from ..config import Config
 from ..errors import ConfigError
 from ..io.calib import is_orbslam2_settings, read_yaml_file
 
-DEFAULT_LEFT_TOPIC = "/camera/left/image_raw"
-DEFAULT_RIGHT_TOPIC = "/camera/right/image_raw"
-#: What a bag run can write into its output bag (``--bag-outputs``).
-BAG_OUTPUTS = ("odometry", "tf", "masked", "masks", "disparity", "path", "map_points", "objects")
-
-
 class JobKind(StrEnum):
     MASK = "mask"  # masks only (``dynastereo mask``)
     RUN = "run"  # masks + SLAM (``dynastereo run``)
-
-
-def parse_bag_outputs(spec: str | list[str] | tuple[str, ...] | None) -> tuple[str, ...]:
-    """``"all"`` / None -> every output; else a comma list of :data:`BAG_OUTPUTS`."""
-    if spec is None:
-        return BAG_OUTPUTS
-    items = [s.strip() for s in (spec.split(",") if isinstance(spec, str) else spec) if s.strip()]
-    if items == ["all"]:
-        return BAG_OUTPUTS
-    bad = [s for s in items if s not in BAG_OUTPUTS]
-    if bad:
-        from ..errors import InputError
-
-        raise InputError(f"unknown bag output(s) {', '.join(bad)}; choose from {', '.join(BAG_OUTPUTS)} or 'all'")
-    return tuple(items)
 
 
 def settings_calibration(config: str | Path | None) -> Path | None:
@@ -53,64 +32,103 @@ def settings_calibration(config: str | Path | None) -> Path | None:
     return Path(config)
 
 
-@dataclass(frozen=True)
-class BagSpec:
-    """A stereo ROS bag as input (``run --bag``): topics, CameraInfo, pairing, rectification,
-    and what goes into the output bag (``DIR/output.<same format>``)."""
+def settings_disagreement(config: str | Path | None, calibration: Any, calib_file: Any = None) -> str | None:
+    """A one-line warning when ``config`` is an ORB-SLAM2 settings file whose camera
+    (``Camera.fx``, ``Camera.bf``) disagrees (by more than 1 %) with the sequence's own
+    ``calibration`` -- which is the one used -- else None."""
+    if config is None or calibration is None:
+        return None
+    try:
+        s = read_yaml_file(config)
+        if not is_orbslam2_settings(s):
+            return None
+        from ..io.calib import load_orbslam2_settings
 
-    path: Path
-    left_topic: str = DEFAULT_LEFT_TOPIC
-    right_topic: str = DEFAULT_RIGHT_TOPIC
-    left_info: str | None = "auto"  # auto: camera_info beside the image topic; None: ignore
-    right_info: str | None = "auto"
-    tolerance_s: float = 0.005  # largest left/right stamp difference of a pair
-    rectify: str = "auto"  # auto | yes | no
-    fallback_calib: Path | None = None  # used only without CameraInfo (an ORB-SLAM2 settings file)
-    outputs: tuple[str, ...] = BAG_OUTPUTS
+        s = load_orbslam2_settings(config)
+        fx, bf = float(s["Camera.fx"]), float(s["Camera.bf"])
+    except (KeyError, TypeError, ValueError, ConfigError, OSError):
+        return None
+    except Exception:  # noqa: BLE001 -- an unreadable settings file is the configuration loader's to report
+        return None
+    if not (fx > 0 and bf > 0):
+        return None
+    own_fx, own_b = float(calibration.K[0, 0]), float(calibration.baseline)
+    b = bf / fx
+    if abs(fx - own_fx) <= 0.01 * own_fx and abs(b - own_b) <= 0.01 * own_b:
+        return None
+    src = f" ({calib_file})" if calib_file else ""
+    return (f"{config}: its camera (Camera.fx {fx:g} px, Camera.bf {bf:g}: baseline {b:.4g} m) disagrees with the "
+            f"sequence's calibration{src} (fx {own_fx:g} px, baseline {own_b:.4g} m); the sequence's is used "
+            "(--calib FILE chooses another)")
 
-    def __post_init__(self) -> None:
-        if not self.tolerance_s >= 0:
-            raise ConfigError(f"--sync-tolerance must be a time >= 0 ms (milliseconds), got {self.tolerance_s * 1e3:g}")
-        if self.rectify not in ("auto", "yes", "no"):
-            raise ConfigError(f"--rectify must be auto, yes or no, got {self.rectify!r}")
-        object.__setattr__(self, "path", Path(self.path))
-        object.__setattr__(self, "outputs", parse_bag_outputs(self.outputs))
+
+@runtime_checkable
+class OpenableSource(Protocol):
+    """A source that opens itself and may write outputs of its own beside the job's: a
+    stereo ROS bag (:class:`dynastereo.ros.bagrun.BagSource`, ``run --bag``).  The runtime
+    treats it as any other sequence: it opens it, reads its frames, and gives the
+    observers it asks for (``job_observers``) the job's frames like every observer."""
+
+    path: Path  # what it reads (for messages and run.json)
+    kind: str  # a word for it ("bag"): the viewer's recording name
+
+    def check(self, source: "SourceSpec") -> None:
+        """Refuse source options that do not apply to it (a ConfigError)."""
+
+    def check_job(self, job: "JobSpec") -> None:
+        """Refuse job options that do not apply to it (a ConfigError)."""
+
+    def open(self, calib: Path | None) -> Any:
+        """The :class:`~dynastereo.io.base.Sequence` to read (``calib``: a YAML calibration
+        that wins over the source's own)."""
+
+    def job_observers(self, job: "JobSpec", sequence: Any) -> tuple[Any, ...]:
+        """Observers of the job's frames that write the source's own outputs (each an
+        :class:`~dynastereo.observers.OutputObserver`: opened once the output folder is
+        ready, closed after the job's last files)."""
 
 
 @dataclass(frozen=True)
 class SourceSpec:
     """Exactly one of: ``path`` (a sequence folder, a stereo video ``stereo.mkv`` or
-    ``left.mkv,right.mkv``, a camera ``cam:N``), ``bag``, or ``sequence`` (an opened
+    ``left.mkv,right.mkv``, a camera ``cam:N``), ``opener`` (a source that opens itself:
+    :class:`OpenableSource`, a ROS bag), or ``sequence`` (an opened
     :class:`~dynastereo.io.base.Sequence`, from the Python API)."""
 
     path: str | Path | None = None
     calib: Path | None = None  # YAML calibration (a generic folder, a video; a bag: wins over CameraInfo)
     rate: float | None = None  # Hz, for a folder without stamps
     color: bool | None = None
-    bag: BagSpec | None = None
+    opener: OpenableSource | None = None
     sequence: Any = None
 
     def __post_init__(self) -> None:
-        given = sum(x is not None for x in (self.path, self.bag, self.sequence))
+        given = sum(x is not None for x in (self.path, self.opener, self.sequence))
         if given != 1:
             raise ConfigError("give either a SEQUENCE folder or --bag FILE (not both)")
-        if self.bag is not None and self.rate is not None:
-            raise ConfigError("--rate is for sequence folders; a bag's images carry their stamps")
-        if self.rate is not None and not self.rate > 0:
-            raise ConfigError(f"--rate must be a frame rate > 0 Hz, got {self.rate:g}")
+        if self.opener is not None:
+            self.opener.check(self)
+        if self.rate is not None:
+            from ..errors import InputError
+            from ..io.times import check_rate
+
+            try:
+                check_rate(self.rate)
+            except InputError as e:
+                raise ConfigError(str(e)) from None
 
     @property
     def name(self) -> str | None:
         """The input's path as a string (for run.json), when it has one."""
-        if self.bag is not None:
-            return str(self.bag.path)
+        if self.opener is not None:
+            return str(self.opener.path)
         p = self.path if self.path is not None else getattr(self.sequence, "path", None)
         return None if p is None else str(p)
 
 
 @dataclass(frozen=True)
 class OutputSpec:
-    """Where the results go and which are written (see README "Outputs")."""
+    """Where the results go and which are written (docs/guide/outputs.md)."""
 
     dir: Path
     overwrite: bool = True  # clear an earlier run's outputs there (False: refuse)
@@ -146,17 +164,18 @@ class JobSpec:
     stereo_check: bool = True
     gt: Path | None = None
     prefetch: bool = True
+    settings: Path | None = None  # the --config file: an ORB-SLAM2 one's camera is compared with the sequence's
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "kind", JobKind(self.kind))
         o = self.outputs
         if self.localize_only and self.load_map is None:
             raise ConfigError("--localize-only needs --load-map FILE (localization needs a map)")
-        if self.source.bag is not None and (o.save_map or self.load_map):
-            raise ConfigError("--save-map / --load-map work on sequence folders, not with --bag")
+        if self.source.opener is not None:
+            self.source.opener.check_job(self)
         if self.kind is JobKind.MASK:
-            extra = [n for n, v in (("save_map", o.save_map), ("save_cloud", o.save_cloud), ("load_map", self.load_map),
-                                    ("bag", self.source.bag)) if v]
+            extra = [n for n, v in (("save_map", o.save_map), ("save_cloud", o.save_cloud), ("load_map", self.load_map))
+                     if v]
             if extra:
                 raise ConfigError(f"a mask job tracks nothing: {', '.join(extra)} need a run")
         elif o.save_disparity or o.overlays:

@@ -23,7 +23,7 @@ full BA), ``map_io`` (map files), ``system``.  Stage times: ``features``, ``ster
 
 Beyond ORB-SLAM2's tracking: a pose needs support (inliers against the recent frames'
 median) or it is replaced by a prior-free search over the map's keyframes
-(``relocalization.relocalize_frame`` on bag-of-words candidates) -- revisits and gaps are found again
+(``Tracker.relocalize`` on bag-of-words candidates) -- revisits and gaps are found again
 or marked lost, never mis-tracked; and the stereo rig's disparity offset is
 self-calibrated by BAs over the whole map (``optimizer.self_calibrating_ba``).  See ``system`` for the lost-frame
 policy.

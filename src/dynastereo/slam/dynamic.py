@@ -1,6 +1,6 @@
 """Forgetting what turned out to move: the map points on an object judged moving.
 
-An object judged static takes part in tracking and mapping (``masking.motion``); when it
+An object judged static takes part in tracking and mapping (``objects.motion``); when it
 later starts to move, its map points would pull the poses along with it.
 :func:`forget_region` marks bad every good map point of the current map that projects,
 from the last tracked frame, into the object's left-image pixels at the object's depth,

@@ -8,7 +8,7 @@ point id)`` with an alive flag and per-point lists; each keyframe keeps, per key
 its point id and its observation row.  The map keeps what links keyframes and points
 (adding / erasing observations, culling, fusing, normals and descriptors, frustum
 tests) and works on the tables' arrays at once.  ``to_arrays()`` / ``from_arrays()``
-are the map-file entries (``docs/map_format.md``; ``map_io`` writes the container).
+are the map-file entries (``docs/reference/map-format.md``; ``map_io`` writes the container).
 """
 
 from __future__ import annotations
@@ -311,7 +311,7 @@ class Map:
     @staticmethod
     def entries() -> dict[str, tuple[np.dtype, tuple]]:
         """Map-file entry -> (dtype, shape with the header's count names), in file order
-        (``docs/map_format.md``)."""
+        (``docs/reference/map-format.md``)."""
         return {"map/scales": _OWN_ENTRIES["map/scales"], **MapPoints.entries(), **Observations.entries(),
                 **_OWN_ENTRIES}
 
@@ -484,6 +484,19 @@ def _check_arrays(a: dict[str, np.ndarray], c: dict[str, int], next_kf_id: int) 
             raise bad(f"{k} values of {name} point beyond {what}")
     if (a["obs/kp"] < 0).any():
         raise bad("negative keypoint indices in obs/kp")
+    # each point's observation list runs newest first (a row links to an older, lower row),
+    # through rows of that point only: no list can loop (a loop would never end)
+    nxt, opt, head = a["obs/next_row"], a["obs/pt"], a["points/head"]
+    linked = nxt >= 0
+    if (nxt[linked] >= np.flatnonzero(linked)).any():
+        raise bad("obs/next_row must link each row to an older (lower) row: the observation lists form a cycle")
+    if not (np.array_equal(opt[nxt[linked]], opt[linked])
+            and np.array_equal(opt[head[head >= 0]], np.flatnonzero(head >= 0))):
+        raise bad("the observation lists (points/head, obs/next_row) mix rows of different points")
+    for name in ("points/pos", "points/normal", "points/min_dist", "points/max_dist"):
+        k = int(np.count_nonzero(~np.isfinite(a[name])))
+        if k:
+            raise bad(f"{k} non-finite values (nan/inf) in {name}")
     pid, orow = a["keypoints/point_ids"], a["keypoints/obs_row"]
     has = pid >= 0
     if not np.array_equal(has, orow >= 0):

@@ -11,7 +11,7 @@ ORB settings, disparity offset, free-form meta) and one ``.npy`` entry per array
 length; keyframes are packed into concatenated per-keypoint arrays with offsets, the
 covisibility graph is an edge list.  No pickle anywhere: every entry is read with
 ``allow_pickle=False``.  The layout, dtypes, units, frames and the versioning policy
-are documented in ``docs/map_format.md``.
+are documented in ``docs/reference/map-format.md``.
 
 This module is the container only: the header (format, version, counts, calibration,
 ORB settings, disparity offset, vocabulary / bag-of-words descriptors, meta), the zip
@@ -155,6 +155,37 @@ def _npy_bytes(a: np.ndarray) -> bytes:
 # ----------------------------------------------------------------------- save
 def _collect(mf: MapFile) -> tuple[dict, dict[str, np.ndarray]]:
     """(header, arrays) of a map file; raises ValueError / TypeError for a bad MapFile."""
+    off, orb = _check_map_file(mf)
+    mp, calib = mf.map, mf.calibration
+    arrays = mp.to_arrays()
+    header_counts = Map.counts_of(arrays)
+    bow_hdr = _bow_arrays(mf, arrays, header_counts)  # optional: bag of words per keyframe
+    vocab_hdr = _vocabulary_arrays(mf, arrays)  # optional: the vocabulary's arrays
+    meta = dict(mf.meta or {})
+    meta.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+    meta.setdefault("dynastereo_version", __version__)
+    header = {
+        "format": FORMAT,
+        "version": VERSION,
+        "counts": header_counts,
+        "next_kf_id": int(mp.next_kf_id),
+        "calibration": _calib_dict(calib),
+        "disparity_offset": off,
+        "orb": orb,
+        "vocabulary": vocab_hdr,
+        "bow": bow_hdr,
+        "meta": meta,
+    }
+    try:
+        json.dumps(header, default=_json_default, allow_nan=False)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"map file header (meta / orb) is not JSON data: {e}") from None
+    return header, arrays
+
+
+def _check_map_file(mf: MapFile) -> tuple[float, dict]:
+    """``(disparity offset, ORB settings)`` of a map file whose map, calibration, offset and
+    ORB settings agree; raises ValueError / TypeError otherwise."""
     mp, calib = mf.map, mf.calibration
     if not isinstance(mp, Map):
         raise TypeError(f"MapFile.map must be a dynastereo.slam.map.Map, got {type(mp).__name__}")
@@ -177,9 +208,13 @@ def _collect(mf: MapFile) -> tuple[dict, dict[str, np.ndarray]]:
     for kf in mp.keyframes.values():
         if not _same_calib(kf.calib, calib):
             raise ValueError(f"keyframe {kf.id} has another calibration than MapFile.calibration")
-    arrays = mp.to_arrays()
-    header_counts = Map.counts_of(arrays)
-    # optional: bag of words per keyframe
+    return off, orb
+
+
+def _bow_arrays(mf: MapFile, arrays: dict[str, np.ndarray], header_counts: dict) -> dict | None:
+    """The keyframes' bags of words (``mf.bow``) added to ``arrays`` and their counts to
+    ``header_counts``; returns the header's ``bow`` entry (None without them)."""
+    mp = mf.map
     bow_hdr = None
     if mf.bow is not None:
         ids = [int(k) for k in mf.bow]
@@ -205,7 +240,12 @@ def _collect(mf: MapFile) -> tuple[dict, dict[str, np.ndarray]]:
         header_counts["bow_keyframes"] = len(ids)
         header_counts["bow_entries"] = int(boff[-1])
         bow_hdr = {"words_dtype": str(arrays["bow/words"].dtype), "weights_dtype": str(arrays["bow/weights"].dtype)}
-    # optional: the vocabulary's arrays
+    return bow_hdr
+
+
+def _vocabulary_arrays(mf: MapFile, arrays: dict[str, np.ndarray]) -> dict | None:
+    """The vocabulary's arrays (``mf.vocabulary``) added to ``arrays``; returns the header's
+    ``vocabulary`` entry (None without one)."""
     vocab_hdr = None
     if mf.vocabulary is not None:
         va = mf.vocabulary.to_arrays()
@@ -220,26 +260,7 @@ def _collect(mf: MapFile) -> tuple[dict, dict[str, np.ndarray]]:
             arrays[f"vocab/{key}"] = a
         t = type(mf.vocabulary)
         vocab_hdr = {"class": f"{t.__module__}.{t.__qualname__}", "entries": list(va)}
-    meta = dict(mf.meta or {})
-    meta.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
-    meta.setdefault("dynastereo_version", __version__)
-    header = {
-        "format": FORMAT,
-        "version": VERSION,
-        "counts": header_counts,
-        "next_kf_id": int(mp.next_kf_id),
-        "calibration": _calib_dict(calib),
-        "disparity_offset": off,
-        "orb": orb,
-        "vocabulary": vocab_hdr,
-        "bow": bow_hdr,
-        "meta": meta,
-    }
-    try:
-        json.dumps(header, default=_json_default, allow_nan=False)
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"map file header (meta / orb) is not JSON data: {e}") from None
-    return header, arrays
+    return vocab_hdr
 
 
 def save_map(path: str | os.PathLike, mf: MapFile) -> None:
@@ -300,18 +321,26 @@ class _Reader:
     def err(self, msg: str) -> MapFileError:
         return MapFileError(msg, self.path)
 
-    def raw(self, name: str) -> bytes:
+    def raw(self, name: str, limit: int | None = None) -> bytes:
+        """Entry ``name``'s bytes; an entry that would inflate past ``limit`` bytes (default:
+        half the memory this process may still use) is refused before it is inflated."""
         if name not in self.names:
             raise self.err(f"corrupt or incomplete map file: entry '{name}' is missing")
+        size = self.zf.getinfo(name).file_size
+        cap = memory_budget() if limit is None else limit
+        if size > cap:
+            why = (f"the header's counts allow {cap} bytes" if limit is not None
+                   else f"more than half the memory available ({cap / 2**30:.1f} GiB)")
+            raise self.err(f"corrupt map file: entry '{name}' would inflate to {size / 2**30:.2f} GiB; {why}")
         try:
             return self.zf.read(name)
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError, ValueError) as e:
             raise self.err(f"corrupt map file: entry '{name}' cannot be read ({e})") from None
 
-    def array(self, name: str) -> np.ndarray:
+    def array(self, name: str, limit: int | None = None) -> np.ndarray:
         if name + ".npy" not in self.names:
             raise self.err(f"corrupt or incomplete map file: entry '{name}' is missing")
-        data = self.raw(name + ".npy")
+        data = self.raw(name + ".npy", limit)
         try:
             return np.lib.format.read_array(io.BytesIO(data), allow_pickle=False)
         except (ValueError, EOFError, OSError) as e:
@@ -319,13 +348,53 @@ class _Reader:
 
     def checked(self, name: str, dtype: np.dtype | str, shape: tuple, counts: dict[str, int]) -> np.ndarray:
         try:
-            return check_entry(name, self.array(name), dtype, shape, counts)
+            return check_entry(name, self.array(name, entry_limit(dtype, shape, counts)), dtype, shape, counts)
         except MapFileError as e:
             raise self.named(e) from None
 
     def named(self, e: MapFileError) -> MapFileError:
         """``e`` naming this file (the tables' errors name the entry only)."""
         return e if e.path is not None else self.err(str(e))
+
+
+def memory_budget() -> int:
+    """Half the memory this process may still take (free memory, and an address-space
+    limit such as ``ulimit -v``): no single map entry may inflate beyond it."""
+    avail = 1 << 62
+    try:
+        avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        pass
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if soft != resource.RLIM_INFINITY:
+            avail = min(avail, soft)
+    except (ImportError, ValueError, OSError):
+        pass
+    return max(avail // 2, 1 << 20)
+
+
+def entry_limit(dtype: np.dtype | str, shape: tuple, counts: dict[str, int]) -> int | None:
+    """The largest size an array entry of ``shape`` (count names) may have: its data at the
+    header's counts plus the .npy header; None when a count is unknown."""
+    try:
+        n = 1
+        for s in shape:
+            n *= (counts[s[:-2]] + 1 if s.endswith("+1") else counts[s]) if isinstance(s, str) else int(s)
+    except (KeyError, TypeError):
+        return None
+    item = np.dtype(dtype).itemsize if not isinstance(dtype, str) else 8
+    return n * item + 4096
+
+
+def _check_counts_fit(r: "_Reader", counts: dict[str, int]) -> None:
+    """The arrays the header's counts announce must fit in memory (a forged header)."""
+    total = sum(entry_limit(dt, shape, counts) or 0 for dt, shape in Map.entries().values())
+    if total > memory_budget():
+        raise r.err(f"corrupt map file: the header's counts need {total / 2**30:.1f} GiB of arrays, more than "
+                    f"half the memory available ({memory_budget() / 2**30:.1f} GiB)")
 
 
 def read_header(path: str | os.PathLike) -> dict:
@@ -342,7 +411,7 @@ def _header(r: _Reader) -> dict:
     if HEADER not in r.names:
         raise r.err(f"not a {FORMAT} file: the archive has no '{HEADER}' entry")
     try:
-        h = json.loads(r.raw(HEADER).decode("utf-8"))
+        h = json.loads(r.raw(HEADER, 16 << 20).decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as e:
         raise r.err(f"corrupt map file: '{HEADER}' is not valid JSON ({e})") from None
     if not isinstance(h, dict):
@@ -429,7 +498,8 @@ def load_map(path: str | os.PathLike, vocabulary_cls: type | None = None) -> Map
         h = _header(r)
         calib = _calibration(r, h["calibration"])
         counts = dict(h["counts"])
-        a = {name: r.array(name) for name in Map.entries()}
+        _check_counts_fit(r, counts)
+        a = {name: r.array(name, entry_limit(dt, shape, counts)) for name, (dt, shape) in Map.entries().items()}
         bow_present = any(name + ".npy" in r.names for name in BOW_ENTRIES) or "bow_keyframes" in counts
         if bow_present:
             for key in ("bow_keyframes", "bow_entries"):

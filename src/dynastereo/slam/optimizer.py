@@ -6,7 +6,7 @@ stereo observations (u, v, u_right) and monocular ones (u, v), information
 4 rounds of 10 Gauss-Newton iterations with outliers re-classified by chi2 after each
 round and the kernel dropped in the last rounds.  It is a Gauss-Newton on SE(3) in one
 compiled call (about 0.5 ms a frame's call); its vectorized numpy form
-(``_optimize_pose_numpy``, the tests' reference) was chosen over gtsam by measurement: 1.7 ms
+(``tests/reference/slam_numpy.py``, the tests' reference) was chosen over gtsam by measurement: 1.7 ms
 for 800 observations with the whole 4-round schedule, against 14 ms for a single robust LM
 pass of a gtsam graph built per frame, same pose (``benchmarks/bench_slam.py``).
 
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import CHI2_MONO, CHI2_STEREO, orthonormalize, se3_exp
+from .geometry import CHI2_MONO, CHI2_STEREO, orthonormalize
 
 DELTA_MONO = float(np.sqrt(CHI2_MONO))
 DELTA_STEREO = float(np.sqrt(CHI2_STEREO))
@@ -79,8 +79,8 @@ def optimize_pose(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Motion-only BA.  Returns ``(T_cw, inlier)``.
 
-    One compiled call (``kernels.pose.optimize_pose_kernel``); ``_optimize_pose_numpy``
-    is the vectorized numpy version it replaces, kept as the reference of the tests."""
+    One compiled call (``kernels.pose.optimize_pose_kernel``); the vectorized numpy
+    version it replaces is the tests' reference (``tests/reference/slam_numpy.py``)."""
     n = len(X)
     T = np.ascontiguousarray(T_cw, dtype=np.float64)
     out = np.zeros(n, bool) if outlier is None else np.asarray(outlier, bool)
@@ -95,90 +95,6 @@ def optimize_pose(
         float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(bf),
         int(rounds), int(iterations), out, CHI2_MONO, CHI2_STEREO,
     )
-    return orthonormalize(T), ~out
-
-
-def _optimize_pose_numpy(
-    T_cw: np.ndarray,
-    X: np.ndarray,
-    uv: np.ndarray,
-    ur_obs: np.ndarray,
-    inv_sigma2: np.ndarray,
-    K: np.ndarray,
-    bf: float,
-    rounds: int = 4,
-    iterations: int = 10,
-    outlier: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Motion-only BA in vectorized numpy (the reference of ``optimize_pose``)."""
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    n = len(X)
-    T = T_cw.copy()
-    out = np.zeros(n, bool) if outlier is None else outlier.copy()
-    if n < 3:
-        return T, ~out
-    st = ur_obs >= 0
-    delta = np.where(st, DELTA_STEREO, DELTA_MONO)
-    th = np.where(st, CHI2_STEREO, CHI2_MONO)
-    row3 = st.astype(np.float64)
-    for rnd in range(rounds):
-        robust = rnd < 2
-        act = ~out
-        Xa, uva, ura, isa, da, r3 = X[act], uv[act], ur_obs[act], inv_sigma2[act], delta[act], row3[act]
-        if len(Xa) < 3:
-            break
-        for _ in range(iterations):
-            Xc, u, v, ur = project(T, Xa, fx, fy, cx, cy, bf)
-            z = Xc[:, 2]
-            ok = z > 1e-6
-            iz = np.where(ok, 1.0 / np.where(ok, z, 1.0), 0.0)
-            e = np.stack([uva[:, 0] - u, uva[:, 1] - v, np.where(r3 > 0, ura - ur, 0.0)], axis=1)
-            e[~ok] = 0.0
-            chi2 = (e**2).sum(axis=1) * isa
-            if robust:
-                s = np.sqrt(chi2)
-                w = np.where(s <= da, 1.0, da / np.maximum(s, 1e-12))
-            else:
-                w = np.ones(len(Xa))
-            w = w * isa * ok
-            x, y = Xc[:, 0], Xc[:, 1]
-            iz2 = iz * iz
-            # d(u, v, ur)/d(Xc)
-            Jp = np.zeros((len(Xa), 3, 3))
-            Jp[:, 0, 0] = fx * iz
-            Jp[:, 0, 2] = -fx * x * iz2
-            Jp[:, 1, 1] = fy * iz
-            Jp[:, 1, 2] = -fy * y * iz2
-            Jp[:, 2, 0] = fx * iz
-            Jp[:, 2, 2] = -(fx * x - bf) * iz2
-            # d(Xc)/d(xi) = [-[Xc]x, I] for left perturbation xi = (omega, rho)
-            Jx = np.zeros((len(Xa), 3, 6))
-            Jx[:, 0, 1] = Xc[:, 2]
-            Jx[:, 0, 2] = -Xc[:, 1]
-            Jx[:, 1, 0] = -Xc[:, 2]
-            Jx[:, 1, 2] = Xc[:, 0]
-            Jx[:, 2, 0] = Xc[:, 1]
-            Jx[:, 2, 1] = -Xc[:, 0]
-            Jx[:, 0, 3] = 1.0
-            Jx[:, 1, 4] = 1.0
-            Jx[:, 2, 5] = 1.0
-            J = Jp @ Jx  # (n, 3, 6)
-            J[:, 2, :] *= r3[:, None]
-            Wj = J * w[:, None, None]
-            H = np.einsum("nki,nkj->ij", Wj, J)
-            b = np.einsum("nki,nk->i", Wj, e)
-            H[np.diag_indices(6)] += 1e-9 + 1e-6 * np.diag(H)
-            try:
-                dx = np.linalg.solve(H, b)
-            except np.linalg.LinAlgError:
-                break
-            T = se3_exp(dx) @ T
-            if np.linalg.norm(dx) < 1e-7:
-                break
-        chi2_all, front = reprojection_chi2(T, X, uv, ur_obs, inv_sigma2, K, bf)
-        out = (chi2_all > th) | ~front
-        if (~out).sum() < 10:
-            break
     return orthonormalize(T), ~out
 
 

@@ -21,7 +21,7 @@ A pose is accepted only with enough support: after local-map tracking at least
 last tracked frames.  A jump the motion model cannot follow (a revisit fed as
 ``--frames 0-98,40-60``, a gap) leaves a wrong prediction with a few chance inliers on far
 points: such a pose is refused, and a prior-free search over the map's keyframes runs
-instead (``relocalization.relocalize_frame``: bag-of-words candidate keyframes, PnP-RANSAC,
+instead (``Tracker.relocalize``: bag-of-words candidate keyframes, PnP-RANSAC,
 motion-only BA, local map; ``reloc_min_inliers`` needed).  A frame placed that way is
 ``tracked`` with method ``reloc`` (or ``reference`` when the reference keyframe's
 descriptors already placed it); the velocity is not taken across such a jump.
@@ -46,7 +46,7 @@ offset: :mod:`.selfcal` (``stats().disparity_offset``).
 
 Loop closing (``loop_closing.LoopCloser``, after each new keyframe), relocalization with
 the bag-of-words keyframe database and map files (``save_map`` / ``load_map``, with
-``localize_only``) are described in the README and in those modules.
+``localize_only``) are described in docs/guide/slam.md and in those modules.
 """
 
 from __future__ import annotations
@@ -341,7 +341,7 @@ class System:
     # -------------------------------------------------------------- map files
     def save_map(self, path, meta: dict[str, Any] | None = None, optimize: bool = True) -> None:
         """Write the current map (keyframes, map points, covisibility, bag of words, the
-        vocabulary and the disparity offset) to ``path`` (``docs/map_format.md``).  The
+        vocabulary and the disparity offset) to ``path`` (``docs/reference/map-format.md``).  The
         local and full BAs in flight are applied first; with ``optimize`` (and mapping on)
         a final bundle adjustment over the whole map -- self-calibrating, so the disparity
         offset is refined over all keyframes -- makes the map the best it can be for reuse

@@ -3,7 +3,7 @@
 
 A table is a set of numpy columns sharing one row index; rows ``0..n-1`` are used and
 the columns grow by doubling.  Each column has its on-disk entry name, dtype and
-per-row shape (``docs/map_format.md``), so a table writes itself with ``to_arrays()``
+per-row shape (``docs/reference/map-format.md``), so a table writes itself with ``to_arrays()``
 and rebuilds itself, checked, with ``from_arrays()``.
 """
 

@@ -48,7 +48,7 @@ from .map import Map
 from .matcher import TH_HIGH, keyframe_point_matches, search_by_projection, stereo_match
 from .optimizer import optimize_pose, project
 from .orb import Features, ORBExtractor
-from .relocalization import relocalize_frame
+from .relocalization import database_candidates
 from .selfcal import SelfCalibration
 from .frame_trajectory import FrameTrajectory
 from .vocabulary import Vocabulary
@@ -450,7 +450,7 @@ class Tracker:
                 f"{ref:.0f} (< {100.0 * cfg.min_inlier_fraction:.0f}%)"
             )
         if cfg.reloc_candidates > 0:
-            found, kid = relocalize_frame(self, f)
+            found, kid = self.relocalize(f)
             if found and self.n_inliers >= max(cfg.reloc_min_inliers, cfg.min_inliers):
                 log.info(
                     "frame %d: %s; relocalized against keyframe %d (%d inliers)", frame_index, why, kid, self.n_inliers
@@ -462,6 +462,74 @@ class Tracker:
                 else "; relocalization found no keyframe"
             )
         return False, method, why
+
+    # ------------------------------------------------------------ relocalization
+    def relocalize(self, f: Frame) -> tuple[bool, int]:
+        """ORB-SLAM2's ``Tracking::Relocalization``: :meth:`relocalize_against` the best
+        ``slam.reloc_candidates`` keyframes of the bag-of-words database
+        (:func:`.relocalization.database_candidates`)."""
+        t0 = time.perf_counter()
+        mp = self.active.map
+        candidates = database_candidates(self.vocab, self.active.kfdb, mp, f, self.cfg.reloc_candidates)
+        found, kid = self.relocalize_against(mp, f, candidates)
+        self.reloc_ms.append((time.perf_counter() - t0) * 1e3)
+        return found, kid
+
+    def relocalize_against(self, mp: Map, frame: Frame, candidates: list[int]) -> tuple[bool, int]:
+        """Prior-free pose of the frame in the map: for each candidate keyframe,
+        descriptor matches + PnP-RANSAC + motion-only BA + local-map tracking; the
+        hypothesis with most inliers wins.  Returns ``(found, keyframe id)``; the frame and
+        the tracking state hold the best hypothesis (or are left as they were when none is
+        found)."""
+        saved = (
+            frame.T_cw.copy() if frame.T_cw is not None else None,
+            frame.point_ids.copy(),
+            frame.match_xyz.copy(),
+            frame.outlier.copy(),
+            self.ref_kf,
+            list(self.local_kfs),
+            self.n_inliers,
+        )
+        best: tuple | None = None
+        for kid in candidates:
+            kf = mp.keyframes.get(kid)
+            if kf is None:
+                continue
+            ki, pts = keyframe_point_matches(mp, kf, frame)
+            if len(ki) < 15:
+                continue
+            X = mp.points.pos[pts]
+            T, _ = pnp_ransac(X, frame.uv[ki], frame.calib.K, self.seed)
+            if T is None:
+                continue
+            frame.T_cw = T
+            frame.clear_matches(np.arange(len(frame)))
+            self.assign_matches(frame, ki, pts, X)
+            if self.optimize_frame(mp, frame) < 10:
+                continue
+            self.ref_kf = kf
+            self.track_local_map(mp, frame, count=False)
+            if best is None or self.n_inliers > best[0]:
+                best = (
+                    self.n_inliers,
+                    kid,
+                    frame.T_cw.copy(),
+                    frame.point_ids.copy(),
+                    frame.match_xyz.copy(),
+                    frame.outlier.copy(),
+                    self.ref_kf,
+                    list(self.local_kfs),
+                )
+        if best is None:
+            (frame.T_cw, frame.point_ids, frame.match_xyz, frame.outlier, self.ref_kf, self.local_kfs,
+             self.n_inliers) = saved
+            return False, -1
+        n, kid, frame.T_cw, frame.point_ids, frame.match_xyz, frame.outlier, self.ref_kf, self.local_kfs = best
+        self.n_inliers = n
+        inl = frame.point_ids[frame.point_ids >= 0]
+        mp.points.mark_found(inl)
+        mp.points.mark_visible(inl)
+        return True, kid
 
     # ------------------------------------------------------------ keyframes
     def _initialize(self, f: Frame, first: bool) -> bool:

@@ -409,6 +409,15 @@ class Vocabulary:
         if not path.is_file():
             raise VocabularyError("not a file", path)
         try:
+            with open(path, "rb") as fh:
+                magic = fh.read(6)
+        except OSError as e:
+            raise VocabularyError(f"cannot read it ({e.strerror or e})", path) from None
+        if not (magic.startswith(b"PK") or magic.startswith(b"\x93NUMPY")):
+            kind = "a text file" if magic and all(32 <= c < 127 or c in (9, 10, 13) for c in magic) else "another file"
+            raise VocabularyError(f"not a {FORMAT_NAME} file ({kind}, not the .npz archive `dynastereo vocab` "
+                                  "writes)", path)
+        try:
             z = np.load(path, allow_pickle=False)
             if not hasattr(z, "files"):  # a .npy file: one bare array
                 raise VocabularyError(f"not a {FORMAT_NAME} file (a bare .npy array, expected an .npz archive)", path)
@@ -417,7 +426,8 @@ class Vocabulary:
         except VocabularyError:
             raise
         except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as e:
-            raise VocabularyError(f"corrupt or truncated vocabulary file ({type(e).__name__}: {e})", path) from None
+            why = str(e).split(". ")[0] or type(e).__name__
+            raise VocabularyError(f"corrupt or truncated vocabulary file ({why})", path) from None
         try:
             return cls.from_arrays(arrays)
         except KeyError as e:

@@ -70,6 +70,20 @@ def _check_scenario(name: str) -> None:
         raise InputError(f"unknown scenario {name!r}; available: {', '.join(SCENARIOS)}")
 
 
+#: The most frames ``generate`` renders (``--frames``): about 3 hours at 10 Hz.
+MAX_FRAMES = 100_000
+
+
+def check_options(scenario: str, frames: int | None, size: str | tuple[int, int]) -> tuple[int, int]:
+    """``generate``'s options checked before anything is written (InputError naming the
+    option): a known scenario, ``frames`` in 1..MAX_FRAMES, the size in range; the size."""
+    _check_scenario(scenario)
+    wh = parse_size(size)
+    if frames is not None and not 1 <= int(frames) <= MAX_FRAMES:
+        raise InputError(f"--frames must be in 1..{MAX_FRAMES}, got {frames}")
+    return wh
+
+
 def _pose_matrix(x: float, z: float, heading: float) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = rot_y(heading)
@@ -131,10 +145,7 @@ def generate(
     ``progress(done, total)`` is called after every frame; ``threads`` > 1 renders the two
     views and writes the PNGs in worker threads (same output).
     """
-    _check_scenario(scenario)
-    W, H = parse_size(size)
-    if frames is not None and int(frames) < 1:
-        raise InputError(f"--frames must be at least 1, got {frames}")
+    W, H = check_options(scenario, frames, size)
     if not noise >= 0:
         raise InputError(f"noise must be >= 0, got {noise}")
     out = Path(out)

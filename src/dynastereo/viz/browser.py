@@ -1,6 +1,6 @@
 """Open a page in headless Chromium as a person would, and report what it showed.
 
-Used by the report test and to make README's screenshot: Chromium (Debian's
+Used by the report test and to make the docs' screenshots: Chromium (Debian's
 ``chromium``) is driven over the DevTools protocol on a pipe (``--remote-debugging-pipe``,
 no network port): the page is loaded from its file, and we collect the console's errors
 and warnings, uncaught exceptions and failed loads (``Log.entryAdded``), images that did

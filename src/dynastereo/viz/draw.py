@@ -6,12 +6,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..datatypes import StereoFrame, StereoMasks
+from ..datatypes import VERDICT_COLOURS, StereoFrame, StereoMasks
 
 
-#: Overlay colours (BGR) of the motion test's verdicts (``ObjectMask.moving``): moving
-#: objects red, not yet judged orange (both masked), static ones green (left to SLAM).
-VERDICT_COLOURS = {True: (0, 0, 255), None: (0, 165, 255), False: (0, 200, 0)}
 
 
 def _tint(bgr: np.ndarray, sel: np.ndarray, colour: tuple[int, int, int], alpha: float = 0.5) -> None:

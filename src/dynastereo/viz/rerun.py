@@ -54,10 +54,10 @@ def _import_rerun():
 
 class RerunObserver:
     """Logs every frame of a job to rerun.  ``spawn``: start the viewer and stream to it;
-    ``rrd``: write a recording file (both may be given).  ``gt``: ground-truth trajectory
-    file (KITTI or TUM), drawn once."""
+    ``rrd``: write a recording file (both may be given).  ``gt``: the ground-truth
+    trajectory's positions (N, 3), drawn once."""
 
-    def __init__(self, *, spawn: bool = False, rrd: str | Path | None = None, gt: str | Path | None = None,
+    def __init__(self, *, spawn: bool = False, rrd: str | Path | None = None, gt: np.ndarray | None = None,
                  name: str = "dynastereo") -> None:
         if not spawn and rrd is None:
             raise ValueError("RerunObserver: give spawn=True and/or rrd=FILE")
@@ -74,7 +74,7 @@ class RerunObserver:
             sinks.append(rr.GrpcSink())
         self.rec.set_sinks(*sinks)
         self._positions: list[np.ndarray] = []
-        self._paths = None  # slam.objects.ObjectPaths, made at the first object
+        self._paths = None  # objects.world.ObjectPaths, made at the first object
         self._static_done = False
         self._gt = gt
 
@@ -91,10 +91,7 @@ class RerunObserver:
                                                camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=1.0),
                     static=True)
         if self._gt is not None:
-            from ..eval.trajectory import read_trajectory
-
-            gt = read_trajectory(self._gt, name="ground truth")
-            rec.log("world/ground_truth", rr.LineStrips3D([gt.positions], colors=[GT_COLOR]), static=True)
+            rec.log("world/ground_truth", rr.LineStrips3D([np.asarray(self._gt)], colors=[GT_COLOR]), static=True)
         self._static_done = True
 
     def on_frame(self, event: FrameEvent) -> None:
@@ -145,8 +142,8 @@ class RerunObserver:
         rec.log("world/local_map", rr.Points3D(view.local_points, colors=[(200, 200, 200)], radii=0.03))
 
     def _log_objects(self, event: FrameEvent) -> None:
-        """The objects' boxes in the world and their paths (``slam.objects``)."""
-        from ..slam.objects import ObjectPaths, verdict_rgb
+        """The objects' boxes in the world and their paths (``objects.world``)."""
+        from ..objects.world import ObjectPaths, verdict_rgb
 
         rr, rec = self.rr, self.rec
         objs = [o for o in (event.masks.objects if event.masks is not None else []) if o.world is not None]

@@ -6,15 +6,18 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
+import numpy as np
+
 from ..observers import FrameObserver
 
 
 @contextmanager
 def viewers(observers: tuple[FrameObserver, ...] = (), *, viewer: bool = False, rrd: str | Path | None = None,
-            gt: str | Path | None = None, name: str = "dynastereo") -> Iterator[tuple[FrameObserver, ...]]:
+            gt: np.ndarray | None = None, name: str = "dynastereo") -> Iterator[tuple[FrameObserver, ...]]:
     """``observers`` plus, with ``viewer`` (spawn the rerun viewer) or ``rrd`` (record to a
     file), a :class:`dynastereo.viz.rerun.RerunObserver` (needs ``pip install
-    dynastereo[viz]``), flushed and closed on exit.  Neither: rerun is not imported."""
+    dynastereo[viz]``), flushed and closed on exit.  Neither: rerun is not imported.
+    ``gt``: the ground truth's positions (N, 3), drawn once."""
     if not viewer and rrd is None:
         yield tuple(observers)
         return

@@ -12,6 +12,7 @@ import numpy as np
 import yaml
 
 from ...errors import CalibrationError
+from ...yamlcheck import duplicate_key
 from .common import _read_calib_text
 
 
@@ -74,6 +75,9 @@ def read_yaml_file(path: str | Path) -> dict[str, Any]:
     ``!!opencv-matrix`` nodes become ``np.ndarray``."""
     path = Path(path)
     text = _read_calib_text(path)
+    dup = duplicate_key(text)
+    if dup is not None:
+        raise CalibrationError(f"line {dup[1]}: key '{dup[0]}' is given twice (which one is meant?)", path)
     if text.lstrip().startswith("%YAML:"):
         try:
             fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)

@@ -70,7 +70,8 @@ def _installed_files(spec: ModelSpec, models_dir: Path | str | None) -> Path:
                 if all(x.url for x in spec.files)
                 else f"{spec.licence}: no official download; place the file there (or `dynastereo models download {spec.name} --mirror URL`)"
             )
-            raise ModelError(f"model '{spec.name}' file missing (models dir {root}); {hint}", p)
+            raise ModelError(f"model '{spec.name}' file missing (models dir {root}); {hint}; or point --models-dir "
+                             f"DIR / $DYNASTEREO_MODELS at a folder holding {spec.name}/", p)
     verify_at_load(spec, d)
     return d
 

@@ -297,21 +297,9 @@ class BoxTracker:
         ``region``: ``(x0, y0, x1, y1)`` when the detector searched only that part of the
         frame (one tile): only tracks whose box centre lies in it count a miss.
         """
-        p = self.params
-        gray = np.asarray(gray)
-        if gray.ndim == 3:
-            gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
-        if gray.dtype != np.uint8 or gray.ndim != 2:
-            raise ValueError(f"gray must be a uint8 (H, W) image, got {gray.dtype} {gray.shape}")
-        gray = np.ascontiguousarray(gray)
+        gray = self._prepare(gray, detections)
         h, w = gray.shape
-        if self._prev is not None and self._prev.shape != gray.shape:
-            self._tracks = []  # cannot propagate across a change of image size
-            self._prev = self._prev_small = None
-        if detections is not None:
-            self._remap_classes(tuple(detections.class_names))
-        names = self._class_names
-
+        bounds = np.array([w, h, w, h], np.float64)
         # 1. propagate every track into this frame
         small = None
         if self._tracks and self._prev is not None:
@@ -321,29 +309,63 @@ class BoxTracker:
             boxes = np.array([t.box for t in self._tracks], np.float64).reshape(-1, 4)
             ok = np.zeros(len(self._tracks), bool)
             aff = np.tile(np.array([1.0, 0.0, 0.0]), (len(self._tracks), 1))
-        bounds = np.array([w, h, w, h], np.float64)
         boxes = np.clip(boxes, 0.0, bounds)
-
         # 2. match to this frame's detections
-        T = len(self._tracks)
-        matched_det = np.full(T, -1)
         det_boxes = np.zeros((0, 4))
-        n_det = 0
         if detections is not None and len(detections):
-            n_det = len(detections)
             det_boxes = np.clip(detections.boxes.astype(np.float64), 0.0, bounds)
-            if T:
-                iou = box_iou(boxes, det_boxes)
-                tg = [self._group(t.class_id, names) for t in self._tracks]
-                dg = [self._group(int(c), names) for c in detections.class_ids]
-                same = np.array([[a == b for b in dg] for a in tg], bool).reshape(T, n_det)
-                valid = same & (iou >= p.match_iou)
-                if valid.any():
-                    rows, cols = linear_sum_assignment(np.where(valid, -iou, 1.0))
-                    keep = valid[rows, cols]
-                    matched_det[rows[keep]] = cols[keep]
-
+        matched_det = self._match(boxes, det_boxes, detections)
         # 3. tracks of the detections (confirmed or new), in detection order
+        out_tracks = self._detection_tracks(det_boxes, detections, matched_det)
+        # 4. carried tracks: propagated, not confirmed, within the limits
+        carried_tracks = self._carried_tracks(boxes, ok, aff, matched_det, det_boxes, out_tracks,
+                                              detections is not None, region, (h, w))
+        self._tracks = out_tracks + carried_tracks
+        self._prev = gray
+        self._prev_small = small  # None: made from _prev when the next frame needs it
+        # 5. output
+        return self._output(len(out_tracks), detections, (h, w))
+
+    def _prepare(self, gray: np.ndarray, detections: Detections | None) -> np.ndarray:
+        """The frame's grey image, checked; tracks dropped across a change of image size;
+        the classes remapped to the detector's names."""
+        gray = np.asarray(gray)
+        if gray.ndim == 3:
+            gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
+        if gray.dtype != np.uint8 or gray.ndim != 2:
+            raise ValueError(f"gray must be a uint8 (H, W) image, got {gray.dtype} {gray.shape}")
+        gray = np.ascontiguousarray(gray)
+        if self._prev is not None and self._prev.shape != gray.shape:
+            self._tracks = []  # cannot propagate across a change of image size
+            self._prev = self._prev_small = None
+        if detections is not None:
+            self._remap_classes(tuple(detections.class_names))
+        return gray
+
+    def _match(self, boxes: np.ndarray, det_boxes: np.ndarray, detections: Detections | None) -> np.ndarray:
+        """For each track, the index of the detection it matches (-1: none): the same class
+        group, IoU of the propagated box at least ``match_iou``, one to one (Hungarian)."""
+        p, names = self.params, self._class_names
+        T, n_det = len(self._tracks), len(det_boxes)
+        matched_det = np.full(T, -1)
+        if T and n_det:
+            iou = box_iou(boxes, det_boxes)
+            tg = [self._group(t.class_id, names) for t in self._tracks]
+            dg = [self._group(int(c), names) for c in detections.class_ids]  # type: ignore[union-attr]
+            same = np.array([[a == b for b in dg] for a in tg], bool).reshape(T, n_det)
+            valid = same & (iou >= p.match_iou)
+            if valid.any():
+                rows, cols = linear_sum_assignment(np.where(valid, -iou, 1.0))
+                keep = valid[rows, cols]
+                matched_det[rows[keep]] = cols[keep]
+        return matched_det
+
+    def _detection_tracks(
+        self, det_boxes: np.ndarray, detections: Detections | None, matched_det: np.ndarray
+    ) -> list[_Track]:
+        """One track per detection, in detection order: the matched track confirmed, or a
+        new one."""
+        n_det = len(det_boxes)
         by_id = {t.id: t for t in self._tracks}
         det_track = np.full(n_det, -1, np.int64)
         for ti in np.flatnonzero(matched_det >= 0):
@@ -362,13 +384,28 @@ class BoxTracker:
                 t = _Track(self._next_id, det_boxes[j], score, cid, mask=mask)
                 self._next_id += 1
             out_tracks.append(t)
+        return out_tracks
 
-        # 4. carried tracks: propagated, not confirmed, within the limits
-        ran = detections is not None
-        kept_boxes = [det_boxes[j] for j in range(n_det)]
+    def _carried_tracks(
+        self,
+        boxes: np.ndarray,
+        ok: np.ndarray,
+        aff: np.ndarray,
+        matched_det: np.ndarray,
+        det_boxes: np.ndarray,
+        out_tracks: list[_Track],
+        ran: bool,
+        region: tuple[float, ...] | None,
+        shape: tuple[int, int],
+    ) -> list[_Track]:
+        """The tracks carried without a detection: propagated, unmatched, within the miss
+        and age limits, not too small, and not a duplicate of a kept box of their group."""
+        p, names = self.params, self._class_names
+        h, w = shape
+        kept_boxes = [det_boxes[j] for j in range(len(det_boxes))]
         kept_groups = [self._group(t.class_id, names) for t in out_tracks]
         carried_tracks: list[_Track] = []
-        for ti in sorted(range(T), key=lambda k: self._tracks[k].id):
+        for ti in sorted(range(len(self._tracks)), key=lambda k: self._tracks[k].id):
             if matched_det[ti] >= 0 or not ok[ti]:
                 continue
             t = self._tracks[ti]
@@ -396,12 +433,13 @@ class BoxTracker:
             kept_boxes.append(b)
             kept_groups.append(g)
             carried_tracks.append(t)
+        return carried_tracks
 
-        self._tracks = out_tracks + carried_tracks
-        self._prev = gray
-        self._prev_small = small  # None: made from _prev when the next frame needs it
-
-        # 5. output
+    def _output(self, n_detected: int, detections: Detections | None, shape: tuple[int, int]) -> Detections:
+        """The current tracks as ``Detections``: the detected ones first, then the carried
+        ones (``carried`` True), scores decayed by the frames carried."""
+        p = self.params
+        h, w = shape
         n = len(self._tracks)
         boxes_out = np.array([t.box for t in self._tracks], np.float32).reshape(n, 4)
         scores = np.array(
@@ -416,12 +454,11 @@ class BoxTracker:
             boxes_out,
             scores,
             np.array([t.class_id for t in self._tracks], np.int32).reshape(n),
-            names,
+            self._class_names,
             masks,
             np.array([t.id for t in self._tracks], np.int64).reshape(n),
-            np.array([False] * len(out_tracks) + [True] * len(carried_tracks), bool).reshape(n),
+            np.array([False] * n_detected + [True] * (n - n_detected), bool).reshape(n),
         )
-
 
 def warm_up_kernels() -> None:
     """Load (or compile) the tracker's compiled kernel now, not in the first frames."""

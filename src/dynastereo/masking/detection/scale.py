@@ -119,12 +119,31 @@ def merge_tile_boxes(
     # set of tiles it comes from (bit mask)
     bl, br = tx0[t], tx1[t]
     seen = np.left_shift(1, t.astype(np.int64))
+    b, s, c, g, bl, br = _merge_seams(b, s, c, g, bl, br, seen, (fx0, fx1), edge, min_overlap_y)
+    if len(b) > 1:
+        drop = _cut_parts_inside(b, g, _cut_flags(b, bl, br, (fx0, fx1), edge))
+        b, s, c = b[~drop], s[~drop], c[~drop]
+    order = np.argsort(-s, kind="stable")
+    return b[order].astype(np.float32), s[order].astype(np.float32), c[order].astype(np.int32)
 
-    def cut_flags() -> tuple[np.ndarray, np.ndarray]:
-        return (b[:, 0] - bl <= edge) & (bl > fx0), (br - b[:, 2] <= edge) & (br < fx1)
 
+def _cut_flags(
+    b: np.ndarray, bl: np.ndarray, br: np.ndarray, frame_x: tuple[float, float], edge: float
+) -> np.ndarray:
+    """Boxes that end within ``edge`` px of an inner tile border (left or right), not the
+    frame's."""
+    cl = (b[:, 0] - bl <= edge) & (bl > frame_x[0])
+    cr = (br - b[:, 2] <= edge) & (br < frame_x[1])
+    return np.stack([cl, cr])
+
+
+def _merge_seams(b, s, c, g, bl, br, seen, frame_x: tuple[float, float], edge: float, min_overlap_y: float):
+    """Step 2 of :func:`merge_tile_boxes`: cut boxes joined across tile seams, the
+    best-scoring pair first, until nothing merges.  The arrays are per box: box, score,
+    class, group, the left / right borders of the tiles that saw its edges, and the tiles
+    it comes from (bit mask).  Returns ``(b, s, c, g, bl, br)`` of the boxes left."""
     while len(b) > 1:
-        cl, cr = cut_flags()
+        cl, cr = _cut_flags(b, bl, br, frame_x, edge)
         iy = np.minimum(b[:, None, 3], b[None, :, 3]) - np.maximum(b[:, None, 1], b[None, :, 1])
         hmin = np.minimum(b[:, None, 3] - b[:, None, 1], b[None, :, 3] - b[None, :, 1])
         ix = np.minimum(b[:, None, 2], b[None, :, 2]) - np.maximum(b[:, None, 0], b[None, :, 0])
@@ -151,21 +170,22 @@ def merge_tile_boxes(
         s[hi] = max(s[i], s[j])
         sel = np.arange(len(b)) != lo
         b, s, c, g, bl, br, seen = b[sel], s[sel], c[sel], g[sel], bl[sel], br[sel], seen[sel]
-    if len(b) > 1:
-        cl, cr = cut_flags()
-        x0 = np.maximum(b[:, None, 0], b[None, :, 0])
-        y0 = np.maximum(b[:, None, 1], b[None, :, 1])
-        x1 = np.minimum(b[:, None, 2], b[None, :, 2])
-        y1 = np.minimum(b[:, None, 3], b[None, :, 3])
-        inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
-        area = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
-        inside = (inter >= 0.7 * np.maximum(area[:, None], 1e-9)) & (g[:, None] == g[None, :])
-        inside &= area[None, :] > area[:, None]  # inside a larger box
-        np.fill_diagonal(inside, False)
-        drop = (cl | cr) & inside.any(axis=1)
-        b, s, c = b[~drop], s[~drop], c[~drop]
-    order = np.argsort(-s, kind="stable")
-    return b[order].astype(np.float32), s[order].astype(np.float32), c[order].astype(np.int32)
+    return b, s, c, g, bl, br
+
+
+def _cut_parts_inside(b: np.ndarray, g: np.ndarray, cut: np.ndarray) -> np.ndarray:
+    """Step 3 of :func:`merge_tile_boxes`: the cut boxes lying for >= 70 % of their area
+    inside a larger box of their group (the part of an object another tile saw whole)."""
+    x0 = np.maximum(b[:, None, 0], b[None, :, 0])
+    y0 = np.maximum(b[:, None, 1], b[None, :, 1])
+    x1 = np.minimum(b[:, None, 2], b[None, :, 2])
+    y1 = np.minimum(b[:, None, 3], b[None, :, 3])
+    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
+    area = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+    inside = (inter >= 0.7 * np.maximum(area[:, None], 1e-9)) & (g[:, None] == g[None, :])
+    inside &= area[None, :] > area[:, None]  # inside a larger box
+    np.fill_diagonal(inside, False)
+    return (cut[0] | cut[1]) & inside.any(axis=1)
 
 
 class ScaledDetector:

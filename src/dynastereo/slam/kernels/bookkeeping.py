@@ -38,12 +38,16 @@ def rows_of(head, next_row, alive, pts):
             continue
         prev = p
         r = head[p]
+        steps = 0
         while r >= 0:
             if alive[r]:
                 total += 1
                 if r > top:
                     top = r
             r = next_row[r]
+            steps += 1
+            if steps > next_row.shape[0]:  # a list longer than the table loops: never walk it forever
+                raise ValueError("observation list of a point forms a cycle")
     out = np.empty(total, np.int64)
     if total == 0:
         return out
@@ -57,7 +61,9 @@ def rows_of(head, next_row, alive, pts):
             continue
         prev = p
         r = head[p]
-        while r >= 0:
+        steps = 0
+        while r >= 0 and steps <= next_row.shape[0]:
+            steps += 1
             if alive[r]:
                 if use_marks:
                     mark[r] = True

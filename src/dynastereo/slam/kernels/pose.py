@@ -4,7 +4,7 @@
 Gauss-Newton steps on SE(3) (left perturbation ``xi = (omega, rho)``), Huber weights in the
 first two rounds, outliers re-classified by chi2 after each round -- in scalar loops over the
 observations: no per-iteration (N, 3, 6) Jacobian arrays.  The arithmetic is the numpy
-version's (``optimizer._optimize_pose_numpy``), term by term; sums run in observation order,
+version's (``tests/reference/slam_numpy.py``), term by term; sums run in observation order,
 so poses agree with it to rounding (~1e-12) and the inlier sets are the same unless a chi2
 lies within rounding of its threshold.
 """

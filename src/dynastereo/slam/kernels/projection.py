@@ -7,7 +7,7 @@ second-best Hamming distance (and the second's level for the ratio test), then g
 keypoint to its closest point.  Candidates are visited in the order the numpy version
 lists them (rows, then cells, then keypoints by index), ties keep the first, and the
 result is ordered by keypoint as ``geometry.unique_best`` orders it: the matches are
-identical to ``matcher._search_by_projection_numpy``'s.
+identical to the numpy reference's (``tests/reference/slam_numpy.py``).
 """
 
 from __future__ import annotations

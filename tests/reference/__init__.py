@@ -1,0 +1,1 @@
+"""The numpy references of compiled kernels (not part of the package)."""

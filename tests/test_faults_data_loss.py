@@ -1,0 +1,159 @@
+"""The fault suite's data-loss cases: nothing written earlier is lost.
+
+* ``--overwrite`` checks every input and option (a truncated map, a text file as the
+  vocabulary, a bad ``--gt`` with ``--report``, an unwritable ``--rrd``) before it clears
+  anything, and clears only what the program wrote (its frame images in ``masks/`` and
+  ``disparity/``; a user's own files there stay);
+* ``export-bag --overwrite`` replaces the earlier bag only with a complete one;
+* an output path that is also an input (``eval --plot EST``, ``report RUN --out
+  RUN/trajectory.kitti.txt``) is refused;
+* a second job into an output folder in use is refused (the folder is locked).
+
+Real KITTI 06 frames (4-frame copies); the SLAM without masks where a run is needed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import pytest
+
+from test_faults_inputs import assert_one_line, cli, mini06
+
+
+def _digest(folder: Path) -> dict[str, str]:
+    """Every file under ``folder`` (relative path -> sha256): what must survive."""
+    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file() and p.name != ".dynastereo.lock"}
+
+
+@pytest.fixture(scope="module")
+def earlier(kitti06: Path, tmp_path_factory) -> tuple[Path, Path]:
+    """(a 4-frame KITTI 06 copy, the output folder of a run of it with --save-masks)."""
+    from dynastereo.api import run_sequence
+    from dynastereo.config import Config
+
+    root = tmp_path_factory.mktemp("earlier")
+    seq = mini06(kitti06, root / "seq")
+    out = root / "out"
+    run_sequence(seq, out, Config().with_overrides({"masker.kind": "none"}), save_masks=True, stereo_check=False)
+    assert (out / "trajectory.kitti.txt").is_file() and (out / "run.json").is_file()
+    return seq, out
+
+
+def _bad_map(tmp: Path) -> list[str]:
+    p = tmp / "truncated.dsmap"
+    p.write_bytes(b"PK\x03\x04" + b"\0" * 100)  # a zip's first bytes, then nothing
+    return ["--load-map", str(p)]
+
+
+def _text_vocabulary(tmp: Path) -> list[str]:
+    p = tmp / "notes.txt"
+    p.write_text("not a vocabulary\n")
+    return ["--vocabulary", str(p)]
+
+
+def _bad_gt(tmp: Path) -> list[str]:
+    p = tmp / "gt.txt"
+    p.write_text("1 2 3\n")
+    return ["--gt", str(p), "--report"]
+
+
+def _unwritable_rrd(tmp: Path) -> list[str]:
+    return ["--rrd", "/proc/self/no/such/rec.rrd"]
+
+
+BAD_INPUTS = {"truncated map": (_bad_map, "truncated.dsmap"), "text vocabulary": (_text_vocabulary, "notes.txt"),
+              "bad --gt with --report": (_bad_gt, "gt.txt"), "unwritable --rrd": (_unwritable_rrd, "rec.rrd")}
+
+
+@pytest.mark.parametrize("case", list(BAD_INPUTS))
+def test_overwrite_checks_every_input_before_it_clears_the_earlier_run(case: str, earlier, tmp_path: Path) -> None:
+    seq, out = earlier
+    before = _digest(out)
+    make, needle = BAD_INPUTS[case]
+    r = cli(["run", seq, "--out", out, "--masker", "none", "--overwrite", *make(tmp_path)], tmp_path)
+    assert_one_line(r, 2, needle)
+    assert _digest(out) == before, "the earlier run was touched"
+
+
+def test_overwrite_deletes_only_the_files_the_program_wrote(tmp_path: Path) -> None:
+    from dynastereo.io.outputs import prepare_output_dir
+
+    out = tmp_path / "out"
+    own = ["masks/left/000000.png", "masks/right/000000.png", "disparity/000003.png", "overlays/000001.png",
+           "objects.jsonl", "run.json"]
+    users = ["masks/README.txt", "masks/left/mine.png", "masks/hand/000000.png", "disparity/ground_truth.png",
+             "notes.md"]
+    for name in own + users:
+        (out / name).parent.mkdir(parents=True, exist_ok=True)
+        (out / name).write_bytes(name.encode())
+    prepare_output_dir(out, overwrite=True)
+    assert [n for n in own if (out / n).exists()] == []
+    assert [n for n in users if not (out / n).is_file()] == []
+    assert (out / "masks/hand/000000.png").read_bytes() == b"masks/hand/000000.png"
+    # a folder the program emptied goes; one with a user's file stays
+    assert not (out / "overlays").exists() and (out / "masks/left").is_dir()
+
+
+def test_export_bag_overwrite_keeps_the_earlier_bag_when_the_new_one_fails(kitti06: Path, tmp_path: Path) -> None:
+    seq = mini06(kitti06, tmp_path / "seq")
+    bag = tmp_path / "good.bag"
+    assert cli(["export-bag", seq, bag, "--frames", 2], tmp_path).returncode == 0
+    good = bag.read_bytes()
+    broken = seq / "image_0" / "000002.png"
+    broken.write_bytes(broken.read_bytes()[:300])  # frame 2 cannot be decoded: the export fails there
+    r = cli(["export-bag", seq, bag, "--overwrite"], tmp_path)
+    assert_one_line(r, 2, "000002.png")
+    assert bag.read_bytes() == good, "the good bag was replaced by a partial one"
+    assert not [p.name for p in tmp_path.iterdir() if p.name not in ("cache", "good.bag", "seq")]  # no temporary bag
+
+
+def test_output_that_is_an_input_is_refused(earlier, tmp_path: Path) -> None:
+    seq, out = earlier
+    gt = tmp_path / "gt.txt"
+    gt.write_bytes((out / "trajectory.kitti.txt").read_bytes())
+    before = _digest(out)
+    est = out / "trajectory.kitti.txt"
+    assert_one_line(cli(["eval", est, gt, "--plot", est], tmp_path), 2, "--plot", "input")
+    assert_one_line(cli(["eval", est, gt, "--plot", gt], tmp_path), 2, "--plot", "input")
+    assert_one_line(cli(["report", out, "--out", est], tmp_path), 2, "--out", "input")
+    assert_one_line(cli(["report", out, "--gt", gt, "--out", gt], tmp_path), 2, "--out", "input")
+    assert _digest(out) == before and gt.read_bytes() == est.read_bytes()
+
+
+def test_a_second_job_into_a_folder_in_use_is_refused(earlier, tmp_path: Path) -> None:
+    from dynastereo.api import run_sequence
+    from dynastereo.config import Config
+    from dynastereo.errors import OutputError
+    from dynastereo.io.outputs import OutputLock
+
+    seq, out = earlier
+    before = _digest(out)
+    with OutputLock(out):  # the first job holds the folder
+        with pytest.raises(OutputError, match="in use by another dynastereo job"):
+            OutputLock(out).acquire()
+        with pytest.raises(OutputError, match="in use by another dynastereo job") as e:
+            run_sequence(seq, out, Config().with_overrides({"masker.kind": "none"}), overwrite=True,
+                         stereo_check=False)
+        assert str(out) in str(e.value)
+    assert _digest(out) == before
+    # once it ended, the folder is free again
+    run_sequence(seq, tmp_path / "other", Config().with_overrides({"masker.kind": "none"}), stereo_check=False)
+    with OutputLock(out):
+        pass
+
+
+def test_the_api_refuses_an_earlier_run_by_default(earlier) -> None:
+    from dynastereo.api import run_sequence
+    from dynastereo.config import Config
+    from dynastereo.errors import OutputError
+
+    seq, out = earlier
+    before = _digest(out)
+    with pytest.raises(OutputError, match="earlier run"):
+        run_sequence(seq, out, Config().with_overrides({"masker.kind": "none"}), stereo_check=False)
+    assert _digest(out) == before
+    assert json.loads((out / "run.json").read_text())["status"] == "done"
