@@ -16,7 +16,11 @@ the prefetch thread, stereo SLAM with local BA):
   of the decided object-frames).  ``--verdicts-only`` runs just these two and writes
   ``results/motion_verdicts.json``; with ``--old-commit C`` it also runs commit C's ``src``
   (``git archive``, each run in its own process) on the same sequences, scored by this
-  checkout's scorer, and prints the pooled rates and each seed's side by side.
+  checkout's scorer, and prints the pooled rates and each seed's side by side
+  (``results/motion_verdicts_then_now.json``: 6fb24c0 against this code on mixed seeds
+  1-6); ``--gt-poses`` replays the masker and the motion test with the ground-truth poses
+  instead of running the SLAM (``results/motion_verdicts_gt_poses.json``: the verdicts of
+  the masking and motion code alone, both commits).
 * **ATE** (APE RMSE after SE(3) alignment, ``dynastereo.eval.evaluate_files``) with
   masking ``none`` / ``all`` (the thesis: every detection masked, ``motion.mode: all``) /
   ``moving`` (the default: moving and undecided objects masked) on KITTI 06 and 03 (the
