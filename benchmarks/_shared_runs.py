@@ -1,15 +1,23 @@
 """Runs and their evaluation, shared by several benchmarks: ``dynastereo run`` in its own
 process (:func:`run_dynastereo`), a trajectory's ATE and drift (:func:`ate_drift`,
-:func:`ate`) and the cached synthetic sequences (:func:`sequence`)."""
+:func:`ate`), the cached synthetic sequences (:func:`sequence`), an older commit's ``src``
+(:func:`old_tree`, :func:`head_commit`) and the motion test's verdicts on KITTI raw 0001
+against its reference labels (:func:`score_raw_labels`)."""
 
 from __future__ import annotations
 
 import hashlib
+import json
 import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+RAW_LABELS = ROOT / "tests" / "data" / "raw0001_motion_labels.json"
 
 
 def run_dynastereo(seq: Path, out: Path, n_features: int, block_size: int | None = None,
@@ -73,3 +81,68 @@ def sequence(cache: Path, scenario: str, frames: int, seed: int, size: tuple[int
     fps = frames / (time.perf_counter() - t0)
     done.write_text("ok\n")
     return seq, fps
+
+
+def old_tree(commit: str, dest: Path) -> Path:
+    """``src`` of ``commit`` unpacked under ``dest`` (``git archive``)."""
+    dest.mkdir(parents=True, exist_ok=True)
+    arc = subprocess.run(["git", "-C", str(ROOT), "archive", commit, "src"], capture_output=True, check=True)
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=arc.stdout, check=True)
+    return dest / "src"
+
+
+def head_commit() -> str:
+    """This checkout's commit, ``+changes`` when its ``src`` differs from it."""
+    git = ["git", "-C", str(ROOT)]
+    head = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run([*git, "status", "--porcelain", "src"], capture_output=True, text=True).stdout.strip()
+    return head + ("+changes" if dirty else "")
+
+
+def score_raw_labels(run_dir: Path, labels_path: Path = RAW_LABELS) -> dict:
+    """The motion test's verdicts in ``run_dir/objects.jsonl`` against the reference labels
+    (``labels_path``): per reference object-frame (>= 300 px, labelled moving or static),
+    the run's object matched by box IoU >= 0.5 (the best); right / undecided / wrong
+    (an unmatched reference object is not counted); movers masked within 3 frames of
+    their first appearance; static object-frames left unmasked."""
+    from dynastereo.masking.boxes import box_iou
+
+    lab = json.loads(labels_path.read_text())
+    by_frame: dict[int, list] = {}
+    for o in lab["objects"]:
+        for f, box, px in zip(o["frames"], o["boxes"], o["pixels"]):
+            by_frame.setdefault(int(f), []).append((o["id"], o["label"], o["moving"], box, px))
+    counts = {"right": 0, "undecided": 0, "wrong": 0}
+    per_label: dict[str, dict[str, int]] = {}
+    masked_at: dict[int, list[int]] = {}
+    static_frames = static_unmasked = 0
+    for rec in (json.loads(s) for s in (run_dir / "objects.jsonl").read_text().splitlines() if s.strip()):
+        f = int(rec["frame"])
+        refs = by_frame.get(f, [])
+        objs = rec["objects"]
+        if not refs or not objs:
+            continue
+        iou = box_iou([r[3] for r in refs], [o["box"] for o in objs])
+        for i, (rid, label, moving, box, px) in enumerate(refs):
+            j = int(np.argmax(iou[i]))
+            if iou[i, j] < 0.5:
+                continue
+            o = objs[j]
+            if moving and o.get("masked", True):
+                masked_at.setdefault(rid, []).append(f)
+            if px < 300 or moving is None:
+                continue
+            v = o.get("moving")
+            k = "undecided" if v is None else ("right" if bool(v) == bool(moving) else "wrong")
+            counts[k] += 1
+            per_label.setdefault(label, {"right": 0, "undecided": 0, "wrong": 0})[k] += 1
+            if not moving:
+                static_frames += 1
+                static_unmasked += not o.get("masked", True)
+    movers = [o for o in lab["objects"] if o["moving"] and max(o["pixels"]) >= 300]
+    within = sum(1 for o in movers if any(f - o["frames"][0] <= 3 for f in masked_at.get(o["id"], [])))
+    decided = counts["right"] + counts["wrong"]
+    return {"object_frames": sum(counts.values()), **counts,
+            "right_of_decided": counts["right"] / decided if decided else None,
+            "movers": len(movers), "movers_masked_within_3": within,
+            "static_frames": static_frames, "static_unmasked": static_unmasked, "by_label": per_label}

@@ -5,11 +5,22 @@ the prefetch thread, stereo SLAM with local BA):
 
 * **Decisions** on the synthetic scenarios (``--scenarios``, default mixed, static,
   convoy, crossing, oncoming) with the ground-truth **oracle** boxes (track id = GT id),
-  on ``--seeds`` (default 1,2,3; the thresholds were tuned on seed 0 only): an
-  object-frame counts when the object has at least 300 visible left pixels and is past
-  its first 3 frames in the run; it is right when ``objects.jsonl``'s ``moving`` equals
-  ``gt/objects.json``'s ``moving`` (``null``, undecided, counts as wrong).  Also the
-  undecided fraction, and the moving objects judged static (the costly error).
+  on ``--seeds`` (default 1-6; the thresholds were tuned on seed 0 only), scored by
+  :func:`dynastereo.eval.verdicts.score_verdicts` from the ground truth: an object-frame
+  counts when the object has at least 300 visible left pixels and is past its first 3
+  frames in view; it is right when a reported box matches it with IoU >= 0.5 and its
+  ``moving`` equals the ground truth's (unmatched and ``null``, undecided, count as
+  wrong).  Per scenario the rate pooled over the seeds (and each seed's), the undecided
+  fraction, and the moving objects judged static (the costly error); beside them, KITTI
+  raw 0001's verdicts against its reference labels (``bench_objects.score_verdicts``: right
+  of the decided object-frames).  ``--verdicts-only`` runs just these two and writes
+  ``results/motion_verdicts.json``; with ``--old-commit C`` it also runs commit C's ``src``
+  (``git archive``, each run in its own process) on the same sequences, scored by this
+  checkout's scorer, and prints the pooled rates and each seed's side by side
+  (``results/motion_verdicts_then_now.json``: 6fb24c0 against this code on mixed seeds
+  1-6); ``--gt-poses`` replays the masker and the motion test with the ground-truth poses
+  instead of running the SLAM (``results/motion_verdicts_gt_poses.json``: the verdicts of
+  the masking and motion code alone, both commits).
 * **ATE** (APE RMSE after SE(3) alignment, ``dynastereo.eval.evaluate_files``) with
   masking ``none`` / ``all`` (the thesis: every detection masked, ``motion.mode: all``) /
   ``moving`` (the default: moving and undecided objects masked) on KITTI 06 and 03 (the
@@ -30,13 +41,14 @@ the prefetch thread, stereo SLAM with local BA):
   ground-truth poses): the decisions per label, and overlays of frames 30, 60, 90 written
   to ``docs/motion_raw0001_NNN.jpg`` (docs/guide/masking.md) to check by eye.
 
-Targets: decisions >= 90 % on mixed; KITTI ATE(moving) <= 1.10 x ATE(none);
+Targets: decisions >= 90 % on mixed (pooled over the seeds); KITTI ATE(moving) <= 1.10 x ATE(none);
 convoy / crossing ATE(moving) <= ATE(none) / 3; motion_flow + motion <= 3 ms per frame.
 
 Prints tables of medians; writes benchmarks/results/moving.json.  Run:
 
     DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
-        .venv/bin/python benchmarks/bench_moving.py [--seeds 1,2,3] [--frames 150] [--quick]
+        .venv/bin/python benchmarks/bench_moving.py [--seeds 1,2,3,4,5,6] [--frames 150] [--quick]
+        .venv/bin/python benchmarks/bench_moving.py --verdicts-only   # the verdict rates alone
 """
 
 from __future__ import annotations
@@ -45,22 +57,23 @@ import argparse
 import json
 import logging
 import os
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from _common import data_dir, machine, median, models_dir, results_path, write_json
-from _shared_runs import sequence  # the cached synthetic sequences
+from _common import ROOT, data_dir, machine, median, models_dir, results_path, write_json
+from _shared_runs import RAW_LABELS, head_commit, old_tree, score_raw_labels, sequence
 from dynastereo.api import run_sequence
 from dynastereo.config import Config
 from dynastereo.eval import evaluate_files
-from dynastereo.synth import read_objects
+from dynastereo.eval.verdicts import VerdictScore, score_verdicts
 
 OUT = results_path("moving")
-MIN_PIXELS = 300
-SKIP_FRAMES = 3
+OUT_VERDICTS = results_path("motion_verdicts")
 MODES = ("none", "all", "moving")
 TARGET_ACCURACY = 0.90
 TARGET_KITTI_RATIO = 1.10
@@ -71,27 +84,19 @@ DOCS = Path(__file__).resolve().parent.parent / "docs"
 
 
 def decision_accuracy(run_dir: Path, seq_dir: Path) -> dict:
-    """Decisions in ``run_dir/objects.jsonl`` against ``seq_dir/gt/objects.json`` (module doc)."""
-    gt = read_objects(seq_dir)
-    first: dict[int, int] = {}
-    n = right = undecided = missed = false_moving = 0
-    for line in (run_dir / "objects.jsonl").read_text().splitlines():
-        rec = json.loads(line)
-        f = int(rec["frame"])
-        g = {o.id: o for o in gt.frame(f)}
-        for o in rec["objects"]:
-            tid = int(o["track"])
-            first.setdefault(tid, f)
-            go = g.get(tid)
-            if go is None or go.pixels_left < MIN_PIXELS or f - first[tid] < SKIP_FRAMES:
-                continue
-            n += 1
-            right += o["moving"] == go.moving
-            undecided += o["moving"] is None
-            missed += go.moving and o["moving"] is False
-            false_moving += (not go.moving) and o["moving"] is True
-    return {"object_frames": n, "accuracy": right / n if n else None, "undecided": undecided / n if n else None,
-            "moving_judged_static": missed, "static_judged_moving": false_moving}
+    """The verdicts in ``run_dir/objects.jsonl`` against ``seq_dir/gt/objects.json`` (module doc)."""
+    v = score_verdicts(run_dir, seq_dir)
+    n = v.object_frames
+    return {**v.to_dict(), "accuracy": v.rate, "undecided_fraction": v.undecided / n if n else None}
+
+
+def pooled_verdicts(rows: list[dict]) -> dict:
+    """The counts of ``rows`` (``decision_accuracy``'s) added up, with the pooled rate."""
+    fields = ("object_frames", "right", "undecided", "unmatched", "moving_judged_static", "static_judged_moving")
+    total = VerdictScore(*(sum(r[k] for r in rows) for k in fields))
+    rates = [r["accuracy"] for r in rows if r["accuracy"] is not None]
+    return {**total.to_dict(), "seeds": len(rows), "seed_min": min(rates, default=None),
+            "seed_median": _median(rates)}
 
 
 def motion_ms(run_dir: Path) -> dict:
@@ -169,7 +174,7 @@ def _median(v):
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenarios", default="mixed,static,convoy,crossing,oncoming")
-    ap.add_argument("--seeds", default="1,2,3", help="seeds for the decisions (0 was tuned on)")
+    ap.add_argument("--seeds", default="1,2,3,4,5,6", help="seeds for the decisions (0 was tuned on)")
     ap.add_argument("--ate-seeds", default="1", help="seeds for the synthetic ATE runs")
     ap.add_argument("--frames", type=int, default=150, help="frames per synthetic sequence")
     ap.add_argument("--size", default="640x192")
@@ -180,8 +185,18 @@ def main() -> int:
     ap.add_argument("--overlays", type=int, default=1, help="1: write its overlays to docs/motion_raw0001_*.jpg")
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "dynastereo_bench_synth")
     ap.add_argument("--quick", action="store_true", help="one seed, 60 frames, mixed + convoy, KITTI 06")
-    ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--verdicts-only", action="store_true",
+                    help="only the verdict rates: the synthetic decisions and raw 0001's (results/motion_verdicts.json)")
+    ap.add_argument("--gt-poses", action="store_true",
+                    help="with --verdicts-only: no SLAM; the masker and the motion test replayed with the sequences' "
+                         "ground-truth poses (the verdicts of the masking and motion code alone)")
+    ap.add_argument("--old-commit", default=None,
+                    help="with --verdicts-only: also run this commit's src (git archive, its own process) on the same "
+                         "sequences, scored by this checkout's scorer, paired per seed")
+    ap.add_argument("--out", type=Path, default=None, help="the JSON written (default results/moving.json, "
+                    "results/motion_verdicts.json with --verdicts-only)")
     args = ap.parse_args()
+    args.out = args.out or (OUT_VERDICTS if args.verdicts_only else OUT)
     if args.quick:
         args.seeds, args.ate_seeds, args.frames, args.scenarios, args.kitti = "1", "1", 60, "mixed,convoy", "06"
         args.kitti_variants = "2000"
@@ -195,18 +210,35 @@ def main() -> int:
     ate_seeds = [int(s) for s in args.ate_seeds.split(",") if s]
 
     decisions = []
+    old_src = old_tree(args.old_commit, work / "old") if args.old_commit and args.verdicts_only else None
+    then = []
     for sc in [s for s in args.scenarios.split(",") if s]:
         for seed in seeds:
             seq, _ = sequence(args.cache, sc, args.frames, seed, size)
+            if old_src is not None:  # the old code first, then this checkout's, per sequence
+                out = work / f"{sc}_s{seed}_old"
+                then.append({"scenario": sc, "seed": seed, **run_tree(old_src, seq, out, args.gt_poses),
+                             **decision_accuracy(out, seq)})
+                print(f"{sc:9s} seed {seed} ({args.old_commit}): decisions {then[-1]['accuracy']:.3f}", flush=True)
             out = work / f"{sc}_s{seed}_moving"
-            row = {"scenario": sc, "seed": seed, **run(seq, out, "moving", "oracle"), **decision_accuracy(out, seq)}
-            if seed == seeds[0] and sc in ("mixed", "static"):
+            if args.gt_poses and args.verdicts_only:
+                row = {"scenario": sc, "seed": seed, **run_tree(THIS_SRC, seq, out, True), **decision_accuracy(out, seq),
+                       "ate_m": None, "total_ms": None}
+            else:
+                row = {"scenario": sc, "seed": seed, **run(seq, out, "moving", "oracle"), **decision_accuracy(out, seq)}
+            if seed == seeds[0] and sc in ("mixed", "static") and not args.verdicts_only:
                 row["replay"] = replay_cost(seq, out, "oracle")
             decisions.append(row)
             print(f"{sc:9s} seed {seed}: decisions {row['accuracy']:.3f} right of {row['object_frames']} object-frames"
-                  f" (undecided {row['undecided']:.3f}, moving judged static {row['moving_judged_static']}, "
+                  f" (undecided {row['undecided_fraction']:.3f}, unmatched {row['unmatched']}, moving judged static "
+                  f"{row['moving_judged_static']}, "
                   f"static judged moving {row['static_judged_moving']}); ATE {row['ate_m']} m; "
                   f"{row['total_ms']} ms/frame", flush=True)
+
+    pooled = {sc: pooled_verdicts([r for r in decisions if r["scenario"] == sc])
+              for sc in dict.fromkeys(r["scenario"] for r in decisions)}
+    if args.verdicts_only:
+        return verdicts_only(args, work, seeds, decisions, pooled, then)
 
     ate = []
     for sc in ("convoy", "crossing"):
@@ -261,7 +293,7 @@ def main() -> int:
     for s, v in default.items():
         if {"none", "moving"} <= set(v):
             ratios[s]["moving_over_none_default_run"] = round(v["moving"] / v["none"], 3)
-    acc_mixed = _median([r["accuracy"] for r in decisions if r["scenario"] == "mixed"])
+    acc_mixed = pooled.get("mixed", {}).get("rate")
     # the cost target is judged on the test alone (replays), the in-pipeline medians reported beside
     replays = [r["replay"] for r in decisions + ate if "replay" in r]
     ms = _median([r["total_ms"]["median"] for r in replays])
@@ -278,12 +310,7 @@ def main() -> int:
         "synth_moving_over_none": {"target": round(TARGET_SYNTH_RATIO, 4), "met": bool(synth_ok) and all(synth_ok)},
         "ms_per_frame": {"value": ms_worst, "target": TARGET_MS, "met": ms_worst is not None and ms_worst <= TARGET_MS},
     }
-    print("\ndecisions (median over seeds), oracle boxes, objects >= 300 px after their first 3 frames")
-    print(f"{'scenario':10s} {'accuracy':>9s} {'undecided':>10s} {'object-frames':>14s}")
-    for sc in dict.fromkeys(r["scenario"] for r in decisions):
-        rs = [r for r in decisions if r["scenario"] == sc]
-        print(f"{sc:10s} {_median([r['accuracy'] for r in rs]):9.3f} {_median([r['undecided'] for r in rs]):10.3f} "
-              f"{sum(r['object_frames'] for r in rs):14d}")
+    print_verdicts(pooled, raw)
     print("\nATE (m): masking none / all (thesis) / moving (default); KITTI: medians over the n_features variants")
     for s, v in table.items():
         r = ratios.get(s, {})
@@ -308,6 +335,7 @@ def main() -> int:
         "config": {"motion": vars(Config().motion), "frames": args.frames, "size": args.size, "seeds": seeds,
                    "ate_seeds": ate_seeds, "tuned_on_seed": 0, "kitti_n_features": args.kitti_variants},
         "decisions": decisions,
+        "decisions_pooled": pooled,
         "ate": ate,
         "ate_table": table,
         "ratios": ratios,
@@ -315,6 +343,117 @@ def main() -> int:
         "ms": {"replay_motion_flow": flow_ms, "replay_motion": test_ms, "replay_total": ms,
                "replay_total_worst_sequence": ms_worst, "in_pipeline_total": pipe_ms},
         "targets": targets,
+    }
+    write_json(args.out, result, default=float)
+    print(f"-> {args.out}")
+    return 0
+
+
+# the child of --old-commit: one default run with oracle boxes of the tree on PYTHONPATH
+OLD_CHILD = (
+    "import sys, json, time\n"
+    "from dynastereo.api import run_sequence\n"
+    "from dynastereo.config import Config\n"
+    "cfg = Config().with_overrides({'detector.name': 'oracle'})\n"
+    "t = time.perf_counter()\n"
+    "res = run_sequence(sys.argv[1], sys.argv[2], cfg, stereo_check=False)\n"
+    "print(json.dumps({'wall_s': round(time.perf_counter() - t, 2), 'lost': len(res.lost)}))\n"
+)
+
+
+# the child of --gt-poses: the masker and the motion test of the tree on PYTHONPATH with the
+# ground-truth poses (no SLAM), objects.jsonl's box / track / moving written
+REPLAY_CHILD = (
+    "import sys, json, time\n"
+    "from pathlib import Path\n"
+    "from dynastereo.config import Config\n"
+    "from dynastereo.eval.trajectory import read_trajectory\n"
+    "from dynastereo.io import open_sequence\n"
+    "from dynastereo.masking import build_masker\n"
+    "try:\n"
+    "    from dynastereo.objects.motion import MotionJudge, SceneFlow\n"
+    "except ImportError:  # a tree from before the objects package\n"
+    "    from dynastereo.masking.motion import MotionJudge, SceneFlow\n"
+    "seq_dir, out = Path(sys.argv[1]), Path(sys.argv[2])\n"
+    "cfg = Config().with_overrides({'detector.name': 'oracle'})\n"
+    "seq = open_sequence(seq_dir)\n"
+    "masker = build_masker(cfg, seq.calibration, models_dir=None, ground_truth=seq_dir)\n"
+    "poses = read_trajectory(seq_dir.parent.parent / 'poses' / (seq_dir.name + '.txt')).poses\n"
+    "flow, judge = SceneFlow(cfg.motion), MotionJudge(cfg.motion, seq.calibration)\n"
+    "t = time.perf_counter()\n"
+    "lines = []\n"
+    "for i in range(min(len(seq), len(poses))):\n"
+    "    f = seq.frame(i)\n"
+    "    m = masker.mask(f)\n"
+    "    m.flow = flow.measure(f, m)\n"
+    "    judge.select(m)\n"
+    "    judge.update(m, poses[i][:3], ok=True)\n"
+    "    lines.append(json.dumps({'frame': i, 'objects': [{'box': [float(v) for v in o.box], 'track': int(o.track_id),\n"
+    "                                                      'moving': o.moving} for o in m.objects]}))\n"
+    "out.mkdir(parents=True, exist_ok=True)\n"
+    "(out / 'objects.jsonl').write_text('\\n'.join(lines) + '\\n')\n"
+    "print(json.dumps({'wall_s': round(time.perf_counter() - t, 2), 'lost': 0}))\n"
+)
+THIS_SRC = ROOT / "src"
+
+
+def run_tree(src: Path, seq: Path, out: Path, gt_poses: bool = False) -> dict:
+    """One run of the tree ``src`` (its own process): the default pipeline with oracle boxes,
+    like :func:`run`'s ``moving``, or with ``gt_poses`` the replay without SLAM."""
+    p = subprocess.run([sys.executable, "-c", REPLAY_CHILD if gt_poses else OLD_CHILD, str(seq), str(out)],
+                       env=dict(os.environ, PYTHONPATH=str(src)), capture_output=True, text=True)
+    if p.returncode != 0:
+        raise RuntimeError(f"{src} on {seq}: exit {p.returncode}\n{p.stderr[-2000:]}")
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def print_verdicts(pooled: dict, raw: dict | None) -> None:
+    """The verdict rates: each scenario's pooled over its seeds, and raw 0001's beside."""
+    print("\nverdicts, oracle boxes: ground-truth object-frames >= 300 px after their first 3 frames, "
+          "right = matched (IoU >= 0.5) and moving as the ground truth (pooled over the seeds)")
+    print(f"{'scenario':10s} {'rate':>6s} {'seed min':>9s} {'seed med':>9s} {'undecided':>10s} {'unmatched':>10s} "
+          f"{'mov->stat':>10s} {'stat->mov':>10s} {'object-frames':>14s}")
+    for sc, p in pooled.items():
+        print(f"{sc:10s} {p['rate']:6.3f} {p['seed_min']:9.3f} {p['seed_median']:9.3f} {p['undecided']:10d} "
+              f"{p['unmatched']:10d} {p['moving_judged_static']:10d} {p['static_judged_moving']:10d} "
+              f"{p['object_frames']:14d}")
+    v = (raw or {}).get("verdicts")
+    if v:
+        print(f"KITTI raw 0001 (default detector, reference labels): {v['right_of_decided']:.3f} right of the "
+              f"{v['right'] + v['wrong']} decided object-frames, {v['undecided']} undecided of {v['object_frames']}")
+
+
+def verdicts_only(args, work: Path, seeds: list[int], decisions: list[dict], pooled: dict,
+                  then: list[dict]) -> int:
+    """``--verdicts-only``: raw 0001's verdicts beside the synthetic ones (and ``then``: an old
+    commit's decisions on the same sequences); the JSON."""
+    raw = None
+    compare = None
+    if then:
+        compare = {"old_commit": args.old_commit, "new": head_commit(), "decisions_old": then,
+                   "pooled_old": {sc: pooled_verdicts([r for r in then if r["scenario"] == sc]) for sc in pooled}}
+        print(f"\n{'scenario':10s} {'rate ' + args.old_commit:>14s} {'rate now':>9s}  per seed (old -> now)")
+        for sc, p in pooled.items():
+            pairs = [(a["accuracy"], b["accuracy"]) for a, b in zip(then, decisions) if a["scenario"] == sc]
+            print(f"{sc:10s} {compare['pooled_old'][sc]['rate']:14.3f} {p['rate']:9.3f}  "
+                  + ", ".join(f"{a:.3f}->{b:.3f}" for a, b in pairs))
+    data = data_dir(required=False)
+    if data and args.raw:
+        drive = Path(data) / "kitti_raw" / "2011_09_26" / "2011_09_26_drive_0001_sync"
+        raw = raw_drive(drive, work, None)
+    print_verdicts(pooled, raw)
+    mixed = pooled.get("mixed", {}).get("rate")
+    result = {
+        "benchmark": "motion_verdicts",
+        "machine": machine(),
+        "config": {"motion": vars(Config().motion), "frames": args.frames, "size": args.size, "seeds": seeds,
+                   "tuned_on_seed": 0, "poses": "ground truth (replayed, no SLAM)" if args.gt_poses else "SLAM"},
+        "decisions": decisions,
+        "decisions_pooled": pooled,
+        "kitti_raw_0001": raw,
+        "compared": compare,
+        "targets": {"mixed_accuracy": {"value": mixed, "target": TARGET_ACCURACY,
+                                       "met": mixed is not None and mixed >= TARGET_ACCURACY}},
     }
     write_json(args.out, result, default=float)
     print(f"-> {args.out}")
@@ -347,6 +486,7 @@ def raw_drive(drive: Path, work: Path, overlays: Path | None) -> dict:
     out = work / "raw0001_moving"
     res = run_sequence(drive, out, Config(), stereo_check=False, observers=obs, overwrite=True)
     return {"frames": len(res.frames), "lost": len(res.lost), "decisions": _kitti_decisions(out),
+            "verdicts": score_raw_labels(out) if RAW_LABELS.is_file() else None,
             "overlays": sorted(str(p) for p in overlays.glob("motion_raw0001_*.jpg")) if overlays else [],
             **motion_ms(out)}
 

@@ -52,7 +52,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from _common import ROOT, data_dir, machine, median, models_dir, results_path, write_json
+from _common import data_dir, machine, median, models_dir, results_path, write_json
+from _shared_runs import RAW_LABELS as LABELS  # raw 0001's reference labels
+from _shared_runs import score_raw_labels as score_verdicts  # their scoring (tests use it from here)
 from _shared_runs import sequence  # the cached synthetic sequences
 from dynastereo.api import run_sequence
 from dynastereo.config import Config
@@ -60,7 +62,6 @@ from dynastereo.eval import evaluate_files
 from dynastereo.synth import read_objects
 
 OUT = results_path("objects")
-LABELS = ROOT / "tests" / "data" / "raw0001_motion_labels.json"
 DRIVE = Path("kitti_raw") / "2011_09_26" / "2011_09_26_drive_0001_sync"
 BANDS = ((0.0, 15.0), (15.0, 30.0), (30.0, 50.0))
 NEAR = 30.0
@@ -439,55 +440,6 @@ def print_raw(raw: dict) -> None:
               f"{a['drift_percent']:.3f} % ({a['drift_range'][0]:.3f}-{a['drift_range'][1]:.3f});  against the "
               f"devkit's poses at the packets' stamps: ATE {a['ate_m_packets']:.4f} m, drift "
               f"{a['drift_percent_packets']:.3f} %")
-
-
-def score_verdicts(run_dir: Path, labels_path: Path) -> dict:
-    """The motion test's verdicts in ``run_dir/objects.jsonl`` against the reference labels
-    (``labels_path``): per reference object-frame (>= 300 px, labelled moving or static),
-    the run's object matched by box IoU >= 0.5 (the best); right / undecided / wrong
-    (an unmatched reference object is not counted); movers masked within 3 frames of
-    their first appearance; static object-frames left unmasked."""
-    from dynastereo.masking.boxes import box_iou
-
-    lab = json.loads(labels_path.read_text())
-    by_frame: dict[int, list] = {}
-    for o in lab["objects"]:
-        for f, box, px in zip(o["frames"], o["boxes"], o["pixels"]):
-            by_frame.setdefault(int(f), []).append((o["id"], o["label"], o["moving"], box, px))
-    counts = {"right": 0, "undecided": 0, "wrong": 0}
-    per_label: dict[str, dict[str, int]] = {}
-    masked_at: dict[int, list[int]] = {}
-    static_frames = static_unmasked = 0
-    for rec in _objects_lines(run_dir):
-        f = int(rec["frame"])
-        refs = by_frame.get(f, [])
-        objs = rec["objects"]
-        if not refs or not objs:
-            continue
-        iou = box_iou([r[3] for r in refs], [o["box"] for o in objs])
-        for i, (rid, label, moving, box, px) in enumerate(refs):
-            j = int(np.argmax(iou[i]))
-            if iou[i, j] < 0.5:
-                continue
-            o = objs[j]
-            if moving and o.get("masked", True):
-                masked_at.setdefault(rid, []).append(f)
-            if px < 300 or moving is None:
-                continue
-            v = o.get("moving")
-            k = "undecided" if v is None else ("right" if bool(v) == bool(moving) else "wrong")
-            counts[k] += 1
-            per_label.setdefault(label, {"right": 0, "undecided": 0, "wrong": 0})[k] += 1
-            if not moving:
-                static_frames += 1
-                static_unmasked += not o.get("masked", True)
-    movers = [o for o in lab["objects"] if o["moving"] and max(o["pixels"]) >= 300]
-    within = sum(1 for o in movers if any(f - o["frames"][0] <= 3 for f in masked_at.get(o["id"], [])))
-    decided = counts["right"] + counts["wrong"]
-    return {"object_frames": sum(counts.values()), **counts,
-            "right_of_decided": counts["right"] / decided if decided else None,
-            "movers": len(movers), "movers_masked_within_3": within,
-            "static_frames": static_frames, "static_unmasked": static_unmasked, "by_label": per_label}
 
 
 # ------------------------------------------------------------------ the reference labels

@@ -38,6 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from _common import CLIPS, ROOT, data_dir, machine, now, results_path, write_json
+from _shared_runs import head_commit as _head
+from _shared_runs import old_tree
 
 OUT = results_path("then_now")
 VARIANTS = tuple(range(1900, 2176, 25))
@@ -57,14 +59,6 @@ CHILD = (
 )
 
 
-def old_tree(commit: str, dest: Path) -> Path:
-    """``src`` of ``commit`` unpacked under ``dest`` (``git archive``)."""
-    dest.mkdir(parents=True, exist_ok=True)
-    arc = subprocess.run(["git", "-C", str(ROOT), "archive", commit, "src"], capture_output=True, check=True)
-    subprocess.run(["tar", "-x", "-C", str(dest)], input=arc.stdout, check=True)
-    return dest / "src"
-
-
 def run_one(src: Path, seq: Path, out: Path, nf: int, masker: str, mode: str) -> dict:
     env = dict(os.environ, PYTHONPATH=str(src))
     shutil.rmtree(out, ignore_errors=True)  # this benchmark's own folder: the API refuses to overwrite by default
@@ -73,14 +67,6 @@ def run_one(src: Path, seq: Path, out: Path, nf: int, masker: str, mode: str) ->
     if p.returncode != 0:
         raise RuntimeError(f"{src} on {seq.name}, n_features {nf}: exit {p.returncode}\n{p.stderr[-2000:]}")
     return json.loads(p.stdout.strip().splitlines()[-1])
-
-
-def _head() -> str:
-    """This checkout's commit, ``+changes`` when its ``src`` differs from it."""
-    git = ["git", "-C", str(ROOT)]
-    head = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    dirty = subprocess.run([*git, "status", "--porcelain", "src"], capture_output=True, text=True).stdout.strip()
-    return head + ("+changes" if dirty else "")
 
 
 def accuracy(run_dir: Path, gt: Path) -> dict:
