@@ -26,22 +26,28 @@ def _module(path: Path, root: Path) -> tuple[str, bool]:
     return ".".join(rel.parts[:-1] if is_pkg else rel.parts), is_pkg
 
 
+def _targets(node: ast.AST, module: str, is_pkg: bool) -> list[str]:
+    """The dotted modules an import statement in ``module`` names (none for other nodes)."""
+    if isinstance(node, ast.ImportFrom):
+        if not node.level:
+            return [node.module or ""]
+        base = module.split(".") if is_pkg else module.split(".")[:-1]
+        base = base[: len(base) - (node.level - 1)]
+        return [".".join(base + ([node.module] if node.module else []))]
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names]
+    return []
+
+
 def imports_of(source: str, module: str, is_pkg: bool) -> set[str]:
     """Every ``dynastereo`` module or name that ``source`` (the module ``module``) imports,
     anywhere in the file, as dotted names."""
     out = set()
     for node in ast.walk(ast.parse(source)):
-        if isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = module.split(".") if is_pkg else module.split(".")[:-1]
-                base = base[: len(base) - (node.level - 1)]
-                target = ".".join(base + ([node.module] if node.module else []))
-            else:
-                target = node.module or ""
+        for target in _targets(node, module, is_pkg):
             out.add(target)
-            out.update(f"{target}.{a.name}" for a in node.names)
-        elif isinstance(node, ast.Import):
-            out.update(a.name for a in node.names)
+            if isinstance(node, ast.ImportFrom):
+                out.update(f"{target}.{a.name}" for a in node.names)
     return {m for m in out if m.split(".")[0] == "dynastereo"}
 
 
@@ -179,19 +185,7 @@ def unresolved_imports(root: Path = SRC) -> list[str]:
     for p in files:
         name, is_pkg = _module(p, root)
         for node in ast.walk(ast.parse(p.read_text(encoding="utf-8"))):
-            if isinstance(node, ast.ImportFrom):
-                if node.level:
-                    base = name.split(".") if is_pkg else name.split(".")[:-1]
-                    base = base[: len(base) - (node.level - 1)]
-                    target = ".".join(base + ([node.module] if node.module else []))
-                else:
-                    target = node.module or ""
-                targets = [target]
-            elif isinstance(node, ast.Import):
-                targets = [a.name for a in node.names]
-            else:
-                continue
-            for t in targets:
+            for t in _targets(node, name, is_pkg):
                 if t.split(".")[0] == root.name and t not in modules:
                     out.append(f"{p.relative_to(root).as_posix()}:{node.lineno} {t}")
     return out

@@ -370,7 +370,7 @@ def test_live_node_masks_only_what_moves(convoy: Path) -> None:
     from dynastereo.io import open_sequence
     from dynastereo.masking import build_masker
     from dynastereo.ros.core import StereoInput, StereoNodeCore
-    from dynastereo.ros.ros1 import _objects_view
+    from dynastereo.ros.convert import objects_view
     from dynastereo.synth import OracleDetector
 
     class ByImage:  # the oracle finds the frame from the image itself (the node numbers frames itself)
@@ -399,7 +399,7 @@ def test_live_node_masks_only_what_moves(convoy: Path) -> None:
     for o in static:  # left to SLAM: not in the published mask
         lab = res.masks.labels_left == objs.index(o) + 1
         assert not res.masks.left[lab].any()
-    view = _objects_view(res.frame.left, res.masks.left, res.masks)
+    view = objects_view(res.frame.left, res.masks.left, res.masks)
     assert view.shape == res.frame.left.shape[:2] + (3,)
 
 

@@ -384,3 +384,25 @@ def masked_image(img: np.ndarray, mask: np.ndarray) -> np.ndarray:
     out = img.copy()
     out[mask > 0] = 0
     return out
+
+
+def objects_view(image: np.ndarray, mask: np.ndarray, masks: Any) -> np.ndarray:
+    """The left image with the objects coloured by the motion test's verdicts (``left/objects``)."""
+    from ..viz.draw import draw_objects
+
+    if masks is None:
+        return draw_objects(image, mask, [])
+    return draw_objects(image, mask, masks.objects, masks.labels_left)
+
+
+def image_outputs(frame: Any, masks: Any) -> tuple[tuple[str, Any, str | None], ...]:
+    """A live node's image topics for one frame: ``(topic under the namespace, a function that
+    makes the image, encoding or None for the image's own)``. The images are made only for the
+    topics someone listens to, so each comes as a function."""
+    shape = frame.left.shape[:2]
+    ml = masks.left if masks is not None else np.zeros(shape, np.uint8)
+    mr = masks.right if masks is not None else np.zeros(shape, np.uint8)
+    return (("left/masked", lambda: masked_image(frame.left, ml), None),
+            ("right/masked", lambda: masked_image(frame.right, mr), None),
+            ("left/mask", lambda: ml, "mono8"), ("right/mask", lambda: mr, "mono8"),
+            ("left/objects", lambda: objects_view(frame.left, ml, masks), None))

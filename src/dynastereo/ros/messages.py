@@ -60,6 +60,24 @@ DEFAULT_LEFT_FRAME = "camera_left"
 DEFAULT_RIGHT_FRAME = "camera_right"
 ODOM_FRAME = "odom"
 
+
+
+@dataclass
+class PlayLog:
+    """What a player (``dynastereo play``, ROS 1 or ROS 2) published, and how late."""
+
+    frames: list[int] = field(default_factory=list)
+    stamps_ns: list[int] = field(default_factory=list)
+    late_ms: list[float] = field(default_factory=list)  # publication later than scheduled
+    answered: int = 0  # lock-step: frames whose odometry came back
+    timeouts: int = 0  # lock-step: frames whose odometry did not come back in time
+
+    def summary(self) -> dict[str, Any]:
+        late = np.asarray(self.late_ms) if self.late_ms else np.zeros(1)
+        return {"published": len(self.frames), "answered": self.answered, "timeouts": self.timeouts,
+                "late_ms_median": round(float(np.median(late)), 3), "late_ms_max": round(float(late.max()), 3)}
+
+
 OUTPUT_TOPICS: dict[str, str] = {
     "odometry": "/dynastereo/odometry",
     "tf": "/tf",

@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -28,15 +27,9 @@ from .messages import (
     DEFAULT_RIGHT_FRAME,
     DEFAULT_RIGHT_INFO,
     DEFAULT_RIGHT_TOPIC,
+    PlayLog,
 )
 from .ros1 import GenpyBuilder, import_rospy
-
-
-@dataclass
-class PlayLog:
-    frames: list[int] = field(default_factory=list)
-    stamps_ns: list[int] = field(default_factory=list)
-    late_ms: list[float] = field(default_factory=list)  # publication later than scheduled
 
 
 class StereoPlayer:

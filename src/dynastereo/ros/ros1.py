@@ -61,7 +61,7 @@ from ..config import Config, load_config, to_dict
 from ..dotted import flatten_dotted, nest_dotted
 from ..errors import DynastereoError, RosUnavailable
 from ..slam.warmup import warm_up_kernels
-from .convert import CameraInfoData, ImageDecoder, calibration_from_camera_info, masked_image, stamp_split
+from .convert import CameraInfoData, ImageDecoder, calibration_from_camera_info, image_outputs, stamp_split
 from .core import LIVE_SECTIONS, NodeResult, StereoInput, StereoNodeCore, flatten_live
 from .messages import (
     DEFAULT_LEFT_INFO,
@@ -93,14 +93,6 @@ def import_rospy():
             "then use a venv created with '/usr/bin/python3 -m venv --system-site-packages' (make venv does)") from None
 
 
-
-def _objects_view(image: np.ndarray, mask: np.ndarray, masks: Any) -> np.ndarray:
-    """The left image with the objects coloured by the motion test's verdicts (``~left/objects``)."""
-    from ..viz.draw import draw_objects
-
-    if masks is None:
-        return draw_objects(image, mask, [])
-    return draw_objects(image, mask, masks.objects, masks.labels_left)
 
 class GenpyBuilder(MessageBuilder):
     """Messages as rospy's (genpy) classes."""
@@ -379,15 +371,8 @@ class Ros1Node:
         return self.pub_disp.get_num_connections() > 0
 
     def publish_images(self, r: NodeResult, disparity: DisparityData | None) -> None:
-        frame, masks = r.frame, r.masks
-        shape = frame.left.shape[:2]
-        ml = masks.left if masks is not None else np.zeros(shape, np.uint8)
-        mr = masks.right if masks is not None else np.zeros(shape, np.uint8)
         fid = r.odometry.child_frame_id
-        for key, img, enc in (("left/masked", lambda: masked_image(frame.left, ml), None),
-                              ("right/masked", lambda: masked_image(frame.right, mr), None),
-                              ("left/mask", lambda: ml, "mono8"), ("right/mask", lambda: mr, "mono8"),
-                              ("left/objects", lambda: _objects_view(frame.left, ml, masks), None)):
+        for key, img, enc in image_outputs(r.frame, r.masks):
             pub = self.pub_img[key]
             if pub.get_num_connections() > 0:
                 pub.publish(self.b.image(img(), r.stamp_ns, fid, enc, seq=r.position))
@@ -398,7 +383,7 @@ class Ros1Node:
         self._path[1].append(r.stamp_ns)
         if self.pub_path.get_num_connections() > 0:
             self.pub_path.publish(self.b.path(*self._path, odom, seq=r.position))
-        objs = masks.objects if masks is not None else []
+        objs = r.masks.objects if r.masks is not None else []
         self._object_paths.add(objs)
         if self.pub_objects is not None and self.pub_objects.get_num_connections() > 0:
             self.pub_objects.publish(self.b.object_markers(objs, r.stamp_ns, odom, r.position,

@@ -50,7 +50,7 @@ import numpy as np
 from ..config import Config, load_config
 from ..dotted import flatten_dotted
 from ..errors import ConfigError, DynastereoError, InputError
-from .convert import CameraInfoData, ImageDecoder, calibration_from_camera_info, masked_image
+from .convert import CameraInfoData, ImageDecoder, calibration_from_camera_info, image_outputs
 from .core import LIVE_SECTIONS, NodeResult, StereoInput, StereoNodeCore
 from .dds import (
     GID_BYTES,
@@ -448,17 +448,8 @@ class Ros2Node:
         return self.pub_disp.matched() > 0
 
     def publish_images(self, r: NodeResult, disparity: DisparityData | None) -> None:
-        from .ros1 import _objects_view
-
-        frame, masks = r.frame, r.masks
-        shape = frame.left.shape[:2]
-        ml = masks.left if masks is not None else np.zeros(shape, np.uint8)
-        mr = masks.right if masks is not None else np.zeros(shape, np.uint8)
         fid = r.odometry.child_frame_id
-        for key, img, enc in (("left/masked", lambda: masked_image(frame.left, ml), None),
-                              ("right/masked", lambda: masked_image(frame.right, mr), None),
-                              ("left/mask", lambda: ml, "mono8"), ("right/mask", lambda: mr, "mono8"),
-                              ("left/objects", lambda: _objects_view(frame.left, ml, masks), None)):
+        for key, img, enc in image_outputs(r.frame, r.masks):
             pub = self.pub_img[key]
             if pub.matched() > 0:
                 pub.publish(self.b.image(img(), r.stamp_ns, fid, enc))
@@ -469,7 +460,7 @@ class Ros2Node:
         self._path[1].append(r.stamp_ns)
         if self.pub_path.matched() > 0:
             self.pub_path.publish(self.b.path(*self._path, odom))
-        objs = masks.objects if masks is not None else []
+        objs = r.masks.objects if r.masks is not None else []
         self._object_paths.add(objs)
         if self.pub_objects.matched() > 0:
             self.pub_objects.publish(self.b.object_markers(objs, r.stamp_ns, odom, r.position,

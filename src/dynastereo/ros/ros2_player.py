@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -30,22 +29,9 @@ from .messages import (
     DEFAULT_RIGHT_FRAME,
     DEFAULT_RIGHT_INFO,
     DEFAULT_RIGHT_TOPIC,
+    PlayLog,
     OUTPUT_TOPICS,
 )
-
-
-@dataclass
-class PlayLog:
-    frames: list[int] = field(default_factory=list)
-    stamps_ns: list[int] = field(default_factory=list)
-    late_ms: list[float] = field(default_factory=list)  # publication later than scheduled
-    answered: int = 0  # lock-step: frames whose odometry came back
-    timeouts: int = 0  # lock-step: frames whose odometry did not come back in time
-
-    def summary(self) -> dict[str, Any]:
-        late = np.asarray(self.late_ms) if self.late_ms else np.zeros(1)
-        return {"published": len(self.frames), "answered": self.answered, "timeouts": self.timeouts,
-                "late_ms_median": round(float(np.median(late)), 3), "late_ms_max": round(float(late.max()), 3)}
 
 
 class Ros2Player:
