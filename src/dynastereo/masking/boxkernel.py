@@ -413,6 +413,25 @@ def _dilate(m, out, pre, se_lo, se_hi):  # pragma: no cover - compiled
 # one box's outline
 # --------------------------------------------------------------------------------------
 @jit
+def _median_valid(d, n_valid):  # pragma: no cover - compiled
+    """The median of the ``n_valid`` valid (> 0) values of ``d`` as np.median gives it
+    (float32: the mean of the middle two); 0 without any."""
+    if n_valid == 0:
+        return 0.0
+    vals = np.empty(n_valid, np.float32)
+    j = 0
+    for r in range(d.shape[0]):
+        for c in range(d.shape[1]):
+            if d[r, c] > 0:
+                vals[j] = d[r, c]
+                j += 1
+    vals.sort()
+    if n_valid % 2:
+        return np.float64(vals[n_valid // 2])
+    return np.float64((vals[n_valid // 2 - 1] + vals[n_valid // 2]) / np.float32(2.0))
+
+
+@jit
 def _outline_box(disp, ox, oy, x0, y0, x1, y1, cover, cx0b, cy0b, has_cover, has_ex, ex_lo, ex_hi,
                  prm, table, se_lo, se_hi, mask):  # pragma: no cover - compiled
     """:func:`.outline.object_mask_in_roi` of the box ``x0, y0, x1, y1`` (its disparity read
@@ -433,25 +452,10 @@ def _outline_box(disp, ox, oy, x0, y0, x1, y1, cover, cx0b, cy0b, has_cover, has
             d[r, c] = v
             if v > 0:
                 n_valid += 1
-    # the median valid disparity (float32, numpy's mean of the middle two)
-    med = 0.0
-    if n_valid:
-        vals = np.empty(n_valid, np.float32)
-        j = 0
-        for r in range(bh):
-            for c in range(bw):
-                if d[r, c] > 0:
-                    vals[j] = d[r, c]
-                    j += 1
-        vals.sort()
-        if n_valid % 2:
-            med = np.float64(vals[n_valid // 2])
-        else:
-            med = np.float64((vals[n_valid // 2 - 1] + vals[n_valid // 2]) / np.float32(2.0))
-    if area < prm[P_MIN_PIXELS] or min(bh, bw) < prm[P_MIN_SIDE]:
-        return TINY, med, med, med, 0
-    if n_valid < max(prm[P_MIN_VALID] * area, 8.0):
-        return NO_DISPARITY, med, med, med, 0
+    tiny = area < prm[P_MIN_PIXELS] or min(bh, bw) < prm[P_MIN_SIDE]
+    if tiny or n_valid < max(prm[P_MIN_VALID] * area, 8.0):
+        med = _median_valid(d, n_valid)
+        return (TINY if tiny else NO_DISPARITY), med, med, med, 0
     # the road's disparity + its tolerance, per row (float32 as GroundLine.at)
     use_top = prm[P_USE_ROAD] > 0
     top = np.empty(bh, np.float32)
