@@ -37,6 +37,7 @@ def assert_same_outlines(disp, boxes, shape, cfg, ground=None, max_disparity=Non
     np.testing.assert_array_equal(a.labels, b.labels)
     np.testing.assert_array_equal(a.pixels, b.pixels)
     np.testing.assert_array_equal(a.rois, b.rois)
+    np.testing.assert_array_equal(a.mask, np.where(b.labels > 0, 255, 0).astype(np.uint8))
     return b
 
 
@@ -48,6 +49,7 @@ def assert_same_transfer(o, disp, origin=(0, 0), **kw):
             b = transfer_labels_numpy(o.labels, o.disparity, o.rois, **args)
             np.testing.assert_array_equal(a.labels, b.labels)
             np.testing.assert_array_equal(a.pixels, b.pixels)
+            np.testing.assert_array_equal(a.mask, np.where(b.labels > 0, 255, 0).astype(np.uint8))
             np.testing.assert_allclose(np.reshape(a.models, (-1, 3)), np.reshape(b.models, (-1, 3)),
                                        rtol=1e-9, atol=1e-9)
 
@@ -211,5 +213,7 @@ def test_the_kernels_agree_with_the_per_box_path_on_real_frames(clip, data_dir, 
                                   sweep=masker._sweep(), occluded=oc.transfer_occluded)
         np.testing.assert_array_equal(m.labels_left, o.labels)
         np.testing.assert_array_equal(m.labels_right, t.labels)
+        np.testing.assert_array_equal(m.left, np.where(o.labels > 0, 255, 0).astype(np.uint8))
+        np.testing.assert_array_equal(m.right, np.where(t.labels > 0, 255, 0).astype(np.uint8))
         assert [ob.method for ob in m.objects] == o.methods
     assert n_objects > 0

@@ -579,12 +579,13 @@ def _tol(d, prm):  # pragma: no cover - compiled
 
 
 @jit
-def outline_frame(disp, ox, oy, rois, prm, table, se_lo, se_hi, labels, disparity, method, lo, hi,
+def outline_frame(disp, ox, oy, rois, prm, table, se_lo, se_hi, labels, mask, disparity, method, lo, hi,
                   pixels):  # pragma: no cover - compiled
     """:func:`.outline.outline_objects` of all the boxes ``rois`` (N, 4) in one call: the
     outlines, one peak one object (the claims), small outlines to boxes, the label image
-    ``labels`` painted far to near (box fallbacks first) and each object's ``disparity``
-    (float32), ``method`` (code), accepted range ``lo .. hi`` and ``pixels``."""
+    ``labels`` painted far to near (box fallbacks first; ``mask``: 255 where any is) and
+    each object's ``disparity`` (float32), ``method`` (code), accepted range ``lo .. hi``
+    and ``pixels``."""
     n = rois.shape[0]
     h, w = labels.shape
     # the band covering the boxes, and how many boxes cover each of its pixels
@@ -706,6 +707,7 @@ def outline_frame(disp, ox, oy, rois, prm, table, se_lo, se_hi, labels, disparit
                 for x in range(x0, x1):
                     if method[i] != OUTLINE or m[y - y0, x - x0] > 0:
                         labels[y, x] = i + 1
+                        mask[y, x] = 255
     for i in range(n):
         c = 0
         for y in range(rois[i, 1], rois[i, 3]):
@@ -850,13 +852,13 @@ def _grow(rect, i, rx0, ry0, rx1, ry1):  # pragma: no cover - compiled
 
 @jit
 def transfer_frame(left, disparities, rois, affine, disp, ox, oy, ranges, has_range, weak, dmin, dmax, max_slope,
-                   occluded, occluded_margin, right, pixels, models):  # pragma: no cover - compiled
+                   occluded, occluded_margin, right, mask, pixels, models):  # pragma: no cover - compiled
     """:func:`.transfer.transfer_labels` of all the objects in one call: far to near, each
     object's left pixels (label ``i + 1`` in its ROI; with ``occluded`` also those of its box
     a nearer object covers) moved into ``right`` -- swept over ``dmin .. dmax`` without a
     disparity, by the affine model with ``affine`` (a good fit), else by the whole-pixel
     disparity -- and continued to the right border when the box touches the left image's;
-    ``pixels`` and ``models`` (a, b, c) per object."""
+    ``pixels`` and ``models`` (a, b, c) per object; ``mask``: 255 where any object is."""
     h, w = right.shape
     n = rois.shape[0]
     rect = np.zeros((n, 4), np.int64)
@@ -943,4 +945,6 @@ def transfer_frame(left, disparities, rois, affine, disp, ox, oy, ranges, has_ra
             for x in range(rect[i, 0], rect[i, 2]):
                 if right[y, x] == i + 1:
                     c += 1
+                if right[y, x] > 0:
+                    mask[y, x] = 255
         pixels[i] = c

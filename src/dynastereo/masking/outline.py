@@ -84,10 +84,13 @@ class OutlineResult:
     pixels: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (N,) pixels in labels
     ranges: list[tuple[float, float]] = field(default_factory=list)  # accepted disparity range
     ground: GroundLine | None = None  # the road line given (used only when ``ground.ok``)
+    painted: np.ndarray | None = None  # uint8 (H, W), 255 = any object, when the kernel made it
 
     @property
     def mask(self) -> np.ndarray:
         """uint8 mask, 255 = any object."""
+        if self.painted is not None:
+            return self.painted
         return np.where(self.labels > 0, np.uint8(255), np.uint8(0))
 
 
@@ -300,6 +303,7 @@ def outline_objects(
     rois = clip_boxes(boxes, (h, w))
     n = len(rois)
     labels = np.zeros((h, w), np.int32)
+    mask = np.zeros((h, w), np.uint8)
     disparity = np.zeros(n, np.float32)
     codes = np.zeros(n, np.int64)
     lo = np.zeros(n, np.float64)
@@ -309,10 +313,10 @@ def outline_objects(
     outline_frame(np.ascontiguousarray(disp, np.float32), int(origin[0]), int(origin[1]),
                   np.ascontiguousarray(rois, np.int64), outline_params(cfg, ground, max_disparity),
                   bk.bin_table(cfg.bin_width if cfg.bin_width > 0 else 1.0, cfg.peak_tolerance_rel),
-                  se_lo, se_hi, labels, disparity, codes, lo, hi, pixels)
+                  se_lo, se_hi, labels, mask, disparity, codes, lo, hi, pixels)
     methods = [METHOD_CODES[int(c)] for c in codes]
     ranges = list(zip(lo.tolist(), hi.tolist()))
-    return OutlineResult(labels, disparity, methods, rois, pixels, ranges, ground)
+    return OutlineResult(labels, disparity, methods, rois, pixels, ranges, ground, mask)
 
 
 def band_for_boxes(rois: np.ndarray, shape: tuple[int, int], margin: int = 0) -> tuple[int, int, int, int] | None:

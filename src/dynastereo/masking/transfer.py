@@ -42,6 +42,14 @@ class TransferResult:
     labels: np.ndarray  # int32 (H, W) right image: 0 = none, i = object i
     pixels: np.ndarray  # (N,) pixels of each object in ``labels``
     models: list[tuple[float, float, float]] = field(default_factory=list)  # (a, b, c) per object
+    painted: np.ndarray | None = None  # uint8 (H, W), 255 = any object, when the kernel made it
+
+    @property
+    def mask(self) -> np.ndarray:
+        """uint8 mask, 255 = any object."""
+        if self.painted is not None:
+            return self.painted
+        return np.where(self.labels > 0, np.uint8(255), np.uint8(0))
 
 
 def transfer_labels(
@@ -90,14 +98,15 @@ def transfer_labels(
             rng[i] = lo, hi
             weak[i] = type(lo) is not np.float64 and type(hi) is not np.float64
     right = np.zeros((h, w), np.int32)
+    mask = np.zeros((h, w), np.uint8)
     pixels = np.zeros(n, np.int64)
     models = np.zeros((n, 3), np.float64)
     dmin, dmax = int(np.floor(max(sweep[0], 0.0))), int(np.ceil(sweep[1]))
     transfer_frame(np.ascontiguousarray(left_labels, np.int32), d, rois, affine,
                    np.ascontiguousarray(disp if affine else _NO_DISP, np.float32), int(origin[0]), int(origin[1]),
                    rng, ranges is not None, weak, dmin, dmax, float(max_slope), bool(occluded),
-                   float(occluded_margin), right, pixels, models)
-    return TransferResult(right, pixels, [tuple(float(v) for v in m) for m in models])
+                   float(occluded_margin), right, mask, pixels, models)
+    return TransferResult(right, pixels, [tuple(float(v) for v in m) for m in models], mask)
 
 
 _NO_DISP = np.zeros((1, 1), np.float32)
