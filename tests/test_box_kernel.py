@@ -217,3 +217,28 @@ def test_the_kernels_agree_with_the_per_box_path_on_real_frames(clip, data_dir, 
         np.testing.assert_array_equal(m.right, np.where(t.labels > 0, 255, 0).astype(np.uint8))
         assert [ob.method for ob in m.objects] == o.methods
     assert n_objects > 0
+
+
+@pytest.mark.parametrize("case", ["row", "column", "flat"])
+def test_degenerate_affine_fits_agree(case):
+    """An object on one row, on one column (lstsq's minimum-norm solution) or of one
+    disparity: the same model (to 1e-9) and the same right labels as numpy's lstsq."""
+    h, w = 40, 120
+    lab = np.zeros((h, w), np.int32)
+    d = np.zeros((h, w), np.float32)
+    if case == "row":
+        lab[20, 10:90] = 1
+        d[20, 10:90] = 10 + 0.005 * np.arange(80)
+    elif case == "column":
+        lab[2:38, 50] = 1
+        d[2:38, 50] = 10 + 0.05 * np.arange(36)
+    else:
+        lab[5:30, 20:60] = 1
+        d[5:30, 20:60] = 12.0
+    d = (np.round(d * 16) / 16).astype(np.float32)
+    rois = np.array([[10, 2, 91, 39]])
+    args = dict(mode="affine", disp=d, ranges=[(5.0, 30.0)], max_slope=10.0)
+    a = transfer_labels(lab, np.array([12.0], np.float32), rois, **args)
+    b = transfer_labels_numpy(lab, np.array([12.0], np.float32), rois, **args)
+    np.testing.assert_allclose(a.models, b.models, rtol=1e-9, atol=1e-9)
+    np.testing.assert_array_equal(a.labels, b.labels)
