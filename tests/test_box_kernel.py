@@ -242,3 +242,40 @@ def test_degenerate_affine_fits_agree(case):
     b = transfer_labels_numpy(lab, np.array([12.0], np.float32), rois, **args)
     np.testing.assert_allclose(a.models, b.models, rtol=1e-9, atol=1e-9)
     np.testing.assert_array_equal(a.labels, b.labels)
+
+
+def test_shape_steps_agree_with_opencv():
+    """The largest 8-connected component (ties to the one OpenCV labels first), the holes'
+    filling and the elliptic dilation give OpenCV's masks on random masks, speckled and
+    blocky, with ties of equal components."""
+    from dynastereo.masking.boxkernel import _dilate, _fill_holes, _largest_component
+    from dynastereo.masking.outline import dilation_rows
+    from reference.masking_numpy import _dilate as dilate_cv
+    from reference.masking_numpy import _fill_holes as fill_cv
+    from reference.masking_numpy import _largest_component as largest_cv
+
+    rng = np.random.default_rng(0)
+    for t in range(400):
+        h, w = int(rng.integers(1, 40)), int(rng.integers(1, 60))
+        if t % 3 == 0:
+            m = (rng.random((h, w)) < rng.uniform(0.05, 0.7)).astype(np.uint8)
+        elif t % 3 == 1:
+            m = np.kron(rng.random((h // 4 + 1, w // 4 + 1)) < 0.4, np.ones((4, 4), np.uint8))[:h, :w].astype(np.uint8)
+        else:  # equal squares: ties
+            m = np.zeros((h, w), np.uint8)
+            for _ in range(int(rng.integers(1, 5))):
+                y, x = int(rng.integers(0, h)), int(rng.integers(0, w))
+                m[y:y + 2, x:x + 2] = 1
+        lab = np.zeros((h, w), np.int32)
+        stack = np.zeros(h * w, np.int64)
+        a = m.copy()
+        _largest_component(a, lab, stack)
+        np.testing.assert_array_equal(a, largest_cv(m))
+        a = m.copy()
+        _fill_holes(a, lab, stack)
+        np.testing.assert_array_equal(a, fill_cv(m))
+        r = int(rng.integers(1, 6))
+        lo, hi = dilation_rows(r)
+        out = np.zeros_like(m)
+        _dilate(m, out, np.zeros((h, w + 1), np.int32), lo, hi)
+        np.testing.assert_array_equal(out, dilate_cv(m, r))

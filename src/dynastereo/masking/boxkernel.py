@@ -309,47 +309,79 @@ def dominant_peak(v, w, table, prm):  # pragma: no cover - compiled
 # the shape of one outline: components, holes, dilation
 # --------------------------------------------------------------------------------------
 @jit
+def _find(parent, a):  # pragma: no cover - compiled
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@jit
 def _largest_component(m, lab, stack):  # pragma: no cover - compiled
     """Keep the largest 8-connected component of ``m`` (uint8 0/1, in place); on a tie the
-    one OpenCV labels first (its first 2x2 block in raster order)."""
+    one OpenCV labels first (its first 2x2 block in raster order).  Over the rows' runs
+    of set pixels (union-find, runs of consecutive rows touching or diagonal), not the
+    pixels; ``lab`` / ``stack`` are unused scratch (the signature of the pixel version)."""
     h, w = m.shape
-    lab[:, :] = 0
+    cap = h * ((w + 1) // 2) + 1
+    rr = np.empty(cap, np.int64)  # each run's row, first column, end (exclusive)
+    r0 = np.empty(cap, np.int64)
+    r1 = np.empty(cap, np.int64)
     n = 0
-    best, best_area, best_key = 0, -1, 0
+    row_start = np.empty(h + 1, np.int64)
     for y in range(h):
-        for x in range(w):
-            if m[y, x] == 0 or lab[y, x] != 0:
+        row_start[y] = n
+        x = 0
+        while x < w:
+            if m[y, x] == 0:
+                x += 1
                 continue
+            s = x
+            while x < w and m[y, x] != 0:
+                x += 1
+            rr[n], r0[n], r1[n] = y, s, x
             n += 1
-            lab[y, x] = n
-            top = 0
-            stack[top] = y * w + x
-            top += 1
-            area = 0
-            key = (y // 2) * w + x // 2
-            while top > 0:
-                top -= 1
-                p = stack[top]
-                py = p // w
-                px = p - py * w
-                area += 1
-                kk = (py // 2) * w + px // 2
-                if kk < key:
-                    key = kk
-                for yy in range(max(py - 1, 0), min(py + 2, h)):
-                    for xx in range(max(px - 1, 0), min(px + 2, w)):
-                        if m[yy, xx] != 0 and lab[yy, xx] == 0:
-                            lab[yy, xx] = n
-                            stack[top] = yy * w + xx
-                            top += 1
-            if area > best_area or (area == best_area and key < best_key):
-                best, best_area, best_key = n, area, key
+    row_start[h] = n
     if n <= 1:
         return
-    for y in range(h):
-        for x in range(w):
-            if lab[y, x] != best:
-                m[y, x] = 0
+    parent = np.arange(n)
+    for y in range(1, h):
+        a, a_end = row_start[y - 1], row_start[y]
+        b, b_end = row_start[y], row_start[y + 1]
+        while a < a_end and b < b_end:
+            # 8-connected: the column spans overlap when grown by one
+            if r0[a] <= r1[b] and r0[b] <= r1[a]:
+                ra, rb = _find(parent, a), _find(parent, b)
+                if ra != rb:
+                    if ra < rb:
+                        parent[rb] = ra
+                    else:
+                        parent[ra] = rb
+            if r1[a] < r1[b]:
+                a += 1
+            else:
+                b += 1
+    area = np.zeros(n, np.int64)
+    key = np.full(n, np.iinfo(np.int64).max)
+    n_comp = 0
+    for k in range(n):
+        r = _find(parent, k)
+        if r == k:
+            n_comp += 1
+        area[r] += r1[k] - r0[k]
+        kk = (rr[k] // 2) * w + r0[k] // 2
+        if kk < key[r]:
+            key[r] = kk
+    if n_comp <= 1:
+        return
+    best = -1
+    for k in range(n):
+        if parent[k] == k and (best < 0 or area[k] > area[best] or (area[k] == area[best] and key[k] < key[best])):
+            best = k
+    for k in range(n):
+        if _find(parent, k) != best:
+            for x in range(r0[k], r1[k]):
+                m[rr[k], x] = 0
 
 
 @jit
@@ -758,6 +790,9 @@ def _affine_fit(disp, ox, oy, x0, y0, x1, y1, lab, value, lo, hi, has_range, wea
     centred coordinates)."""
     bh, bw = y1 - y0, x1 - x0
     lo32, hi32 = np.float32(lo), np.float32(hi)
+    px = np.empty(bh * bw, np.int64)
+    py = np.empty(bh * bw, np.int64)
+    pz = np.empty(bh * bw, np.float32)
     n = 0
     for r in range(bh):
         for c in range(bw):
@@ -772,70 +807,43 @@ def _affine_fit(disp, ox, oy, x0, y0, x1, y1, lab, value, lo, hi, has_range, wea
                         continue
                 elif not (np.float64(v) >= lo and np.float64(v) <= hi):
                     continue
+            px[n], py[n], pz[n] = c + x0, r + y0, v
             n += 1
     if n < 30:
         return False, 0.0, 0.0, 0.0
     step = n // 4000 + 1 if n > 4000 else 1
-    # two passes over the kept points: their means, then the centred sums
-    k = 0
     cnt = 0
-    sx = 0.0
-    sy = 0.0
-    sz = 0.0
-    for phase in range(2):
-        k = 0
-        sxx = sxy = syy = sxz = syz = 0.0
-        mx = sx / cnt if cnt else 0.0
-        my = sy / cnt if cnt else 0.0
-        mz = sz / cnt if cnt else 0.0
-        for r in range(bh):
-            for c in range(bw):
-                if lab[y0 + r, x0 + c] != value:
-                    continue
-                v = _at(disp, ox, oy, x0 + c, y0 + r)
-                if not v > 0:
-                    continue
-                if has_range:
-                    if weak:
-                        if not (v >= lo32 and v <= hi32):
-                            continue
-                    elif not (np.float64(v) >= lo and np.float64(v) <= hi):
-                        continue
-                if k % step == 0:
-                    X = np.float64(c + x0)
-                    Y = np.float64(r + y0)
-                    Z = np.float64(v)
-                    if phase == 0:
-                        cnt += 1
-                        sx += X
-                        sy += Y
-                        sz += Z
-                    else:
-                        dx, dy, dz = X - mx, Y - my, Z - mz
-                        sxx += dx * dx
-                        sxy += dx * dy
-                        syy += dy * dy
-                        sxz += dx * dz
-                        syz += dy * dz
-                k += 1
-        if phase == 1:
-            if sxx == 0.0 or syy == 0.0:
-                # the points on one row or column (or one pixel): lstsq's minimum-norm
-                # solution, the constant shared by the collinear columns
-                b = sxz / sxx if sxx > 0 else 0.0
-                cc = syz / syy if syy > 0 else 0.0
-                alpha = mz - b * mx - cc * my  # = a + b X0 (one column) / a + c Y0 (one row)
-                px = mx if sxx == 0.0 else 0.0
-                py = my if syy == 0.0 else 0.0
-                q = 1.0 + px * px + py * py
-                return True, alpha / q, b + alpha * px / q, cc + alpha * py / q
-            det = sxx * syy - sxy * sxy
-            if det == 0.0:  # collinear along a slant: left to the rigid shift
-                return False, 0.0, 0.0, 0.0
-            b = (sxz * syy - syz * sxy) / det
-            cc = (syz * sxx - sxz * sxy) / det
-            return True, mz - b * mx - cc * my, b, cc
-    return False, 0.0, 0.0, 0.0
+    sx = sy = sz = 0.0
+    for k in range(0, n, step):
+        cnt += 1
+        sx += np.float64(px[k])
+        sy += np.float64(py[k])
+        sz += np.float64(pz[k])
+    mx, my, mz = sx / cnt, sy / cnt, sz / cnt
+    sxx = sxy = syy = sxz = syz = 0.0
+    for k in range(0, n, step):
+        dx, dy, dz = np.float64(px[k]) - mx, np.float64(py[k]) - my, np.float64(pz[k]) - mz
+        sxx += dx * dx
+        sxy += dx * dy
+        syy += dy * dy
+        sxz += dx * dz
+        syz += dy * dz
+    if sxx == 0.0 or syy == 0.0:
+        # the points on one row or column (or one pixel): lstsq's minimum-norm
+        # solution, the constant shared by the collinear columns
+        b = sxz / sxx if sxx > 0 else 0.0
+        cc = syz / syy if syy > 0 else 0.0
+        alpha = mz - b * mx - cc * my  # = a + b X0 (one column) / a + c Y0 (one row)
+        qx = mx if sxx == 0.0 else 0.0
+        qy = my if syy == 0.0 else 0.0
+        q = 1.0 + qx * qx + qy * qy
+        return True, alpha / q, b + alpha * qx / q, cc + alpha * qy / q
+    det = sxx * syy - sxy * sxy
+    if det == 0.0:  # collinear along a slant: left to the rigid shift
+        return False, 0.0, 0.0, 0.0
+    b = (sxz * syy - syz * sxy) / det
+    cc = (syz * sxx - sxz * sxy) / det
+    return True, mz - b * mx - cc * my, b, cc
 
 
 @jit
