@@ -416,29 +416,39 @@ def _fill_holes(m, seen, stack):  # pragma: no cover - compiled
 
 
 @jit
-def _dilate(m, out, pre, se_lo, se_hi):  # pragma: no cover - compiled
+def _dilate(m, out, dist, se_lo, se_hi):  # pragma: no cover - compiled
     """``out`` = ``m`` dilated by the structuring element whose row ``i`` (offset ``i - r``)
-    spans columns ``se_lo[i] .. se_hi[i]`` around the anchor; nothing beyond ``m``'s edges
-    (OpenCV's border for dilation).  Row prefix counts: a few lookups a pixel."""
+    spans columns ``se_lo[i] .. se_hi[i]`` (``-k .. k``: symmetric, as OpenCV's ellipse)
+    around the anchor; nothing beyond ``m``'s edges (OpenCV's border for dilation).  Each
+    row's distance to its nearest set pixel (``dist``, int32 scratch of ``m``'s shape + 1
+    column), then ``out(y, x)`` = any row ``y + i - r`` within ``k_i`` of a set pixel (no
+    branch in the inner loop: it vectorizes)."""
     h, w = m.shape
+    big = 1 << 24  # no set pixel in the row: farther than any element reaches
+    for y in range(h):
+        last = -big
+        for x in range(w):
+            if m[y, x]:
+                last = x
+            dist[y, x] = x - last
+        last = 2 * big
+        for x in range(w - 1, -1, -1):
+            if m[y, x]:
+                last = x
+            dist[y, x] = min(dist[y, x], last - x)
     r = (se_lo.shape[0] - 1) // 2
+    acc = np.empty(w, np.bool_)
     for y in range(h):
-        pre[y, 0] = 0
+        acc[:] = False
+        for i in range(se_lo.shape[0]):
+            yy = y + i - r
+            k = se_hi[i]
+            if yy < 0 or yy >= h or k < se_lo[i]:
+                continue
+            for x in range(w):
+                acc[x] |= dist[yy, x] <= k
         for x in range(w):
-            pre[y, x + 1] = pre[y, x] + (1 if m[y, x] else 0)
-    for y in range(h):
-        for x in range(w):
-            v = 0
-            for i in range(se_lo.shape[0]):
-                yy = y + i - r
-                if yy < 0 or yy >= h or se_hi[i] < se_lo[i]:
-                    continue
-                a = max(x + se_lo[i], 0)
-                b = min(x + se_hi[i] + 1, w)
-                if b > a and pre[yy, b] - pre[yy, a] > 0:
-                    v = 1
-                    break
-            out[y, x] = v
+            out[y, x] = acc[x]
 
 
 # --------------------------------------------------------------------------------------
@@ -457,33 +467,61 @@ def _median_valid(d, n_valid):  # pragma: no cover - compiled
             if d[r, c] > 0:
                 vals[j] = d[r, c]
                 j += 1
-    vals.sort()
+    k = n_valid // 2
+    p = np.partition(vals, k)  # O(n): p[k] in place, the smaller ones before it
     if n_valid % 2:
-        return np.float64(vals[n_valid // 2])
-    return np.float64((vals[n_valid // 2 - 1] + vals[n_valid // 2]) / np.float32(2.0))
+        return np.float64(p[k])
+    below = p[0]
+    for i in range(1, k):
+        below = max(below, p[i])
+    return np.float64((below + p[k]) / np.float32(2.0))
 
 
 @jit
-def _outline_box(disp, ox, oy, x0, y0, x1, y1, cover, cx0b, cy0b, has_cover, has_ex, ex_lo, ex_hi,
+def _outline_box(disp, ox, oy, rois, ib, has_cover, has_ex, ex_lo, ex_hi,
                  prm, table, se_lo, se_hi, mask):  # pragma: no cover - compiled
-    """:func:`.outline.object_mask_in_roi` of the box ``x0, y0, x1, y1`` (its disparity read
-    from the region array ``disp`` at ``ox, oy``; ``cover``: boxes over each pixel of the
-    band at ``cx0b, cy0b``; disparities in ``ex_lo .. ex_hi`` invalid with ``has_ex``):
+    """:func:`.outline.object_mask_in_roi` of the box ``rois[ib]`` (its disparity read from
+    the region array ``disp`` at ``ox, oy``; with ``has_cover`` its pixels inside other
+    boxes weigh less; disparities in ``ex_lo .. ex_hi`` invalid with ``has_ex``):
     ``(method, disparity, lo, hi, support)``, the mask (uint8 0/1) in ``mask`` when the
     method is OUTLINE."""
+    x0, y0, x1, y1 = rois[ib, 0], rois[ib, 1], rois[ib, 2], rois[ib, 3]
     bh, bw = y1 - y0, x1 - x0
     area = bh * bw
     exl, exh = np.float32(ex_lo), np.float32(ex_hi)
     d = np.empty((bh, bw), np.float32)
+    # the valid values in raster order (numpy's boolean indexing) and whether other boxes
+    # share their pixel, gathered branch-free (half the disparities are holes)
+    vbuf = np.empty(area, np.float32)
+    sbuf = np.empty(area, np.bool_)
+    shared = np.zeros((bh if has_cover else 0, bw if has_cover else 0), np.bool_)  # inside other boxes too
+    if has_cover:
+        for j in range(rois.shape[0]):
+            ax0, ax1 = max(x0, rois[j, 0]), min(x1, rois[j, 2])
+            ay0, ay1 = max(y0, rois[j, 1]), min(y1, rois[j, 3])
+            if j == ib or ax1 <= ax0 or ay1 <= ay0:
+                continue
+            for y in range(ay0, ay1):
+                for x in range(ax0, ax1):
+                    shared[y - y0, x - x0] = True
     n_valid = 0
+    n_shared = 0
+    dh, dw = disp.shape
     for r in range(bh):
+        yy = y0 + r - oy
+        row_in = 0 <= yy < dh
         for c in range(bw):
-            v = _at(disp, ox, oy, x0 + c, y0 + r)
-            if has_ex and v >= exl and v <= exh:
-                v = np.float32(0.0)
+            xx = x0 + c - ox
+            v = disp[yy, xx] if row_in and 0 <= xx < dw else np.float32(0.0)
+            if has_ex:
+                v = np.float32(0.0) if (v >= exl and v <= exh) else v
             d[r, c] = v
-            if v > 0:
-                n_valid += 1
+            sh = has_cover and shared[r, c]
+            vbuf[n_valid] = v
+            sbuf[n_valid] = sh
+            ok = v > 0
+            n_valid += ok
+            n_shared += ok & sh
     tiny = area < prm[P_MIN_PIXELS] or min(bh, bw) < prm[P_MIN_SIDE]
     if tiny or n_valid < max(prm[P_MIN_VALID] * area, 8.0):
         med = _median_valid(d, n_valid)
@@ -502,29 +540,26 @@ def _outline_box(disp, ox, oy, x0, y0, x1, y1, cover, cx0b, cy0b, has_cover, has
                     n_above += 1
         if n_above < max(prm[P_MIN_VALID] * bh * bw, 8.0):
             use_top = False
-    # the histogram's values (row-major, as numpy's boolean indexing) and weights
-    ns = 0
-    n_shared = 0
-    for r in range(bh):
-        for c in range(bw):
-            v = d[r, c]
-            if v > 0 and (not use_top or v >= top[r]):
-                ns += 1
-                if has_cover and cover[y0 + r - cy0b, x0 + c - cx0b] > 1:
-                    n_shared += 1
+    ns = n_valid
+    if use_top:  # the values above the road only
+        ns = 0
+        n_shared = 0
+        for r in range(bh):
+            for c in range(bw):
+                x = d[r, c]
+                if x > 0 and x >= top[r]:
+                    sh = has_cover and shared[r, c]
+                    vbuf[ns] = x
+                    sbuf[ns] = sh
+                    ns += 1
+                    n_shared += sh
     weighted = has_cover and prm[P_OVERLAP] < 1.0 and n_shared > 0 and n_shared < ns
-    v = np.empty(ns, np.float32)
     wts = np.empty(ns if weighted else 0, np.float32)
-    ow = np.float32(prm[P_OVERLAP])
-    j = 0
-    for r in range(bh):
-        for c in range(bw):
-            x = d[r, c]
-            if x > 0 and (not use_top or x >= top[r]):
-                v[j] = x
-                if weighted:
-                    wts[j] = ow if cover[y0 + r - cy0b, x0 + c - cx0b] > 1 else np.float32(1.0)
-                j += 1
+    if weighted:
+        ow = np.float32(prm[P_OVERLAP])
+        for j in range(ns):
+            wts[j] = ow if sbuf[j] else np.float32(1.0)
+    v = vbuf[:ns]
     pd, plo, phi = dominant_peak(v, wts, table, prm)
     tol = max(prm[P_TOL], prm[P_REL] * pd)
     lo = max(min(pd - tol, plo), 1e-3)  # lo > 0: never the invalid
@@ -584,8 +619,7 @@ def _outline_box(disp, ox, oy, x0, y0, x1, y1, cover, cx0b, cy0b, has_cover, has
                             mask[r, c] = 0
         if se_lo.shape[0] > 0:
             src = mask.copy()
-            pre = np.empty((bh, bw + 1), np.int32)
-            _dilate(src, mask, pre, se_lo, se_hi)
+            _dilate(src, mask, work, se_lo, se_hi)
         if use_top and prm[P_GROUND_AFTER] > 0:
             for r in range(bh):
                 for c in range(bw):
@@ -620,23 +654,11 @@ def outline_frame(disp, ox, oy, rois, prm, table, se_lo, se_hi, labels, mask, di
     and ``pixels``."""
     n = rois.shape[0]
     h, w = labels.shape
-    # the band covering the boxes, and how many boxes cover each of its pixels
-    bx0, by0, bx1, by1 = w, h, 0, 0
     offs = np.zeros(n + 1, np.int64)
     for i in range(n):
         x0, y0, x1, y1 = rois[i, 0], rois[i, 1], rois[i, 2], rois[i, 3]
-        a = 0
-        if x1 > x0 and y1 > y0:
-            a = (x1 - x0) * (y1 - y0)
-            bx0, by0, bx1, by1 = min(bx0, x0), min(by0, y0), max(bx1, x1), max(by1, y1)
-        offs[i + 1] = offs[i] + a
+        offs[i + 1] = offs[i] + ((x1 - x0) * (y1 - y0) if x1 > x0 and y1 > y0 else 0)
     has_cover = n > 1 and prm[P_OVERLAP] < 1.0
-    cover = np.zeros((max(by1 - by0, 0) if has_cover else 0, max(bx1 - bx0, 0) if has_cover else 0), np.uint16)
-    if has_cover:
-        for i in range(n):
-            for y in range(rois[i, 1], rois[i, 3]):
-                for x in range(rois[i, 0], rois[i, 2]):
-                    cover[y - by0, x - bx0] += 1
     masks = np.zeros(offs[n], np.uint8)  # the boxes' masks, packed
     sup = np.zeros(n, np.int64)
     for i in range(n):
@@ -651,7 +673,7 @@ def outline_frame(disp, ox, oy, rois, prm, table, se_lo, se_hi, labels, mask, di
             continue
         m = masks[offs[i]:offs[i + 1]].reshape((y1 - y0, x1 - x0))
         method[i], disparity[i], lo[i], hi[i], sup[i] = _outline_box(
-            disp, ox, oy, x0, y0, x1, y1, cover, bx0, by0, has_cover, False, 0.0, 0.0, prm, table, se_lo, se_hi, m)
+            disp, ox, oy, rois, i, has_cover, False, 0.0, 0.0, prm, table, se_lo, se_hi, m)
     # one peak, one object: a box whose in-peak pixels lie mostly at a neighbour holding
     # the same peak gives it up (decided on the first outlines)
     if n > 1 and prm[P_CLAIM] < 1.0:
@@ -689,8 +711,7 @@ def outline_frame(disp, ox, oy, rois, prm, table, se_lo, se_hi, labels, mask, di
                 x0, y0, x1, y1 = rois[i, 0], rois[i, 1], rois[i, 2], rois[i, 3]
                 m = masks[offs[i]:offs[i + 1]].reshape((y1 - y0, x1 - x0))
                 method[i], disparity[i], lo[i], hi[i], sup[i] = _outline_box(
-                    disp, ox, oy, x0, y0, x1, y1, cover, bx0, by0, has_cover, True, lo[bj], hi[bj], prm, table,
-                    se_lo, se_hi, m)
+                    disp, ox, oy, rois, i, has_cover, True, lo[bj], hi[bj], prm, table, se_lo, se_hi, m)
     # outlines much smaller than the part of their box no nearer object takes: boxes
     if prm[P_MIN_OUTLINE] > 0:
         small = np.zeros(n, np.bool_)
@@ -794,21 +815,23 @@ def _affine_fit(disp, ox, oy, x0, y0, x1, y1, lab, value, lo, hi, has_range, wea
     py = np.empty(bh * bw, np.int64)
     pz = np.empty(bh * bw, np.float32)
     n = 0
+    dh, dw = disp.shape
     for r in range(bh):
+        yy = y0 + r - oy
+        row_in = 0 <= yy < dh
         for c in range(bw):
-            if lab[y0 + r, x0 + c] != value:
-                continue
-            v = _at(disp, ox, oy, x0 + c, y0 + r)
-            if not v > 0:
-                continue
+            xx = x0 + c - ox
+            v = disp[yy, xx] if row_in and 0 <= xx < dw else np.float32(0.0)
             if has_range:
                 if weak:
-                    if not (v >= lo32 and v <= hi32):
-                        continue
-                elif not (np.float64(v) >= lo and np.float64(v) <= hi):
-                    continue
+                    inr = v >= lo32 and v <= hi32
+                else:
+                    inr = np.float64(v) >= lo and np.float64(v) <= hi
+            else:
+                inr = True
+            # branch-free (half the disparities are holes: a branch mispredicts)
             px[n], py[n], pz[n] = c + x0, r + y0, v
-            n += 1
+            n += (lab[y0 + r, x0 + c] == value) & (v > 0) & inr
     if n < 30:
         return False, 0.0, 0.0, 0.0
     step = n // 4000 + 1 if n > 4000 else 1

@@ -241,6 +241,7 @@ def dilation_rows(r: int) -> tuple[np.ndarray, np.ndarray]:
             cols = np.flatnonzero(row)
             if cols.size:
                 assert cols[-1] - cols[0] + 1 == cols.size, "the ellipse's rows are spans"
+                assert cols[0] + cols[-1] == 2 * r, "the ellipse's rows are centred"
                 lo[i], hi[i] = cols[0] - r, cols[-1] - r
         _ELLIPSES[r] = (lo, hi)
     return _ELLIPSES[r]
