@@ -327,40 +327,12 @@ def _largest_component(m, lab, stack):  # pragma: no cover - compiled
     rr = np.empty(cap, np.int64)  # each run's row, first column, end (exclusive)
     r0 = np.empty(cap, np.int64)
     r1 = np.empty(cap, np.int64)
-    n = 0
     row_start = np.empty(h + 1, np.int64)
-    for y in range(h):
-        row_start[y] = n
-        x = 0
-        while x < w:
-            if m[y, x] == 0:
-                x += 1
-                continue
-            s = x
-            while x < w and m[y, x] != 0:
-                x += 1
-            rr[n], r0[n], r1[n] = y, s, x
-            n += 1
-    row_start[h] = n
+    n = _runs(m, True, rr, r0, r1, row_start)
     if n <= 1:
         return
     parent = np.arange(n)
-    for y in range(1, h):
-        a, a_end = row_start[y - 1], row_start[y]
-        b, b_end = row_start[y], row_start[y + 1]
-        while a < a_end and b < b_end:
-            # 8-connected: the column spans overlap when grown by one
-            if r0[a] <= r1[b] and r0[b] <= r1[a]:
-                ra, rb = _find(parent, a), _find(parent, b)
-                if ra != rb:
-                    if ra < rb:
-                        parent[rb] = ra
-                    else:
-                        parent[ra] = rb
-            if r1[a] < r1[b]:
-                a += 1
-            else:
-                b += 1
+    _join_rows(parent, row_start, r0, r1, h, True)
     area = np.zeros(n, np.int64)
     key = np.full(n, np.iinfo(np.int64).max)
     n_comp = 0
@@ -385,34 +357,74 @@ def _largest_component(m, lab, stack):  # pragma: no cover - compiled
 
 
 @jit
+def _runs(m, value, rr, r0, r1, row_start):  # pragma: no cover - compiled
+    """The rows' runs of pixels equal to ``value`` (row, first column, end) in raster
+    order, ``row_start[y]`` the first of row ``y``; returns their number."""
+    h, w = m.shape
+    n = 0
+    for y in range(h):
+        row_start[y] = n
+        x = 0
+        while x < w:
+            if (m[y, x] != 0) != value:
+                x += 1
+                continue
+            s = x
+            while x < w and (m[y, x] != 0) == value:
+                x += 1
+            rr[n], r0[n], r1[n] = y, s, x
+            n += 1
+    row_start[h] = n
+    return n
+
+
+@jit
+def _join_rows(parent, row_start, r0, r1, h, diagonal):  # pragma: no cover - compiled
+    """Union the runs of consecutive rows that touch: overlapping columns (4-connected),
+    or also diagonally adjacent ones with ``diagonal`` (8-connected); the smaller index
+    is the root."""
+    g = 1 if diagonal else 0
+    for y in range(1, h):
+        a, a_end = row_start[y - 1], row_start[y]
+        b, b_end = row_start[y], row_start[y + 1]
+        while a < a_end and b < b_end:
+            if r0[a] < r1[b] + g and r0[b] < r1[a] + g:
+                ra, rb = _find(parent, a), _find(parent, b)
+                if ra != rb:
+                    if ra < rb:
+                        parent[rb] = ra
+                    else:
+                        parent[ra] = rb
+            if r1[a] < r1[b]:
+                a += 1
+            else:
+                b += 1
+
+
+@jit
 def _fill_holes(m, seen, stack):  # pragma: no cover - compiled
     """Fill the holes of ``m`` (uint8 0/1, in place): the 0s not 4-connected to its border
-    (OpenCV's flood fill from the padded corner)."""
+    (OpenCV's flood fill from the padded corner).  Over the rows' runs of 0s
+    (union-find); ``seen`` / ``stack`` are unused scratch."""
     h, w = m.shape
-    seen[:, :] = 0
-    top = 0
-    for y in range(h):
-        for x in range(w):
-            if (y == 0 or y == h - 1 or x == 0 or x == w - 1) and m[y, x] == 0:
-                seen[y, x] = 1
-                stack[top] = y * w + x
-                top += 1
-    while top > 0:
-        top -= 1
-        p = stack[top]
-        py = p // w
-        px = p - py * w
-        for k in range(4):
-            yy = py + (1 if k == 0 else (-1 if k == 1 else 0))
-            xx = px + (1 if k == 2 else (-1 if k == 3 else 0))
-            if 0 <= yy < h and 0 <= xx < w and m[yy, xx] == 0 and seen[yy, xx] == 0:
-                seen[yy, xx] = 1
-                stack[top] = yy * w + xx
-                top += 1
-    for y in range(h):
-        for x in range(w):
-            if seen[y, x] == 0:
-                m[y, x] = 1
+    cap = h * ((w + 1) // 2) + 1
+    rr = np.empty(cap, np.int64)
+    r0 = np.empty(cap, np.int64)
+    r1 = np.empty(cap, np.int64)
+    row_start = np.empty(h + 1, np.int64)
+    n = _runs(m, False, rr, r0, r1, row_start)
+    if n == 0:
+        return
+    parent = np.arange(n)
+    _join_rows(parent, row_start, r0, r1, h, False)
+    outside = np.zeros(n, np.bool_)
+    for k in range(n):
+        if rr[k] == 0 or rr[k] == h - 1 or r0[k] == 0 or r1[k] == w:
+            outside[_find(parent, k)] = True
+    for k in range(n):
+        if not outside[_find(parent, k)]:
+            for x in range(r0[k], r1[k]):
+                m[rr[k], x] = 1
 
 
 @jit
