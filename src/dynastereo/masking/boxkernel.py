@@ -432,35 +432,27 @@ def _dilate(m, out, dist, se_lo, se_hi):  # pragma: no cover - compiled
     """``out`` = ``m`` dilated by the structuring element whose row ``i`` (offset ``i - r``)
     spans columns ``se_lo[i] .. se_hi[i]`` (``-k .. k``: symmetric, as OpenCV's ellipse)
     around the anchor; nothing beyond ``m``'s edges (OpenCV's border for dilation).  Each
-    row's distance to its nearest set pixel (``dist``, int32 scratch of ``m``'s shape + 1
-    column), then ``out(y, x)`` = any row ``y + i - r`` within ``k_i`` of a set pixel (no
-    branch in the inner loop: it vectorizes)."""
+    run of set pixels paints its row span grown by ``k_i`` into the rows it reaches (a
+    blobby mask has a few runs a row: span fills, not per-pixel tests); ``dist`` is unused
+    scratch."""
     h, w = m.shape
-    big = 1 << 24  # no set pixel in the row: farther than any element reaches
-    for y in range(h):
-        last = -big
-        for x in range(w):
-            if m[y, x]:
-                last = x
-            dist[y, x] = x - last
-        last = 2 * big
-        for x in range(w - 1, -1, -1):
-            if m[y, x]:
-                last = x
-            dist[y, x] = min(dist[y, x], last - x)
+    out[:, :] = 0
     r = (se_lo.shape[0] - 1) // 2
-    acc = np.empty(w, np.bool_)
     for y in range(h):
-        acc[:] = False
-        for i in range(se_lo.shape[0]):
-            yy = y + i - r
-            k = se_hi[i]
-            if yy < 0 or yy >= h or k < se_lo[i]:
+        x = 0
+        while x < w:
+            if m[y, x] == 0:
+                x += 1
                 continue
-            for x in range(w):
-                acc[x] |= dist[yy, x] <= k
-        for x in range(w):
-            out[y, x] = acc[x]
+            s = x
+            while x < w and m[y, x] != 0:
+                x += 1
+            for i in range(se_lo.shape[0]):
+                yd = y - (i - r)  # out(yd) looks at row yd + i - r = y
+                k = se_hi[i]
+                if yd < 0 or yd >= h or k < se_lo[i]:
+                    continue
+                out[yd, max(s - k, 0):min(x + k, w)] = 1  # a slice: vectorized
 
 
 # --------------------------------------------------------------------------------------
