@@ -169,28 +169,32 @@ def fill_rows(d, out):  # pragma: no cover - compiled
         return
     zero = np.float32(0.0)
     for y in range(h):
-        # the nearest valid to the right of each pixel: a backward pass
-        ri = w
-        for x in range(w - 1, -1, -1):
-            if d[y, x] > 0:
-                ri = x
-            out[y, x] = d[y, ri] if ri < w else zero  # rv, for now
+        # one pass a row: valid pixels copied, each run of invalid ones filled from the
+        # valid pixels either side of it
         li = -1
-        for x in range(w):
+        x = 0
+        while x < w:
             v = d[y, x]
             if v > 0:
-                li = x
                 out[y, x] = v
+                li = x
+                x += 1
                 continue
-            rv = out[y, x]
+            s = x
+            while x < w and not d[y, x] > 0:
+                x += 1
             lv = d[y, li] if li >= 0 else zero
+            rv = d[y, x] if x < w else zero
             if lv > 0 and rv > 0:
-                if rv > lv and not ((x - li) <= (rv - lv)):
-                    out[y, x] = rv
+                near = min(lv, rv)
+                if rv > lv:
+                    band = rv - lv
+                    for t in range(s, x):
+                        out[y, t] = rv if not ((t - li) <= band) else near
                 else:
-                    out[y, x] = min(lv, rv)
+                    out[y, s:x] = near
             else:
-                out[y, x] = max(lv, rv)
+                out[y, s:x] = max(lv, rv)
 
 
 @jit
