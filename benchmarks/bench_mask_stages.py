@@ -21,10 +21,14 @@ the cheap-masking search, explicit: ``stereo.scale 1``, ``detector.carry_downsca
 ``raw0001`` and the fast-motion variants of ``bench_peers.py`` (``06x2``, ``03x2``,
 ``06x3``, ``03x3``).
 
+``--against OTHER/src`` runs another source tree beside this one's (``src``), alternated
+with it inside each repeat (settings x trees), to compare code rather than settings; its
+rows are named ``SETTING@against``.
+
 Prints a table; writes ``benchmarks/results/mask_stages.json`` (``--out``).  Run:
 
     DYNASTEREO_DATA=... DYNASTEREO_MODELS=... .venv/bin/python benchmarks/bench_mask_stages.py \\
-        [--clips 06,03,raw0001] [--settings previous,default] [--repeats 3]
+        [--clips 06,03,raw0001] [--settings previous,default] [--repeats 3] [--against ../main/src]
 """
 
 from __future__ import annotations
@@ -111,8 +115,8 @@ def parse_setting(name: str) -> dict:
     return out
 
 
-def one(seq: Path, over: dict, models: Path) -> dict:
-    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+def one(seq: Path, over: dict, models: Path, src: Path = ROOT / "src") -> dict:
+    env = {**os.environ, "PYTHONPATH": str(src)}
     r = subprocess.run([sys.executable, "-c", CHILD, str(seq), json.dumps(over), str(models)], env=env,
                        capture_output=True, text=True)
     if r.returncode != 0:
@@ -126,6 +130,8 @@ def main() -> None:
     ap.add_argument("--settings", default="previous,default")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--against", type=Path, default=None,
+                    help="another tree's source folder, alternated with this one's (rows SETTING@against)")
     args = ap.parse_args()
     data, models = data_dir(), models_dir()
     tmp = tempfile.TemporaryDirectory(prefix="mask-stages-")
@@ -139,12 +145,16 @@ def main() -> None:
         else:
             raise SystemExit(f"unknown clip {c!r}: of {', '.join([*clip_dirs(data), *FAST_VARIANTS])}")
     settings = {s: parse_setting(s) for s in [s.strip() for s in args.settings.split(",") if s.strip()]}
-    runs: dict[str, dict[str, list[dict]]] = {c: {s: [] for s in settings} for c in clips}
+    trees = {"": ROOT / "src"}
+    if args.against is not None:
+        trees = {"@against": args.against.resolve(), **trees}
+    rows = {s + t: (over, src) for s, over in settings.items() for t, src in trees.items()}
+    runs: dict[str, dict[str, list[dict]]] = {c: {s: [] for s in rows} for c in clips}
     load_before = load()
     for rep in range(args.repeats):
         for c, seq in clips.items():
-            for s, over in settings.items():
-                r = one(seq, over, models)
+            for s, (over, src) in rows.items():
+                r = one(seq, over, models, src)
                 runs[c][s].append(r)
                 print(f"[{rep + 1}/{args.repeats}] {c:8s} {s:24s} {r['total_ms']:6.1f} ms CPU a pair  "
                       + "  ".join(f"{k} {r['stages_ms'].get(k, 0.0):.1f}" for k in STAGES) + f"  [{r['hash']}]",
@@ -164,6 +174,8 @@ def main() -> None:
                   + " |")
     doc = {"repeats": args.repeats, "machine": machine(load_before=load_before),
            "settings": settings, "summary": summary, "runs": runs}
+    if args.against is not None:
+        doc["against"] = str(args.against)
     write_json(args.out, doc)
     print(f"-> {args.out}")
 

@@ -359,7 +359,7 @@ def _kernel_signatures() -> dict[str, set[str]]:
 
     names = [f"dynastereo.slam.kernels.{m.name}" for m in pkgutil.iter_modules(kernels.__path__)]
     out: dict[str, set[str]] = {}
-    others = ["dynastereo.objects.world", "dynastereo.masking.outline", "dynastereo.masking.maskers",
+    others = ["dynastereo.objects.world", "dynastereo.masking.boxkernel", "dynastereo.masking.maskers",
               "dynastereo.masking.transfer", "dynastereo.masking.detection.box_tracker",
               "dynastereo.objects.disparity"]
     for mod in map(importlib.import_module, names + others):
@@ -394,6 +394,6 @@ def test_the_warm_up_loads_every_kernel_a_run_calls(kitti06, models_dir, tmp_pat
     called = {k: v for k, v in after.items() if v}
     assert len(called) >= 22 and any("objects.world._track_frame" in k for k in called)  # the runs went through them
     assert all(any(name in k for k in called)
-               for name in ("outline._fill_rows", "outline._peak_bins", "_median_flow", "_greedy_regions",
-                            "transfer._affine_paint", "objects.disparity.object_disparity"))
+               for name in ("boxkernel.outline_frame", "boxkernel.transfer_frame", "_median_flow", "_greedy_regions",
+                            "objects.disparity.object_disparity"))
     assert {k: sorted(v - before.get(k, set())) for k, v in after.items() if v - before.get(k, set())} == {}

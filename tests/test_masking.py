@@ -245,7 +245,7 @@ def test_affine_paint_kernel_agrees_with_the_reference():
     (sample every right pixel of the corners' span back at ``rint((x + a + c y) / (1 -
     b))``, then paint the block clipped to the image) on random masks and models, boxes at
     the image's edges included."""
-    from dynastereo.masking.transfer import _paint, _paint_affine
+    from reference.masking_numpy import _paint, _paint_affine
 
     def reference(right, m, roi, model, value):
         x0, y0, x1, y1 = roi

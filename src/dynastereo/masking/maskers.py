@@ -409,14 +409,14 @@ class OutlineMasker(_DisparityMasker):
                                     max_disparity=self.matcher.max_disparity)
             if self.cfg.carry_outline:
                 self._keep_outlines(frame, dets, o)
-            left = _to_mask(o.labels)
+            left = o.mask
         with _stage(timer, "transfer"):
             t = transfer_labels(
                 o.labels, o.disparity, o.rois,
                 mode=self.cfg.transfer, disp=disp, ranges=o.ranges, sweep=self._sweep(),
                 occluded=self.cfg.transfer_occluded,
             )
-            right = _to_mask(t.labels)
+            right = t.mask
         objects = _objects(dets, o.methods, o.disparity, o.pixels, t.pixels)
         masks = StereoMasks(left, right, objects, dets, disp if self.full_disparity else None, ground=ground,
                             box_disparity=disp)
@@ -481,7 +481,7 @@ class BoxMasker(_DisparityMasker):
             left = _to_mask(labels)
         with _stage(timer, "transfer"):
             t = transfer_labels(labels, disparity, rois, mode="rigid", sweep=self._sweep())
-            right = _to_mask(t.labels)
+            right = t.mask
         objects = _objects(dets, methods, disparity, pixels, t.pixels)
         masks = StereoMasks(left, right, objects, dets, disp if self.full_disparity else None, box_disparity=disp)
         return masks, labels, t.labels
