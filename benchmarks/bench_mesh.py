@@ -30,10 +30,15 @@ from the velocity above 1 m/s, grown by 0.3 m), masked against unmasked (target 
 beside it the same off the road (tracks moving in at least 3 frames, each box's bottom
 0.3 m above the object's: grown boxes hold the road under the wheels and, for the tram's
 20-m class box, the rail bed and what stands beside it), per track too;
-the mesh's CPU time (disparity + fusion + marching cubes; target <= 5 s) and the voxel
-grid's peak memory; pictures side by side (``docs/mesh_raw0001_*.png``).
+and, not the issue's measure but beside it, the vertices in the grown boxes decomposed
+(:func:`decompose`): the road (within 0.3 m of its plane), the static world (seen as a
+surface by a keyframe while no mover's box held the spot) and the rest -- the ghosts, and
+static surfaces never seen without a mover's box around them -- masked against unmasked,
+per track too; the mesh's CPU time (disparity + fusion + marching cubes; target <= 5 s)
+and the voxel grid's peak memory; pictures side by side (``docs/mesh_raw0001_*.png``;
+``_boxes.png``: the decomposition from above).
 
-Writes benchmarks/results/mesh.json.  Run:
+Writes benchmarks/results/mesh.json (a part skipped keeps its figures from the file).  Run:
 
     DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
         .venv/bin/python benchmarks/bench_mesh.py [--seeds 0,1] [--frames 100] [--skip-kitti]
@@ -339,9 +344,9 @@ CLASS_BGR = {GROUND: (150, 150, 150), STATIC: (90, 190, 60), OFF_STATIC: (40, 40
 def box_picture(parts: dict[str, tuple[np.ndarray, np.ndarray]], boxes) -> str:
     """From above, the vertices inside the movers' grown boxes, masked | unmasked: grey the
     road, green the static world seen without a mover there, red the rest (docs/mesh_raw0001_boxes.png)."""
-    allv = np.concatenate([v for v, _ in parts.values()] + [np.concatenate(box_footprints(boxes))[:, [0, 0, 1]]])
-    bounds = (float(allv[:, 0].min()) - 1, float(allv[:, 0].max()) + 1, float(allv[:, 2].min()) - 1,
-              float(allv[:, 2].max()) + 1)
+    allv = np.concatenate([v for v, _ in parts.values()])
+    bounds = (float(allv[:, 0].min()) - 2, float(allv[:, 0].max()) + 2, float(allv[:, 2].min()) - 2,
+              float(allv[:, 2].max()) + 2)
     th = 900
     size = (max(200, int(th * (bounds[1] - bounds[0]) / (bounds[3] - bounds[2]))), th)
     tiles = []
@@ -352,7 +357,11 @@ def box_picture(parts: dict[str, tuple[np.ndarray, np.ndarray]], boxes) -> str:
         for k in (GROUND, STATIC, OFF_STATIC):
             px = np.round(top_pixels(V[code == k][:, [0, 2]], bounds, size)).astype(np.int64)
             ok = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < size[0]) & (px[:, 1] < size[1])
-            img[px[ok, 1], px[ok, 0]] = CLASS_BGR[k]
+            if k == OFF_STATIC:  # the few that matter, drawn larger
+                for u, v in px[ok]:
+                    cv2.circle(img, (int(u), int(v)), 1, CLASS_BGR[k], -1)
+            else:
+                img[px[ok, 1], px[ok, 0]] = CLASS_BGR[k]
         n = np.bincount(code, minlength=3)
         for i, text in enumerate((name, f"road {n[GROUND]}", f"static {n[STATIC]}", f"rest {n[OFF_STATIC]}")):
             col = (255, 255, 255) if i == 0 else CLASS_BGR[(GROUND, STATIC, OFF_STATIC)[i - 1]]
