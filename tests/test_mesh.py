@@ -171,6 +171,35 @@ def test_a_track_judged_moving_later_is_left_out_of_earlier_keyframes():
     assert (out[labels == 1] == 255).all() and (out[labels == 0] == 0).all()
 
 
+def test_a_movers_disparity_bled_beyond_its_mask_is_left_out_and_the_background_kept():
+    """The matcher smears a mover's disparity over the background beside it, further than
+    ``mask_margin``: ``bleed_margin`` leaves out the pixels there at the mover's depth (a
+    ghost at its depth otherwise) and keeps the background's own depth behind."""
+    from dynastereo.mesh.fusion import depth_and_movers
+
+    class Matcher:  # the background at 10 px, the mover (columns 200-239) at 40 px, bled 14 px to its right
+        cfg = type("C", (), {"num_disparities": 16})()
+
+        def compute(self, left, right):
+            d = np.full(left.shape, 10.0, np.float32)
+            d[:, 200:254] = 40.0
+            return d
+
+    mask = np.zeros((H, W), np.uint8)
+    mask[:, 200:240] = 255
+    view = KeyframeView(0, np.zeros((H, W), np.uint8), np.zeros((H, W), np.uint8), mask)
+    kept = {}
+    for bleed in (0, 24):
+        z, movers = depth_and_movers(view, mask, CALIB, Matcher(), _cfg(scale=1, bleed_margin=bleed, max_depth=30.0).mesh)
+        z[movers] = 0.0
+        kept[bleed] = z
+    bled = slice(249, 252)  # beyond the 8-px margin, off the disparity edge at 254
+    assert (kept[0][:, bled] > 0).all()  # without the ring: the mover's depth, beside it -- a ghost
+    assert not (kept[24][:, bled] > 0).any()
+    assert (kept[24][:, 260:] > 0).all() and np.allclose(kept[24][:, 260:], CALIB.bf / 10.0)  # the background stays
+    assert (kept[24][:, 20:190] > 0).all()
+
+
 def test_ply_files_read_back_with_another_reader(tmp_path: Path):
     plyfile = pytest.importorskip("plyfile")
     vol = TSDFVolume(0.1, 0.3, 1)
@@ -222,6 +251,7 @@ def test_pictures_show_the_mesh():
     ("truncation", 0.05, "mesh.truncation must be at least one voxel"),
     ("max_depth", 0.5, "mesh.min_depth and mesh.max_depth"),
     ("scale", 3, "mesh.scale must be one of"),
+    ("bleed_margin", -1, "mesh.bleed_margin must be in [0, 128] px"),
 ])
 def test_bad_settings_are_refused_in_one_line(key, value, words, tmp_path: Path):
     with pytest.raises(ConfigError) as e:

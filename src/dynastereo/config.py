@@ -728,7 +728,7 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "objects.block_size": (0, 255), "objects.stride": (1, 8),
     "mesh.block_size": (1, 255), "mesh.scale": (1, 4), "mesh.voxel_size": (0, 10), "mesh.truncation": (0, 100),
     "mesh.min_depth": (0, 1000), "mesh.max_depth": (0.1, 1000), "mesh.confidence": (0, 100), "mesh.max_step": (0, 1000),
-    "mesh.mask_margin": (0, 64), "mesh.min_weight": (1, 1000),
+    "mesh.mask_margin": (0, 64), "mesh.bleed_margin": (0, 128), "mesh.min_weight": (1, 1000),
     "seed": (0, 2**32 - 1),
 }
 
@@ -766,7 +766,8 @@ class MeshConfig:
     Each keyframe's full-frame disparity (OpenCV's ``algorithm`` with ``block_size`` at
     1/``scale`` resolution, the other matcher settings from ``stereo``; ``confidence`` its
     uniqueness margin), outside the masks of objects judged moving or not yet judged (grown
-    by ``mask_margin`` px), between ``min_depth`` and ``max_depth`` m, is fused at the final
+    by ``mask_margin`` px; within ``bleed_margin`` px of them, pixels at the depth of the mover
+    beside them, +- 1 m, left out too: its disparity smeared over the background), between ``min_depth`` and ``max_depth`` m, is fused at the final
     poses into a TSDF of ``voxel_size`` m voxels truncated at ``truncation`` m; marching
     cubes gives the mesh, kept where a voxel was seen ``min_weight`` times.  Defaults suit
     KITTI (fx 720 px, baseline 0.54 m): semi-global matching at half resolution, 13 ms of
@@ -782,6 +783,7 @@ class MeshConfig:
     confidence: int = 15  # disparity confidence: the best match beats every other by this %, 0: all
     max_step: float = 2.0  # px: a second difference of the disparity above it marks an edge (flying pixels), left out
     mask_margin: int = 8  # px the movers' masks are grown by (half the matcher's block: its border bleed)
+    bleed_margin: int = 24  # px around the movers where a pixel at the depth of the mover beside it (+-1 m) is left out too
     min_weight: int = 1  # observations a voxel needs to carry the surface
     compare: bool = False  # also fuse the keyframes with the masks ignored: FILE_unmasked.ply, the report shows both
 
@@ -810,6 +812,8 @@ class MeshConfig:
             raise _bad("mesh.max_step", "> 0 px", self.max_step)
         if not 0 <= self.mask_margin <= 64:
             raise _bad("mesh.mask_margin", "in [0, 64] px", self.mask_margin)
+        if not 0 <= self.bleed_margin <= 128:
+            raise _bad("mesh.bleed_margin", "in [0, 128] px", self.bleed_margin)
         if not 1 <= self.min_weight <= 1000:
             raise _bad("mesh.min_weight", "in [1, 1000]", self.min_weight)
 

@@ -8,7 +8,9 @@ copies: the frame loop pays nothing.  Parked cars stay, as part of the street.
 
 :func:`fuse` runs once the poses are final (after the last BA and any loop closure): per
 keyframe the full-frame disparity (the ``stereo`` matcher; ``mesh.confidence`` as its
-uniqueness margin), the movers' masks grown by ``mesh.mask_margin``, pixels on disparity
+uniqueness margin), the movers' masks grown by ``mesh.mask_margin`` (and, within
+``mesh.bleed_margin`` of them, the pixels at the depth of the mover beside them: its disparity
+bled over the background), pixels on disparity
 edges (``mesh.max_step``) and outside ``[min_depth, max_depth]`` dropped, the rig's
 disparity offset (the SLAM's self-calibration) applied; then TSDF fusion at the final
 keyframe poses and marching cubes (:mod:`.tsdf`).  World frame: the first camera's, as
@@ -130,6 +132,16 @@ def scaled_K(K: np.ndarray, scale: int) -> np.ndarray:
     return Ks
 
 
+BLEED_DEPTH = 1.0  # m: a pixel in a mover's bleed ring this near its depth is taken for the mover
+
+
+def _grow(m: np.ndarray, r: float) -> np.ndarray:
+    r = int(round(r))
+    if r <= 0:
+        return m
+    return cv2.dilate(m.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
+
+
 def disparity_edges(d: np.ndarray, max_step: float) -> np.ndarray:
     """Pixels next to a disparity jump: a second difference (across or along the rows)
     above ``max_step`` -- zero on any plane, whatever its slant (a road's disparity
@@ -172,14 +184,22 @@ def depth_and_movers(view: KeyframeView, mask: np.ndarray | None, calib: StereoC
     valid[:, :matcher.cfg.num_disparities] = False
     d[valid] += np.float32(disparity_offset)
     valid &= ~disparity_edges(np.where(valid, d, 0), cfg.max_step)
-    m = None
-    if mask is not None and mask.any():
-        m = downscale((mask > 0).astype(np.uint8) * 255, s) > 0
-        r = int(round(cfg.mask_margin / s))
-        if r > 0:
-            m = cv2.dilate(m.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
     with np.errstate(divide="ignore"):
         z = np.where(valid & (d > 0), calib.bf / np.maximum(d, 1e-6), 0.0).astype(np.float32)
+    m = None
+    if mask is not None and mask.any():
+        m0 = downscale((mask > 0).astype(np.uint8) * 255, s) > 0
+        m = _grow(m0, cfg.mask_margin / s)
+        rb = int(round(cfg.bleed_margin / s))
+        if rb > 0:
+            # the ring where the movers' disparity may bleed: a pixel there at the depth of
+            # the nearest mover beside it (+- BLEED_DEPTH) is the mover smeared, not what lies
+            # behind it (farther) or the road before it (nearer)
+            near = cv2.dilate(np.where(m0 & valid, d, 0.0).astype(np.float32),
+                              cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rb + 1, 2 * rb + 1)))
+            with np.errstate(divide="ignore"):
+                z_near = np.where(near > 0, calib.bf / np.maximum(near, 1e-6), 0.0)
+            m |= (near > 0) & (z > 0) & (np.abs(z - z_near) <= BLEED_DEPTH)
     z[(z < cfg.min_depth) | (z > cfg.max_depth)] = 0.0
     return z, m
 
