@@ -420,6 +420,14 @@ class MotionConfig:
     suspect_fraction: float = 0.67
     forget_points: bool = True
     duplicate_iou: float = 0.7
+    # the window velocity's noise: "median" = of a median of points of unequal ages (the few
+    # points first seen a frame ago barely move it), "mean" = of their mean (before 2026-12-05)
+    velocity_noise: str = "median"
+    # after a suspect frame (a pose that may have jumped) the window's displacements start there
+    suspect_restarts_window: bool = True
+    # a mover is judged static again after min(release_frames, max(confirm_frames, its frames of
+    # motion evidence)) frames of rest ("proportional"), or after release_frames ("fixed")
+    release: str = "proportional"
 
     def __post_init__(self) -> None:
         self.validate()
@@ -437,6 +445,10 @@ class MotionConfig:
                 raise _bad(f"motion.{k}", "> 0", getattr(self, k))
         if self.rest_sigma not in ("window", "measured"):
             raise _bad("motion.rest_sigma", "window or measured", self.rest_sigma)
+        if self.release not in ("proportional", "fixed"):
+            raise _bad("motion.release", "proportional or fixed", self.release)
+        if self.velocity_noise not in ("median", "mean"):
+            raise _bad("motion.velocity_noise", "median or mean", self.velocity_noise)
         if self.rest_resolution_vehicle is not None and not self.rest_resolution_vehicle > 0:
             raise _bad("motion.rest_resolution_vehicle", "> 0 (or null: vehicles judged at any range)",
                        self.rest_resolution_vehicle)

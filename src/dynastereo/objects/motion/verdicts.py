@@ -48,6 +48,7 @@ def _median3(v) -> float:
 class _TrackState:
     moving: bool | None = None
     run: int = 0  # > 0: frames of motion evidence in a row; < 0: of rest
+    moves: int = 0  # frames of motion evidence since the track was last static (or new)
     speeds: deque = field(default_factory=lambda: deque(maxlen=3))
     speed_sigmas: deque = field(default_factory=lambda: deque(maxlen=3))  # each speed's sigma along its velocity
     last_seen: int = 0
@@ -65,6 +66,7 @@ class MotionJudge:
         self._poses: dict[int, np.ndarray] = {}  # seq -> T_wc of the recent frames tracked
         self._n = 0
         self._epoch = 0
+        self._restart = -1  # seq of the last suspect frame: the window's anchors start at it
         # with a list here, one row per object and frame tested:
         # (seq, track, points, fraction over chi2 (-1: frame skipped), window chi2, evidence)
         self.log: list | None = None
@@ -73,6 +75,7 @@ class MotionJudge:
         self.tracks.clear()
         self._last = None
         self._poses.clear()
+        self._restart = -1
 
     def _sync(self, masks: StereoMasks) -> None:
         flow = masks.flow
@@ -153,11 +156,17 @@ class MotionJudge:
         if e is None:
             return False
         t.run = (max(t.run, 0) + 1) if e else (min(t.run, 0) - 1)
+        t.moves += bool(e)
         was = t.moving
+        # a mover is released after as many frames of rest as it gave of motion, at least
+        # confirm_frames and at most release_frames ("proportional"; "fixed": release_frames)
+        release = c.release_frames if c.release == "fixed" else min(c.release_frames, max(c.confirm_frames, t.moves))
         if t.run >= c.confirm_frames:
             t.moving = True
-        elif (was is None and t.run <= -c.confirm_frames) or (was is True and t.run <= -c.release_frames):
+        elif (was is None and t.run <= -c.confirm_frames) or (was is True and t.run <= -release):
             t.moving = False
+        if t.moving is False:
+            t.moves = 0
         return was is False and t.moving is True
 
     def _measured_sigma(self, Cv: np.ndarray, age: np.ndarray, group: np.ndarray, counts: np.ndarray,
@@ -244,12 +253,21 @@ class MotionJudge:
         sig_v = np.full(G, np.inf)  # m/s: the velocity's largest standard deviation ("measured")
         if flow.seq in self._poses:
             S = np.array([c.sigma_px**2, c.sigma_px**2, c.sigma_disparity**2])
-            use, V, Cv, age, X1 = _point_velocities(cat, flow.seq, self._poses, self.calib, S)
+            win = cat
+            if c.suspect_restarts_window and self._restart >= 0:
+                # a suspect frame's pose may have jumped: no displacement is measured across
+                # it, the points first seen before it are anchored at k-1 instead
+                early = (cat.seqa >= 0) & (cat.seqa < self._restart)
+                if early.any():
+                    win = ObjectFlow(-1, -1, cat.uv0, cat.d0, cat.uv1, cat.d1, np.where(early[:, None], cat.uv0, cat.uva),
+                                     np.where(early, cat.d0, cat.da), np.where(early, -1, cat.seqa))
+            use, V, Cv, age, X1 = _point_velocities(win, flow.seq, self._poses, self.calib, S)
             if use.any():
-                has, vel[has], Cm, nvel[has] = _object_velocities(
-                    V, Cv, age, X1, owner[use], G, T1[:3, :3], c.object_points, np.radians(c.sigma_pose_deg),
-                    c.sigma_pose_m)
-                cov[has] = Cm
+                median = c.velocity_noise == "median"
+                res = _object_velocities(V, Cv, age, X1, owner[use], G, T1[:3, :3], c.object_points,
+                                         np.radians(c.sigma_pose_deg), c.sigma_pose_m, median_cov=median)
+                has, vel[has], Cm, nvel[has] = res[:4]
+                cov[has] = res[4] if median else Cm  # the speed's sigma: the mean's (SPEED_SIGMA_SCALE)
                 chi_v[has] = np.einsum("gi,gi->g", vel[has], np.linalg.solve(Cm, vel[has][:, :, None])[:, :, 0])
                 if measured:
                     sig_v[has] = self._measured_sigma(Cv, age, owner[use], nvel[has], T1, X1) / flow.dt
@@ -265,6 +283,7 @@ class MotionJudge:
             self.log.extend((flow.seq, of.track, int(n[k]), -1.0 if suspect else float(frac[k]), float(chi_v[k]),
                              None if suspect else evidence[k]) for k, of in enumerate(objs))
         if suspect:
+            self._restart = flow.seq
             return []
         turned = []
         for k, (of, t) in enumerate(zip(objs, states)):
