@@ -428,6 +428,10 @@ class MotionConfig:
     # a mover is judged static again after min(release_frames, max(confirm_frames, its frames of
     # motion evidence)) frames of rest ("proportional"), or after release_frames ("fixed")
     release: str = "proportional"
+    # an undecided object judged moving on one frame that fails both tests (at least
+    # moving_fraction of min_points points or more over chi2, and the window's chi-square over
+    # object_chi2); undecided and moving objects are both masked, so only the verdict comes sooner
+    strong_confirm: bool = True
 
     def __post_init__(self) -> None:
         self.validate()

@@ -148,10 +148,14 @@ class MotionJudge:
         moving = enough & ((frac >= c.moving_fraction) | (chi_velocity > c.object_chi2))
         rest = (enough & ~moving & (n >= c.min_points) & (frac <= c.static_fraction)
                 & (chi_velocity <= c.object_chi2_static) & resolved)
+        # both tests failed by min_points points or more: decisive for an undecided object
+        self._strong = (n >= c.min_points) & (frac >= c.moving_fraction) & (chi_velocity > c.object_chi2)
         return [True if m else (False if r else None) for m, r in zip(moving, rest)]
 
-    def _step(self, t: _TrackState, e: bool | None) -> bool:
-        """Hysteresis; True when the track turned moving from static."""
+    def _step(self, t: _TrackState, e: bool | None, strong: bool = False) -> bool:
+        """Hysteresis; True when the track turned moving from static.  ``strong``: both
+        tests failed at once (:meth:`_evidence`), which decides an undecided track moving
+        on its own with ``motion.strong_confirm``."""
         c = self.cfg
         if e is None:
             return False
@@ -161,7 +165,7 @@ class MotionJudge:
         # a mover is released after as many frames of rest as it gave of motion, at least
         # confirm_frames and at most release_frames ("proportional"; "fixed": release_frames)
         release = c.release_frames if c.release == "fixed" else min(c.release_frames, max(c.confirm_frames, t.moves))
-        if t.run >= c.confirm_frames:
+        if t.run >= c.confirm_frames or (strong and was is None and c.strong_confirm):
             t.moving = True
         elif (was is None and t.run <= -c.confirm_frames) or (was is True and t.run <= -release):
             t.moving = False
@@ -287,7 +291,7 @@ class MotionJudge:
             return []
         turned = []
         for k, (of, t) in enumerate(zip(objs, states)):
-            if self._step(t, evidence[k]):
+            if self._step(t, evidence[k], bool(self._strong[k])):
                 turned.append(of.index)
             if nvel[k] >= c.min_points:
                 sp = float(np.linalg.norm(vel[k]))
