@@ -18,6 +18,7 @@ _MARGIN = 48  # px around the boxes' union that LK works on
 _NEAR = tuple(a.ravel() for a in np.meshgrid(np.arange(-3, 4), np.arange(-3, 4)))  # (dx, dy) offsets
 _MIN_PIXELS = 150  # objects with fewer outline pixels are not followed (they stay undecided: masked)
 _NONE2 = np.zeros((0, 2), np.float32)
+_NO_POINTS = (np.zeros((0, 2)), (np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int64)))  # a track's points: none
 
 
 @dataclass
@@ -64,8 +65,7 @@ class _Prev:
     disparity: np.ndarray
     tracks: np.ndarray  # (N,) track id per object
     boxes: np.ndarray  # (N, 4)
-    # per track id, the points followed into this frame: (uv (n, 2), their history (n, W, 3):
-    # (u, v, d) in this frame and the W - 1 before it, NaN before a point was first seen)
+    # per track id, the points followed into this frame: (uv (n, 2), their anchors (uv, d, seq))
     points: dict = field(default_factory=dict)
 
 
@@ -142,31 +142,28 @@ class SceneFlow:
         pairs = [(i, cur_of[int(t)]) for i, t in enumerate(prev.tracks) if t >= 0 and int(t) in cur_of]
         if not pairs:
             return out
-        # the points followed into k-1, topped up with new corners on the outline at k-1; each
-        # point's anchor is where it was window_frames - 1 frames before k-1, or where it was
-        # first seen if later: the window slides along a point followed for long (its anchor
-        # does not expire, and with it all the points an object got at once)
+        # the points followed into k-1 (anchors kept up to window_frames back), topped up
+        # with new corners on the outline at k-1 (anchored there: their disparity at k-1)
         W = self.cfg.window_frames
-        p0s, hs = [], []
+        p0s, uas, das, sas = [], [], [], []
         for i, _ in pairs:
-            uv, hist = prev.points.get(int(prev.tracks[i]), (_NONE2, np.zeros((0, W, 3))))
-            if hist.shape[1] != W:  # window_frames changed
-                hist = hist[:, :W] if hist.shape[1] > W else np.pad(hist, ((0, 0), (0, W - hist.shape[1]), (0, 0)),
-                                                                   constant_values=np.nan)
+            uv, (ua, da, sa) = prev.points.get(int(prev.tracks[i]), _NO_POINTS)
+            young = seq - sa <= W
+            uv, ua, da, sa = uv[young], ua[young], da[young], sa[young]
             new = self._corners(prev, i, uv)
             p0s += (uv, new)
-            hs += (hist, np.full((len(new), W, 3), np.nan))
+            uas += (ua, new)
+            das += (da, np.full(len(new), np.nan))
+            sas += (sa, np.full(len(new), seq - 1))
         counts = np.add.reduceat(np.array([len(p) for p in p0s]), np.arange(0, len(p0s), 2))
         if counts.sum() == 0:
             return out
         owner = np.repeat(np.arange(len(pairs)), counts)
         p0 = np.concatenate(p0s).astype(np.float32)
-        hist = np.concatenate(hs)
+        ua, da, sa = np.concatenate(uas).astype(np.float64), np.concatenate(das), np.concatenate(sas)
         d0, _ = _lookup(prev.disparity, p0)
-        hist[:, 0, :2], hist[:, 0, 2] = p0, d0
-        back = W - 1 - np.argmax(np.isfinite(hist[:, ::-1, 2]), axis=1)  # frames before k-1 of the anchor
-        rows = np.arange(len(p0))
-        ua, da, sa = hist[rows, back, :2], hist[rows, back, 2], seq - 1 - back
+        fresh = np.isnan(da)
+        da[fresh] = d0[fresh]
         # one forward-backward LK call for every object's points, on the union of their
         # boxes (k-1 and k) grown by a margin; the crop starts on the coarsest pyramid
         # level's grid, so its pyramid is the whole image's (a crop origin moving from frame
@@ -194,11 +191,10 @@ class SceneFlow:
         p0, p1 = p0[keep].astype(np.float64), p1[keep].astype(np.float64)
         d0, d1 = d0[keep].astype(np.float64), d1[keep].astype(np.float64)
         ua, da, sa = ua[keep], da[keep], sa[keep]
-        hist = np.concatenate([np.column_stack([p1, d1])[:, None], hist[keep, :W - 1]], axis=1)
         ends = np.searchsorted(owner[keep], np.arange(len(pairs) + 1))
         for k, (_, j) in enumerate(pairs):
             s = slice(ends[k], ends[k + 1])
             if s.stop > s.start:
                 out.objects.append(ObjectFlow(int(tracks[j]), j, p0[s], d0[s], p1[s], d1[s], ua[s], da[s], sa[s]))
-                self._prev.points[int(tracks[j])] = (p1[s], hist[s])
+                self._prev.points[int(tracks[j])] = (p1[s], (ua[s], da[s], sa[s]))
         return out
