@@ -387,11 +387,18 @@ class MotionConfig:
     the whole window at its distance; a farther walker or cyclist stays undecided, masked;
     opt-in, off by default: ``rest_resolution_vehicle`` the same for vehicles, and
     ``rest_sigma: measured`` the object's own velocity noise instead of a whole window's).
+    The window velocity is a median over the points, and its noise that of a median of
+    points of unequal noise (``velocity_noise: median``; ``mean``: the mean point
+    covariance's, which the points first seen a frame ago dominate).
     ``confirm_frames`` frames of evidence in a row decide an undecided object or turn a
-    static one moving (its map points are then removed, ``forget_points``); a moving one
-    is judged static again after ``release_frames`` frames of rest in a row.  A frame in
+    static one moving (its map points are then removed, ``forget_points``); one frame that
+    fails both tests on ``min_points`` points or more decides an undecided object moving
+    (``strong_confirm``); a moving one is judged static again after as many frames of rest
+    in a row as it gave of motion, at least ``confirm_frames`` and at most
+    ``release_frames`` (``release: proportional``; ``fixed``: ``release_frames``).  A frame in
     which at least ``suspect_fraction`` of the objects judged static seem to move gives no
-    evidence (SLAM's pose is suspect).  An undecided object whose box overlaps a judged
+    evidence (SLAM's pose is suspect), and the window's displacements start again after it
+    (``suspect_restarts_window``).  An undecided object whose box overlaps a judged
     object of its class group by IoU >= ``duplicate_iou`` is a second detection of it (a
     detector names one car ``car`` and ``truck``): it takes that object's verdict."""
 
