@@ -49,6 +49,7 @@ class _TrackState:
     moving: bool | None = None
     run: int = 0  # > 0: frames of motion evidence in a row; < 0: of rest
     moves: int = 0  # frames of motion evidence since the track was last static (or new)
+    quick: bool = True  # every frame of the current run of rest told from rest_resolution
     speeds: deque = field(default_factory=lambda: deque(maxlen=3))
     speed_sigmas: deque = field(default_factory=lambda: deque(maxlen=3))  # each speed's sigma along its velocity
     last_seen: int = 0
@@ -152,10 +153,13 @@ class MotionJudge:
         self._strong = (n >= c.min_points) & (frac >= c.moving_fraction) & (chi_velocity > c.object_chi2)
         return [True if m else (False if r else None) for m, r in zip(moving, rest)]
 
-    def _step(self, t: _TrackState, e: bool | None, strong: bool = False) -> bool:
+    def _step(self, t: _TrackState, e: bool | None, strong: bool = False, told: bool = True) -> bool:
         """Hysteresis; True when the track turned moving from static.  ``strong``: both
         tests failed at once (:meth:`_evidence`), which decides an undecided track moving
-        on its own with ``motion.strong_confirm``."""
+        on its own with ``motion.strong_confirm``; ``told``: the object is near enough for
+        the window test to tell its rest from ``rest_resolution`` (:meth:`_resolvable`, any
+        class): a proportional release needs every frame of the run of rest told, else a
+        mover waits the full ``release_frames`` (a tram 80 m away: its rest is no evidence)."""
         c = self.cfg
         if e is None:
             return False
@@ -164,7 +168,12 @@ class MotionJudge:
         was = t.moving
         # a mover is released after as many frames of rest as it gave of motion, at least
         # confirm_frames and at most release_frames ("proportional"; "fixed": release_frames)
-        release = c.release_frames if c.release == "fixed" else min(c.release_frames, max(c.confirm_frames, t.moves))
+        if not told:
+            t.quick = False
+        elif t.run == -1:
+            t.quick = True  # a new run of rest: quick while every frame of it is told
+        quick = e is False and t.quick and c.release == "proportional"
+        release = min(c.release_frames, max(c.confirm_frames, t.moves)) if quick else c.release_frames
         if t.run >= c.confirm_frames or (strong and was is None and c.strong_confirm):
             t.moving = True
         elif (was is None and t.run <= -c.confirm_frames) or (was is True and t.run <= -release):
@@ -197,7 +206,8 @@ class MotionJudge:
         return np.where(slow, c.rest_resolution,
                         np.inf if c.rest_resolution_vehicle is None else c.rest_resolution_vehicle)
 
-    def _resolvable(self, d: np.ndarray, owner: np.ndarray, slow: np.ndarray, dt: float) -> np.ndarray:
+    def _resolvable(self, d: np.ndarray, owner: np.ndarray, slow: np.ndarray, dt: float,
+                    limit: np.ndarray | None = None) -> np.ndarray:
         """(G,) bool: whether the window test can tell each object at rest at all.  For the
         slow road users (``slow``: persons, bicycles -- a walker at 1.4 m/s, a cyclist at 4):
         whether, at its distance (the median disparity ``d`` of its points, ``owner`` their
@@ -206,11 +216,11 @@ class MotionJudge:
         ``2 sigma <= rest_resolution`` with ``sigma = sqrt(2) sigma_Z / (window dt)
         sqrt(pi / 2 / object_points)``, ``sigma_Z = Z^2 sigma_d / bf``.  Vehicles: the same
         with ``rest_resolution_vehicle`` where it is set, else True (judged at any range).
-        An object without points: True."""
+        An object without points: True.  ``limit``: (G,) m/s to resolve instead (any class)."""
         c = self.cfg
         G = len(slow)
         out = np.ones(G, bool)
-        limit = self._rest_limits(slow)
+        limit = self._rest_limits(slow) if limit is None else limit
         judged = np.isfinite(limit)
         if not len(d) or not judged.any():
             return out
@@ -277,6 +287,9 @@ class MotionJudge:
                     sig_v[has] = self._measured_sigma(Cv, age, owner[use], nvel[has], T1, X1) / flow.dt
         if measured:
             resolved = 2.0 * sig_v <= self._rest_limits(slow)
+        # a quick (proportional) release needs an object near enough for the window test to
+        # tell its rest from rest_resolution (the far-walker rule, any class)
+        told = self._resolvable(cat.d1, owner, slow, flow.dt, np.full(G, c.rest_resolution))
         evidence = self._evidence(n, frac, chi_v, resolved)
         states = [self.tracks[of.track] for of in objs]
         # the camera's motion itself is suspect when most objects judged static seem to move
@@ -291,7 +304,7 @@ class MotionJudge:
             return []
         turned = []
         for k, (of, t) in enumerate(zip(objs, states)):
-            if self._step(t, evidence[k], bool(self._strong[k])):
+            if self._step(t, evidence[k], bool(self._strong[k]), bool(told[k])):
                 turned.append(of.index)
             if nvel[k] >= c.min_points:
                 sp = float(np.linalg.norm(vel[k]))
