@@ -428,7 +428,7 @@ class MotionConfig:
     forget_points: bool = True
     duplicate_iou: float = 0.7
     # the window velocity's noise: "median" = of a median of points of unequal ages (the few
-    # points first seen a frame ago barely move it), "mean" = of their mean (before 2026-12-05)
+    # points first seen a frame ago barely move it), "mean" = of their mean (the mean point covariance)
     velocity_noise: str = "median"
     # after a suspect frame (a pose that may have jumped) the window's displacements start there
     suspect_restarts_window: bool = True
