@@ -395,7 +395,8 @@ class MotionConfig:
     fails both tests on ``min_points`` points or more decides an undecided object moving
     (``strong_confirm``); a moving one is judged static again after as many frames of rest
     in a row as it gave of motion, at least ``confirm_frames`` and at most
-    ``release_frames`` (``release: proportional``; ``fixed``: ``release_frames``).  A frame in
+    ``release_frames``, when it is near enough for the window test to tell its rest from
+    ``rest_resolution`` (``release: proportional``; farther, or ``fixed``: ``release_frames``).  A frame in
     which at least ``suspect_fraction`` of the objects judged static seem to move gives no
     evidence (SLAM's pose is suspect), and the window's displacements start again after it
     (``suspect_restarts_window``).  An undecided object whose box overlaps a judged
@@ -433,7 +434,8 @@ class MotionConfig:
     # after a suspect frame (a pose that may have jumped) the window's displacements start there
     suspect_restarts_window: bool = True
     # a mover is judged static again after min(release_frames, max(confirm_frames, its frames of
-    # motion evidence)) frames of rest ("proportional"), or after release_frames ("fixed")
+    # motion evidence)) frames of rest ("proportional"; only when near enough to tell rest from
+    # rest_resolution, as the far-walker rule, else release_frames), or after release_frames ("fixed")
     release: str = "proportional"
     # an undecided object judged moving on one frame that fails both tests (at least
     # moving_fraction of min_points points or more over chi2, and the window's chi-square over
