@@ -68,6 +68,7 @@ class MotionJudge:
         self._n = 0
         self._epoch = 0
         self._restart = -1  # seq of the last suspect frame: the window's anchors start at it
+        self._strong = np.zeros(0, bool)  # per object of the frame weighed: both tests failed (_evidence)
         # with a list here, one row per object and frame tested:
         # (seq, track, points, fraction over chi2 (-1: frame skipped), window chi2, evidence)
         self.log: list | None = None
