@@ -255,6 +255,12 @@ def test_motion_config_is_validated() -> None:
         MotionConfig(rest_resolution_vehicle=0.0)
     with pytest.raises(ConfigError, match="motion.rest_sigma"):
         MotionConfig(rest_sigma="nominal")
+    with pytest.raises(ConfigError, match="motion.velocity_noise"):
+        MotionConfig(velocity_noise="max")
+    with pytest.raises(ConfigError, match="motion.release"):
+        MotionConfig(release="never")
+    with pytest.raises(ConfigError, match="motion.strong_confirm"):
+        Config().with_overrides({"motion.strong_confirm": "yes"})
 
 
 # ----------------------------------------------------------------------------- pipeline
@@ -416,3 +422,36 @@ def test_cli_mask_all_and_default(convoy: Path, tmp_path: Path) -> None:
         assert json.loads((out / "run.json").read_text())["motion"]["mode"] == mode
         last = _lines(out / "objects.jsonl")[-1]["objects"]
         assert any(o["moving"] is not None for o in last) == (mode == "moving")
+
+
+def _car_driving_away(cfg: MotionConfig, frames: int = 20) -> bool | None:
+    """A car 30 m ahead driving away at 10 m/s, the camera following at 9 m/s; its 11
+    points followed for unequal times (1 to 14 frames, as on a small far outline whose
+    points keep being lost and replaced).  Its verdict after ``frames`` frames."""
+    rng = np.random.default_rng(3)
+    X = np.array([0.0, 0.5, 30.0]) + rng.uniform(-0.5, 0.5, (11, 3)) * np.array([1.8, 1.4, 0.2])
+    v = np.array([0.0, 0.0, 10.0])
+    ages = np.array([1, 1, 2, 5, 7, 9, 11, 11, 11, 12, 14])
+    judge = MotionJudge(cfg, CALIB)
+    objs = [ObjectMask((300.0, 80.0, 340.0, 110.0), "car", 1.0, MaskMethod.OUTLINE, 6.7, 1, 1, 1)]
+    for k in range(frames):
+        flows = []
+        if k > 0:
+            anchor = np.maximum(k - ages, 0)
+            uva, da = zip(*(_uvd(X[i:i + 1] + v * DT * a, _camera(a, 9.0), rng) for i, a in enumerate(anchor)))
+            uv0, d0 = _uvd(X + v * DT * (k - 1), _camera(k - 1, 9.0), rng)
+            uv1, d1 = _uvd(X + v * DT * k, _camera(k, 9.0), rng)
+            flows.append(ObjectFlow(1, 0, uv0, d0, uv1, d1, np.concatenate(uva), np.concatenate(da), anchor))
+        masks = StereoMasks(np.zeros((192, 640), np.uint8), np.zeros((192, 640), np.uint8), objs,
+                            flow=FrameFlow(k, DT, flows))
+        judge.update(masks, _camera(k, 9.0)[:3], ok=True)
+    return masks.objects[0].moving
+
+
+def test_a_far_car_driving_away_with_young_points_is_moving() -> None:
+    """The window velocity is a median over the points: its noise is that of a median of
+    points of unequal noise (``velocity_noise: median``), which the few points first seen
+    a frame ago barely change.  Weighed by the mean point covariance (``mean``, before) the
+    youngest points' noise hid 1 m a frame at 30 m, and the car was judged at rest."""
+    assert _car_driving_away(MotionConfig()) is True
+    assert _car_driving_away(MotionConfig(velocity_noise="mean")) is False

@@ -387,11 +387,19 @@ class MotionConfig:
     the whole window at its distance; a farther walker or cyclist stays undecided, masked;
     opt-in, off by default: ``rest_resolution_vehicle`` the same for vehicles, and
     ``rest_sigma: measured`` the object's own velocity noise instead of a whole window's).
+    The window velocity is a median over the points, and its noise that of a median of
+    points of unequal noise (``velocity_noise: median``; ``mean``: the mean point
+    covariance's, which the points first seen a frame ago dominate).
     ``confirm_frames`` frames of evidence in a row decide an undecided object or turn a
-    static one moving (its map points are then removed, ``forget_points``); a moving one
-    is judged static again after ``release_frames`` frames of rest in a row.  A frame in
+    static one moving (its map points are then removed, ``forget_points``); one frame that
+    fails both tests on ``min_points`` points or more decides an undecided object moving
+    (``strong_confirm``); a moving one is judged static again after as many frames of rest
+    in a row as it gave of motion, at least ``confirm_frames`` and at most
+    ``release_frames``, when it is near enough for the window test to tell its rest from
+    ``rest_resolution`` (``release: proportional``; farther, or ``fixed``: ``release_frames``).  A frame in
     which at least ``suspect_fraction`` of the objects judged static seem to move gives no
-    evidence (SLAM's pose is suspect).  An undecided object whose box overlaps a judged
+    evidence (SLAM's pose is suspect), and the window's displacements start again after it
+    (``suspect_restarts_window``).  An undecided object whose box overlaps a judged
     object of its class group by IoU >= ``duplicate_iou`` is a second detection of it (a
     detector names one car ``car`` and ``truck``): it takes that object's verdict."""
 
@@ -420,6 +428,19 @@ class MotionConfig:
     suspect_fraction: float = 0.67
     forget_points: bool = True
     duplicate_iou: float = 0.7
+    # the window velocity's noise: "median" = of a median of points of unequal ages (the few
+    # points first seen a frame ago barely move it), "mean" = of their mean (the mean point covariance)
+    velocity_noise: str = "median"
+    # after a suspect frame (a pose that may have jumped) the window's displacements start there
+    suspect_restarts_window: bool = True
+    # a mover is judged static again after min(release_frames, max(confirm_frames, its frames of
+    # motion evidence)) frames of rest ("proportional"; only when near enough to tell rest from
+    # rest_resolution, as the far-walker rule, else release_frames), or after release_frames ("fixed")
+    release: str = "proportional"
+    # an undecided object judged moving on one frame that fails both tests (at least
+    # moving_fraction of min_points points or more over chi2, and the window's chi-square over
+    # object_chi2); undecided and moving objects are both masked, so only the verdict comes sooner
+    strong_confirm: bool = True
 
     def __post_init__(self) -> None:
         self.validate()
@@ -437,6 +458,10 @@ class MotionConfig:
                 raise _bad(f"motion.{k}", "> 0", getattr(self, k))
         if self.rest_sigma not in ("window", "measured"):
             raise _bad("motion.rest_sigma", "window or measured", self.rest_sigma)
+        if self.release not in ("proportional", "fixed"):
+            raise _bad("motion.release", "proportional or fixed", self.release)
+        if self.velocity_noise not in ("median", "mean"):
+            raise _bad("motion.velocity_noise", "median or mean", self.velocity_noise)
         if self.rest_resolution_vehicle is not None and not self.rest_resolution_vehicle > 0:
             raise _bad("motion.rest_resolution_vehicle", "> 0 (or null: vehicles judged at any range)",
                        self.rest_resolution_vehicle)

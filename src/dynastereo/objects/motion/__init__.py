@@ -33,9 +33,16 @@ tracking on a prefetch thread:
     error as a random walk): chi-square against ``object_chi2``.  The long baseline sees
     a car ahead at the camera's speed far away, which one frame cannot.
 
-  Evidence of motion / rest per frame, hysteresis over frames (``confirm_frames``,
-  ``release_frames``) gives the verdict ``moving`` True / False / None (undecided); a
-  frame where most objects judged static seem to move gives none (a bad pose).  Speed =
+  The velocity's noise is that of a median of points of unequal ages
+  (``velocity_noise: median``): the points first seen a frame ago, whose displacement is
+  noisy, barely move a median, so they must not set its covariance.
+
+  Evidence of motion / rest per frame, hysteresis over frames (``confirm_frames``; a
+  mover released after as many frames of rest as it gave of motion, at most
+  ``release_frames``; one frame failing both tests decides an undecided object moving,
+  ``strong_confirm``) gives the verdict ``moving`` True / False / None (undecided); a
+  frame where most objects judged static seem to move gives none (a bad pose), and no
+  window displacement is measured across it afterwards (``suspect_restarts_window``).  Speed =
   the velocity's norm / dt (median of the last 3 frames).  ``update`` returns the objects
   that turned moving from static, whose map points :class:`ObjectMotion` removes
   (the frame processor applies them: ``System.forget_region``).  An undecided object whose box overlaps a judged one of

@@ -48,6 +48,8 @@ def _median3(v) -> float:
 class _TrackState:
     moving: bool | None = None
     run: int = 0  # > 0: frames of motion evidence in a row; < 0: of rest
+    moves: int = 0  # frames of motion evidence since the track was last static (or new)
+    quick: bool = True  # every frame of the current run of rest told from rest_resolution
     speeds: deque = field(default_factory=lambda: deque(maxlen=3))
     speed_sigmas: deque = field(default_factory=lambda: deque(maxlen=3))  # each speed's sigma along its velocity
     last_seen: int = 0
@@ -65,6 +67,8 @@ class MotionJudge:
         self._poses: dict[int, np.ndarray] = {}  # seq -> T_wc of the recent frames tracked
         self._n = 0
         self._epoch = 0
+        self._restart = -1  # seq of the last suspect frame: the window's anchors start at it
+        self._strong = np.zeros(0, bool)  # per object of the frame weighed: both tests failed (_evidence)
         # with a list here, one row per object and frame tested:
         # (seq, track, points, fraction over chi2 (-1: frame skipped), window chi2, evidence)
         self.log: list | None = None
@@ -73,6 +77,7 @@ class MotionJudge:
         self.tracks.clear()
         self._last = None
         self._poses.clear()
+        self._restart = -1
 
     def _sync(self, masks: StereoMasks) -> None:
         flow = masks.flow
@@ -145,19 +150,37 @@ class MotionJudge:
         moving = enough & ((frac >= c.moving_fraction) | (chi_velocity > c.object_chi2))
         rest = (enough & ~moving & (n >= c.min_points) & (frac <= c.static_fraction)
                 & (chi_velocity <= c.object_chi2_static) & resolved)
+        # both tests failed by min_points points or more: decisive for an undecided object
+        self._strong = (n >= c.min_points) & (frac >= c.moving_fraction) & (chi_velocity > c.object_chi2)
         return [True if m else (False if r else None) for m, r in zip(moving, rest)]
 
-    def _step(self, t: _TrackState, e: bool | None) -> bool:
-        """Hysteresis; True when the track turned moving from static."""
+    def _step(self, t: _TrackState, e: bool | None, strong: bool = False, told: bool = True) -> bool:
+        """Hysteresis; True when the track turned moving from static.  ``strong``: both
+        tests failed at once (:meth:`_evidence`), which decides an undecided track moving
+        on its own with ``motion.strong_confirm``; ``told``: the object is near enough for
+        the window test to tell its rest from ``rest_resolution`` (:meth:`_resolvable`, any
+        class): a proportional release needs every frame of the run of rest told, else a
+        mover waits the full ``release_frames`` (a tram 80 m away: its rest is no evidence)."""
         c = self.cfg
         if e is None:
             return False
         t.run = (max(t.run, 0) + 1) if e else (min(t.run, 0) - 1)
+        t.moves += bool(e)
         was = t.moving
-        if t.run >= c.confirm_frames:
+        # a mover is released after as many frames of rest as it gave of motion, at least
+        # confirm_frames and at most release_frames ("proportional"; "fixed": release_frames)
+        if not told:
+            t.quick = False
+        elif t.run == -1:
+            t.quick = True  # a new run of rest: quick while every frame of it is told
+        quick = e is False and t.quick and c.release == "proportional"
+        release = min(c.release_frames, max(c.confirm_frames, t.moves)) if quick else c.release_frames
+        if t.run >= c.confirm_frames or (strong and was is None and c.strong_confirm):
             t.moving = True
-        elif (was is None and t.run <= -c.confirm_frames) or (was is True and t.run <= -c.release_frames):
+        elif (was is None and t.run <= -c.confirm_frames) or (was is True and t.run <= -release):
             t.moving = False
+        if t.moving is False:
+            t.moves = 0
         return was is False and t.moving is True
 
     def _measured_sigma(self, Cv: np.ndarray, age: np.ndarray, group: np.ndarray, counts: np.ndarray,
@@ -184,7 +207,8 @@ class MotionJudge:
         return np.where(slow, c.rest_resolution,
                         np.inf if c.rest_resolution_vehicle is None else c.rest_resolution_vehicle)
 
-    def _resolvable(self, d: np.ndarray, owner: np.ndarray, slow: np.ndarray, dt: float) -> np.ndarray:
+    def _resolvable(self, d: np.ndarray, owner: np.ndarray, slow: np.ndarray, dt: float,
+                    limit: np.ndarray | None = None) -> np.ndarray:
         """(G,) bool: whether the window test can tell each object at rest at all.  For the
         slow road users (``slow``: persons, bicycles -- a walker at 1.4 m/s, a cyclist at 4):
         whether, at its distance (the median disparity ``d`` of its points, ``owner`` their
@@ -193,11 +217,11 @@ class MotionJudge:
         ``2 sigma <= rest_resolution`` with ``sigma = sqrt(2) sigma_Z / (window dt)
         sqrt(pi / 2 / object_points)``, ``sigma_Z = Z^2 sigma_d / bf``.  Vehicles: the same
         with ``rest_resolution_vehicle`` where it is set, else True (judged at any range).
-        An object without points: True."""
+        An object without points: True.  ``limit``: (G,) m/s to resolve instead (any class)."""
         c = self.cfg
         G = len(slow)
         out = np.ones(G, bool)
-        limit = self._rest_limits(slow)
+        limit = self._rest_limits(slow) if limit is None else limit
         judged = np.isfinite(limit)
         if not len(d) or not judged.any():
             return out
@@ -244,17 +268,29 @@ class MotionJudge:
         sig_v = np.full(G, np.inf)  # m/s: the velocity's largest standard deviation ("measured")
         if flow.seq in self._poses:
             S = np.array([c.sigma_px**2, c.sigma_px**2, c.sigma_disparity**2])
-            use, V, Cv, age, X1 = _point_velocities(cat, flow.seq, self._poses, self.calib, S)
+            win = cat
+            if c.suspect_restarts_window and self._restart >= 0:
+                # a suspect frame's pose may have jumped: no displacement is measured across
+                # it, the points first seen before it are anchored at k-1 instead
+                early = (cat.seqa >= 0) & (cat.seqa < self._restart)
+                if early.any():
+                    win = ObjectFlow(-1, -1, cat.uv0, cat.d0, cat.uv1, cat.d1, np.where(early[:, None], cat.uv0, cat.uva),
+                                     np.where(early, cat.d0, cat.da), np.where(early, -1, cat.seqa))
+            use, V, Cv, age, X1 = _point_velocities(win, flow.seq, self._poses, self.calib, S)
             if use.any():
-                has, vel[has], Cm, nvel[has] = _object_velocities(
-                    V, Cv, age, X1, owner[use], G, T1[:3, :3], c.object_points, np.radians(c.sigma_pose_deg),
-                    c.sigma_pose_m)
-                cov[has] = Cm
+                median = c.velocity_noise == "median"
+                res = _object_velocities(V, Cv, age, X1, owner[use], G, T1[:3, :3], c.object_points,
+                                         np.radians(c.sigma_pose_deg), c.sigma_pose_m, median_cov=median)
+                has, vel[has], Cm, nvel[has] = res[:4]
+                cov[has] = res[4] if median else Cm  # the speed's sigma: the mean's (SPEED_SIGMA_SCALE)
                 chi_v[has] = np.einsum("gi,gi->g", vel[has], np.linalg.solve(Cm, vel[has][:, :, None])[:, :, 0])
                 if measured:
                     sig_v[has] = self._measured_sigma(Cv, age, owner[use], nvel[has], T1, X1) / flow.dt
         if measured:
             resolved = 2.0 * sig_v <= self._rest_limits(slow)
+        # a quick (proportional) release needs an object near enough for the window test to
+        # tell its rest from rest_resolution (the far-walker rule, any class)
+        told = self._resolvable(cat.d1, owner, slow, flow.dt, np.full(G, c.rest_resolution))
         evidence = self._evidence(n, frac, chi_v, resolved)
         states = [self.tracks[of.track] for of in objs]
         # the camera's motion itself is suspect when most objects judged static seem to move
@@ -265,10 +301,11 @@ class MotionJudge:
             self.log.extend((flow.seq, of.track, int(n[k]), -1.0 if suspect else float(frac[k]), float(chi_v[k]),
                              None if suspect else evidence[k]) for k, of in enumerate(objs))
         if suspect:
+            self._restart = flow.seq
             return []
         turned = []
         for k, (of, t) in enumerate(zip(objs, states)):
-            if self._step(t, evidence[k]):
+            if self._step(t, evidence[k], bool(self._strong[k]), bool(told[k])):
                 turned.append(of.index)
             if nvel[k] >= c.min_points:
                 sp = float(np.linalg.norm(vel[k]))
