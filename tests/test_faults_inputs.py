@@ -366,6 +366,23 @@ def test_bad_config_key(seq: Path, tmp_path: Path) -> None:
     assert_one_line(r, 2, "blok_size")
 
 
+@pytest.mark.parametrize("option,text", [
+    ("-c", "stereo: [\n"),                 # a flow sequence never closed
+    ("-c", 'detector:\n  name: "yolox\n'),  # a quoted string never closed
+    ("--calib", "fx: 718\n\tfy: 718\n"),   # a tab as indentation
+    ("--calib", "fx: [718, 0\n"),
+])
+def test_yaml_syntax_error_is_one_line_with_its_place(option: str, text: str, seq: Path, tmp_path: Path) -> None:
+    """PyYAML's own message spans several lines (a snippet and a caret): the error is one
+    line that names the file and the line, and nothing earlier is touched."""
+    f = tmp_path / "bad.yaml"
+    f.write_text(text)
+    r = cli(["run", seq, "-o", tmp_path / "out", "--frames", 2, "--masker", "none", option, f], tmp_path)
+    line = assert_one_line(r, 2, "bad.yaml", "line ")
+    assert "^" not in line
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("fault", ["missing-gt", "bad-columns"])
 def test_bad_eval_files(fault: str, kitti06: Path, tmp_path: Path) -> None:
     gt = kitti06.parents[1] / "poses" / "06.txt"

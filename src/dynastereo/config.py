@@ -19,7 +19,7 @@ import cattrs.gen
 import yaml
 
 from .dotted import nest_dotted
-from .yamlcheck import duplicate_key
+from .yamlcheck import duplicate_key, yaml_error_line
 from .errors import ConfigError
 from .datatypes import DEFAULT_DYNAMIC_CLASSES
 
@@ -1015,8 +1015,10 @@ def load_config(path: str | Path | None = None) -> Config:
             # OpenCV FileStorage header (ORB-SLAM2 settings files) is not plain YAML.
             text = "\n".join(line for line in text.splitlines() if not line.startswith("%YAML"))
         data = yaml.safe_load(text) or {}
-    except (OSError, yaml.YAMLError) as e:
-        raise ConfigError(f"cannot parse YAML: {e}", p) from None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"cannot parse YAML: {yaml_error_line(e)}", p) from None
+    except OSError as e:
+        raise ConfigError(f"cannot read the file: {e.strerror or e}", p) from None
     dup = duplicate_key(text)
     if dup is not None:
         raise ConfigError(f"line {dup[1]}: key '{dup[0]}' is given twice (which one is meant?)", p)

@@ -31,3 +31,17 @@ def duplicate_key(text: str) -> tuple[str, int] | None:
         elif isinstance(node, yaml.SequenceNode):
             stack.extend((v, prefix) for v in node.value)
     return None
+
+
+def yaml_error_line(e: yaml.YAMLError) -> str:
+    """PyYAML's error in one line: ``line L, column C: problem (context)``.  PyYAML's own
+    message spans several lines (a quoted snippet and a caret), which the one-line error
+    rule would break."""
+    mark = getattr(e, "problem_mark", None) or getattr(e, "context_mark", None)
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    problem = getattr(e, "problem", None)
+    context = getattr(e, "context", None)
+    if problem is None:
+        lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+        return where + (lines[0] if lines else type(e).__name__)
+    return where + problem + (f" ({context})" if context else "")

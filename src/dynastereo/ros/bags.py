@@ -36,6 +36,7 @@ from ..io.calib import RawStereoCalibration, check_intrinsics, load_stereo_yaml
 from ..io.euroc import pair_by_timestamp
 from ..io.rectify import Rectifier
 from ..io.sequence import check_plausible
+from ..yamlcheck import yaml_error_line
 from ..datatypes import StereoCalibration, StereoFrame
 from .convert import ImageDecoder, calibration_from_camera_info, CameraInfoData, camera_info_fields
 from .messages import (
@@ -71,10 +72,7 @@ def _storage_identifier(text: str, meta: Path) -> str | None:
     try:
         d = yaml.safe_load(text)
     except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None) or getattr(e, "context_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
-        raise InputError(f"YAML syntax error{where}: {problem}", meta) from None
+        raise InputError(f"YAML syntax error: {yaml_error_line(e)}", meta) from None
     info = d.get("rosbag2_bagfile_information", d) if isinstance(d, dict) else None
     if not isinstance(info, dict):
         raise InputError("not a ROS 2 bag's metadata (no rosbag2_bagfile_information mapping)", meta)

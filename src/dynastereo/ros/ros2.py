@@ -49,6 +49,7 @@ import numpy as np
 
 from ..config import Config, load_config
 from ..dotted import flatten_dotted
+from ..yamlcheck import yaml_error_line
 from ..errors import ConfigError, DynastereoError, InputError
 from .convert import CameraInfoData, ImageDecoder, calibration_from_camera_info, image_outputs
 from .core import LIVE_SECTIONS, NodeResult, StereoInput, StereoNodeCore
@@ -117,7 +118,7 @@ def load_params(path: str | Path | None, node_name: str = NODE_NAME) -> dict[str
     except OSError as e:
         raise ConfigError(f"{where}: cannot read the parameters file ({e.strerror or e})") from None
     except yaml.YAMLError as e:
-        raise ConfigError(f"{where}: not valid YAML ({str(e).splitlines()[0]})") from None
+        raise ConfigError(f"{where}: not valid YAML ({yaml_error_line(e)})") from None
     if not isinstance(doc, dict):
         raise ConfigError(f"{where}: expected a ROS 2 parameters file ('/**: ros__parameters: ...' or "
                           f"'{node_name}: ros__parameters: ...')")

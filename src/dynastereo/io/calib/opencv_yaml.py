@@ -12,7 +12,7 @@ import numpy as np
 import yaml
 
 from ...errors import CalibrationError
-from ...yamlcheck import duplicate_key
+from ...yamlcheck import duplicate_key, yaml_error_line
 from .common import _read_calib_text
 
 
@@ -93,7 +93,7 @@ def read_yaml_file(path: str | Path) -> dict[str, Any]:
         try:
             out = yaml.load(text, Loader=_YamlLoader)
         except yaml.YAMLError as e:
-            raise CalibrationError(f"invalid YAML: {e}", path) from None
+            raise CalibrationError(f"invalid YAML: {yaml_error_line(e)}", path) from None
         except (KeyError, ValueError, TypeError) as e:
             raise CalibrationError(f"invalid !!opencv-matrix: {e}", path) from None
     if not isinstance(out, dict):
