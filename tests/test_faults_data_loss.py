@@ -6,7 +6,7 @@
   ``disparity/``; a user's own files there stay);
 * ``export-bag --overwrite`` replaces the earlier bag only with a complete one;
 * an output path that is also an input (``eval --plot EST``, ``report RUN --out
-  RUN/trajectory.kitti.txt``) is refused;
+  RUN/trajectory.kitti.txt``), or a file of the input sequence's folder, is refused;
 * a second job into an output folder in use is refused (the folder is locked).
 
 Real KITTI 06 frames (4-frame copies); the SLAM without masks where a run is needed.
@@ -122,6 +122,42 @@ def test_output_that_is_an_input_is_refused(earlier, tmp_path: Path) -> None:
     assert_one_line(cli(["report", out, "--out", est], tmp_path), 2, "--out", "input")
     assert_one_line(cli(["report", out, "--gt", gt, "--out", gt], tmp_path), 2, "--out", "input")
     assert _digest(out) == before and gt.read_bytes() == est.read_bytes()
+
+
+def test_an_output_onto_a_file_of_the_input_sequence_is_refused(earlier, tmp_path: Path) -> None:
+    """A file the command reads through its sequence folder (an image, the calibration, the
+    stamps) is an input too: ``--save-cloud``, ``--save-map``, ``--rrd``, ``report --out``,
+    ``gt --out`` and ``export-bag`` refuse it; a new file, or one in the run's own output
+    folder inside the sequence, is written."""
+    seq, out = earlier
+    before = _digest(seq)
+    image = sorted((seq / "image_0").iterdir())[0]
+    run = ["run", seq, "--out", tmp_path / "run", "--masker", "none"]
+    assert_one_line(cli([*run, "--save-cloud", image], tmp_path), 2, "--save-cloud", "input sequence")
+    assert_one_line(cli([*run, "--save-map", seq / "times.txt"], tmp_path), 2, "--save-map", "input sequence")
+    assert_one_line(cli([*run, "--rrd", seq / "calib.txt"], tmp_path), 2, "--rrd", "input sequence")
+    assert_one_line(cli(["report", out, "--out", seq / "calib.txt"], tmp_path), 2, "--out", "input")
+    assert_one_line(cli(["report", out, "--out", image], tmp_path), 2, "--out", "input sequence")
+    assert_one_line(cli(["gt", seq, "--out", seq / "times.txt"], tmp_path), 2, "--out", "input")
+    bag = seq / "old.bag"
+    bag.write_bytes(b"not a bag")
+    try:
+        assert_one_line(cli(["export-bag", seq, bag, "--overwrite"], tmp_path), 2, "output bag", "input sequence")
+    finally:
+        bag.unlink()
+    assert not (tmp_path / "run").exists()
+    assert _digest(seq) == before, "a file of the input sequence was touched"
+    inner = seq / "runs" / "a"
+    try:  # the run's own folder inside the sequence: its files are outputs, written again
+        for _ in range(2):
+            r = cli(["run", seq, "--out", inner, "--masker", "none", "--overwrite", "--save-cloud", inner / "c.ply"],
+                    tmp_path)
+            assert r.returncode == 0, r.stderr
+    finally:
+        import shutil
+
+        shutil.rmtree(seq / "runs")
+    assert _digest(seq) == before
 
 
 def test_a_second_job_into_a_folder_in_use_is_refused(earlier, tmp_path: Path) -> None:

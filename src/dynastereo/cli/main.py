@@ -363,6 +363,20 @@ def _run_summary_lines(out: Path, report: Optional[Path]) -> list[str]:
     return lines
 
 
+def _run_inputs(run_dir: Path) -> list[Path]:
+    """The sequence, calibration and ground truth a run's ``run.json`` records (absolute
+    paths), the sequence first; [] when there is no readable record."""
+    import json
+
+    try:
+        rec = json.loads((run_dir / "run.json").read_text())
+    except (OSError, ValueError):
+        return []
+    if not isinstance(rec, dict) or not isinstance(rec.get("sequence"), str):
+        return []
+    return [Path(rec["sequence"])] + [Path(rec[k]) for k in ("calibration", "ground_truth") if isinstance(rec.get(k), str)]
+
+
 @app.command("report")
 def report_cmd(
     run_dir: Path = typer.Argument(..., help="Output folder of `dynastereo run` (or `mask`)."),
@@ -379,8 +393,8 @@ def report_cmd(
     _check_option("--overlays", overlays, 0 <= overlays <= 1000, "a count of images in 0..1000")
     try:
         if out is not None:
-            refuse_input_as_output(out, [gt, run_dir, *(run_dir / n for n in RUN_OUTPUTS)], what="report file",
-                                   flag="--out")
+            refuse_input_as_output(out, [gt, run_dir, *(run_dir / n for n in RUN_OUTPUTS), *_run_inputs(run_dir)],
+                                   what="report file", flag="--out", folders=_run_inputs(run_dir)[:1], own=run_dir)
             check_output_file(out, what="report file")
         path = make_report(run_dir, gt, out, overlays=overlays, auto_gt=not no_auto_gt)
     except DynastereoError as e:
@@ -405,7 +419,7 @@ def gt_cmd(
 
     try:
         refuse_input_as_output(out, [sequence, find_ground_truth(sequence) if sequence.is_dir() else None],
-                               what="poses file", flag="--out")
+                               what="poses file", flag="--out", folders=[sequence])
         paths = write_ground_truth(sequence, out, fmt, at=at)
         traj = ground_truth(sequence, at=at)
     except DynastereoError as e:
@@ -431,7 +445,7 @@ def export_bag_cmd(
 ) -> None:
     """Write a stereo sequence as a ROS bag: /camera/{left,right}/image_raw + camera_info, with the sequence's stamps."""
     from ..api import export_bag
-    from ..io.outputs import check_output_file
+    from ..io.outputs import check_output_file, refuse_input_as_output
     from ..io.times import UNIX_DATE_MIN_S
     from ..ros.bags import BAG_SUFFIX, check_format
 
@@ -447,6 +461,7 @@ def export_bag_cmd(
         fmt = check_format(fmt)
         if out.suffix.lower() != BAG_SUFFIX[fmt]:
             raise DynastereoError(f"a {fmt} bag must be named *{BAG_SUFFIX[fmt]}, got {out.name!r}")
+        refuse_input_as_output(out, [sequence, calib], what="output bag", folders=[sequence])
         check_output_file(out, what="output bag", overwrite=force)
         with _progress() as prog:
             task = prog.add_task(f"export {fmt}", total=None, info="")

@@ -169,19 +169,36 @@ def _same_file(a: Path, b: Path) -> bool:
     return a.resolve() == b.resolve()
 
 
+def _inside(path: Path, folder: Path) -> bool:
+    try:
+        path.resolve().relative_to(folder.resolve())
+        return True
+    except (OSError, ValueError):
+        return False
+
+
 def refuse_input_as_output(out: str | Path, inputs: Iterable[str | Path | None], *, what: str = "output file",
-                           flag: str = "") -> None:
+                           flag: str = "", folders: Iterable[str | Path | None] = (),
+                           own: str | Path | None = None) -> None:
     """An :class:`OutputError` when ``out`` is one of ``inputs`` (the same file, by any
-    path or link), or -- for a folder among the inputs -- a file inside it that the
-    command reads: writing it would destroy the input."""
+    path or link), or an existing file inside one of ``folders`` (a sequence folder: its
+    images, calibration, stamps and poses are what the command reads) but not inside
+    ``own`` (the command's output folder, which may lie in the sequence's): writing it
+    would destroy the input."""
     out = Path(out)
+    name = f"{flag} " if flag else ""
     for i in inputs:
         if i is None or str(i) == "":
             continue
         if _same_file(out, Path(i)):
-            name = f"{flag} " if flag else ""
             raise OutputError(f"{name}{what} is also an input of this command; writing it would destroy the input "
                               "-- choose another path", out)
+    for f in folders:
+        if f is None or str(f) == "" or not Path(f).is_dir():
+            continue
+        if (out.is_file() or out.is_symlink()) and _inside(out, Path(f)) and not (own is not None and _inside(out, Path(own))):
+            raise OutputError(f"{name}{what} is a file of the input sequence {f}; writing it would destroy the "
+                              "input -- choose a path outside it", out)
 
 
 class OutputLock:

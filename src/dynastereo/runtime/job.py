@@ -118,7 +118,7 @@ def _check_output_files(spec: JobSpec, gt: Path | None) -> None:
                              (o.save_dense_cloud, "dense cloud file", "--save-dense-cloud"), (o.rrd, "recording", "--rrd")):
         if path is not None:
             refuse_input_as_output(path, [i for i in inputs if i != spec.load_map or flag != "--save-map"],
-                                   what=what, flag=flag)
+                                   what=what, flag=flag, folders=[spec.source.name], own=o.dir)
             check_output_file(path, what=f"{what} ({flag})")
     if spec.source.name is not None and Path(spec.source.name).is_dir():
         refuse_input_as_output(o.dir, [spec.source.name], what="output folder", flag="--out")
