@@ -245,10 +245,29 @@ def test_pictures_show_the_mesh():
     assert lit[near:H - 10].mean() > 0.9 and lit[: int(CY) - 2].mean() == 0
 
 
+def test_a_volume_over_its_memory_budget_stops_in_one_line():
+    """The voxel grid grows up to its budget, never past it: a depth map that needs more
+    blocks stops with one line that says which settings to change."""
+    from dynastereo.errors import DynastereoError
+
+    depth = np.full((H, W), 8.0, np.float32)
+    img = np.full((H, W), 128, np.uint8)
+    small = TSDFVolume(0.1, 0.3, 1, max_bytes=50 * 5656)  # 50 blocks
+    with pytest.raises(DynastereoError) as e:
+        small.integrate(depth, img, CALIB.K, np.eye(4)[:3])
+    assert "mesh.voxel_size" in str(e.value) and "\n" not in str(e.value)
+    assert small.nbytes <= 50 * 5656
+    ok = TSDFVolume(0.1, 0.3, 1)
+    ok.integrate(depth, img, CALIB.K, np.eye(4)[:3])
+    assert 50 < ok.n_blocks and ok.nbytes <= ok.max_bytes
+
+
 @pytest.mark.parametrize("key,value,words", [
     ("voxel_size", 0, "mesh.voxel_size must be > 0 m"),
     ("voxel_size", -0.1, "mesh.voxel_size must be > 0 m"),
     ("truncation", 0.05, "mesh.truncation must be at least one voxel"),
+    ("truncation", 5, "at most 32"),  # 50 voxels: blocks far before and behind every surface
+    ("voxel_size", 0.001, "at least 0.01 m"),  # the grid's memory grows as 1 / voxel^2
     ("max_depth", 0.5, "mesh.min_depth and mesh.max_depth"),
     ("scale", 3, "mesh.scale must be one of"),
     ("bleed_margin", -1, "mesh.bleed_margin must be in [0, 128] px"),
@@ -262,6 +281,31 @@ def test_bad_settings_are_refused_in_one_line(key, value, words, tmp_path: Path)
     with pytest.raises(ConfigError) as e:
         load_config(path)
     assert words in str(e.value) and str(path) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_mesh_over_its_budget_fails_the_run_in_one_line_and_keeps_its_files(tmp_path: Path, monkeypatch):
+    """The mesh is built after the frame loop: when it cannot be (here: a grid budget of 20
+    blocks), the trajectory, timing.json and run.json are still written, run.json records
+    the failure and the command ends with one line and status 2."""
+    import functools
+
+    from typer.testing import CliRunner
+
+    import dynastereo.mesh.fusion as fusion
+    from dynastereo.cli.main import app
+    from dynastereo.synth import generate
+
+    monkeypatch.setattr(fusion, "TSDFVolume", functools.partial(TSDFVolume, max_bytes=20 * 5656))
+    seq = generate(tmp_path / "seq", "oncoming", frames=8, seed=3, size=(480, 144))
+    out = tmp_path / "run"
+    r = CliRunner().invoke(app, ["run", str(seq), "--out", str(out), "--detector", "oracle", "--save-mesh",
+                                 str(out / "world.ply")])
+    assert r.exit_code == 2, r.output
+    assert "voxel grid would need more than" in r.output and "Traceback" not in r.output
+    run = json.loads((out / "run.json").read_text())
+    assert run["status"].startswith("failed") and "mesh.voxel_size" in run["mesh"]["error"]
+    assert len((out / "trajectory.kitti.txt").read_text().splitlines()) == run["frames_done"] == 8
+    assert (out / "timing.json").is_file() and not (out / "world.ply").exists()
 
 
 def test_run_writes_the_mesh_the_log_counts(tmp_path: Path):

@@ -784,6 +784,11 @@ def check_bounds(cfg: Any) -> None:
             raise _bad(key, f"a finite number in [{lo:g}, {hi:g}]", v)
 
 
+#: the finest TSDF voxel and the widest truncation, in voxels (mesh.voxel_size, mesh.truncation)
+MIN_VOXEL_M = 0.01
+MAX_TRUNCATION_VOXELS = 32
+
+
 @dataclass
 class MeshConfig:
     """The dense, mover-free mesh of the static world (``run --save-mesh``, ``mesh/``).
@@ -823,11 +828,14 @@ class MeshConfig:
             raise _bad("mesh.block_size", f"odd and in [{lo}, 255] for {self.algorithm}", self.block_size)
         if self.scale not in STEREO_SCALES:
             raise _bad("mesh.scale", f"one of {STEREO_SCALES}", self.scale)
-        if not self.voxel_size > 0:
-            raise _bad("mesh.voxel_size", "> 0 m", self.voxel_size)
-        if not self.truncation >= self.voxel_size:
-            raise ConfigError(f"mesh.truncation must be at least one voxel (mesh.voxel_size {self.voxel_size:g} m), "
-                              f"got {self.truncation!r}")
+        # the voxel grid's memory grows as 1 / voxel_size^2 (blocks along the surfaces) and
+        # with truncation / voxel_size (blocks behind and before them): both bounded
+        if not self.voxel_size >= MIN_VOXEL_M:
+            raise _bad("mesh.voxel_size", f"> 0 m and at least {MIN_VOXEL_M:g} m (the grid's memory grows as "
+                       "1/voxel^2)", self.voxel_size)
+        if not self.voxel_size <= self.truncation <= MAX_TRUNCATION_VOXELS * self.voxel_size:
+            raise ConfigError(f"mesh.truncation must be at least one voxel and at most {MAX_TRUNCATION_VOXELS} "
+                              f"(mesh.voxel_size {self.voxel_size:g} m), got {self.truncation!r}")
         if not 0 < self.min_depth < self.max_depth:
             raise ConfigError(f"mesh.min_depth and mesh.max_depth must satisfy 0 < min_depth < max_depth, got "
                               f"{self.min_depth!r} and {self.max_depth!r}")

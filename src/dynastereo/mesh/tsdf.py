@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from ..errors import DynastereoError
 from .tables import CORNERS, EDGES, TRIS
 
 BLOCK = 8  # voxels per block side
@@ -210,11 +211,18 @@ def incidence(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float, ste
     return out
 
 
+#: the voxel grid's memory budget: a volume that would need more stops with one line
+#: (the run's other outputs are written before the mesh is built)
+MAX_GRID_BYTES = 4 << 30
+
+
 class TSDFVolume:
     """The sparse volume (module doc); ``voxel_size`` and ``truncation`` in metres."""
 
-    def __init__(self, voxel_size: float, truncation: float, min_weight: float = 1.0) -> None:
+    def __init__(self, voxel_size: float, truncation: float, min_weight: float = 1.0,
+                 max_bytes: int = MAX_GRID_BYTES) -> None:
         self.voxel, self.trunc, self.min_weight = float(voxel_size), float(truncation), float(min_weight)
+        self.max_bytes = int(max_bytes)
         self.block_m = self.voxel * BLOCK
         self.n = 0
         self._grow(1024)
@@ -223,6 +231,9 @@ class TSDFVolume:
         self.peak_bytes = 0
 
     def _grow(self, cap: int) -> None:
+        per_block = 3 * 8 + B3 * (4 + 4 + 3)
+        if cap * per_block > self.max_bytes:  # grow to the budget, never past it
+            cap = max(self.n, self.max_bytes // per_block)
         old = self.n
         coords = np.zeros((cap, 3), np.int64)
         tsdf = np.ones((cap, B3), np.float32)
@@ -250,6 +261,11 @@ class TSDFVolume:
         if not len(keys):
             return
         need = self.n + len(keys)
+        if need * (3 * 8 + B3 * (4 + 4 + 3)) > self.max_bytes:
+            raise DynastereoError(
+                f"the mesh's voxel grid would need more than {self.max_bytes / 2**30:.1f} GiB "
+                f"(mesh.voxel_size {self.voxel:g} m, mesh.truncation {self.trunc:g} m, "
+                f"mesh.max_depth): raise mesh.voxel_size or lower mesh.max_depth")
         if need > len(self.coords):
             self._grow(max(need, int(len(self.coords) * 1.5)))
         idx = np.arange(self.n, need)

@@ -261,7 +261,7 @@ def finish_run(job: "Job", loop: "FrameLoop", error: str | None) -> JobResult:
     elif job.mesh_recorder is not None and n_done:
         try:
             job.mesh_info = save_mesh(job)
-        except OutputError as e:
+        except (DynastereoError, MemoryError) as e:  # the grid's budget, an unwritable file: the run's files stay
             job.mesh_info = {"error": str(e)}
             late, error = late or e, error or f"{type(e).__name__}: {e}"
     stats = system.stats().to_dict() if n_done else {}
