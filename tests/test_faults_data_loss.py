@@ -160,6 +160,26 @@ def test_an_output_onto_a_file_of_the_input_sequence_is_refused(earlier, tmp_pat
     assert _digest(seq) == before
 
 
+def test_an_output_onto_a_special_file_is_refused(earlier, tmp_path: Path) -> None:
+    """Outputs are renamed into place when complete: onto a device or a FIFO that rename
+    would replace the special file itself (as root, ``--save-mesh /dev/full`` left a
+    regular file there).  Refused in one line; the special files stay what they were."""
+    import os
+    import stat
+
+    seq, out = earlier
+    fifo = tmp_path / "pipe.ply"
+    os.mkfifo(fifo)
+    run = ["run", seq, "--out", tmp_path / "run", "--masker", "none"]
+    for flag, path in (("--save-mesh", fifo), ("--save-map", "/dev/null"), ("--rrd", "/dev/null"),
+                       ("--save-cloud", fifo)):
+        assert_one_line(cli([*run, flag, path], tmp_path), 2, flag, "special file")
+    assert_one_line(cli(["report", out, "--out", "/dev/null"], tmp_path), 2, "special file")
+    assert_one_line(cli(["eval", out / "trajectory.kitti.txt", out / "trajectory.kitti.txt", "--plot", fifo],
+                        tmp_path), 2, "special file")
+    assert stat.S_ISFIFO(fifo.stat().st_mode) and stat.S_ISCHR(os.stat("/dev/null").st_mode)
+
+
 def test_a_second_job_into_a_folder_in_use_is_refused(earlier, tmp_path: Path) -> None:
     from dynastereo.api import run_sequence
     from dynastereo.config import Config

@@ -276,6 +276,8 @@ def check_output_file(path: str | Path, *, what: str = "output file", overwrite:
     path = Path(path)
     if path.is_dir():
         raise OutputError(f"{what} is a folder, not a file", path)
+    if path.exists() and not path.is_file():  # a device, a FIFO, a socket: renaming into place would replace it
+        raise OutputError(f"{what} is a special file (a device, pipe or socket), not a regular file", path)
     if path.exists() and not overwrite:
         raise OutputError(f"{what} exists already; {flag} replaces it", path)
     folder = path.parent if str(path.parent) else Path(".")
