@@ -474,7 +474,7 @@ def test_malformed_metadata_yaml_names_the_line(tmp_path: Path) -> None:
     (bag / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  version: 5\n  storage_identifier: {sqlite3\n"
                                        "  duration: 1\n")
     r = cli(["run", "--bag", bag, "-o", tmp_path / "out"], tmp_path)
-    line = assert_one_line(r, 2, "metadata.yaml", "yaml syntax error at line")
+    line = assert_one_line(r, 2, "metadata.yaml", "yaml syntax error: line")
     assert "storage_identifier" not in line.split("line", 1)[0]
 
 

@@ -385,6 +385,24 @@ def test_live_core_builds_the_mesh_on_request(tmp_path: Path):
         res = core.build_mesh()
         assert res is not None and res.stats.keyframes >= 1 and len(res.mesh.vertices) > 1000
         assert plain.build_mesh() is None
+        # the build_mesh service both nodes serve: the file, the two messages, the counts
+        from dynastereo.ros.messages import RosbagsBuilder
+
+        class Pub:
+            def __init__(self) -> None:
+                self.sent: list = []
+
+            def publish(self, msg) -> None:
+                self.sent.append(msg)
+
+        pm, pd = Pub(), Pub()
+        ok, msg = core.mesh_service(RosbagsBuilder(False), tmp_path / "save", 7, pm, pd)
+        info = json.loads(msg)
+        assert ok and Path(info["file"]) == tmp_path / "save" / "mesh.ply" and Path(info["file"]).is_file()
+        assert info["vertices"] == len(res.mesh.vertices) and pm.sent[0].type == 11
+        assert pd.sent[0].width * pd.sent[0].height == info["vertices"]
+        assert plain.mesh_service(RosbagsBuilder(False), tmp_path / "p", 7, None, None) == (
+            False, "started without mesh: true")
     finally:
         core.shutdown()
         plain.shutdown()

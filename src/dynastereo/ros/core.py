@@ -518,6 +518,26 @@ class StereoNodeCore:
             snap.views, snap.moving_tracks = list(rec.views), set(rec.moving_tracks)
         return fuse(snap, poses, self.calibration, self._masker_cfg, disparity_offset=offset, ok=done)
 
+    def mesh_service(self, builder: Any, save_dir: Path, stamp_ns: int, pub_mesh: Any, pub_dense: Any) -> tuple[bool, str]:
+        """The ``build_mesh`` service of both nodes: :meth:`build_mesh`, written to
+        ``save_dir/mesh.ply``, published as a Marker TRIANGLE_LIST (``pub_mesh``) and its
+        vertices as a PointCloud2 (``pub_dense``) with the transport's ``builder``;
+        ``(success, message)`` -- the counts as JSON, or why not (the node goes on)."""
+        try:
+            from ..mesh import write_mesh_ply
+
+            res = self.build_mesh()
+            if res is None:
+                return False, "no keyframe yet" if self.mesh_recorder is not None else "started without mesh: true"
+            path = write_mesh_ply(Path(save_dir) / "mesh.ply", res.mesh)
+            if pub_dense is not None:
+                pub_dense.publish(builder.point_cloud(res.mesh.vertices, stamp_ns, self.odom_frame))
+            if pub_mesh is not None:
+                pub_mesh.publish(builder.mesh_marker(res.mesh, stamp_ns, self.odom_frame))
+            return True, json.dumps({**res.stats.to_dict(), "file": str(path)})
+        except Exception as e:  # noqa: BLE001 -- the node goes on; the caller is told
+            return False, f"{type(e).__name__}: {e}"
+
     def status(self) -> dict[str, Any]:
         d = self.stats.summary()
         d.update(queue_size=self.queue_size, queue_high_water=self.source.queue.high_water, ready=self.ready,

@@ -407,21 +407,9 @@ class Ros1Node:
             return self._TriggerResponse(False, f"{type(e).__name__}: {e}")
 
     def _srv_mesh(self, _req: Any) -> Any:
-        try:
-            from ..mesh import write_mesh_ply
-
-            res = self.core.build_mesh()
-            if res is None:
-                return self._TriggerResponse(False, "no keyframe yet")
-            path = write_mesh_ply(self.save_dir / "mesh.ply", res.mesh)
-            stamp = self._path[1][-1] if self._path[1] else 0
-            if self.pub_dense is not None:
-                self.pub_dense.publish(self.b.point_cloud(res.mesh.vertices, stamp, self.core.odom_frame))
-            if self.pub_mesh is not None:
-                self.pub_mesh.publish(self.b.mesh_marker(res.mesh, stamp, self.core.odom_frame))
-            return self._TriggerResponse(True, json.dumps({**res.stats.to_dict(), "file": str(path)}))
-        except Exception as e:  # noqa: BLE001 -- the node goes on; the caller is told
-            return self._TriggerResponse(False, f"{type(e).__name__}: {e}")
+        stamp = self._path[1][-1] if self._path[1] else 0
+        ok, message = self.core.mesh_service(self.b, self.save_dir, stamp, self.pub_mesh, self.pub_dense)
+        return self._TriggerResponse(ok, message)
 
     def _srv_status(self, _req: Any) -> Any:
         return self._TriggerResponse(True, json.dumps(self.status(), default=float))

@@ -23,7 +23,10 @@ Publishes, under ``/dynastereo/``
 
 Services (std_srvs/srv/Trigger, laid out as ``rmw_cyclonedds_cpp`` lays them out)
     ``/dynastereo/save_trajectory`` -- trajectory, timing.json, node.json into ``save_dir``;
-    ``/dynastereo/status`` -- statistics and configuration (JSON in ``message``).
+    ``/dynastereo/status`` -- statistics and configuration (JSON in ``message``);
+    ``/dynastereo/build_mesh`` (with ``mesh: true``) -- the static world's mesh so far into
+    ``save_dir/mesh.ply``, published on ``/dynastereo/mesh`` (visualization_msgs/Marker
+    TRIANGLE_LIST) and ``/dynastereo/dense_cloud`` (PointCloud2), both transient local.
 
 Parameters: those of the ROS 1 node, with its defaults, from a ROS 2 parameters file
 (``/**: ros__parameters:`` and/or ``dynastereo: ros__parameters:``); see :data:`PARAMS`.
@@ -91,7 +94,7 @@ PARAMS: dict[str, Any] = {
     "queue_size": 1, "pipelined": True, "sync_slop": 0.01, "sync_queue_size": 10, "exact_sync": False,
     "odom_frame": ODOM_FRAME, "camera_frame": "", "publish_tf": True,
     "save_dir": "", "save_on_shutdown": True,
-    "input_reliability": "best_effort", "ros_distro": "humble", "namespace": "/dynastereo",
+    "input_reliability": "best_effort", "ros_distro": "humble", "namespace": "/dynastereo", "mesh": False,
 }
 SECTIONS = LIVE_SECTIONS + ("slam", "objects", "motion")
 
@@ -227,7 +230,7 @@ class Ros2Node:
             self.use_info = False
         self.core = StereoNodeCore(self.cfg, models_dir=models_dir, queue_size=int(p["queue_size"]),
                                    pipelined=bool(p["pipelined"]), sink=self, odom_frame=str(p["odom_frame"]),
-                                   camera_frame=str(p["camera_frame"]))
+                                   camera_frame=str(p["camera_frame"]), mesh=bool(p["mesh"]))
         self.decoder = ImageDecoder(p["mono16_shift"])
         self.pairer = StampPairer(0.0 if p["exact_sync"] else float(p["sync_slop"]), int(p["sync_queue_size"]))
         self.counts = {"left": 0, "right": 0, "pairs": 0, "bad_messages": 0, "calibration_changes": 0,
@@ -274,6 +277,10 @@ class Ros2Node:
         self.pub_map = w(self._t("map_points"), "sensor_msgs/PointCloud2", QosKind.LATCHED)
         self.pub_objects = w(self._t("objects"), "visualization_msgs/MarkerArray", QosKind.RELIABLE)
         self.pub_ready = w(self._t("ready"), "std_msgs/Bool", QosKind.LATCHED)
+        self.pub_mesh = self.pub_dense = None
+        if self.core.mesh_recorder is not None:  # mesh: true -- built on the build_mesh service
+            self.pub_mesh = w(self._t("mesh"), "visualization_msgs/Marker", QosKind.LATCHED)
+            self.pub_dense = w(self._t("dense_cloud"), "sensor_msgs/PointCloud2", QosKind.LATCHED)
         self._ready(False)
 
 
@@ -302,7 +309,10 @@ class Ros2Node:
         req_t, self._rep_t = service_types()
         self._req_t = req_t
         self.services: dict[str, tuple[Any, Any, Any]] = {}
-        for name, fn in (("save_trajectory", self._srv_save), ("status", self._srv_status)):
+        served = [("save_trajectory", self._srv_save), ("status", self._srv_status)]
+        if self.core.mesh_recorder is not None:
+            served.append(("build_mesh", self._srv_mesh))
+        for name, fn in served:
             rq, rr = service_topics(self._t(name))
             self.services[name] = (self.dom.reader("", req_t, QosKind.SERVICE, dds_name=rq),
                                    self.dom.writer("", self._rep_t, QosKind.SERVICE, dds_name=rr), fn)
@@ -483,6 +493,10 @@ class Ros2Node:
             return True, json.dumps(self.core.save(self.save_dir))
         except Exception as e:  # noqa: BLE001 - reported to the caller
             return False, f"{type(e).__name__}: {e}"
+
+    def _srv_mesh(self) -> tuple[bool, str]:
+        stamp = self._path[1][-1] if self._path[1] else 0
+        return self.core.mesh_service(self.b, self.save_dir, stamp, self.pub_mesh, self.pub_dense)
 
     def _srv_status(self) -> tuple[bool, str]:
         return True, json.dumps(self.status(), default=float)
