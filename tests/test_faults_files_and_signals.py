@@ -487,6 +487,7 @@ def test_malformed_metadata_yaml_names_the_line(tmp_path: Path) -> None:
     (["vocab", ".", "-o", "v.npz", "--k", "1"], ["--k"]),
     (["vocab", ".", "-o", "v.npz", "--levels", "0"], ["--levels"]),
     (["vocab", ".", "-o", "v.npz", "--features", "0"], ["--features"]),
+    (["demo", "--out", "o", "--frames", "1"], ["--frames", "2 poses"]),
 ])
 def test_option_errors_name_the_option_and_unit(args, needles, tmp_path: Path) -> None:
     assert_one_line(cli(args, tmp_path), 2, *needles)

@@ -675,6 +675,7 @@ def demo(
     """Embedded default, offline: synthetic dynamic scene -> SLAM unmasked vs masked, evaluated against GT; an HTML report per run."""
     from ..demo import run_demo
 
+    _check_option("--frames", frames, 2 <= frames <= 100_000, "a number of frames in 2..100000 (the runs are scored against the ground truth: 2 poses at least)")
     try:
         run_demo(out, scenario=scenario, frames=frames, detector=detector, models_dir=models_dir,
                  console=out_console, progress=_progress, viewer=viewer, rrd=rrd)
