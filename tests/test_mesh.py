@@ -249,14 +249,15 @@ def test_a_volume_over_its_memory_budget_stops_in_one_line():
     """The voxel grid grows up to its budget, never past it: a depth map that needs more
     blocks stops with one line that says which settings to change."""
     from dynastereo.errors import DynastereoError
+    from dynastereo.mesh.tsdf import BLOCK_BYTES
 
     depth = np.full((H, W), 8.0, np.float32)
     img = np.full((H, W), 128, np.uint8)
-    small = TSDFVolume(0.1, 0.3, 1, max_bytes=50 * 5656)  # 50 blocks
+    small = TSDFVolume(0.1, 0.3, 1, max_bytes=50 * BLOCK_BYTES)  # 50 blocks
     with pytest.raises(DynastereoError) as e:
         small.integrate(depth, img, CALIB.K, np.eye(4)[:3])
     assert "mesh.voxel_size" in str(e.value) and "\n" not in str(e.value)
-    assert small.nbytes <= 50 * 5656
+    assert small.nbytes <= 50 * BLOCK_BYTES
     ok = TSDFVolume(0.1, 0.3, 1)
     ok.integrate(depth, img, CALIB.K, np.eye(4)[:3])
     assert 50 < ok.n_blocks and ok.nbytes <= ok.max_bytes
@@ -293,9 +294,10 @@ def test_a_mesh_over_its_budget_fails_the_run_in_one_line_and_keeps_its_files(tm
 
     import dynastereo.mesh.fusion as fusion
     from dynastereo.cli.main import app
+    from dynastereo.mesh.tsdf import BLOCK_BYTES
     from dynastereo.synth import generate
 
-    monkeypatch.setattr(fusion, "TSDFVolume", functools.partial(TSDFVolume, max_bytes=20 * 5656))
+    monkeypatch.setattr(fusion, "TSDFVolume", functools.partial(TSDFVolume, max_bytes=20 * BLOCK_BYTES))
     seq = generate(tmp_path / "seq", "oncoming", frames=8, seed=3, size=(480, 144))
     out = tmp_path / "run"
     r = CliRunner().invoke(app, ["run", str(seq), "--out", str(out), "--detector", "oracle", "--save-mesh",

@@ -196,7 +196,8 @@ def refuse_input_as_output(out: str | Path, inputs: Iterable[str | Path | None],
     for f in folders:
         if f is None or str(f) == "" or not Path(f).is_dir():
             continue
-        if (out.is_file() or out.is_symlink()) and _inside(out, Path(f)) and not (own is not None and _inside(out, Path(own))):
+        ours = own is not None and _inside(out, Path(own))
+        if (out.is_file() or out.is_symlink()) and _inside(out, Path(f)) and not ours:
             raise OutputError(f"{name}{what} is a file of the input sequence {f}; writing it would destroy the "
                               "input -- choose a path outside it", out)
 

@@ -29,6 +29,7 @@ from .tables import CORNERS, EDGES, TRIS
 
 BLOCK = 8  # voxels per block side
 B3 = BLOCK ** 3
+BLOCK_BYTES = 3 * 8 + B3 * (4 + 4 + 3)  # a block's coordinates, distances, weights and colours
 _OFF_B = 1 << 20  # block coordinates packed 21 bits each
 _OFF_V = 1 << 19  # voxel coordinates packed 20 bits each (edge keys)
 MAX_WEIGHT = 255.0
@@ -231,9 +232,8 @@ class TSDFVolume:
         self.peak_bytes = 0
 
     def _grow(self, cap: int) -> None:
-        per_block = 3 * 8 + B3 * (4 + 4 + 3)
-        if cap * per_block > self.max_bytes:  # grow to the budget, never past it
-            cap = max(self.n, self.max_bytes // per_block)
+        if cap * BLOCK_BYTES > self.max_bytes:  # grow to the budget, never past it
+            cap = max(self.n, self.max_bytes // BLOCK_BYTES)
         old = self.n
         coords = np.zeros((cap, 3), np.int64)
         tsdf = np.ones((cap, B3), np.float32)
@@ -261,7 +261,7 @@ class TSDFVolume:
         if not len(keys):
             return
         need = self.n + len(keys)
-        if need * (3 * 8 + B3 * (4 + 4 + 3)) > self.max_bytes:
+        if need * BLOCK_BYTES > self.max_bytes:
             raise DynastereoError(
                 f"the mesh's voxel grid would need more than {self.max_bytes / 2**30:.1f} GiB "
                 f"(mesh.voxel_size {self.voxel:g} m, mesh.truncation {self.trunc:g} m, "
