@@ -393,8 +393,9 @@ def report_cmd(
     _check_option("--overlays", overlays, 0 <= overlays <= 1000, "a count of images in 0..1000")
     try:
         if out is not None:
-            refuse_input_as_output(out, [gt, run_dir, *(run_dir / n for n in RUN_OUTPUTS), *_run_inputs(run_dir)],
-                                   what="report file", flag="--out", folders=_run_inputs(run_dir)[:1], own=run_dir)
+            recorded = _run_inputs(run_dir)  # the sequence first
+            refuse_input_as_output(out, [gt, run_dir, *(run_dir / n for n in RUN_OUTPUTS), *recorded],
+                                   what="report file", flag="--out", folders=recorded[:1], own=run_dir)
             check_output_file(out, what="report file")
         path = make_report(run_dir, gt, out, overlays=overlays, auto_gt=not no_auto_gt)
     except DynastereoError as e:
