@@ -41,6 +41,10 @@ missing (how to install: ``../shared/anchors/README.md``).  Where they are looke
     --vocabulary   $DYNASTEREO_PEER_VOCAB   (default ../.peers/ORBvoc.txt beside the repo:
                    the anchors' self-trained ORBvoc_selftrained_k10L6.txt.gz, gunzipped)
 
+``--against OTHER/src`` runs each of dynastereo's systems also from another source tree
+(``NAME@against``, first on ``PYTHONPATH``), alternated with this tree's in the same pass:
+before and after a change, each beside the same peer runs.
+
 Prints a markdown table (README "Results beside ORB-SLAM3"), writes benchmarks/results/peers.json
 (``--systems default,fast,orbslam3``: benchmarks/results/peers_fast_profile.json).  Run:
 
@@ -52,6 +56,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -80,21 +85,28 @@ def ground_truth(seq: Path) -> Path | None:
         return None
 
 
-def _cli(seq: Path, out: Path, extra: list[str]) -> float:
-    """``dynastereo run`` in its own process; its process tree's CPU seconds."""
+def _cli(seq: Path, out: Path, extra: list[str], src: Path | None = None) -> float:
+    """``dynastereo run`` in its own process (``src``: another tree's source folder, first on
+    ``PYTHONPATH``); its process tree's CPU seconds."""
     cmd = [sys.executable, "-m", "dynastereo.cli.main", "run", str(seq), "-o", str(out), "--overwrite", *extra]
+    env = None
+    if src is not None:
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(src), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
     c0 = children_cpu()
-    r = subprocess.run(cmd, capture_output=True, text=True)
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if r.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}):\n{r.stderr[-2000:]}")
     return children_cpu() - c0
 
 
-def run_dynastereo(seq: Path, system: str, tmp: Path, gt: Path | None) -> dict:
-    extra = {"none": ["--masker", "none"], "fast": ["-c", str(ROOT / "configs" / "fast.yaml")]}.get(system, [])
-    out = tmp / f"{system}"
-    cpu_one = _cli(seq, tmp / f"{system}_1", [*extra, "--frames", "1"])
-    cpu_all = _cli(seq, out, extra)
+def run_dynastereo(seq: Path, system: str, tmp: Path, gt: Path | None, against: Path | None = None) -> dict:
+    """One ``dynastereo run`` of ``system`` (``NAME@against``: ``against``'s source tree)."""
+    name, _, other = system.partition("@")
+    src = against if other else None
+    extra = {"none": ["--masker", "none"], "fast": ["-c", str(ROOT / "configs" / "fast.yaml")]}.get(name, [])
+    out = tmp / f"{name}"
+    cpu_one = _cli(seq, tmp / f"{name}_1", [*extra, "--frames", "1"], src)
+    cpu_all = _cli(seq, out, extra, src)
     timing = json.loads((out / "timing.json").read_text())
     run = json.loads((out / "run.json").read_text())
     n = int(run["frames_done"])
@@ -120,6 +132,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--systems", default="none,default,orbslam3", help="of " + ", ".join(SYSTEMS))
     data = add_peer_args(ap)
+    ap.add_argument("--against", type=Path, default=None,
+                    help="another tree's source folder: its runs alternate with this tree's (systems NAME@against)")
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
 
@@ -138,6 +152,8 @@ def main() -> None:
         else:
             clips[c] = clip_dirs(data)[c]
     systems = [s for s in args.systems.split(",") if s in SYSTEMS]
+    if args.against is not None:  # before and after side by side: each of ours also from the other tree
+        systems = [x for s in systems for x in ((s,) if s == "orbslam3" else (f"{s}@against", s))]
     notes = []
     peer = None
     if "orbslam3" in systems:
@@ -163,7 +179,8 @@ def main() -> None:
                     d = Path(tmp) / c / s / str(rep)
                     d.mkdir(parents=True, exist_ok=True)
                     t = time.perf_counter()
-                    r = run_peer(seq, d, gts[c], peer) if s == "orbslam3" else run_dynastereo(seq, s, d, gts[c])
+                    r = (run_peer(seq, d, gts[c], peer) if s == "orbslam3"
+                         else run_dynastereo(seq, s, d, gts[c], args.against))
                     runs[c][s].append(r)
                     print(f"[{rep + 1}/{args.repeats}] {c:7s} {s:8s} {r['fps']:6.2f} FPS  "
                           f"{r['cpu_ms']:6.1f} ms CPU/frame  ATE {_f(r['ate_m'], '.4f')} m  lost {r['lost']}  "
@@ -174,8 +191,8 @@ def main() -> None:
         summary[c] = {s: {k: med(runs[c][s], k) for k in ("fps", "cpu_ms", "ate_m")} for s in systems}
         if "orbslam3" in systems:
             p = summary[c]["orbslam3"]
-            for s in ("none", "default", "fast"):
-                if s in systems:
+            for s in systems:
+                if s != "orbslam3":
                     m = summary[c][s]
                     m["fps_ratio"] = m["fps"] / p["fps"] if p["fps"] else None
                     m["cpu_ratio"] = m["cpu_ms"] / p["cpu_ms"] if p["cpu_ms"] else None
@@ -184,6 +201,7 @@ def main() -> None:
               "peer": {"name": "ORB-SLAM3 stereo via pyorbslam3 (GPL-3, own venv)", "script": str(args.peer_script),
                        "vocabulary": VOCAB_NAME} if peer else None,
               "ground_truth": {c: (str(g) if g else None) for c, g in gts.items()},
+              "against": str(args.against) if args.against else None,
               "notes": notes, "summary": summary, "runs": runs}
     write_json(args.out, result)
 
@@ -195,7 +213,7 @@ def main() -> None:
     head = {"none": "`dynastereo run --masker none`", "default": "`dynastereo run`",
             "fast": "`dynastereo run -c configs/fast.yaml`",
             "orbslam3": "ORB-SLAM3 (pyorbslam3)"}
-    print("| clip | " + " | ".join(head[s] for s in systems) + " |")
+    print("| clip | " + " | ".join(head[s.partition("@")[0]] + (" (against)" if "@" in s else "") for s in systems) + " |")
     print("|---|" + "---|" * len(systems))
     for c in clips:
         cells = []
