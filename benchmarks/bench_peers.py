@@ -43,7 +43,8 @@ missing (how to install: ``../shared/anchors/README.md``).  Where they are looke
 
 ``--against OTHER/src`` runs each of dynastereo's systems also from another source tree
 (``NAME@against``, first on ``PYTHONPATH``), alternated with this tree's in the same pass:
-before and after a change, each beside the same peer runs.
+before and after a change, each beside the same peer runs (ORB-SLAM2's extractor on one
+pyramid against OpenCV's: ``--against <orb-kernel>/src --out benchmarks/results/peers_orb_kernel.json``).
 
 Prints a markdown table (README "Results beside ORB-SLAM3"), writes benchmarks/results/peers.json
 (``--systems default,fast,orbslam3``: benchmarks/results/peers_fast_profile.json).  Run:
