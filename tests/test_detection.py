@@ -701,3 +701,22 @@ def test_quantize_writes_a_qdq_graph_with_an_f32_head(models_dir, kitti03, tmp_p
     s = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
     y = s.run(None, {s.get_inputs()[0].name: np.zeros((1, 3, 96, 320), np.float32)})[0]
     assert y.shape[-1] == 85
+
+
+def test_two_inference_threads_give_the_same_boxes_bit_for_bit(models_dir, kitti06):
+    """``detector.threads: 2`` (the default) halves the network's wall time; the boxes and
+    scores must be those of one thread exactly, so a live node and an offline run agree."""
+    from dynastereo.masking.detection.stage import DetectionStage
+
+    require(models_dir / "yolox-nano", "model yolox-nano")
+    stages = {t: DetectionStage(create_detector(DetectorConfig(threads=t), models_dir), DetectorConfig(threads=t))
+              for t in (1, 2)}
+    n = 0
+    for k in range(0, 51, 5):
+        img = cv2.imread(str(require(kitti06 / f"image_0/{k:06d}.png")), cv2.IMREAD_UNCHANGED)
+        one, two = (stages[t].detect(img) for t in (1, 2))
+        np.testing.assert_array_equal(one.boxes, two.boxes)
+        np.testing.assert_array_equal(one.scores, two.scores)
+        np.testing.assert_array_equal(one.class_ids, two.class_ids)
+        n += len(one)
+    assert n >= 20  # the frames hold boxes to compare
