@@ -23,7 +23,12 @@ is recorded.
 
 Run: DYNASTEREO_DATA=... DYNASTEREO_MODELS=... .venv/bin/python benchmarks/bench_ros_latency.py
      [--repeats 2] [--frames 51] [--rate 10] [--modes serial,pipelined] [--transports ros1,ros2]
+     [--config FILE.yaml]
 Writes benchmarks/results/ros_latency.json.  Needs ROS 1 (Debian packages, see .ci/run).
+``--config`` gives both nodes a configuration: the latency without the network on the
+critical path, for instance (``detector: {interval: 1000}``: one network run, then nothing
+detected), ``--transports ros2 --modes pipelined --config ... --out
+benchmarks/results/ros_latency_no_network.json``.
 """
 
 from __future__ import annotations
@@ -46,13 +51,15 @@ SETTLE = 5  # odometry messages left out of the "after start-up" figures: the fi
 HARNESS = ROOT / "tests" / "ros_harness.py"  # test code, not in the package
 
 
-def run_once(seq: Path, frames: int, rate: float, pipelined: bool, timeout: float) -> dict:
+def run_once(seq: Path, frames: int, rate: float, pipelined: bool, timeout: float, config: Path | None = None) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench_ros_") as work:
         out = Path(work) / "res.json"
         cmd = [sys.executable, str(HARNESS), "latency", "--sequence", str(seq),
                "--frames", str(frames), "--rate", str(rate), "--queue-size", "1", "--workdir", work,
                "--json", str(out), "--launch-arg", f"pipelined:={'true' if pipelined else 'false'}",
                "--timeout", str(timeout)]
+        if config is not None:
+            cmd += ["--launch-arg", f"config:={config}"]
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout + 120, start_new_session=True)
         if not out.is_file():
             raise SystemExit(f"harness failed ({p.returncode}):\n{p.stdout[-3000:]}\n{p.stderr[-3000:]}")
@@ -68,7 +75,8 @@ CDDS_XML = """<CycloneDDS><Domain Id="any"><General><Interfaces><NetworkInterfac
 </Domain></CycloneDDS>"""
 
 
-def run_once_ros2(seq: Path, frames: int, rate: float, pipelined: bool, timeout: float) -> dict:
+def run_once_ros2(seq: Path, frames: int, rate: float, pipelined: bool, timeout: float,
+                  config: Path | None = None) -> dict:
     """The ROS 2 node in its own process, the player and the odometry recorder here."""
     import signal
     import time
@@ -84,7 +92,8 @@ def run_once_ros2(seq: Path, frames: int, rate: float, pipelined: bool, timeout:
         os.environ["CYCLONEDDS_URI"] = (w / "cdds.xml").as_uri()
         domain = 100 + os.getpid() % 120
         (w / "params.yaml").write_text("/**:\n  ros__parameters:\n    queue_size: 1\n    input_reliability: reliable\n"
-                                       f"    pipelined: {'true' if pipelined else 'false'}\n    save_dir: {w / 'save'}\n")
+                                       f"    pipelined: {'true' if pipelined else 'false'}\n    save_dir: {w / 'save'}\n"
+                                       + (f"    config: {config}\n" if config is not None else ""))
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
         log = (w / "node.log").open("wb")
         node = subprocess.Popen([sys.executable, "-m", "dynastereo.cli.main", "node", "--ros2", "--params",
@@ -132,6 +141,8 @@ def main() -> None:
     ap.add_argument("--modes", default="serial,pipelined")
     ap.add_argument("--timeout", type=float, default=120.0)
     ap.add_argument("--transports", default="ros1,ros2")
+    ap.add_argument("--config", type=Path, default=None,
+                    help="a dynastereo YAML configuration for both nodes (default: the defaults)")
     ap.add_argument("--out", type=Path, default=results_path("ros_latency"))
     args = ap.parse_args()
     data, _ = data_dir(), models_dir()
@@ -149,7 +160,7 @@ def main() -> None:
         runs = []
         for r in range(args.repeats):
             once = run_once_ros2 if transport == "ros2" else run_once
-            res = once(seq, args.frames, args.rate, mode == "pipelined", args.timeout)
+            res = once(seq, args.frames, args.rate, mode == "pipelined", args.timeout, args.config)
             st = res["status"]
             runs.append({
                 "published": res["published"], "received": st["received"], "processed": st["processed"],
@@ -200,7 +211,8 @@ def main() -> None:
         "machine": machine(),
         "target": {"median_ms": TARGET_MEDIAN_MS, "p95_ms": TARGET_P95_MS, "drops": 0},
         "sequence": "KITTI 06 (gray 1226x370)",
-        "config": "default (outline masker, yolox-nano, StereoBM, 2000 ORB features); queue_size 1",
+        "config": (str(args.config) if args.config else "default (outline masker, yolox-nano, StereoBM, 2000 ORB "
+                   "features)") + "; queue_size 1",
         "results": rows,
     })
     print(f"wrote {args.out}")
