@@ -29,7 +29,8 @@ need the sequence), with the masker ``dynastereo mask`` builds (``build_masker``
 
 Prints a table per sequence; writes benchmarks/results/recall.json (the cheap-masking rows:
 benchmarks/results/recall_cheap_masking.json and
-benchmarks/results/recall_stereo_scale2.json).
+benchmarks/results/recall_stereo_scale2.json; FastestDet on every frame beside the default:
+benchmarks/results/recall_fastestdet.json).
 Run: DYNASTEREO_DATA=/work/shared/data DYNASTEREO_MODELS=/work/shared/models \\
      .venv/bin/python benchmarks/bench_recall.py [--rows default,frame-every,...] [--ref03 DIR]
 """
