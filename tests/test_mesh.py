@@ -398,12 +398,14 @@ def test_live_core_builds_the_mesh_on_request(tmp_path: Path):
                 self.sent.append(msg)
 
         pm, pd = Pub(), Pub()
-        ok, msg = core.mesh_service(RosbagsBuilder(False), tmp_path / "save", 7, pm, pd)
+        ok, msg = core.mesh_service(RosbagsBuilder(False), tmp_path / "save", pm, pd)
         info = json.loads(msg)
         assert ok and Path(info["file"]) == tmp_path / "save" / "mesh.ply" and Path(info["file"]).is_file()
         assert info["vertices"] == len(res.mesh.vertices) and pm.sent[0].type == 11
         assert pd.sent[0].width * pd.sent[0].height == info["vertices"]
-        assert plain.mesh_service(RosbagsBuilder(False), tmp_path / "p", 7, None, None) == (
+        last = core._stamps[-1]  # stamped with the last published pair
+        assert (pm.sent[0].header.stamp.sec, pm.sent[0].header.stamp.nanosec) == divmod(last, 1_000_000_000)
+        assert plain.mesh_service(RosbagsBuilder(False), tmp_path / "p", None, None) == (
             False, "started without mesh: true")
     finally:
         core.shutdown()

@@ -518,11 +518,13 @@ class StereoNodeCore:
             snap.views, snap.moving_tracks = list(rec.views), set(rec.moving_tracks)
         return fuse(snap, poses, self.calibration, self._masker_cfg, disparity_offset=offset, ok=done)
 
-    def mesh_service(self, builder: Any, save_dir: Path, stamp_ns: int, pub_mesh: Any, pub_dense: Any) -> tuple[bool, str]:
+    def mesh_service(self, builder: Any, save_dir: Path, pub_mesh: Any, pub_dense: Any) -> tuple[bool, str]:
         """The ``build_mesh`` service of both nodes: :meth:`build_mesh`, written to
         ``save_dir/mesh.ply``, published as a Marker TRIANGLE_LIST (``pub_mesh``) and its
-        vertices as a PointCloud2 (``pub_dense``) with the transport's ``builder``;
-        ``(success, message)`` -- the counts as JSON, or why not (the node goes on)."""
+        vertices as a PointCloud2 (``pub_dense``) with the transport's ``builder``, stamped
+        with the last published pair's stamp; ``(success, message)`` -- the counts as JSON,
+        or why not (the node goes on)."""
+        stamp_ns = self._stamps[-1] if self._stamps else 0
         try:
             from ..mesh import write_mesh_ply
 

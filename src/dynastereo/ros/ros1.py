@@ -407,8 +407,7 @@ class Ros1Node:
             return self._TriggerResponse(False, f"{type(e).__name__}: {e}")
 
     def _srv_mesh(self, _req: Any) -> Any:
-        stamp = self._path[1][-1] if self._path[1] else 0
-        ok, message = self.core.mesh_service(self.b, self.save_dir, stamp, self.pub_mesh, self.pub_dense)
+        ok, message = self.core.mesh_service(self.b, self.save_dir, self.pub_mesh, self.pub_dense)
         return self._TriggerResponse(ok, message)
 
     def _srv_status(self, _req: Any) -> Any:

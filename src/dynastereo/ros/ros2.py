@@ -495,8 +495,7 @@ class Ros2Node:
             return False, f"{type(e).__name__}: {e}"
 
     def _srv_mesh(self) -> tuple[bool, str]:
-        stamp = self._path[1][-1] if self._path[1] else 0
-        return self.core.mesh_service(self.b, self.save_dir, stamp, self.pub_mesh, self.pub_dense)
+        return self.core.mesh_service(self.b, self.save_dir, self.pub_mesh, self.pub_dense)
 
     def _srv_status(self) -> tuple[bool, str]:
         return True, json.dumps(self.status(), default=float)
